@@ -1,0 +1,215 @@
+"""The calibration parameters the whole package shares.
+
+Every method, whatever its error model, ends as an *affine* correction per
+sensor, applied after the nominal transfer (counts -> gauss or g)::
+
+    corrected = matrix @ (raw - offset)
+
+``offset`` is the hard-iron vector (magnetometer, gauss) or the zero-g bias
+(accelerometer, g), *subtracted*; ``matrix`` holds gains, soft iron,
+non-orthogonality and -- for the magnetometer -- the rotation that aligns it
+to the accelerometer axes. A symmetric ``matrix`` is what ArduPilot/PX4 can
+express (COMPASS_DIA_*, COMPASS_ODI_*); the polar decomposition
+``matrix = rotation @ symmetric`` separates the rest (:meth:`AffineCalibration.ardupilot_view`).
+
+ArduPilot's COMPASS_OFS_* are *added* to the raw field and are in milligauss,
+so ``COMPASS_OFS = -1000 * offset``; see :meth:`AffineCalibration.ardupilot_view`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from bridge.core.geometry import dcm_to_rotvec
+
+FloatArray = npt.NDArray[np.float64]
+Vec3 = tuple[float, float, float]
+Mat3 = tuple[Vec3, Vec3, Vec3]
+
+IDENTITY: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def _vec3(v: npt.ArrayLike) -> Vec3:
+    a = np.asarray(v, dtype=np.float64).reshape(3)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _mat3(m: npt.ArrayLike) -> Mat3:
+    a = np.asarray(m, dtype=np.float64).reshape(3, 3)
+    return (_vec3(a[0]), _vec3(a[1]), _vec3(a[2]))
+
+
+@dataclass(frozen=True, slots=True)
+class ArduPilotView:
+    """A calibration expressed in ArduPilot's terms (what MAG_CAL_REPORT / COMPASS_* carry).
+
+    ``ofs_mG`` is COMPASS_OFS_X/Y/Z (added to raw, milligauss); ``diag`` is
+    COMPASS_DIA_X/Y/Z and ``offdiag`` is COMPASS_ODI_X/Y/Z = (xy, xz, yz) of the
+    symmetric part divided by ``scale`` (COMPASS_SCALE); ``rotation_rotvec`` is
+    what the symmetric form cannot hold (the bridge's own alignment parameter).
+    """
+
+    ofs_mG: Vec3
+    diag: Vec3
+    offdiag: Vec3
+    scale: float
+    rotation_rotvec: Vec3
+
+
+@dataclass(frozen=True, slots=True)
+class AffineCalibration:
+    """``corrected = matrix @ (raw - offset)`` for one three-axis sensor (immutable)."""
+
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    matrix: Mat3 = IDENTITY
+
+    @classmethod
+    def from_arrays(cls, offset: npt.ArrayLike, matrix: npt.ArrayLike) -> AffineCalibration:
+        """Build from numpy arrays; raises ``ValueError`` on non-finite or singular input."""
+        off, mat = _vec3(offset), _mat3(matrix)
+        m = np.asarray(mat)
+        if not (np.all(np.isfinite(off)) and np.all(np.isfinite(m))):
+            raise ValueError("calibration must be finite")
+        if abs(float(np.linalg.det(m))) < 1e-9:
+            raise ValueError("calibration matrix is singular")
+        return cls(off, mat)
+
+    @property
+    def offset_array(self) -> FloatArray:
+        """``offset`` as a numpy vector."""
+        return np.asarray(self.offset, dtype=np.float64)
+
+    @property
+    def matrix_array(self) -> FloatArray:
+        """``matrix`` as a 3x3 numpy array."""
+        return np.asarray(self.matrix, dtype=np.float64)
+
+    def apply(self, raw: npt.ArrayLike) -> FloatArray:
+        """Correct one vector (3,) or a batch (N, 3)."""
+        r = np.asarray(raw, dtype=np.float64)
+        return (r - self.offset_array) @ self.matrix_array.T
+
+    def apply_tuple(self, x: float, y: float, z: float) -> Vec3:
+        """Scalar fast path for the per-frame pipeline (no numpy on 3-vectors)."""
+        o, m = self.offset, self.matrix
+        dx, dy, dz = x - o[0], y - o[1], z - o[2]
+        return (
+            m[0][0] * dx + m[0][1] * dy + m[0][2] * dz,
+            m[1][0] * dx + m[1][1] * dy + m[1][2] * dz,
+            m[2][0] * dx + m[2][1] * dy + m[2][2] * dz,
+        )
+
+    def then_rotate(self, rotation: npt.ArrayLike) -> AffineCalibration:
+        """This calibration followed by a rotation (e.g. magnetometer-to-accelerometer alignment)."""
+        return AffineCalibration.from_arrays(self.offset, np.asarray(rotation) @ self.matrix_array)
+
+    def ardupilot_view(self) -> ArduPilotView:
+        """Polar-decompose ``matrix = R @ S`` and express ``S`` the ArduPilot way.
+
+        ``scale`` is chosen so the mean of the diagonal is 1 (COMPASS_SCALE).
+        """
+        m = self.matrix_array
+        U, s, Vt = np.linalg.svd(m)
+        R = U @ Vt
+        if np.linalg.det(R) < 0:  # keep a proper rotation
+            U[:, -1] = -U[:, -1]
+            s[-1] = -s[-1]
+            R = U @ Vt
+        S = Vt.T @ np.diag(s) @ Vt
+        scale = float(np.mean(np.diag(S)))
+        Sn = S / scale
+        return ArduPilotView(
+            ofs_mG=_vec3(-1000.0 * self.offset_array),
+            diag=_vec3(np.diag(Sn)),
+            offdiag=(float(Sn[0, 1]), float(Sn[0, 2]), float(Sn[1, 2])),
+            scale=scale,
+            rotation_rotvec=_vec3(dcm_to_rotvec(R)),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {"offset": list(self.offset), "matrix": [list(r) for r in self.matrix]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AffineCalibration:
+        """Inverse of :meth:`to_dict`; raises ``ValueError``/``KeyError``/``TypeError`` on bad input."""
+        return cls.from_arrays(d["offset"], d["matrix"])
+
+
+@dataclass(frozen=True, slots=True)
+class Calibration:
+    """The complete sensor calibration the attitude engine applies.
+
+    ``mag`` maps nominal gauss into the accelerometer's (body) axes; ``accel``
+    maps nominal g into a unit gravity vector in the same axes. A level trim
+    or mounting correction is a rotation folded into *both* matrices, so the
+    two sensors always share one frame.
+    """
+
+    mag: AffineCalibration = field(default_factory=AffineCalibration)
+    accel: AffineCalibration = field(default_factory=AffineCalibration)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {"mag": self.mag.to_dict(), "accel": self.accel.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Calibration:
+        """Inverse of :meth:`to_dict`."""
+        return cls(AffineCalibration.from_dict(d["mag"]), AffineCalibration.from_dict(d["accel"]))
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationReport:
+    """How good a fit is, in the figures an integrator reads.
+
+    ``fitness_mG`` is ArduPilot's MAG_CAL_REPORT.fitness: RMS of (|corrected| -
+    radius) in milligauss. Field spreads are peak-to-peak / 2 of |B| in nT
+    (the seed paper's "+-700 nT -> +-100 nT"). ``status`` is a MAG_CAL_STATUS
+    name ("MAG_CAL_SUCCESS", "MAG_CAL_BAD_RADIUS", ...).
+    """
+
+    method: str
+    status: str = "MAG_CAL_SUCCESS"
+    n_samples: int = 0
+    n_rejected: int = 0
+    fitness_mG: float = math.nan
+    radius_G: float = math.nan
+    scale_factor: float = 1.0
+    field_spread_before_nT: float = math.nan
+    field_spread_after_nT: float = math.nan
+    gravity_spread_before_mg: float = math.nan
+    gravity_spread_after_mg: float = math.nan
+    coverage_pct: float = math.nan
+    iterations: int = 0
+    notes: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        """True when ``status`` is MAG_CAL_SUCCESS."""
+        return self.status == "MAG_CAL_SUCCESS"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form (NaN becomes None)."""
+        out: dict[str, Any] = {}
+        for name in self.__dataclass_fields__:
+            v = getattr(self, name)
+            if isinstance(v, float) and not math.isfinite(v):
+                v = None
+            elif isinstance(v, tuple):
+                v = list(v)
+            out[name] = v
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationResult:
+    """A method's outcome: the parameters and their report."""
+
+    calibration: Calibration
+    report: CalibrationReport

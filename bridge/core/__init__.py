@@ -1,0 +1,1 @@
+"""Pure maths without I/O: geometry, sensor transfer functions, WMM, attitude."""

@@ -1,0 +1,1 @@
+"""The serial-link adapter: transports, the CompassLink reader, recording and replay."""

@@ -1,0 +1,1 @@
+"""Serial protocol codecs: pure, no I/O."""

@@ -1,0 +1,1 @@
+"""The simulated GMR compass: physics, motion scripts, firmware emulation, pty server."""
