@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.core.geometry import dcm_to_rotvec
+from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 
 FloatArray = npt.NDArray[np.float64]
 Vec3 = tuple[float, float, float]
@@ -131,6 +131,18 @@ class AffineCalibration:
             rotation_rotvec=_vec3(dcm_to_rotvec(R)),
         )
 
+    @classmethod
+    def from_ardupilot(cls, view: ArduPilotView) -> AffineCalibration:
+        """Inverse of :meth:`ardupilot_view`: rebuild ``matrix = scale * R @ S`` and the offset.
+
+        This is how a parameter SET (COMPASS_OFS_X, COMPASS_DIA_Y, ...) turns
+        back into the calibration the engine applies.
+        """
+        d, o = view.diag, view.offdiag
+        S = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+        R = rotvec_to_dcm(view.rotation_rotvec)
+        return cls.from_arrays(-np.asarray(view.ofs_mG) / 1000.0, view.scale * (R @ S))
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
         return {"offset": list(self.offset), "matrix": [list(r) for r in self.matrix]}
@@ -188,6 +200,11 @@ class CalibrationReport:
     coverage_pct: float = math.nan
     iterations: int = 0
     notes: tuple[str, ...] = ()
+    # RMS companions of the +-half-peak-to-peak spreads above (|B| - mean, |g| - 1 g).
+    field_rms_before_nT: float = math.nan
+    field_rms_after_nT: float = math.nan
+    gravity_rms_before_mg: float = math.nan
+    gravity_rms_after_mg: float = math.nan
 
     @property
     def ok(self) -> bool:
