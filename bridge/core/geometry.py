@@ -43,7 +43,7 @@ def euler_to_dcm_batch(roll: npt.ArrayLike, pitch: npt.ArrayLike, yaw: npt.Array
     p = np.asarray(pitch, dtype=np.float64)
     y = np.asarray(yaw, dtype=np.float64)
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    out = np.empty(r.shape + (3, 3))
+    out = np.empty((*r.shape, 3, 3))
     out[..., 0, 0] = cp * cy
     out[..., 0, 1] = sr * sp * cy - cr * sy
     out[..., 0, 2] = cr * sp * cy + sr * sy

@@ -1,0 +1,519 @@
+"""The per-frame attitude path: raw counts -> calibrated vectors -> roll/pitch/heading/quaternion.
+
+Pipeline for one ``$PGMRA`` frame (all pure, no I/O)::
+
+    counts --nominal transfer (core.sensor)--> gauss / g
+           --stored calibration (matrix @ (raw - offset))--> accelerometer axes
+           --mounting rotation (core.mounting)--> vehicle body axes (x fwd, y right, z down)
+           --> roll, pitch from gravity; tilt-compensated magnetic heading
+           --> + declination = true heading; quaternion body->NED
+
+The formulas are the datasheet's (the on-board ones), with the datasheet's
+gravity-vector sign (level reads +1 g on z)::
+
+    pitch = -asin(gx/|g|)            roll = atan2(gy, gz)
+    X = Hx cos(pitch) + Hy sin(pitch) sin(roll) + Hz sin(pitch) cos(roll)
+    Y = Hy cos(roll) - Hz sin(roll)
+    heading = atan2(-Y, X), folded into [0, 360), clockwise from magnetic north
+
+Near +-90 deg pitch roll is undefined (gravity lies along x); the outputs stay
+finite (roll falls to whatever the tiny y/z components give, heading stays
+consistent with it) and the solution is flagged ``degraded``.
+
+:meth:`AttitudeEngine.solve_counts` is the daemon's fast path: the whole chain
+is folded into two 3x3 matrices and two count offsets, evaluated with plain
+floats and ``math`` (numpy on 3-vectors costs more than the arithmetic).
+Configuration changes swap one immutable state object, so a reader thread can
+keep calling ``solve_counts`` while another thread updates the position.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from bridge.calibration.model import Calibration
+from bridge.core import sensor
+from bridge.core.geometry import FloatArray, dcm_to_euler
+from bridge.core.mounting import Mounting
+from bridge.core.quality import QualityLimits, QualityMonitor
+from bridge.core.wmm import EarthField, earth_field
+
+if TYPE_CHECKING:
+    from bridge.calibration.field_database import FieldDatabase
+
+HeadingReference = Literal["magnetic", "true"]
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+_TWO_PI = 2.0 * math.pi
+_DEG = 180.0 / math.pi
+
+
+@dataclass(frozen=True, slots=True)
+class FieldReference:
+    """What the Earth's field should look like here: declination, total field, dip.
+
+    Any part may be ``None`` (unknown): without a declination no true heading is
+    produced; without total/dip no disturbance check is made on that quantity.
+    ``source`` says where it came from ("wmm", "calibration", "config", ...).
+    Without a position, a calibration's own figures serve for the quality check:
+    ``FieldReference(total_G=report.radius_G, dip_deg=<fitted dip>, source="calibration")``.
+    """
+
+    declination_deg: float | None = None
+    total_G: float | None = None
+    dip_deg: float | None = None
+    source: str = "config"
+
+    def __post_init__(self) -> None:
+        for name in ("declination_deg", "total_G", "dip_deg"):
+            v = getattr(self, name)
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"{name} must be finite or None, got {v!r}")
+        if self.total_G is not None and self.total_G <= 0.0:
+            raise ValueError(f"total_G must be positive, got {self.total_G}")
+        if self.dip_deg is not None and not -90.0 <= self.dip_deg <= 90.0:
+            raise ValueError(f"dip_deg must be in [-90, 90], got {self.dip_deg}")
+
+    @classmethod
+    def from_earth_field(cls, field: EarthField) -> FieldReference:
+        """From a WMM result (declination positive east, dip positive down)."""
+        return cls(field.declination_deg, field.total_G, field.inclination_deg, "wmm")
+
+
+def field_reference_at(
+    latitude_deg: float,
+    longitude_deg: float,
+    altitude_m: float = 0.0,
+    when: _dt.date | _dt.datetime | float | None = None,
+) -> FieldReference:
+    """WMM declination, total field and dip at a position (``ValueError`` on a bad position)."""
+    return FieldReference.from_earth_field(
+        earth_field(latitude_deg, longitude_deg, altitude_m, when)
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeSolution:
+    """One frame's attitude, body (x fwd, y right, z down) relative to NED.
+
+    ``roll``/``pitch``/``yaw`` are radians (MAVLink ATTITUDE); ``yaw`` is the
+    *published* heading in (-pi, pi], whose north ``heading_reference`` names
+    ("magnetic" or "true"). ``heading_magnetic_deg`` is always there;
+    ``heading_true_deg`` and ``declination_deg`` are ``None`` without a
+    declination. ``quaternion`` is (w, x, y, z) body->NED with w >= 0 and uses
+    the published yaw. ``mag_G``/``accel_g`` are the calibrated vectors in
+    vehicle axes; ``dip_deg`` is the measured inclination (positive down).
+    """
+
+    roll: float
+    pitch: float
+    yaw: float
+    heading_magnetic_deg: float
+    heading_true_deg: float | None
+    declination_deg: float | None
+    heading_reference: HeadingReference
+    quaternion: Quat
+    mag_G: Vec3
+    accel_g: Vec3
+    field_strength_G: float
+    dip_deg: float
+    degraded: bool
+    disturbed: bool
+    accelerating: bool
+
+    @property
+    def heading_deg(self) -> float:
+        """The published heading in degrees, [0, 360)."""
+        if self.heading_reference == "true" and self.heading_true_deg is not None:
+            return self.heading_true_deg
+        return self.heading_magnetic_deg
+
+    @property
+    def accel_norm_g(self) -> float:
+        """|accel| in g (1.0 at rest)."""
+        x, y, z = self.accel_g
+        return math.sqrt(x * x + y * y + z * z)
+
+
+@dataclass(frozen=True, slots=True)
+class _State:
+    """Everything ``solve_counts`` needs, precomputed and immutable (swapped atomically)."""
+
+    mo: Vec3  # magnetometer count offsets (ADC zero + calibration offset, in counts)
+    mm: tuple[float, ...]  # 9 entries: mounting @ cal.matrix / counts-per-gauss, row-major
+    ao: Vec3
+    am: tuple[float, ...]
+    declination_deg: float | None
+    total_G: float | None
+    dip_deg: float | None
+    publish_true: bool
+    sin_degraded: float  # |sin(pitch)| above which the solution is degraded
+    database: FieldDatabase | None
+
+
+def _fold_360(a: float) -> float:
+    a = math.fmod(a, 360.0)
+    if a < 0.0:
+        a += 360.0
+    return 0.0 if a >= 360.0 else a
+
+
+def _sensor_chain(
+    offset: Vec3, matrix: FloatArray, mounting: FloatArray, zero: float, per_unit: float
+) -> tuple[Vec3, tuple[float, ...]]:
+    """Fold nominal transfer + calibration + mounting into ``M @ (counts - o)``."""
+    m = (mounting @ matrix) / per_unit
+    o = (zero + per_unit * offset[0], zero + per_unit * offset[1], zero + per_unit * offset[2])
+    return o, tuple(float(v) for v in m.reshape(9))
+
+
+class AttitudeEngine:
+    """Calibrated, tilt-compensated attitude for a stream of raw GMR frames.
+
+    ``reference`` (declination / expected field) may be ``None`` and set later
+    with :meth:`update_reference` or :meth:`update_position`. With
+    ``heading_reference="true"`` but no declination known yet the magnetic
+    heading is published and *labelled* magnetic in the solution.
+    ``attitude_source="field_database"`` takes the attitude from a
+    :class:`~bridge.calibration.field_database.FieldDatabase` (magnetometer
+    only) for bodies whose accelerometer is unusable.
+    """
+
+    def __init__(
+        self,
+        calibration: Calibration | None = None,
+        mounting: Mounting | None = None,
+        reference: FieldReference | None = None,
+        heading_reference: HeadingReference = "magnetic",
+        limits: QualityLimits | None = None,
+        *,
+        field_database: FieldDatabase | None = None,
+    ) -> None:
+        if heading_reference not in ("magnetic", "true"):
+            raise ValueError(
+                f"heading_reference must be 'magnetic' or 'true', got {heading_reference!r}"
+            )
+        self._calibration = calibration if calibration is not None else Calibration()
+        self._mounting = mounting if mounting is not None else Mounting()
+        self._reference = reference
+        self._heading_reference: HeadingReference = heading_reference
+        self._limits = limits if limits is not None else QualityLimits()
+        self._database = field_database
+        self._quality = QualityMonitor(self._limits)
+        self._state = self._build()
+
+    # -- configuration -------------------------------------------------------------
+
+    def _build(self) -> _State:
+        mount = self._mounting.matrix()
+        cal = self._calibration
+        mo, mm = _sensor_chain(
+            cal.mag.offset,
+            cal.mag.matrix_array,
+            mount,
+            sensor.ZERO_COUNTS,
+            sensor.MAG_COUNTS_PER_GAUSS,
+        )
+        ao, am = _sensor_chain(
+            cal.accel.offset,
+            cal.accel.matrix_array,
+            mount,
+            sensor.ZERO_COUNTS,
+            sensor.ACC_COUNTS_PER_G,
+        )
+        ref = self._reference
+        return _State(
+            mo=mo,
+            mm=mm,
+            ao=ao,
+            am=am,
+            declination_deg=ref.declination_deg if ref else None,
+            total_G=ref.total_G if ref else None,
+            dip_deg=ref.dip_deg if ref else None,
+            publish_true=self._heading_reference == "true",
+            sin_degraded=math.sin(math.radians(self._limits.degraded_pitch_deg)),
+            database=self._database,
+        )
+
+    @property
+    def calibration(self) -> Calibration:
+        """The calibration in use."""
+        return self._calibration
+
+    @property
+    def mounting(self) -> Mounting:
+        """The mounting in use."""
+        return self._mounting
+
+    @property
+    def reference(self) -> FieldReference | None:
+        """The field reference in use (``None`` = unknown)."""
+        return self._reference
+
+    @property
+    def heading_reference(self) -> HeadingReference:
+        """The configured published heading ("magnetic" or "true")."""
+        return self._heading_reference
+
+    def update_calibration(self, calibration: Calibration) -> None:
+        """Switch to a new calibration (e.g. after a fit); clears the quality flags."""
+        self._calibration = calibration
+        self._quality.reset()
+        self._state = self._build()
+
+    def update_mounting(self, mounting: Mounting) -> None:
+        """Switch to a new mounting (COMPASS_ORIENT / trim change)."""
+        self._mounting = mounting
+        self._state = self._build()
+
+    def update_reference(self, reference: FieldReference | None) -> None:
+        """Set the declination / expected field (``None`` = unknown)."""
+        self._reference = reference
+        self._state = self._build()
+
+    def update_position(
+        self,
+        latitude_deg: float,
+        longitude_deg: float,
+        altitude_m: float = 0.0,
+        when: _dt.date | _dt.datetime | float | None = None,
+    ) -> FieldReference:
+        """Take declination and expected field from the WMM at a new position.
+
+        Raises ``ValueError`` on a bad position and keeps the previous reference.
+        """
+        ref = field_reference_at(latitude_deg, longitude_deg, altitude_m, when)
+        self.update_reference(ref)
+        return ref
+
+    def set_heading_reference(self, heading_reference: HeadingReference) -> None:
+        """Publish magnetic or true heading from now on."""
+        if heading_reference not in ("magnetic", "true"):
+            raise ValueError(
+                f"heading_reference must be 'magnetic' or 'true', got {heading_reference!r}"
+            )
+        self._heading_reference = heading_reference
+        self._state = self._build()
+
+    def set_field_database(self, database: FieldDatabase | None) -> None:
+        """Use a field database as the attitude source (``None``: back to the accelerometer)."""
+        self._database = database
+        self._state = self._build()
+
+    # -- the fast path -------------------------------------------------------------
+
+    def solve_counts(
+        self, mx: float, my: float, mz: float, ax: float, ay: float, az: float
+    ) -> AttitudeSolution:
+        """One frame of raw ADC counts (as ``$PGMRA`` carries them) to an attitude.
+
+        Raises ``ValueError`` on non-finite input (the quality state is left untouched).
+        """
+        s = self._state  # one read: a concurrent update cannot mix two configurations
+        dx, dy, dz = mx - s.mo[0], my - s.mo[1], mz - s.mo[2]
+        m = s.mm
+        hx = m[0] * dx + m[1] * dy + m[2] * dz
+        hy = m[3] * dx + m[4] * dy + m[5] * dz
+        hz = m[6] * dx + m[7] * dy + m[8] * dz
+        ex, ey, ez = ax - s.ao[0], ay - s.ao[1], az - s.ao[2]
+        a = s.am
+        gx = a[0] * ex + a[1] * ey + a[2] * ez
+        gy = a[3] * ex + a[4] * ey + a[5] * ez
+        gz = a[6] * ex + a[7] * ey + a[8] * ez
+        if not math.isfinite(hx + hy + hz + gx + gy + gz):
+            # The codec only passes 0..4095 integers; anything else is a caller bug.
+            raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
+        if s.database is not None:
+            return self._solve_database(s, hx, hy, hz, gx, gy, gz)
+        return self._finish(s, hx, hy, hz, gx, gy, gz)
+
+    def solve_vectors(self, mag_G: npt.ArrayLike, accel_g: npt.ArrayLike) -> AttitudeSolution:
+        """Same as :meth:`solve_counts` from nominal-transfer vectors (gauss, g)."""
+        mg = np.asarray(mag_G, dtype=np.float64).reshape(3)
+        ag = np.asarray(accel_g, dtype=np.float64).reshape(3)
+        mc = sensor.gauss_to_mag_counts(mg)
+        ac = sensor.g_to_acc_counts(ag)
+        return self.solve_counts(
+            float(mc[0]), float(mc[1]), float(mc[2]), float(ac[0]), float(ac[1]), float(ac[2])
+        )
+
+    def _finish(
+        self, s: _State, hx: float, hy: float, hz: float, gx: float, gy: float, gz: float
+    ) -> AttitudeSolution:
+        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+        bn = math.sqrt(hx * hx + hy * hy + hz * hz)
+        degraded = False
+        if gn > 1e-6:
+            sp = -gx / gn
+            if sp > 1.0:
+                sp = 1.0
+            elif sp < -1.0:
+                sp = -1.0
+            pitch = math.asin(sp)
+            ryz = math.sqrt(gy * gy + gz * gz)
+            if ryz > 0.0:
+                roll = math.atan2(gy, gz)
+                sr, cr = gy / ryz, gz / ryz
+            else:
+                roll, sr, cr = 0.0, 0.0, 1.0
+            cp = ryz / gn
+            dip = (
+                math.asin(max(-1.0, min(1.0, (hx * gx + hy * gy + hz * gz) / (gn * bn)))) * _DEG
+                if bn > 0.0
+                else 0.0
+            )
+            if abs(sp) > s.sin_degraded or gn < 0.2:
+                degraded = True
+        else:
+            # No gravity at all (free fall, dead accelerometer): level is a guess.
+            pitch = roll = 0.0
+            sp, cp, sr, cr = 0.0, 1.0, 0.0, 1.0
+            dip = 0.0
+            degraded = True
+        # the datasheet's X, Y: the field de-rotated into the local horizontal plane
+        xh = hx * cp + hy * sp * sr + hz * sp * cr
+        yh = hy * cr - hz * sr
+        if bn == 0.0 or (xh * xh + yh * yh) < (0.02 * bn) ** 2:
+            degraded = True  # field (nearly) along the vertical: heading undefined
+        heading_mag = _fold_360(math.atan2(-yh, xh) * _DEG)
+        return self._assemble(
+            s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
+        )
+
+    def _assemble(
+        self,
+        s: _State,
+        roll: float,
+        pitch: float,
+        heading_mag: float,
+        hx: float,
+        hy: float,
+        hz: float,
+        gx: float,
+        gy: float,
+        gz: float,
+        gn: float,
+        bn: float,
+        dip: float,
+        degraded: bool,
+    ) -> AttitudeSolution:
+        decl = s.declination_deg
+        heading_true = _fold_360(heading_mag + decl) if decl is not None else None
+        if s.publish_true and heading_true is not None:
+            published, label = heading_true, "true"
+        else:
+            published, label = heading_mag, "magnetic"
+        yaw = math.radians(published)
+        if yaw > math.pi:
+            yaw -= _TWO_PI
+        # quaternion body->NED from ZYX Euler half angles
+        hr, hp, hyw = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
+        cr2, sr2 = math.cos(hr), math.sin(hr)
+        cp2, sp2 = math.cos(hp), math.sin(hp)
+        cy2, sy2 = math.cos(hyw), math.sin(hyw)
+        qw = cr2 * cp2 * cy2 + sr2 * sp2 * sy2
+        qx = sr2 * cp2 * cy2 - cr2 * sp2 * sy2
+        qy = cr2 * sp2 * cy2 + sr2 * cp2 * sy2
+        qz = cr2 * cp2 * sy2 - sr2 * sp2 * cy2
+        if qw < 0.0:
+            qw, qx, qy, qz = -qw, -qx, -qy, -qz
+        disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
+        return AttitudeSolution(
+            roll,
+            pitch,
+            yaw,
+            heading_mag,
+            heading_true,
+            decl,
+            label,  # type: ignore[arg-type]
+            (qw, qx, qy, qz),
+            (hx, hy, hz),
+            (gx, gy, gz),
+            bn,
+            dip,
+            degraded,
+            disturbed,
+            accelerating,
+        )
+
+    def _solve_database(
+        self, s: _State, hx: float, hy: float, hz: float, gx: float, gy: float, gz: float
+    ) -> AttitudeSolution:
+        """Attitude from the magnetometer alone (accelerometer ignored for attitude)."""
+        assert s.database is not None
+        R, match = s.database.attitude_from_field((hx, hy, hz))
+        roll, pitch, yaw = dcm_to_euler(R)
+        bn = math.sqrt(hx * hx + hy * hy + hz * hz)
+        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+        # Dip from the database attitude: the field's down component in NED.
+        down = float(R[2, 0] * hx + R[2, 1] * hy + R[2, 2] * hz)
+        dip = math.degrees(math.asin(max(-1.0, min(1.0, down / bn)))) if bn > 0.0 else 0.0
+        degraded = (not match.ok) or abs(math.sin(pitch)) > s.sin_degraded
+        heading_mag = _fold_360(math.degrees(yaw))
+        return self._assemble(
+            s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
+        )
+
+
+# -- vectorised forms (benchmarks, calibration reports) -------------------------------
+
+
+def tilt_compensated_heading(
+    mag: npt.ArrayLike, acc: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Datasheet formulas on (N, 3) arrays: ``(roll, pitch, heading_deg)``.
+
+    ``mag`` and ``acc`` are calibrated vectors in body axes (gravity-vector sign:
+    level = (0, 0, +1)); roll and pitch in radians, heading in [0, 360) degrees
+    clockwise from the field's north. Zero-length accelerometer rows give a level
+    attitude rather than NaN.
+    """
+    m = np.atleast_2d(np.asarray(mag, dtype=np.float64))
+    g = np.atleast_2d(np.asarray(acc, dtype=np.float64))
+    if m.shape != g.shape or m.shape[-1] != 3:
+        raise ValueError(f"mag and acc must both be (N, 3), got {m.shape} and {g.shape}")
+    gn = np.linalg.norm(g, axis=1)
+    safe = np.where(gn > 1e-12, gn, 1.0)
+    pitch = np.where(gn > 1e-12, -np.arcsin(np.clip(g[:, 0] / safe, -1.0, 1.0)), 0.0)
+    roll = np.arctan2(g[:, 1], np.where(gn > 1e-12, g[:, 2], 1.0))
+    sp, cp, sr, cr = np.sin(pitch), np.cos(pitch), np.sin(roll), np.cos(roll)
+    X = m[:, 0] * cp + m[:, 1] * sp * sr + m[:, 2] * sp * cr
+    Y = m[:, 1] * cr - m[:, 2] * sr
+    heading = np.degrees(np.arctan2(-Y, X)) % 360.0
+    heading = np.where(heading >= 360.0, 0.0, heading)
+    return roll, pitch, heading
+
+
+def attitude_matrix_from_vectors(mag: npt.ArrayLike, acc: npt.ArrayLike) -> FloatArray:
+    """Body->NED matrices (N, 3, 3) (or one (3, 3)) from calibrated mag + gravity vectors.
+
+    North is the field's horizontal direction (magnetic north for a raw field).
+    Built directly from the vectors (down = g/|g|, east = down x B), so it has no
+    Euler singularity; rows that are degenerate (B parallel to g, zero vectors)
+    raise ``ValueError``.
+    """
+    m = np.asarray(mag, dtype=np.float64)
+    g = np.asarray(acc, dtype=np.float64)
+    single = m.ndim == 1
+    m2, g2 = np.atleast_2d(m), np.atleast_2d(g)
+    if m2.shape != g2.shape or m2.shape[-1] != 3:
+        raise ValueError(f"mag and acc must both be (N, 3), got {m2.shape} and {g2.shape}")
+    gn = np.linalg.norm(g2, axis=1, keepdims=True)
+    d = g2 / np.where(gn > 0, gn, 1.0)
+    e = np.cross(d, m2)
+    en = np.linalg.norm(e, axis=1, keepdims=True)
+    bad = (gn[:, 0] <= 1e-12) | (en[:, 0] <= 1e-9 * np.maximum(np.linalg.norm(m2, axis=1), 1e-300))
+    if np.any(bad):
+        raise ValueError(f"{int(bad.sum())} rows have no gravity or a vertical field")
+    e = e / en
+    n = np.cross(e, d)
+    # Rows of R are the NED axes expressed in body coordinates.
+    R = np.stack([n, e, d], axis=1)
+    return R[0] if single else R
