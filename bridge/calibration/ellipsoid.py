@@ -55,7 +55,7 @@ MIN_SAMPLES = 12  #: 9 unknowns; a few spare so one bad sample cannot decide the
 DEFAULT_MAX_ITERATIONS = 40
 
 
-def reference_total_G(reference: ReferenceField) -> float | None:  # noqa: N802 - unit suffix
+def reference_total_G(reference: ReferenceField) -> float | None:
     """Total field strength (gauss) of a reference: an EarthField, a number, or an NED vector.
 
     ``None`` passes through; a non-finite or non-positive value raises ``ValueError``.
@@ -239,7 +239,7 @@ class EllipsoidFit:
     offset_sd_G: float = math.nan
     matrix_sd: float = math.nan
 
-    def residuals_G(self, x: npt.ArrayLike) -> FloatArray:  # noqa: N802 - unit suffix
+    def residuals_G(self, x: npt.ArrayLike) -> FloatArray:
         """``|matrix (x - offset)| - radius`` for each row of ``x`` (gauss)."""
         p = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return _row_norms((p - self.offset) @ self.matrix) - self.radius_G

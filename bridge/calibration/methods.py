@@ -110,12 +110,12 @@ class CalibrationData:
         reference_total_G(self.reference)  # validates: positive and finite
 
     @property
-    def reference_total_G(self) -> float | None:  # noqa: N802 - unit suffix
+    def reference_total_G(self) -> float | None:
         """Total field strength in gauss, if known."""
         return reference_total_G(self.reference)
 
     @property
-    def reference_ned_G(self) -> FloatArray | None:  # noqa: N802 - unit suffix
+    def reference_ned_G(self) -> FloatArray | None:
         """Field vector (N, E, D) in gauss, if known (a bare total gives None)."""
         if isinstance(self.reference, EarthField):
             return self.reference.ned_G

@@ -103,12 +103,12 @@ class SampleAcceptor:
         return self._capacity
 
     @property
-    def radius_G(self) -> float:  # noqa: N802 - unit suffix
+    def radius_G(self) -> float:
         """Sphere radius the spacing is derived from."""
         return self._radius
 
     @property
-    def min_distance_G(self) -> float:  # noqa: N802 - unit suffix
+    def min_distance_G(self) -> float:
         """Current minimum spacing between kept samples (gauss)."""
         return self._min_dist
 

@@ -75,7 +75,7 @@ def spread_stats(norms: npt.ArrayLike) -> tuple[float, float]:
     return float(np.ptp(n) / 2.0), float(np.std(n))
 
 
-def field_spread_nT(mag_G: npt.ArrayLike) -> tuple[float, float]:  # noqa: N802
+def field_spread_nT(mag_G: npt.ArrayLike) -> tuple[float, float]:
     """Total-field spread of (N, 3) vectors in gauss: ``(+-half p-p, RMS)`` in nT."""
     hp, rms = spread_stats(np.linalg.norm(np.asarray(mag_G, dtype=np.float64), axis=-1))
     return hp * GAUSS_TO_NT, rms * GAUSS_TO_NT
