@@ -1,1 +1,62 @@
-"""The serial-link adapter: transports, the CompassLink reader, recording and replay."""
+"""The serial-link adapter: transports, the CompassLink reader, recording and replay.
+
+``open_transport(port, baud)`` turns a configured port string into a
+:class:`Transport` (a serial device, ``"sim"``, or ``"replay:PATH"``);
+:class:`CompassLink` reads it on one thread, keeps it alive and runs command
+transactions; :func:`record` taps a port into a recording that
+``replay:PATH`` plays back.
+"""
+
+from bridge.link.record import (
+    RecordingFormatError,
+    RecordingHeader,
+    RecordingReader,
+    RecordingWriter,
+    RecordSummary,
+    record,
+)
+from bridge.link.serial_link import (
+    CommandError,
+    CommandNotSupported,
+    CommandRejected,
+    CommandTimeout,
+    CompassLink,
+    LinkCounters,
+    LinkDown,
+    LinkState,
+    Received,
+)
+from bridge.link.transport import (
+    EndOfRecording,
+    ReplayTransport,
+    SerialTransport,
+    SimTransport,
+    Transport,
+    TransportError,
+    open_transport,
+)
+
+__all__ = [
+    "CommandError",
+    "CommandNotSupported",
+    "CommandRejected",
+    "CommandTimeout",
+    "CompassLink",
+    "EndOfRecording",
+    "LinkCounters",
+    "LinkDown",
+    "LinkState",
+    "Received",
+    "RecordSummary",
+    "RecordingFormatError",
+    "RecordingHeader",
+    "RecordingReader",
+    "RecordingWriter",
+    "ReplayTransport",
+    "SerialTransport",
+    "SimTransport",
+    "Transport",
+    "TransportError",
+    "open_transport",
+    "record",
+]

@@ -1,0 +1,764 @@
+"""CompassLink: the one reader of the compass port, its state machine and command transactions.
+
+Threads (and why there are two):
+
+* the **reader** opens the transport, reads, feeds the decoder, tracks
+  sequence numbers, routes command answers and hands every frame to the
+  consumer. It never waits on anything but the port: a lagging consumer loses
+  its oldest frames (counted) instead of stalling the reader.
+* the **handshake worker** runs ``VER``, ``RATE,<rate_hz>``, ``PAR,GET`` after
+  every (re)connect and after a detected device reset. It must be a separate
+  thread because the answers it waits for arrive through the reader.
+
+Link states (:class:`LinkState`), each change logged once:
+
+* ``OPENING``   -- opening the port, or open and waiting for the first valid frame
+* ``STREAMING`` -- valid frames arrive
+* ``STALE``     -- the port is open but no valid frame came for ``stale_after`` s; the link
+  closes and reopens it (with backoff) and stays STALE until frames come back
+* ``ABSENT``    -- the port cannot be opened or went away; reopened with backoff, quietly
+
+Command transactions (GMR protocol only) are serialised with a lock. The
+device's answers carry no transaction id, so an answer is matched on its
+command word (``$PGMRK,<word>``, ``$PGMRV`` for VER, ``$PGMRP`` for PAR,GET)
+and its shape. To keep a *late* answer to a timed-out attempt from being taken
+for the answer to a later command, every attempt leaves an "expected answer"
+slot that lives for the command's deadline plus ``late_answer_window``; an
+answer that matches no current transaction consumes a slot and is counted as
+late, and a new command waits (bounded) until no slot of its command word is
+outstanding -- only then can the next ``$PGMRK,<word>`` be its own answer.
+The device answers commands in order, so slots are consumed oldest first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple, Protocol, TypeAlias
+
+from bridge.link.transport import EndOfRecording, Transport
+from bridge.protocol.framing import MAX_LINE_BYTES
+from bridge.protocol.gmr import (
+    AckFrame,
+    AttitudeFrame,
+    CommandFrame,
+    GmrDecoder,
+    GmrFrame,
+    ParamsFrame,
+    VersionFrame,
+    encode,
+)
+from bridge.protocol.heading import HeadingDecoder, HeadingFrame
+
+Frame: TypeAlias = GmrFrame | HeadingFrame
+
+log = logging.getLogger(__name__)
+
+LinkProtocol: TypeAlias = Literal["gmr", "nmea", "os5000"]
+
+SEQ_MODULUS = 65536
+#: A forward seq gap this large cannot be frame loss on a link that would have gone stale
+#: long before (at 100 Hz it is 5.5 minutes): count it as a discontinuity instead.
+_MAX_PLAUSIBLE_GAP = SEQ_MODULUS // 2
+
+#: Datasheet answer deadlines that differ from the 200 ms default, by command key.
+COMMAND_DEADLINES_S: Mapping[str, float] = {"MAGCAL,END": 0.5, "PAR,SET": 0.5, "ACCCAL": 1.5}
+DEFAULT_DEADLINE_S = 0.2
+
+_READ_TIMEOUT_S = 0.05  # bounds how late the reader notices close() and staleness
+_READ_CHUNK = 4096
+
+
+class LinkState(enum.Enum):
+    """Where the link stands (see the module docstring)."""
+
+    ABSENT = "absent"
+    OPENING = "opening"
+    STREAMING = "streaming"
+    STALE = "stale"
+
+
+_LIVE = (LinkState.OPENING, LinkState.STREAMING)
+
+
+class CommandError(Exception):
+    """A command could not be completed."""
+
+
+class CommandTimeout(CommandError):  # noqa: N818 - named by the link interface
+    """No answer after all attempts."""
+
+
+class CommandRejected(CommandError):  # noqa: N818 - named by the link interface
+    """The device answered ``$PGMRK,<command>,ERR,<reason>``."""
+
+    def __init__(self, command: str, reason: str, answer: AckFrame) -> None:
+        super().__init__(f"{command} rejected by the device: {reason}")
+        self.command = command
+        self.reason = reason
+        self.answer = answer
+
+
+class CommandNotSupported(CommandError):  # noqa: N818 - named by the link interface
+    """The link's protocol has no commands (heading-only compasses)."""
+
+
+class LinkDown(CommandError):  # noqa: N818 - named by the link interface
+    """The port is not open, or the link is closed."""
+
+
+class Received(NamedTuple):
+    """A decoded frame and the monotonic time its last byte was read."""
+
+    frame: Frame
+    t: float
+
+
+class _Decoder(Protocol):
+    def feed(self, data: bytes) -> Sequence[Frame]: ...
+
+
+@dataclass(frozen=True, slots=True)
+class LinkCounters:
+    """A snapshot of the link's counters (all cumulative since the link was made)."""
+
+    bytes_read: int = 0
+    frames: int = 0  #: valid sentences decoded, of any type
+    attitude_frames: int = 0
+    bad_lines: Mapping[str, int] = field(default_factory=dict)  #: decoder drops by reason
+    lost_frames: int = 0  #: from $PGMRA seq gaps (mod 65536)
+    seq_discontinuities: int = 0  #: seq jumps too large (or backwards) to be loss
+    reconnects: int = 0  #: successful opens after the first
+    open_failures: int = 0
+    stale_events: int = 0
+    device_resets: int = 0  #: unasked $PGMRV, or seq restarting at 0
+    consumer_drops: int = 0  #: oldest frames dropped because the consumer lagged
+    callback_errors: int = 0
+    commands_sent: int = 0  #: attempts written, retries included
+    command_retries: int = 0
+    command_timeouts: int = 0
+    command_rejections: int = 0
+    late_answers: int = 0  #: answers to timed-out attempts, absorbed
+    unsolicited_answers: int = 0  #: acks nobody was waiting for
+
+    @property
+    def bad_lines_total(self) -> int:
+        """All decoder drops."""
+        return sum(self.bad_lines.values())
+
+
+@dataclass(slots=True, eq=False)  # compared by identity: each is one attempt
+class _Slot:
+    word: str  # the answer's command word ("VER" for $PGMRV, "PAR" for $PGMRP)
+    expires: float
+
+
+@dataclass(slots=True)
+class _Txn:
+    cmd: CommandFrame
+    answer: GmrFrame | None = None
+
+
+def _answer_word(frame: object) -> str | None:
+    if isinstance(frame, AckFrame):
+        return frame.command
+    if isinstance(frame, VersionFrame):
+        return "VER"
+    if isinstance(frame, ParamsFrame):
+        return "PAR"
+    return None
+
+
+def _matches(cmd: CommandFrame, frame: GmrFrame) -> bool:
+    """Whether ``frame`` can be the answer to ``cmd`` (stricter than the codec's is_answer).
+
+    ERR answers carry only the command word, so any ERR with the right word
+    matches; OK answers must also have the shape the datasheet gives the
+    sub-command (RATE echoes the rate, MAGCAL,END has six results, START/ABORT
+    none, PAR,SET is acked while PAR,GET is answered by $PGMRP).
+    """
+    if not cmd.is_answer(frame):
+        return False
+    if not isinstance(frame, AckFrame) or not frame.ok:
+        return True
+    key = cmd.key
+    if key == "RATE":
+        return frame.fields == cmd.args
+    if key == "MAGCAL,END":
+        return len(frame.fields) == 6
+    if key in ("MAGCAL,START", "MAGCAL,ABORT"):
+        return not frame.fields
+    return key != "PAR,GET"  # PAR,GET is answered by $PGMRP, never by an OK ack
+
+
+class CompassLink:
+    """Reads one compass port, keeps it alive, and runs command transactions on it.
+
+    ``transport`` is a :class:`~bridge.link.transport.Transport` (not yet
+    open). Frames go to a bounded queue read with :meth:`get` and, if given,
+    to ``on_frame(received)`` -- called in the reader thread, so it must be
+    quick and must not block (hand the frame on; do work elsewhere).
+    ``on_state(old, new)`` is called in the reader thread on each state change.
+    Use as a context manager or call :meth:`start` / :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        protocol: LinkProtocol = "gmr",
+        rate_hz: int | None = 10,
+        stale_after: float = 2.0,
+        queue_size: int = 256,
+        on_frame: Callable[[Received], None] | None = None,
+        on_state: Callable[[LinkState, LinkState], None] | None = None,
+        backoff_initial: float = 0.1,
+        backoff_max: float = 2.0,
+        late_answer_window: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if protocol not in ("gmr", "nmea", "os5000"):
+            raise ValueError(f"protocol must be 'gmr', 'nmea' or 'os5000', got {protocol!r}")
+        if rate_hz is not None:
+            CommandFrame.rate(rate_hz)  # ValueError for a rate the device does not offer
+        if not stale_after > 0:
+            raise ValueError(f"stale_after must be positive, got {stale_after}")
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, got {queue_size}")
+        if not 0 < backoff_initial <= backoff_max:
+            raise ValueError("need 0 < backoff_initial <= backoff_max")
+        self._transport = transport
+        self.protocol: LinkProtocol = protocol
+        self.rate_hz = rate_hz
+        self.stale_after = stale_after
+        self._on_frame = on_frame
+        self._on_state = on_state
+        self._backoff_initial = backoff_initial
+        self._backoff_max = backoff_max
+        self._late_window = late_answer_window
+        self._clock = clock
+
+        self._decoder: _Decoder = self._make_decoder()
+        self._stop = threading.Event()
+        self._ended = threading.Event()
+        self._reader: threading.Thread | None = None
+        self._worker: threading.Thread | None = None
+
+        # State (written by the reader; read anywhere under the condition).
+        self._state_cond = threading.Condition()
+        self._state = LinkState.ABSENT
+
+        # Counters: ints written by the reader (and command callers) under _stats_lock.
+        self._stats_lock = threading.Lock()
+        self._c: dict[str, int] = {
+            f: 0 for f in LinkCounters.__dataclass_fields__ if f != "bad_lines"
+        }
+
+        # Consumer queue: drop-oldest, never blocks the reader.
+        self._queue: deque[Received] = deque()
+        self._queue_size = queue_size
+        self._queue_cond = threading.Condition()
+
+        # Port: writes (command callers) vs close/reopen (reader).
+        self._write_lock = threading.Lock()
+        self._port_open = False
+
+        # Command transactions.
+        self._cmd_lock = threading.Lock()
+        self._answer_cond = threading.Condition()
+        self._current: _Txn | None = None
+        self._slots: list[_Slot] = []
+        self._last_ver_sent = -float("inf")
+
+        # Sequence tracking (reader only).
+        self._last_seq: int | None = None
+        self._restart_expected = False
+
+        # Handshake hand-off: the reader bumps the generation, the worker follows it.
+        self._gen_cond = threading.Condition()
+        self._generation = 0
+        self._handshaken_gen = 0  # worker only
+        self._version: VersionFrame | None = None
+        self._params: ParamsFrame | None = None
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def name(self) -> str:
+        """The transport's name (the port)."""
+        return self._transport.name
+
+    @property
+    def state(self) -> LinkState:
+        """The current :class:`LinkState`."""
+        with self._state_cond:
+            return self._state
+
+    @property
+    def counters(self) -> LinkCounters:
+        """A consistent snapshot of the counters."""
+        dropped = getattr(getattr(self._decoder, "counters", None), "dropped", None)
+        bad = dict(dropped.snapshot()) if dropped is not None else {}
+        with self._stats_lock:
+            return LinkCounters(bad_lines=bad, **self._c)
+
+    @property
+    def version(self) -> VersionFrame | None:
+        """The last ``$PGMRV`` seen (asked for or not), None before any."""
+        return self._version
+
+    @property
+    def params(self) -> ParamsFrame | None:
+        """The last ``$PGMRP`` seen, None before any."""
+        return self._params
+
+    @property
+    def ended(self) -> bool:
+        """A replay transport has played its whole recording (the link is ABSENT for good)."""
+        return self._ended.is_set()
+
+    def wait_ended(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for the end of a replay; True if it ended."""
+        return self._ended.wait(timeout)
+
+    def start(self) -> CompassLink:
+        """Start the reader and handshake threads (once)."""
+        if self._reader is not None:
+            raise RuntimeError("link already started")
+        self._set_state(LinkState.OPENING, "starting")
+        self._reader = threading.Thread(target=self._run, name="compass-link-reader", daemon=True)
+        self._worker = threading.Thread(
+            target=self._handshake_loop, name="compass-link-handshake", daemon=True
+        )
+        self._reader.start()
+        self._worker.start()
+        return self
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the threads (within about ``timeout`` s) and close the port."""
+        self._stop.set()
+        for cond in (self._answer_cond, self._gen_cond, self._queue_cond, self._state_cond):
+            with cond:
+                cond.notify_all()
+        deadline = time.monotonic() + timeout
+        for t in (self._reader, self._worker):
+            if t is not None and t is not threading.current_thread():
+                t.join(max(0.0, deadline - time.monotonic()))
+                if t.is_alive():
+                    log.error(
+                        "%s: thread %s did not stop within %.1f s", self.name, t.name, timeout
+                    )
+        self._close_port()
+
+    def __enter__(self) -> CompassLink:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def get(self, timeout: float | None = None) -> Received | None:
+        """The oldest queued frame, waiting up to ``timeout`` s (None: forever); None if none."""
+        with self._queue_cond:
+            if not self._queue and timeout != 0:
+                self._queue_cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout)
+            return self._queue.popleft() if self._queue else None
+
+    def wait_state(self, state: LinkState, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for the link to be in ``state``; True if it is."""
+        with self._state_cond:
+            return self._state_cond.wait_for(
+                lambda: self._state is state or self._stop.is_set(), timeout
+            ) and (self._state is state)
+
+    def command(
+        self, name: str, *args: object, timeout: float | None = None, retries: int = 2
+    ) -> GmrFrame:
+        """Send ``$PGMRQ,<name>,<args>`` and return the device's answer.
+
+        The answer is the matching ``$PGMRK,<name>,OK...`` (``$PGMRV`` for VER,
+        ``$PGMRP`` for PAR,GET). Each attempt waits ``timeout`` s -- by default
+        the datasheet's deadline for the command (200 ms; MAGCAL,END and
+        PAR,SET 500 ms; ACCCAL 1.5 s) plus the time a command and an answer
+        line take on the wire at the port's baud -- and is resent up to
+        ``retries`` times. Raises :class:`CommandRejected` on ``ERR``,
+        :class:`CommandTimeout` when nothing matching came, :class:`LinkDown`
+        when the port is not open, :class:`CommandNotSupported` for
+        heading-only protocols, ValueError for a malformed command. Frames
+        keep flowing to the consumer meanwhile. Must not be called from the
+        reader thread (that is, from ``on_frame``/``on_state``).
+        """
+        if self.protocol != "gmr":
+            raise CommandNotSupported(
+                f"protocol {self.protocol!r} is a heading-only compass: it takes no commands"
+            )
+        if threading.current_thread() is self._reader:
+            raise RuntimeError("command() called from the link's reader thread would deadlock")
+        if retries < 0:
+            raise ValueError("retries must be >= 0")
+        cmd = CommandFrame(name, tuple(str(a) for a in args))  # ValueError if malformed
+        line = encode(cmd)
+        per_try = timeout if timeout is not None else self.default_timeout(cmd)
+        if not per_try > 0:
+            raise ValueError(f"timeout must be positive, got {per_try}")
+        with self._cmd_lock:
+            self._wait_for_orphans(cmd.command)
+            txn = _Txn(cmd)
+            with self._answer_cond:
+                self._current = txn
+            try:
+                answer = self._transact(txn, line, per_try, retries)
+            finally:
+                with self._answer_cond:
+                    self._current = None
+        if isinstance(answer, AckFrame) and not answer.ok:
+            self._count("command_rejections")
+            reason = answer.fields[0] if answer.fields else "?"
+            raise CommandRejected(cmd.key, reason, answer)
+        return answer
+
+    def default_timeout(self, cmd: CommandFrame) -> float:
+        """Per-attempt timeout for ``cmd``: datasheet deadline + line times at the port's baud."""
+        deadline = COMMAND_DEADLINES_S.get(cmd.key, DEFAULT_DEADLINE_S)
+        baud = getattr(self._transport, "baud", None)
+        if isinstance(baud, int) and baud > 0:
+            # The device's clock starts when the command has arrived, and the answer must
+            # still cross the wire: 10 bits per byte (8N1), a full line each way at worst.
+            deadline += 2 * MAX_LINE_BYTES * 10 / baud
+        return deadline
+
+    # ------------------------------------------------------------------ commands
+
+    def _wait_for_orphans(self, word: str) -> None:
+        with self._answer_cond:
+            while True:
+                if self._stop.is_set():
+                    raise LinkDown("link is closed")
+                now = self._clock()
+                self._expire_slots(now)
+                pending = [s.expires for s in self._slots if s.word == word]
+                if not pending:
+                    return
+                self._answer_cond.wait(max(0.0, max(pending) - now) + 0.001)
+
+    def _transact(self, txn: _Txn, line: bytes, per_try: float, retries: int) -> GmrFrame:
+        word = txn.cmd.command
+        for attempt in range(retries + 1):
+            if attempt:
+                self._count("command_retries")
+                log.debug("%s: no answer to %s, resending", self.name, txn.cmd.key)
+            slot = _Slot(word, self._clock() + per_try + self._late_window)
+            with self._answer_cond:
+                # Registered before writing: the answer may beat the return of write().
+                self._slots.append(slot)
+                if word == "VER":
+                    self._last_ver_sent = self._clock()
+            try:
+                self._write(line)
+            except LinkDown:
+                with self._answer_cond:  # never sent: no answer can come for it
+                    if slot in self._slots:
+                        self._slots.remove(slot)
+                raise
+            self._count("commands_sent")
+            with self._answer_cond:
+                end = self._clock() + per_try
+                while txn.answer is None:
+                    if self._stop.is_set():
+                        raise LinkDown("link closed while waiting for an answer")
+                    left = end - self._clock()
+                    if left <= 0:
+                        break
+                    self._answer_cond.wait(left)
+                if txn.answer is not None:
+                    return txn.answer
+        self._count("command_timeouts")
+        raise CommandTimeout(f"no answer to {txn.cmd.key} after {retries + 1} attempt(s)")
+
+    def _write(self, data: bytes) -> None:
+        with self._write_lock:
+            if not self._port_open:
+                raise LinkDown(f"{self.name} is not open")
+            try:
+                self._transport.write(data)
+            except OSError as e:
+                # The reader will notice the loss on its next read; just fail this command.
+                raise LinkDown(f"{self.name}: write failed: {e}") from e
+
+    def _expire_slots(self, now: float) -> None:
+        if self._slots:
+            self._slots = [s for s in self._slots if s.expires > now]
+
+    def _take_slot(self, word: str) -> bool:
+        for i, s in enumerate(self._slots):
+            if s.word == word:
+                del self._slots[i]
+                return True
+        return False
+
+    def _route_answer(self, frame: GmrFrame, now: float) -> None:
+        """Reader side: give an answer-type frame to the waiting command, or account for it."""
+        word = _answer_word(frame)
+        if word is None:
+            return
+        with self._answer_cond:
+            self._expire_slots(now)
+            txn = self._current
+            if txn is not None and txn.answer is None and _matches(txn.cmd, frame):
+                txn.answer = frame
+                self._take_slot(word)
+                self._answer_cond.notify_all()
+                return
+            if self._take_slot(word):
+                self._count("late_answers")
+                log.debug("%s: late answer absorbed: %s", self.name, frame)
+                self._answer_cond.notify_all()  # a command may be waiting for this orphan
+                return
+            ver_recently = now - self._last_ver_sent < (DEFAULT_DEADLINE_S + self._late_window)
+        if isinstance(frame, VersionFrame):
+            # A VER answer can be doubled by a power-up $PGMRV racing our VER on connect;
+            # only a version nobody asked for lately, from a device already seen streaming
+            # on this connection, is a reset (a power-up announcement is not one we saw).
+            if not ver_recently and self._last_seq is not None:
+                self._device_reset("unasked $PGMRV")
+        else:
+            self._count("unsolicited_answers")
+            log.debug("%s: unsolicited answer: %s", self.name, frame)
+
+    # ------------------------------------------------------------------ reader
+
+    def _make_decoder(self) -> _Decoder:
+        if self.protocol == "gmr":
+            return GmrDecoder(direction="host")
+        return HeadingDecoder(self.protocol)
+
+    def _count(self, name: str, n: int = 1) -> None:
+        with self._stats_lock:
+            self._c[name] += n
+
+    def _set_state(self, new: LinkState, reason: str = "") -> None:
+        with self._state_cond:
+            old = self._state
+            if new is old:
+                return
+            self._state = new
+            self._state_cond.notify_all()
+        suffix = f" ({reason})" if reason else ""
+        if new in (LinkState.ABSENT, LinkState.STALE):
+            log.warning("compass %s: %s -> %s%s", self.name, old.value, new.value, suffix)
+        else:
+            log.info("compass %s: %s -> %s%s", self.name, old.value, new.value, suffix)
+        if self._on_state is not None:
+            try:
+                self._on_state(old, new)
+            except Exception:
+                log.exception("compass %s: on_state callback failed", self.name)
+
+    def _close_port(self) -> None:
+        with self._write_lock:
+            self._port_open = False
+            with contextlib.suppress(OSError):
+                self._transport.close()
+
+    def _open_port(self) -> None:
+        with self._write_lock:
+            self._transport.open()
+            self._port_open = True
+
+    def _bump_generation(self) -> None:
+        with self._gen_cond:
+            self._generation += 1
+            self._gen_cond.notify_all()
+
+    def _run(self) -> None:
+        try:
+            self._read_loop()
+        except Exception:
+            # A bug must not leave a zombie link that looks alive: say so loudly.
+            log.exception("compass %s: reader crashed", self.name)
+            self._set_state(LinkState.ABSENT, "reader crashed")
+        finally:
+            self._close_port()
+
+    def _read_loop(self) -> None:
+        backoff = self._backoff_initial
+        opened_before = False
+        is_open = False
+        last_valid = 0.0
+        while not self._stop.is_set():
+            if not is_open:
+                try:
+                    self._open_port()
+                except EndOfRecording as e:
+                    self._end_of_recording(str(e))
+                    return
+                except OSError as e:
+                    self._count("open_failures")
+                    log.debug("compass %s: open failed: %s", self.name, e)
+                    self._set_state(LinkState.ABSENT, str(e))
+                    self._stop.wait(backoff)
+                    backoff = min(2 * backoff, self._backoff_max)
+                    continue
+                is_open = True
+                if opened_before:
+                    self._count("reconnects")
+                opened_before = True
+                reset = getattr(self._decoder, "reset", None)
+                if callable(reset):
+                    reset()  # a partial line from the old connection is not a bad line
+                self._last_seq = None
+                self._restart_expected = False
+                last_valid = self._clock()
+                if self.state is LinkState.ABSENT:
+                    self._set_state(LinkState.OPENING, "port open")
+                self._bump_generation()
+            try:
+                data = self._transport.read(_READ_CHUNK, _READ_TIMEOUT_S)
+            except EndOfRecording as e:
+                self._close_port()
+                self._end_of_recording(str(e))
+                return
+            except OSError as e:
+                self._close_port()
+                is_open = False
+                self._set_state(LinkState.ABSENT, f"port lost: {e}")
+                self._stop.wait(backoff)
+                backoff = min(2 * backoff, self._backoff_max)
+                continue
+            now = self._clock()
+            if data:
+                self._count("bytes_read", len(data))
+                frames = self._decoder.feed(data)
+                if frames:
+                    last_valid = now
+                    self._handle(frames, now)
+                    if self.state is not LinkState.STREAMING:
+                        self._set_state(LinkState.STREAMING)
+                        backoff = self._backoff_initial
+            if now - last_valid > self.stale_after:
+                self._count("stale_events")
+                self._set_state(
+                    LinkState.STALE, f"no valid frame for {self.stale_after:g} s; reopening"
+                )
+                self._close_port()
+                is_open = False
+                self._stop.wait(backoff)
+                backoff = min(2 * backoff, self._backoff_max)
+
+    def _end_of_recording(self, why: str) -> None:
+        self._ended.set()
+        self._set_state(LinkState.ABSENT, why)
+
+    def _handle(self, frames: Sequence[Frame], now: float) -> None:
+        with self._stats_lock:
+            self._c["frames"] += len(frames)
+        for frame in frames:
+            if isinstance(frame, AttitudeFrame):
+                self._track_seq(frame.seq)
+            elif isinstance(frame, VersionFrame | ParamsFrame | AckFrame):
+                if isinstance(frame, VersionFrame):
+                    self._version = frame
+                elif isinstance(frame, ParamsFrame):
+                    self._params = frame
+                self._route_answer(frame, now)
+            self._deliver(Received(frame, now))
+
+    def _track_seq(self, seq: int) -> None:
+        last = self._last_seq
+        self._last_seq = seq
+        with self._stats_lock:
+            self._c["attitude_frames"] += 1
+        if last is None or self._restart_expected:
+            # First frame of a connection, or a reset announced by $PGMRV: the sequence
+            # starts afresh, there is no gap to count.
+            self._restart_expected = False
+            return
+        expected = (last + 1) % SEQ_MODULUS
+        if seq == expected:
+            return
+        if seq == 0:
+            self._device_reset("seq restarted at 0")
+            self._restart_expected = False
+            return
+        gap = (seq - expected) % SEQ_MODULUS
+        if gap < _MAX_PLAUSIBLE_GAP:
+            self._count("lost_frames", gap)
+        else:
+            self._count("seq_discontinuities")
+            log.debug("compass %s: seq jumped from %d to %d", self.name, last, seq)
+
+    def _device_reset(self, why: str) -> None:
+        self._count("device_resets")
+        log.warning("compass %s: device reset detected (%s)", self.name, why)
+        # The next frame starts a new sequence; a rebooted device runs at 10 Hz again,
+        # so the handshake (VER, RATE, PAR,GET) is run again as after a reconnect.
+        self._restart_expected = True
+        self._bump_generation()
+
+    def _deliver(self, item: Received) -> None:
+        with self._queue_cond:
+            if len(self._queue) >= self._queue_size:
+                self._queue.popleft()
+                dropped = True
+            else:
+                dropped = False
+            self._queue.append(item)
+            self._queue_cond.notify()
+        if dropped:
+            self._count("consumer_drops")
+        if self._on_frame is not None:
+            try:
+                self._on_frame(item)
+            except Exception:
+                self._count("callback_errors")
+                if self.counters.callback_errors == 1:
+                    log.exception("compass %s: on_frame callback failed", self.name)
+
+    # ------------------------------------------------------------------ handshake
+
+    def _handshake_loop(self) -> None:
+        while not self._stop.is_set():
+            with self._gen_cond:
+                self._gen_cond.wait_for(self._handshake_due, timeout=1.0)
+                gen = self._generation
+            if self._stop.is_set() or gen == self._handshaken_gen:
+                continue
+            self._handshaken_gen = gen
+            if self.protocol != "gmr" or not self._transport.interactive:
+                continue
+            try:
+                self._handshake()
+            except CommandError as e:
+                with self._gen_cond:
+                    superseded = self._generation != gen
+                # A port that died mid-handshake is already logged as ABSENT/STALE, and the
+                # next connection redoes the handshake: only a live port's failure is news.
+                quiet = superseded or self._stop.is_set() or self.state not in _LIVE
+                (log.debug if quiet else log.warning)(
+                    "compass %s: connect handshake failed: %s", self.name, e
+                )
+            except Exception:
+                log.exception("compass %s: connect handshake crashed", self.name)
+
+    def _handshake_due(self) -> bool:
+        return self._generation != self._handshaken_gen or self._stop.is_set()
+
+    def _handshake(self) -> None:
+        version = self.command("VER")
+        assert isinstance(version, VersionFrame)
+        if self.rate_hz is not None:
+            self.command("RATE", self.rate_hz)
+        self.command("PAR", "GET")
+        log.info(
+            "compass %s: firmware %s, hardware %s, serial %s, rate %s Hz",
+            self.name,
+            version.firmware,
+            version.hardware,
+            version.serial,
+            self.rate_hz if self.rate_hz is not None else "unchanged",
+        )
