@@ -152,7 +152,9 @@ def dcm_to_rotvec(R: npt.ArrayLike) -> FloatArray:
         i = int(np.argmax(axis))
         axis = S[:, i] / math.sqrt(max(S[i, i], 1e-300))
         return axis / np.linalg.norm(axis) * angle
-    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / (2.0 * math.sin(angle))
+    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / (
+        2.0 * math.sin(angle)
+    )
     return axis * angle
 
 

@@ -94,7 +94,11 @@ def earth_field(
     Results are cached on a rounded position (0.01 deg, 10 m, 0.01 year): the
     field changes far less than sensor noise over such steps.
     """
-    for name, v in (("latitude", latitude_deg), ("longitude", longitude_deg), ("altitude", altitude_m)):
+    for name, v in (
+        ("latitude", latitude_deg),
+        ("longitude", longitude_deg),
+        ("altitude", altitude_m),
+    ):
         if not math.isfinite(v):
             raise ValueError(f"{name} must be finite, got {v!r}")
     if not -90.0 <= latitude_deg <= 90.0:

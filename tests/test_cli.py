@@ -1,0 +1,231 @@
+"""The command line as a user (or systemd) runs it: real subprocesses, real signals, real ptys."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import logging
+import os
+import re
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import serial
+
+import bridge
+from bridge.cli import SHUTDOWN_TIMEOUT_S, main
+from bridge.link.record import RecordingReader
+from bridge.sim.pty import MOTIONS
+
+HEADING_RE = re.compile(r"^hdg +(\d+\.\d) mag +pitch +(\S+) +roll +(\S+)")
+STOP_BOUND_S = SHUTDOWN_TIMEOUT_S  # a clean stop must beat the forced exit
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging() -> Iterator[None]:
+    # main() configures the root logger (force=True) for the process; in-process
+    # calls must not leave a handler writing to a finished test's captured stderr.
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env["STATE_DIRECTORY"] = str(tmp_path / "state")  # never read the machine's state
+    env.pop("JOURNAL_STREAM", None)
+    return env
+
+
+def spawn(tmp_path: Path, *args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "bridge", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=_env(tmp_path),
+    )
+
+
+def read_lines(proc: subprocess.Popen[str], want: int, deadline_s: float) -> list[str]:
+    """Lines from ``proc``'s stdout until ``want`` heading lines arrived or the deadline passed."""
+    assert proc.stdout is not None
+    os.set_blocking(proc.stdout.fileno(), False)
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    buf, lines = "", list[str]()
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end and sum(bool(HEADING_RE.match(x)) for x in lines) < want:
+        if not sel.select(timeout=max(0.0, min(0.2, end - time.monotonic()))):
+            if proc.poll() is not None:
+                break
+            continue
+        chunk = proc.stdout.read()
+        if not chunk:
+            if proc.poll() is not None:
+                break
+            continue
+        buf += chunk
+        *done, buf = buf.split("\n")
+        lines += done
+    sel.close()
+    return lines
+
+
+def stop(proc: subprocess.Popen[str], sig: signal.Signals) -> tuple[int, float, str]:
+    t0 = time.monotonic()
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=STOP_BOUND_S + 5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        pytest.fail(f"no exit within {STOP_BOUND_S + 5} s of {sig.name}")
+    return proc.returncode, time.monotonic() - t0, err
+
+
+def run(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "bridge", *args],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=_env(tmp_path),
+        timeout=timeout,
+    )
+
+
+# --- run --simulate --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_run_simulate_shows_changing_heading_and_stops_on_signal(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    proc = spawn(tmp_path, "run", "--simulate")
+    try:
+        lines = read_lines(proc, want=3, deadline_s=20)
+    finally:
+        code, took, err = stop(proc, sig)
+    headings = [float(m.group(1)) for x in lines if (m := HEADING_RE.match(x))]
+    assert len(headings) >= 3, (lines, err)
+    # stdout is a pipe: one full line per update, no carriage-return redraws
+    assert not any("\r" in x for x in lines)
+    # the default simulated unit turns at 10 deg/s and a line comes once a second
+    assert len(set(headings)) == len(headings), headings
+    assert all(0.0 <= h < 360.0 for h in headings)
+    assert code == 0, err
+    assert took < STOP_BOUND_S, f"stop took {took:.1f} s"
+    assert "Traceback" not in err
+
+
+def test_run_with_a_bad_config_exits_2_naming_the_key(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[device]\nport = "sim"\nbaud = 1234\n')
+    res = run(tmp_path, "run", "--config", str(bad))
+    assert res.returncode == 2
+    assert res.stderr.strip() == (
+        "config error: device.baud: must be one of 4800, 9600, 19200, 38400, 57600, 115200, "
+        "230400, got 1234"
+    )
+    assert res.stdout == ""
+
+
+def test_version() -> None:
+    res = subprocess.run(
+        [sys.executable, "-m", "bridge", "--version"], capture_output=True, text=True, timeout=30
+    )
+    assert res.returncode == 0
+    assert res.stdout.strip() == f"compass-bridge {bridge.__version__}"
+    # The package metadata (pyproject.toml) and the code agree.
+    assert importlib.metadata.version("compass-bridge") == bridge.__version__
+
+
+# --- usage errors, in process (fast) ------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        ([], "required: COMMAND"),
+        (["frobnicate"], "invalid choice"),
+        (["run"], "run needs --config FILE"),
+        (["run", "--simulate", "--log-level", "LOUD"], "invalid choice"),
+        (["simulate"], "--link"),
+        (["bench"], "required: BENCH"),
+    ],
+)
+def test_usage_errors_exit_2(
+    argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(argv) == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_missing_config_file_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "--config", str(tmp_path / "nope.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("config error: ") and "nope.toml: cannot read" in err
+
+
+def test_config_prints_the_effective_configuration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[device]\nbaud = 9600\n[zenoh]\nkey_prefix = "v/<hostname>"\n')
+    assert main(["config", "--config", str(cfg), "--set", "device.rate_hz=20"]) == 0
+    out = capsys.readouterr().out
+    assert "baud = 9600\n" in out and "rate_hz = 20\n" in out
+    assert "<hostname>" not in out and 'key_prefix = "v/' in out
+    assert main(["config", "--set", "sim.motion=spin"]) == 2
+    assert "config error: sim.motion: must be one of" in capsys.readouterr().err
+
+
+def test_sim_motions_match_the_simulator() -> None:
+    from bridge.config import SIM_MOTIONS
+
+    assert set(SIM_MOTIONS) == set(MOTIONS)
+
+
+# --- simulate / record / bench wiring -------------------------------------------------------
+
+
+def test_simulate_serves_a_pty_and_record_taps_it(tmp_path: Path) -> None:
+    link = tmp_path / "compass"
+    sim = spawn(tmp_path, "simulate", "--link", str(link), "--seed", "3", "--motion", "still")
+    try:
+        end = time.monotonic() + 20
+        while not link.exists() and time.monotonic() < end and sim.poll() is None:
+            time.sleep(0.05)
+        assert link.exists(), "simulator never created its link"
+        with serial.Serial(str(link), 115200, timeout=0.2) as port:
+            got = b""
+            while b"$PGMRA," not in got and time.monotonic() < end:
+                got += port.read(256)
+        assert b"$PGMRA," in got
+        out = tmp_path / "tap.cbrec"
+        rec = run(tmp_path, "record", "--port", str(link), "--out", str(out), "--duration", "1")
+        assert rec.returncode == 0, rec.stderr
+    finally:
+        code, took, err = stop(sim, signal.SIGTERM)
+    assert code == 0 and took < STOP_BOUND_S, err
+    with RecordingReader(out) as reader:
+        data = b"".join(c.data for c in reader.chunks())
+        assert reader.header.port == str(link) and reader.header.baud == 115200
+    assert data.count(b"$PGMRA,") >= 5  # 10 Hz for a second, minus the edges
+
+
+def test_bench_accuracy_is_wired(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "accuracy", "--help"]) == 0
+    assert "usage: compass-bridge bench accuracy" in capsys.readouterr().out
+    assert main(["bench", "accuracy", "--units", "0"]) == 2  # its own validation, its own code
+    assert main(["run", "--simulate", "--units", "2"]) == 2  # passthrough is for bench only
+    assert "unrecognized arguments: --units 2" in capsys.readouterr().err

@@ -1,0 +1,429 @@
+"""Daemon wiring on real pseudo-terminals: link -> calibration -> attitude engine -> outputs.
+
+A feeder thread plays datasheet sentences into the master side of a pty; the
+daemon opens the slave through pyserial exactly as it would a USB adapter.
+Expected headings come from the simulator's physics (ground truth attitude ->
+ADC counts), not from the engine under test.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.calibration.model import Calibration
+from bridge.config import Config, load_config
+from bridge.core.geometry import angle_diff_deg, euler_to_dcm
+from bridge.core.wmm import earth_field
+from bridge.daemon import (
+    CompassSample,
+    ConsoleOutput,
+    Daemon,
+    DaemonStatus,
+    LatestSampleWorker,
+    load_calibration,
+    run_daemon,
+)
+from bridge.link.record import RecordingWriter
+from bridge.link.serial_link import LinkCounters, LinkState
+from bridge.sim.physics import SensorModel, UnitErrors
+from bridge.storage import StateStore
+
+# A field with no east component: magnetic north == true north, so the
+# magnetic heading of a level unit is exactly the yaw of its attitude.
+FIELD_NED_G = (0.21, 0.0, 0.43)
+DEADLINE_S = 10.0
+
+
+def nmea(body: str) -> bytes:
+    """``$body*CS\\r\\n`` with the datasheet's XOR checksum (computed here, not by the codec)."""
+    cs = 0
+    for b in body.encode("ascii"):
+        cs ^= b
+    return f"${body}*{cs:02X}\r\n".encode("ascii")
+
+
+def gmr_lines(
+    errors: UnitErrors, yaws_deg: Sequence[float], *, pitch_deg: float = 0.0, roll_deg: float = 0.0
+) -> list[bytes]:
+    """$PGMRA lines of a unit at the given attitudes (seq from 0); on-board heading = yaw."""
+    model = SensorModel(errors, FIELD_NED_G)
+    rng = np.random.default_rng(0)
+    out = []
+    for seq, yaw in enumerate(yaws_deg):
+        R = euler_to_dcm(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw))
+        s = model.sample(R, rng)
+        (mx, my, mz), (ax, ay, az) = s.mag_counts[0], s.acc_counts[0]
+        body = (
+            f"PGMRA,{seq},{yaw % 360:.1f},{pitch_deg:.1f},{roll_deg:.1f},"
+            f"{mx},{my},{mz},{ax},{ay},{az},06"
+        )
+        out.append(nmea(body))
+    return out
+
+
+class PtyFeeder:
+    """Plays lines into a pty master (looping) until stopped; drains what the host writes."""
+
+    def __init__(self, lines: Sequence[bytes], period: float = 0.02) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # no line discipline on the way in: bytes arrive as sent
+        os.set_blocking(self.master, False)
+        self.path = os.ttyname(self.slave)
+        self.lines = list(lines)
+        self.period = period
+        self.host_bytes = bytearray()
+        self._stop = threading.Event()
+        self._extra: list[bytes] = []
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def inject(self, data: bytes) -> None:
+        """Send ``data`` once, between two lines."""
+        self._extra.append(data)
+
+    def _run(self) -> None:
+        deadline = time.monotonic() + 4 * DEADLINE_S
+        i = 0
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            with contextlib.suppress(BlockingIOError, OSError):
+                self.host_bytes += os.read(self.master, 4096)
+            data = (self._extra.pop(0) if self._extra else b"") + self.lines[i % len(self.lines)]
+            i += 1
+            with contextlib.suppress(BlockingIOError, OSError):
+                os.write(self.master, data)
+            self._stop.wait(self.period)
+
+    def __enter__(self) -> PtyFeeder:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+class Collect:
+    """A real Output that keeps every sample (the test's consumer)."""
+
+    name = "collect"
+
+    def __init__(self) -> None:
+        self.samples: list[CompassSample] = []
+
+    def start(self) -> None:
+        pass
+
+    def publish(self, sample: CompassSample) -> None:
+        self.samples.append(sample)
+
+    def close(self, timeout: float) -> None:
+        pass
+
+    def wait_for(self, n: int, deadline_s: float = DEADLINE_S) -> list[CompassSample]:
+        end = time.monotonic() + deadline_s
+        while len(self.samples) < n and time.monotonic() < end:
+            time.sleep(0.02)
+        assert len(self.samples) >= n, f"only {len(self.samples)} samples within {deadline_s} s"
+        return list(self.samples)
+
+
+def config(tmp_path: Path, port: str, *overrides: str) -> Config:
+    return load_config(
+        None,
+        [f"device.port={port}", f"storage.dir={tmp_path / 'state'}", *overrides],
+        env={},
+        hostname="test",
+    )
+
+
+@pytest.fixture
+def running() -> Iterator[Callable[[Daemon], Daemon]]:
+    started: list[Daemon] = []
+
+    def start(d: Daemon) -> Daemon:
+        started.append(d.start())
+        return d
+
+    yield start
+    for d in started:
+        d.stop(timeout=3.0)
+
+
+# --- the GMR path -------------------------------------------------------------------
+
+
+def test_host_heading_follows_the_attitude(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    yaws = [0.0, 45.0, 90.0, 135.0, 200.0, 300.0]
+    with PtyFeeder(gmr_lines(UnitErrors.ideal(), yaws, pitch_deg=10.0, roll_deg=-20.0)) as pty:
+        out = Collect()
+        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        samples = out.wait_for(2 * len(yaws))
+        assert d.link.state is LinkState.STREAMING
+    assert d.calibration_source == "none (identity)"
+    for s in samples:
+        assert s.source == "host" and s.heading_reference == "magnetic"
+        assert s.seq is not None and s.device_heading_deg is not None
+        truth = yaws[s.seq]
+        assert abs(float(angle_diff_deg(s.heading_deg, truth))) < 0.5, (s.seq, s.heading_deg)
+        assert s.pitch_deg == pytest.approx(10.0, abs=0.5)
+        assert s.roll_deg == pytest.approx(-20.0, abs=0.5)
+        assert s.heading_true_deg is None  # no [location]: no declination
+    assert {s.seq for s in samples} == set(range(len(yaws)))
+
+
+def _hard_iron_unit() -> UnitErrors:
+    return UnitErrors(
+        hard_iron_G=np.array([0.08, -0.05, 0.03]), acc_offset_g=np.array([0.02, 0, 0])
+    )
+
+
+def _max_error(samples: Sequence[CompassSample], yaws: Sequence[float]) -> float:
+    return max(abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) for s in samples)
+
+
+def test_stored_calibration_is_applied(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
+    unit = _hard_iron_unit()
+    yaws = [10.0, 100.0, 190.0, 280.0]
+    lines = gmr_lines(unit, yaws)
+    # Without calibration the hard iron bends the heading by tens of degrees ...
+    with PtyFeeder(lines) as pty:
+        raw = Collect()
+        running(Daemon(config(tmp_path, pty.path), [raw]))
+        assert _max_error(raw.wait_for(8), yaws) > 10.0
+    # ... with the true calibration stored in the state directory it is gone.
+    StateStore(tmp_path / "state").save("calibration", unit.true_calibration().to_dict())
+    with PtyFeeder(lines) as pty:
+        cal = Collect()
+        d = running(Daemon(config(tmp_path, pty.path), [cal]))
+        assert d.calibration_source == "stored"
+        assert _max_error(cal.wait_for(8), yaws) < 0.5
+
+
+def test_corrupt_calibration_falls_back_to_identity(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / "calibration.json").write_text('{"schema": "compass-bridge/calibration", "payl')
+    cal, source = load_calibration(str(state))
+    assert cal == Calibration() and source == "none (identity)"
+    # A checksummed document whose payload is not a calibration: also identity.
+    StateStore(state).save("calibration", {"mag": {"offset": [0, 0]}})
+    cal, source = load_calibration(str(state))
+    assert cal == Calibration() and source == "none (identity)"
+    # A document wrapping the calibration with its report is accepted.
+    good = _hard_iron_unit().true_calibration()
+    StateStore(state).save("calibration", {"calibration": good.to_dict(), "report": {}})
+    assert load_calibration(str(state)) == (good, "stored")
+
+
+def test_declination_from_location(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
+    lat, lon = 47.4, 8.5
+    decl = earth_field(lat, lon, 0.0).declination_deg
+    with PtyFeeder(gmr_lines(UnitErrors.ideal(), [30.0])) as pty:
+        out = Collect()
+        cfg = config(tmp_path, pty.path, f"location.latitude={lat}", f"location.longitude={lon}")
+        running(Daemon(cfg, [out]))
+        s = out.wait_for(3)[-1]
+    assert s.declination_deg == pytest.approx(decl, abs=1e-6)
+    assert s.heading_true_deg == pytest.approx((s.heading_deg + decl) % 360.0, abs=1e-6)
+    assert s.heading_reference == "magnetic"
+
+
+def test_noise_on_the_line_is_counted_and_dropped(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    yaws = [0.0, 90.0]
+    with PtyFeeder(gmr_lines(UnitErrors.ideal(), yaws)) as pty:
+        out = Collect()
+        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        out.wait_for(2)
+        pty.inject(b"\x00\xffgarbage$PGMRA,1,2,3*00\r\n")  # binary junk + a bad checksum
+        pty.inject(nmea("PGMRA,5,999.0,0.0,0.0,1,2,3,4,5,6,06"))  # heading out of range
+        deadline = time.monotonic() + DEADLINE_S
+        while d.link.counters.bad_lines_total < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        n = len(out.samples)
+        out.wait_for(n + 4)  # and it keeps going
+    assert d.link.counters.bad_lines_total >= 2
+    assert d.pipeline_errors == 0
+    assert all(
+        abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) < 0.5 for s in out.samples
+    )
+
+
+class Stuck(LatestSampleWorker):
+    """An output whose I/O hangs (a dead network peer) until released."""
+
+    def __init__(self) -> None:
+        super().__init__("stuck", 0.01)
+        self.release = threading.Event()
+        self.emitted = 0
+
+    def emit(self, sample: CompassSample | None) -> None:
+        self.emitted += 1
+        self.release.wait(DEADLINE_S)
+
+
+def test_a_stuck_output_does_not_stall_the_others(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    with PtyFeeder(gmr_lines(UnitErrors.ideal(), [0.0, 90.0]), period=0.01) as pty:
+        stuck, out = Stuck(), Collect()
+        running(Daemon(config(tmp_path, pty.path), [stuck, out]))
+        out.wait_for(30)
+        assert stuck.emitted == 1  # still inside its first emit
+        assert stuck.skipped >= 20  # it only ever holds the latest sample
+        stuck.release.set()
+
+
+# --- heading-only compasses -----------------------------------------------------------
+
+
+def test_nmea_heading_is_forwarded_with_declination(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    lat, lon = -33.9, 151.2  # Sydney: declination about +13 deg
+    decl = earth_field(lat, lon, 0.0).declination_deg
+    lines = [nmea("HCHDM,123.4,M"), nmea("HEHDT,200.0,T")]
+    with PtyFeeder(lines) as pty:
+        out = Collect()
+        cfg = config(
+            tmp_path,
+            pty.path,
+            "device.protocol=nmea",
+            f"location.latitude={lat}",
+            f"location.longitude={lon}",
+        )
+        d = running(Daemon(cfg, [out]))
+        samples = out.wait_for(6)
+    assert d.link.protocol == "nmea"
+    hdm = next(s for s in samples if s.heading_magnetic_deg == pytest.approx(123.4))
+    assert hdm.source == "device" and hdm.attitude is None
+    assert hdm.heading_true_deg == pytest.approx(123.4 + decl, abs=1e-6)
+    hdt = next(s for s in samples if s.heading_true_deg == pytest.approx(200.0))
+    assert hdt.heading_magnetic_deg == pytest.approx(200.0 - decl, abs=1e-6)
+    assert hdt.heading_deg == hdt.heading_magnetic_deg  # magnetic is published when known
+
+
+def test_hdg_variation_is_used_without_location(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    with PtyFeeder([nmea("HCHDG,100.0,,,4.5,W")]) as pty:
+        out = Collect()
+        running(Daemon(config(tmp_path, pty.path, "device.protocol=nmea"), [out]))
+        s = out.wait_for(2)[-1]
+    assert s.heading_magnetic_deg == pytest.approx(100.0)
+    assert s.heading_true_deg == pytest.approx(95.5)  # west variation is negative
+    assert pty.host_bytes == b""  # a heading-only compass gets no commands
+
+
+def test_os5000_pitch_roll_forwarded(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
+    with PtyFeeder([nmea("C271.5P-3.0R12.5T21.0")]) as pty:
+        out = Collect()
+        running(Daemon(config(tmp_path, pty.path, "device.protocol=os5000"), [out]))
+        s = out.wait_for(2)[-1]
+    assert (s.heading_deg, s.pitch_deg, s.roll_deg) == (271.5, -3.0, 12.5)
+    assert s.heading_true_deg is None
+
+
+# --- replay and the run loop ------------------------------------------------------------
+
+
+def test_replay_runs_to_the_end_and_exits_zero(tmp_path: Path) -> None:
+    rec = tmp_path / "run.cbrec"
+    lines = gmr_lines(UnitErrors.ideal(), [float(y) for y in range(0, 360, 30)])
+    with RecordingWriter(rec, "/dev/ttyUSB0", 115200, start_wall=0.0) as w:
+        for i, line in enumerate(lines):
+            w.write(i * 0.01, line)
+    cfg = config(tmp_path, f"replay:{rec}")
+    stop = threading.Event()
+    done: list[int] = []
+    t = threading.Thread(target=lambda: done.append(run_daemon(cfg, stop)), daemon=True)
+    t.start()
+    t.join(DEADLINE_S)
+    stop.set()  # only matters if it failed to end by itself
+    assert done == [0]
+
+
+# --- console line ------------------------------------------------------------------------
+
+
+def _status(state: LinkState = LinkState.STREAMING) -> DaemonStatus:
+    return DaemonStatus("sim", state, LinkCounters(attitude_frames=7), 7, 0, "given")
+
+
+def _sample(heading: float) -> CompassSample:
+    return CompassSample(0.0, "host", heading, "magnetic", heading, None, None, 1.5, -2.0)
+
+
+def test_console_line_pipe_mode() -> None:
+    stream = io.StringIO()
+    con = ConsoleOutput(_status, stream, tty=False, interval=0.05)
+    con.start()
+    con.publish(_sample(87.25))
+    deadline = time.monotonic() + DEADLINE_S
+    while stream.getvalue().count("\n") < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    con.close(2.0)
+    lines = stream.getvalue().splitlines()
+    assert len(lines) >= 2 and "\r" not in stream.getvalue()
+    assert "hdg  87.2 mag" in lines[-1] or "hdg  87.3 mag" in lines[-1]
+    assert "pitch   +1.5" in lines[-1] and "roll   -2.0" in lines[-1]
+    assert "streaming" in lines[-1]
+
+
+def test_console_line_tty_mode_rewrites_in_place() -> None:
+    stream = io.StringIO()
+    con = ConsoleOutput(lambda: _status(LinkState.STALE), stream, tty=True, interval=0.02)
+    con.start()
+    deadline = time.monotonic() + DEADLINE_S
+    while stream.getvalue().count("\r") < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    con.close(2.0)
+    text = stream.getvalue()
+    assert text.count("\r") >= 3 and text.endswith("\n") and text.count("\n") == 1
+    assert "waiting for the compass on sim" in text and "stale" in text
+
+
+class Record(LatestSampleWorker):
+    """A publish-driven output that records what it emitted."""
+
+    def __init__(self) -> None:
+        super().__init__("record", 0.02)
+        self.emitted: list[CompassSample | None] = []
+
+    def emit(self, sample: CompassSample | None) -> None:
+        self.emitted.append(sample)
+
+
+def _wait(cond: Callable[[], bool]) -> None:
+    end = time.monotonic() + DEADLINE_S
+    while not cond() and time.monotonic() < end:
+        time.sleep(0.01)
+
+
+def test_publish_driven_output_emits_each_new_sample_once() -> None:
+    out = Record()
+    out.start()
+    first, second = _sample(10.0), _sample(20.0)
+    out.publish(first)
+    _wait(lambda: len(out.emitted) >= 1)
+    time.sleep(0.2)  # ten intervals: a stale sample must not be sent again
+    assert out.emitted == [first]
+    out.publish(second)
+    _wait(lambda: len(out.emitted) >= 2)
+    out.close(2.0)
+    assert out.emitted == [first, second]
