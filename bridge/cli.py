@@ -222,12 +222,27 @@ def _force_exit() -> None:
 # ---------------------------------------------------------------------------
 
 
+def simulator_state_dir() -> str:
+    """State directory of ``run --simulate``: ``$XDG_STATE_HOME/compass-bridge/sim``.
+
+    Falls back to ``~/.local/state`` (the XDG default) when XDG_STATE_HOME is unset.
+    """
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(
+        os.path.expanduser("~"), ".local", "state"
+    )
+    return os.path.join(base, "compass-bridge", "sim")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """``run``: load the configuration, start the daemon, stop on SIGINT/SIGTERM."""
     overrides = list(args.overrides)
     if args.simulate:
         # The simulated compass speaks the GMR protocol, whatever a --config file says.
         overrides[:0] = ["device.port=sim", "device.protocol=gmr"]
+        if not any(o.startswith("storage.dir=") for o in overrides):
+            # The simulated unit must never read or overwrite a real unit's calibration
+            # in the service's state directory: give it a per-user directory of its own.
+            overrides.insert(2, f"storage.dir={simulator_state_dir()}")
     elif args.config is None:
         raise UsageError("run needs --config FILE (or --simulate for the built-in simulator)")
     cfg = load_config(args.config, overrides)

@@ -127,6 +127,31 @@ def test_run_simulate_shows_changing_heading_and_stops_on_signal(
     assert "Traceback" not in err
 
 
+def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Path) -> None:
+    """--simulate must not load (or later overwrite) a real unit's calibration in the state dir."""
+    from bridge.storage import StateStore
+
+    real_state = tmp_path / "state"
+    StateStore(real_state).save("calibration", {"not": "for the simulator"})
+    env = _env(tmp_path)
+    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bridge", "run", "--simulate", "--log-level", "INFO"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+    )
+    try:
+        read_lines(proc, want=1, deadline_s=20)
+    finally:
+        code, _, err = stop(proc, signal.SIGTERM)
+    assert code == 0, err
+    assert str(tmp_path / "xdg" / "compass-bridge" / "sim") in err
+    assert str(real_state) not in err
+
+
 def test_run_with_a_bad_config_exits_2_naming_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[device]\nport = "sim"\nbaud = 1234\n')
