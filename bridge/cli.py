@@ -132,6 +132,20 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LAT,LON[,ALT]",
         help="where the unit is (degrees, metres; default Zurich)",
     )
+    sim.add_argument(
+        "--unplug-s",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="on SIGUSR1 the pty goes away and a new one appears after S seconds (default 1)",
+    )
+    sim.add_argument(
+        "--garbage-bytes",
+        type=int,
+        default=256,
+        metavar="N",
+        help="on SIGUSR2 send N bytes of line noise (default 256)",
+    )
     sim.set_defaults(func=cmd_simulate)
 
     rec = sub.add_parser("record", parents=[common], help="record a compass's raw byte stream")
@@ -273,6 +287,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         motion=args.motion,
         flash_path=args.flash,
         ideal=args.ideal,
+        unplug_s=args.unplug_s,
+        garbage_bytes=args.garbage_bytes,
     )
 
 

@@ -254,3 +254,43 @@ def test_bench_accuracy_is_wired(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "accuracy", "--units", "0"]) == 2  # its own validation, its own code
     assert main(["run", "--simulate", "--units", "2"]) == 2  # passthrough is for bench only
     assert "unrecognized arguments: --units 2" in capsys.readouterr().err
+
+
+def test_simulate_unplugs_on_sigusr1_and_sends_noise_on_sigusr2(tmp_path: Path) -> None:
+    from bridge.protocol.gmr import GmrDecoder
+
+    link = tmp_path / "compass"
+    sim = spawn(
+        tmp_path, "simulate", "--link", str(link), "--unplug-s", "0.5", "--garbage-bytes", "400"
+    )
+    try:
+        end = time.monotonic() + 20
+        while not link.exists() and time.monotonic() < end and sim.poll() is None:
+            time.sleep(0.05)
+        first = os.path.realpath(link)
+        # SIGUSR2: line noise arrives on the port, counted by a real decoder, frames keep coming
+        with serial.Serial(str(link), 115200, timeout=0.2) as port:
+            dec = GmrDecoder("host")
+            port.read(200)
+            sim.send_signal(signal.SIGUSR2)
+            frames = 0
+            while time.monotonic() < end and (dec.counters.dropped.total == 0 or frames < 3):
+                frames += len(dec.feed(port.read(256)))
+            assert dec.counters.dropped.total > 0 and frames >= 3
+            # SIGUSR1: the cable is pulled; reading the old pty fails
+            sim.send_signal(signal.SIGUSR1)
+            with pytest.raises(serial.SerialException):
+                while time.monotonic() < end:
+                    port.read(256)
+        # ... and a new pty appears at the same path
+        while time.monotonic() < end and (not link.exists() or os.path.realpath(link) == first):
+            time.sleep(0.05)
+        assert os.path.realpath(link) != first
+        with serial.Serial(str(link), 115200, timeout=0.2) as port:
+            got = b""
+            while b"$PGMRA," not in got and time.monotonic() < end:
+                got += port.read(256)
+        assert b"$PGMRA," in got
+    finally:
+        code, _, err = stop(sim, signal.SIGTERM)
+    assert code == 0, err

@@ -333,12 +333,18 @@ def run_simulator(
     ideal: bool = False,
     stop: threading.Event | None = None,
     on_ready: Callable[[PtyCompass], None] | None = None,
+    unplug_s: float = 1.0,
+    garbage_bytes: int = 256,
 ) -> int:
     """Serve a simulated compass at ``link_path`` until SIGINT/SIGTERM (or ``stop`` is set).
 
     ``seed`` draws the unit's errors; ``location`` is ``(lat_deg, lon_deg, alt_m)``
     (default: PX4 SITL's Zurich); ``motion`` a script or one of :data:`MOTIONS`;
     ``flash_path`` keeps the unit's calibration across runs. Returns 0.
+
+    Fault injection from outside, for integrators and the daemon's fault tests:
+    SIGUSR1 pulls the cable (the pty goes away; a new one appears at
+    ``link_path`` after ``unplug_s``), SIGUSR2 sends ``garbage_bytes`` of line noise.
     """
     if isinstance(motion, str):
         if motion not in MOTIONS:
@@ -347,21 +353,40 @@ def run_simulator(
     fw = make_firmware(seed, location=location, motion=motion, flash_path=flash_path, ideal=ideal)
     stop_event = stop if stop is not None else threading.Event()
 
+    unplug_requested = threading.Event()
+    garbage_requested = threading.Event()
+    wake = threading.Event()
+
     def _on_signal(signum: int, frame: FrameType | None) -> None:
-        stop_event.set()
+        # Only set flags here: the work (which blocks) happens in the loop below.
+        if signum == signal.SIGUSR1:
+            unplug_requested.set()
+        elif signum == signal.SIGUSR2:
+            garbage_requested.set()
+        else:
+            stop_event.set()
+        wake.set()
 
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
             previous[sig] = signal.signal(sig, _on_signal)
     try:
         with PtyCompass(fw, link_path) as sim:
             if on_ready is not None:
                 on_ready(sim)
             # short waits keep the main thread responsive to signals
-            while not stop_event.wait(0.2):
+            while not stop_event.is_set():
+                wake.wait(0.2)
+                wake.clear()
                 if not sim.running:
                     raise RuntimeError(f"simulator thread died: {sim.error!r}")
+                if garbage_requested.is_set():
+                    garbage_requested.clear()
+                    sim.garbage(garbage_bytes)
+                if unplug_requested.is_set():
+                    unplug_requested.clear()
+                    sim.unplug(unplug_s)
     finally:
         for signum, handler in previous.items():
             # None means "installed outside Python": the default is the closest we can restore
