@@ -368,6 +368,46 @@ class MavlinkConfig(Section):
     signing_key_file: str = setting(
         "", None, 'file holding the 32-byte signing key as 64 hex characters; "" = unsigned'
     )
+    role: str = setting(
+        "standalone",
+        one_of("standalone", "companion"),
+        "standalone: the bridge is the vehicle (component 1, QGroundControl draws it); "
+        "companion: beside an autopilot of the same system_id (component 200 = "
+        "MAV_COMP_ID_IMU when component_id is left at 1), position taken from the autopilot",
+    )
+    heading_feed: str = setting(
+        "off",
+        one_of("off", "px4_odometry", "ardupilot_vision"),
+        "heading for the autopilot's estimator: PX4 ODOMETRY or ArduPilot "
+        "VISION_POSITION_ESTIMATE; parameter BRG_HDG_FEED",
+    )
+    heading_feed_sigma_deg: float = setting(
+        2.0, between(0.1, 90.0), "yaw standard deviation sent with the heading feed", "deg"
+    )
+    rate_attitude_hz: float = setting(
+        10.0, between(0.0, 50.0), "ATTITUDE rate, 0 = off; parameter BRG_SR_ATT", "Hz"
+    )
+    rate_attitude_quaternion_hz: float = setting(
+        10.0, between(0.0, 50.0), "ATTITUDE_QUATERNION rate; parameter BRG_SR_QUAT", "Hz"
+    )
+    rate_vfr_hud_hz: float = setting(
+        4.0, between(0.0, 50.0), "VFR_HUD rate; parameter BRG_SR_HUD", "Hz"
+    )
+    rate_scaled_imu_hz: float = setting(
+        2.0, between(0.0, 50.0), "SCALED_IMU rate; parameter BRG_SR_SIMU", "Hz"
+    )
+    rate_raw_imu_hz: float = setting(
+        2.0, between(0.0, 50.0), "RAW_IMU rate; parameter BRG_SR_RIMU", "Hz"
+    )
+    rate_highres_imu_hz: float = setting(
+        2.0, between(0.0, 50.0), "HIGHRES_IMU rate; parameter BRG_SR_HIMU", "Hz"
+    )
+    rate_sys_status_hz: float = setting(
+        1.0, between(0.0, 50.0), "SYS_STATUS rate; parameter BRG_SR_SYS", "Hz"
+    )
+    rate_heading_feed_hz: float = setting(
+        10.0, between(0.0, 50.0), "heading feed rate; parameter BRG_SR_FEED", "Hz"
+    )
     signing_key: bytes | None = derived(None, "the key read from signing_key_file at load")
 
     def finish(self, ctx: LoadContext) -> Self:
@@ -406,9 +446,34 @@ class ZenohConfig(Section):
     key_prefix: str = setting(
         f"fleet/{HOSTNAME_PLACEHOLDER}/compass", key_prefix, "key expression prefix"
     )
+    multicast_scouting: bool = setting(
+        False, None, "multicast scouting (224.0.0.224:7446); off = explicit endpoints only"
+    )
+    config_file: str = setting(
+        "",
+        None,
+        'zenoh JSON5 file used as the base (TLS, user/password, access control); "" = none',
+    )
+    heading_rate_hz: float = setting(
+        0.0, between(0.0, 100.0), "cap of <prefix>/heading; 0 = every frame", "Hz"
+    )
+    attitude_rate_hz: float = setting(
+        0.0, between(0.0, 100.0), "cap of <prefix>/attitude; 0 = every frame", "Hz"
+    )
+    imu_rate_hz: float = setting(
+        0.0, between(0.0, 100.0), "cap of <prefix>/imu; 0 = every frame", "Hz"
+    )
+    remote_calibration: bool = setting(
+        False, None, "answer <prefix>/cmd/calibration/*; pair with zenoh access control"
+    )
+    mavlink_mirror: bool = setting(
+        False, None, "also publish the MAVLink messages as JSON on mavlink/<sys>/<comp>/<MSG>"
+    )
 
     def finish(self, ctx: LoadContext) -> Self:
         """Substitute the host name into ``key_prefix`` and re-check the result."""
+        if self.config_file and not Path(self.config_file).is_file():
+            raise ConfigError("zenoh.config_file", f"{self.config_file!r} does not exist")
         if HOSTNAME_PLACEHOLDER not in self.key_prefix:
             return self
         prefix = self.key_prefix.replace(HOSTNAME_PLACEHOLDER, ctx.hostname)
@@ -434,6 +499,24 @@ class StorageConfig(Section):
         # systemd's StateDirectory= may list several, colon-separated; ours is the first.
         state = ctx.env.get("STATE_DIRECTORY", "").split(":")[0]
         return dataclasses.replace(self, dir=state or DEFAULT_STATE_DIR)
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationConfig(Section):
+    """``[calibration]``: how calibrations run (``bridge.calibrator``)."""
+
+    onboard: bool = setting(
+        False,
+        None,
+        "run magnetometer and level calibrations in the compass itself (MAGCAL / ACCCAL, "
+        "result in its flash) instead of on the host; MAVLink parameter BRG_CAL_ONBOARD",
+    )
+    timeout_s: float = setting(
+        180.0,
+        between(10.0, 3600.0),
+        "a calibration not finished after this long fails (turn the unit faster)",
+        "s",
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -473,6 +556,7 @@ class Config:
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     location: LocationConfig | None = None
     sim: SimConfig = field(default_factory=SimConfig)
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any, Literal, Protocol, TextIO
 
 from bridge.calibration.model import Calibration
+from bridge.calibrator import CalibrationController, CalibratorSettings
 from bridge.config import Config
 from bridge.core.attitude import (
     AttitudeEngine,
@@ -38,6 +39,8 @@ from bridge.core.attitude import (
     FieldReference,
     field_reference_at,
 )
+from bridge.core.wmm import earth_field
+from bridge.events import Event, EventBus, Severity
 from bridge.link.serial_link import CompassLink, LinkCounters, LinkState, Received
 from bridge.link.transport import Transport, open_transport
 from bridge.protocol.gmr import AttitudeFrame, Flags
@@ -45,6 +48,9 @@ from bridge.protocol.heading import HeadingFrame
 from bridge.storage import StateStore
 
 log = logging.getLogger(__name__)
+
+#: Disturbance start/end events: at most one per this many seconds (no flapping on the links).
+DISTURBANCE_EVENT_MIN_S = 5.0
 
 #: Name of the calibration document in the state directory (``<storage.dir>/calibration.json``).
 CALIBRATION_DOCUMENT = "calibration"
@@ -85,6 +91,8 @@ class CompassSample:
     device_heading_deg: float | None = None  #: the GMR's on-board heading, for comparison
     saturated: bool = False  #: a raw channel sat at an ADC rail: the vectors are clipped
     attitude: AttitudeSolution | None = None
+    #: The frame's raw ADC counts (mx, my, mz, ax, ay, az), for MAVLink RAW_IMU; GMR frames only.
+    raw_counts: tuple[int, int, int, int, int, int] | None = None
 
 
 class Output(Protocol):
@@ -421,9 +429,29 @@ class Daemon:
             protocol=cfg.device.protocol,  # type: ignore[arg-type]  # validated by config
             rate_hz=cfg.device.rate_hz if cfg.device.protocol == "gmr" else None,
             stale_after=cfg.device.stale_after,
+            on_state=self._on_link_state,
+        )
+        #: Operator-visible events (calibration, ...) for every front end.
+        self.events = EventBus()
+        loc = cfg.location
+        #: The calibration state machine every front end drives (fed by the pipeline).
+        self.calibrator = CalibrationController(
+            self.engine,
+            self.events,
+            link=self.link,
+            store=StateStore(cfg.storage.dir),
+            field=earth_field(loc.latitude, loc.longitude, loc.altitude_m) if loc else None,
+            onboard=cfg.calibration.onboard,
+            settings=CalibratorSettings(timeout_s=cfg.calibration.timeout_s),
+            calibration_source=self.calibration_source,
         )
         self.samples = 0
         self.pipeline_errors = 0
+        #: Monotonic time of the pipeline loop's last turn (the service watchdog reads it).
+        self.pipeline_alive_at = time.monotonic()
+        self._disturbed = False  # disturbance state last reported as an event (pipeline thread)
+        self._disturbed_at = -math.inf  # when it was reported
+        self._link_lost = False  # link.lost emitted, link.restored not yet (reader thread)
         self._stop = threading.Event()
         self._pipeline: threading.Thread | None = None
 
@@ -435,6 +463,7 @@ class Daemon:
             out.start()
         self._pipeline = threading.Thread(target=self._run, name="compass-pipeline", daemon=True)
         self._pipeline.start()
+        self.calibrator.start()
         self.link.start()
         log.info(
             "bridge started: %s (%s), calibration %s, outputs %s",
@@ -449,6 +478,8 @@ class Daemon:
         """Stop everything within about ``timeout`` seconds."""
         deadline = time.monotonic() + timeout
         self._stop.set()
+        # Before the link: a device calibration still running is aborted over it.
+        self.calibrator.close(timeout=max(0.1, 0.25 * timeout))
         self.link.close(timeout=max(0.1, 0.5 * timeout))
         if self._pipeline is not None:
             self._pipeline.join(max(0.0, deadline - time.monotonic()))
@@ -476,6 +507,7 @@ class Daemon:
     def _run(self) -> None:
         get = self.link.get
         while not self._stop.is_set():
+            self.pipeline_alive_at = time.monotonic()
             item = get(timeout=0.2)
             if item is None:
                 continue
@@ -500,14 +532,50 @@ class Daemon:
     def process(self, item: Received) -> CompassSample | None:
         """One received frame to a sample (None for frames that carry no heading)."""
         frame = item.frame
+        self.calibrator.feed(frame)  # never raises; cheap when no calibration runs
         if isinstance(frame, AttitudeFrame):
             return self._from_gmr(frame, item.t)
         if isinstance(frame, HeadingFrame):
             return self._from_heading(frame, item.t)
         return None  # $PGMRV/P/K/C: handled by the link
 
+    def _on_link_state(self, old: LinkState, new: LinkState) -> None:
+        """Link lost / restored as operator events (called in the link's reader thread)."""
+        down = (LinkState.STALE, LinkState.ABSENT)
+        if old is LinkState.STREAMING and new in down:
+            self._link_lost = True
+            why = "stale" if new is LinkState.STALE else "port gone"
+            self.events.emit(
+                Event(
+                    "link.lost", f"Compass link lost ({why})", Severity.ERROR, {"state": new.value}
+                )
+            )
+        elif new is LinkState.STREAMING and self._link_lost:  # via OPENING after a reopen
+            self._link_lost = False
+            self.events.emit(Event("link.restored", "Compass link restored", Severity.NOTICE))
+
+    def _disturbance_changed(self, disturbed: bool, a: AttitudeSolution, t: float) -> None:
+        """Disturbance start / end as operator events (pipeline thread, on transitions only).
+
+        At most one event per :data:`DISTURBANCE_EVENT_MIN_S`: a badly calibrated unit
+        turning near the threshold would flap; a change inside the hold-off is reported
+        when it ends, if it still holds then.
+        """
+        if t - self._disturbed_at < DISTURBANCE_EVENT_MIN_S:
+            return
+        self._disturbed, self._disturbed_at = disturbed, t
+        data = {"field_mG": round(1000.0 * a.field_strength_G, 1), "dip_deg": round(a.dip_deg, 1)}
+        if disturbed:
+            text, sev = "Magnetic disturbance: heading unreliable", Severity.WARNING
+        else:
+            text, sev = "Magnetic disturbance cleared", Severity.NOTICE
+        kind = "disturbance.start" if disturbed else "disturbance.end"
+        self.events.emit(Event(kind, text, sev, data))
+
     def _from_gmr(self, f: AttitudeFrame, t: float) -> CompassSample:
         a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+        if a.disturbed is not self._disturbed:
+            self._disturbance_changed(a.disturbed, a, t)
         return CompassSample(
             t=t,
             source="host",
@@ -522,6 +590,7 @@ class Daemon:
             device_heading_deg=f.heading,
             saturated=bool(f.flags & Flags.SAT),
             attitude=a,
+            raw_counts=(f.mx, f.my, f.mz, f.ax, f.ay, f.az),
         )
 
     def _from_heading(self, f: HeadingFrame, t: float) -> CompassSample | None:
@@ -560,29 +629,54 @@ class Daemon:
 
 
 def build_outputs(
-    cfg: Config, status: Callable[[], DaemonStatus], *, console: bool
+    cfg: Config,
+    status: Callable[[], DaemonStatus],
+    *,
+    console: bool,
+    daemon: Daemon | None = None,
 ) -> list[Output]:
-    """The outputs the configuration asks for (MAVLink and Zenoh plug in here)."""
+    """The outputs the configuration asks for (MAVLink and Zenoh plug in here).
+
+    ``daemon`` gives outputs the bridge's services (events, calibrator); the
+    Zenoh output needs it and is left out without one.
+    """
     outputs: list[Output] = []
     if console:
         outputs.append(ConsoleOutput(status))
+    if cfg.zenoh.enabled and daemon is not None:
+        # Imported here: zenoh (a native runtime) loads only when it is asked for.
+        from bridge.fleet.output import ZenohOutput
+        from bridge.fleet.services import daemon_services
+        from bridge.fleet.session import ZenohSettings
+
+        outputs.append(
+            ZenohOutput(ZenohSettings.from_config(cfg.zenoh), daemon_services(lambda: daemon))
+        )
+    if cfg.mavlink.endpoints and daemon is not None:
+        # Imported here: bridge.mavlink builds on this module.
+        from bridge.mavlink import MavlinkOutput, MavlinkSettings
+
+        services = daemon  # the output resolves the daemon's services when it starts
+        outputs.append(MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: services))
     return outputs
 
 
-def run_daemon(cfg: Config, stop: threading.Event, *, console: bool = False) -> int:
-    """Run until ``stop`` is set (SIGINT/SIGTERM) or a replay ends; returns the exit code."""
-    holder: list[Daemon] = []
-    outputs = build_outputs(cfg, lambda: holder[0].status(), console=console)
-    daemon = Daemon(cfg, outputs)
-    holder.append(daemon)
-    daemon.start()
-    try:
-        while not stop.wait(0.2):
-            if daemon.ended:
-                log.info("replay finished")
-                # Let the pipeline drain the last frames before stopping.
-                stop.wait(0.5)
-                break
-    finally:
-        daemon.stop()
-    return 0
+def run_daemon(
+    cfg: Config,
+    stop: threading.Event,
+    *,
+    console: bool = False,
+    reload_config: Callable[[], Config] | None = None,
+) -> int:
+    """Run until ``stop`` is set (SIGINT/SIGTERM) or a replay ends; returns the exit code.
+
+    The service side -- sd_notify READY/STATUS/WATCHDOG/STOPPING, SIGHUP reload
+    through ``reload_config`` -- is :class:`bridge.service.Service`.
+    """
+    from bridge.service import Service  # it builds on this module
+
+    def make_outputs(c: Config, daemon: Daemon) -> list[Output]:
+        # Called at start and again on reload for an output whose section changed.
+        return build_outputs(c, daemon.status, console=console, daemon=daemon)
+
+    return Service(cfg, make_outputs, reload_config=reload_config).run(stop)

@@ -273,6 +273,18 @@ class AttitudeEngine:
         self._mounting = mounting
         self._state = self._build()
 
+    @property
+    def limits(self) -> QualityLimits:
+        """The quality limits in use."""
+        return self._limits
+
+    def update_limits(self, limits: QualityLimits) -> None:
+        """Switch to new quality limits (e.g. MAVLink BRG_* parameters); the flags restart clear."""
+        self._limits = limits
+        # A fresh monitor: a swap is one reference store, safe against the pipeline thread.
+        self._quality = QualityMonitor(limits)
+        self._state = self._build()
+
     def update_reference(self, reference: FieldReference | None) -> None:
         """Set the declination / expected field (``None`` = unknown)."""
         self._reference = reference

@@ -1,0 +1,716 @@
+"""The calibration controller end to end: the real daemon, the simulated compass, real storage.
+
+Two ways to run the simulated compass:
+
+* **real time** -- ``device.port`` is the simulator on a real pseudo-terminal
+  (or the in-process transport) and the daemon builds its own controller from
+  the configuration, exactly as in service;
+* **fast** -- the in-process simulator on a clock that runs ``SPEED`` times
+  faster than real time, and the controller on the *same* clock, so a
+  90-second tumble takes a few seconds. The daemon, link, pipeline and
+  storage are the real ones; only the controller is rebuilt with the fast
+  clock (the daemon's wiring is covered by the real-time tests).
+
+Truth comes from the simulator's physics (its unit errors and the attitude the
+motion script prescribes), never from the controller's own output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bridge.calibration.model import Calibration
+from bridge.calibration.sanity import MagCalStatus
+from bridge.calibrator import (
+    INSTRUCTION_LEVEL_TURN,
+    INSTRUCTION_SIDE_TURN,
+    CalibrationController,
+    CalibratorSettings,
+    CalibratorSnapshot,
+    Result,
+)
+from bridge.config import Config, config_from_mapping
+from bridge.core.attitude import tilt_compensated_heading
+from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
+from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
+from bridge.core.wmm import EarthField, earth_field
+from bridge.daemon import Daemon, load_calibration
+from bridge.events import Event, Severity
+from bridge.link.serial_link import LinkState
+from bridge.link.transport import SimTransport
+from bridge.protocol.gmr import Flags, ParamsFrame
+from bridge.sim.firmware import Firmware, make_firmware
+from bridge.sim.motion import (
+    AttitudeList,
+    Motion,
+    OnboardCalRotation,
+    Sequence,
+    SixFaces,
+    Still,
+    Tumble,
+    YawTurns,
+)
+from bridge.sim.physics import DEFAULT_LOCATION
+from bridge.sim.pty import PtyCompass
+from bridge.storage import StateStore
+
+SPEED = 20.0  #: fast runs: simulated seconds per real second
+DEADLINE_S = 30.0  #: real seconds any single wait may take before the test fails
+LAT, LON, ALT = DEFAULT_LOCATION
+FIELD: EarthField = earth_field(LAT, LON, ALT)
+
+
+class FastClock:
+    """Monotonic time running ``speed`` times faster than real time (and its sleep)."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+        self._t0 = time.monotonic()
+
+    def __call__(self) -> float:
+        return self._t0 + (time.monotonic() - self._t0) * self.speed
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(max(0.0, seconds) / self.speed)
+
+
+class EventLog:
+    """A real bus subscriber: keeps every event, thread-safe, with bounded waits."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.events: list[Event] = []
+
+    def __call__(self, e: Event) -> None:
+        with self._cond:
+            self.events.append(e)
+            self._cond.notify_all()
+
+    def kinds(self) -> list[str]:
+        with self._cond:
+            return [e.kind for e in self.events]
+
+    def of(self, kind: str) -> list[Event]:
+        with self._cond:
+            return [e for e in self.events if e.kind == kind]
+
+    def wait(self, kind: str, timeout: float = DEADLINE_S, n: int = 1) -> list[Event]:
+        """The first ``n`` events of ``kind``; fails the test after ``timeout`` real seconds."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                got = [e for e in self.events if e.kind == kind]
+                if len(got) >= n:
+                    return got
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    seen = [
+                        f"{e.kind}: {e.text}"
+                        for e in self.events
+                        if e.kind != "calibration.progress"
+                    ]
+                    pytest.fail(f"no {n} x {kind} within {timeout} s; saw {seen}")
+                self._cond.wait(left)
+
+
+def make_config(tmp_path: Path, **sections: dict[str, Any]) -> Config:
+    raw: dict[str, Any] = {
+        "device": {"port": "sim", "stale_after": 5.0},
+        "storage": {"dir": str(tmp_path / "state")},
+        "location": {"latitude": LAT, "longitude": LON, "altitude_m": ALT},
+        "zenoh": {"enabled": False},
+    }
+    for name, values in sections.items():
+        raw.setdefault(name, {}).update(values)
+    return config_from_mapping(raw, env={}, hostname="test")
+
+
+@dataclass
+class Rig:
+    """A running daemon on a simulated compass, its controller and the events it emitted."""
+
+    daemon: Daemon
+    fw: Firmware
+    log: EventLog
+    clock: Callable[[], float]
+
+    @property
+    def ctl(self) -> CalibrationController:
+        return self.daemon.calibrator
+
+    def wait(
+        self, pred: Callable[[CalibratorSnapshot], bool], timeout: float = DEADLINE_S
+    ) -> CalibratorSnapshot:
+        snap = self.ctl.wait_for(pred, timeout)
+        assert snap is not None, f"condition not reached; snapshot {self.ctl.snapshot()}"
+        return snap
+
+    def finished(self, timeout: float = DEADLINE_S) -> CalibratorSnapshot:
+        return self.wait(
+            lambda s: not s.running and s.status != MagCalStatus.MAG_CAL_NOT_STARTED, timeout
+        )
+
+
+@pytest.fixture
+def rigs() -> Iterator[Callable[..., Rig]]:
+    """Factory of running rigs; every daemon is stopped at the end."""
+    started: list[Daemon] = []
+
+    def make(
+        tmp_path: Path,
+        motion: Motion,
+        *,
+        fast: bool,
+        seed: int = 3,
+        settings: CalibratorSettings | None = None,
+        onboard: bool = False,
+        cfg: Config | None = None,
+    ) -> Rig:
+        cfg = cfg or make_config(tmp_path, calibration={"onboard": onboard})
+        fw = make_firmware(seed, motion=motion, location=DEFAULT_LOCATION)
+        clock: Callable[[], float] = time.monotonic
+        if fast:
+            fc = FastClock(SPEED)
+            clock = fc
+            transport = SimTransport(fw, clock=fc, sleep=fc.sleep)
+        else:
+            transport = SimTransport(fw)
+        daemon = Daemon(cfg, transport=transport)
+        if fast:
+            # The same controller the daemon builds, on the simulator's clock.
+            daemon.calibrator = CalibrationController(
+                daemon.engine,
+                daemon.events,
+                link=daemon.link,
+                store=StateStore(cfg.storage.dir),
+                field=FIELD,
+                onboard=onboard,
+                settings=settings,
+                clock=clock,
+            )
+        log = EventLog()
+        daemon.events.subscribe(log)
+        started.append(daemon.start())
+        assert daemon.link.wait_state(LinkState.STREAMING, DEADLINE_S)
+        assert _wait(lambda: daemon.link.params is not None), "no PAR,GET answer in the handshake"
+        assert _wait(lambda: daemon.samples >= 3), "no attitude frames through the pipeline"
+        return Rig(daemon, fw, log, clock)
+
+    yield make
+    for d in started:
+        d.stop()
+
+
+def _wait(cond: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
+def _lead_in(motion: Motion, seconds: float = 12.0) -> Motion:
+    """Hold level first: the calibration starts a few simulated seconds after power-up."""
+    return Sequence([AttitudeList([(0.0, 0.0, 0.0)], seconds, 0.0), motion])
+
+
+# -- ground truth helpers --------------------------------------------------------------
+
+
+def _attitudes(rng: np.random.Generator, n: int, max_tilt_deg: float) -> np.ndarray:
+    """Random heading, tilt uniform over the cap up to ``max_tilt_deg`` (as the benchmark)."""
+    out = np.empty((n, 3, 3))
+    cos_lo = math.cos(math.radians(max_tilt_deg))
+    for i in range(n):
+        yaw, az = rng.uniform(0.0, 2.0 * math.pi, 2)
+        tilt = math.acos(rng.uniform(cos_lo, 1.0))
+        axis = (math.cos(az), math.sin(az), 0.0)
+        out[i] = axis_angle_to_dcm(axis, tilt) @ euler_to_dcm(0.0, 0.0, yaw)
+    return out
+
+
+def _heading_errors(fw: Firmware, cal: Calibration, R: np.ndarray, seed: int) -> np.ndarray:
+    """Heading error (deg) of ``cal`` on fresh physics samples of ``fw``'s unit at attitudes R."""
+    s = fw.sensor.sample(R, np.random.default_rng(seed))
+    ok = ~s.saturated
+    truth = np.degrees(np.arctan2(R[ok, 1, 0], R[ok, 0, 0])) - FIELD.declination_deg
+    mag = cal.mag.apply(mag_counts_to_gauss(s.mag_counts[ok]))
+    acc = cal.accel.apply(acc_counts_to_g(s.acc_counts[ok]))
+    _, _, h = tilt_compensated_heading(mag, acc)
+    return np.asarray((h - truth + 180.0) % 360.0 - 180.0)
+
+
+def _params(fw: Firmware) -> tuple[float, ...]:
+    p = fw.flash.page
+    return (p.xoff, p.yoff, p.zoff, p.kx, p.ky, p.kz, p.gxoff, p.gyoff, p.gzoff)
+
+
+FAST = CalibratorSettings(no_data_timeout_s=40.0)  # 2 real seconds of pipeline hiccup
+
+
+# =====================================================================================
+# host magnetometer calibration
+# =====================================================================================
+
+
+def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    rig = rigs(
+        tmp_path, Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G), fast=True, settings=FAST
+    )
+    truth = rig.fw.sensor.errors.true_calibration()
+    before = rig.daemon.engine.calibration
+
+    out = rig.ctl.start_mag(retry=False, autosave=False)
+    assert out.result is Result.IN_PROGRESS
+    assert rig.ctl.start_mag().result is Result.DENIED  # one at a time
+    snap = rig.finished()
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS and snap.pending_accept
+
+    # progress: ArduPilot's two steps, a growing sphere coverage, percent rising to 99
+    prog = [e.data for e in rig.log.of("calibration.progress")]
+    statuses = [p["cal_status"] for p in prog]
+    assert statuses[0] == "MAG_CAL_RUNNING_STEP_ONE" and "MAG_CAL_RUNNING_STEP_TWO" in statuses
+    pct = [p["completion_pct"] for p in prog]
+    assert pct == sorted(pct) and pct[-1] >= 90.0 and max(pct) < 100.0
+    sections = sum(bin(b).count("1") for b in prog[-1]["completion_mask"])
+    assert sections >= 70  # of ArduPilot's 80 sections
+    assert len(prog[-1]["completion_mask"]) == 10
+
+    # the report: small fitness, and offsets/scale as the physics has them
+    done = rig.log.wait("calibration.done")[0]
+    rep = done.data["report"]
+    assert rep["cal_status"] == "MAG_CAL_SUCCESS" and rep["autosaved"] is False
+    assert 0.0 < rep["fitness"] < 2.0  # mG; ArduPilot accepts up to 16
+    true_ofs = -1000.0 * np.asarray(truth.mag.offset)
+    assert np.allclose([rep["ofs_x"], rep["ofs_y"], rep["ofs_z"]], true_ofs, atol=5.0)
+    assert rep["orientation_confidence"] > 2.0
+    assert 0.8 < rep["scale_factor"] < 1.25
+    assert rig.daemon.engine.calibration == before  # not applied before accept
+    assert not (tmp_path / "state" / "calibration.json").exists()
+
+    # accept: applied, persisted (reloads equal), written to the compass flash
+    acc = rig.ctl.accept()
+    assert acc.result is Result.ACCEPTED, acc
+    accepted = rig.daemon.engine.calibration
+    assert accepted != before
+    assert rig.log.wait("calibration.accepted")[0].data["saved"] is True
+    stored, source = load_calibration(str(tmp_path / "state"))
+    assert source == "stored" and stored == accepted
+    rig.log.wait("calibration.device_updated")
+    page = rig.daemon.link.command("PAR", "GET")
+    assert isinstance(page, ParamsFrame)
+    want = [2458.0 + 2560.0 * o for o in accepted.mag.offset]
+    assert np.allclose([page.xoff, page.yoff, page.zoff], want, atol=0.06)
+    # ... and those offsets are the unit's real ones (in counts, to ~5 mG)
+    true_counts = [2458.0 + 2560.0 * o for o in truth.mag.offset]
+    assert np.allclose([page.xoff, page.yoff, page.zoff], true_counts, atol=13.0)
+    assert page.kx == 1.0 and 0.1 <= page.ky <= 10.0
+    assert (page.gxoff, page.gyoff, page.gzoff) == ParamsFrame.factory().values()[6:]
+    assert rig.fw.flash.page.magok
+    assert rig.ctl.accept().result is Result.ACCEPTED  # nothing left: ArduPilot says accepted
+
+    # heading within the engine's targets (the benchmark's: within 1.3x of the floor the
+    # unit's true parameters reach, RMS and max, up to 60 deg of tilt)
+    rng = np.random.default_rng(7)
+    for tilt in (0.0, 30.0, 60.0):
+        R = _attitudes(rng, 1000, tilt)
+        err = _heading_errors(rig.fw, accepted, R, seed=int(tilt) + 1)
+        floor = _heading_errors(rig.fw, truth, R, seed=int(tilt) + 1)
+        rms, frms = float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(floor**2)))
+        assert rms <= 1.3 * frms, (tilt, rms, frms)
+        assert float(np.max(np.abs(err))) <= 1.3 * float(np.max(np.abs(floor))), tilt
+    # the uncalibrated unit was far off: the test can tell a good calibration from none
+    err0 = _heading_errors(rig.fw, Calibration(), _attitudes(rng, 300, 30.0), seed=99)
+    assert float(np.sqrt(np.mean(err0**2))) > 5.0
+
+
+def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    settings = CalibratorSettings(capacity=100, no_data_timeout_s=40.0)
+    rig = rigs(
+        tmp_path,
+        Tumble(5, rate_dps=90.0, reference_ned=FIELD.ned_G),
+        fast=True,
+        settings=settings,
+        seed=5,
+    )
+    assert rig.ctl.start_mag(autosave=True, delay_s=5.0).ok
+    assert rig.ctl.snapshot().status is MagCalStatus.MAG_CAL_WAITING_TO_START
+    rig.wait(lambda s: s.status is MagCalStatus.MAG_CAL_RUNNING_STEP_ONE)
+    started = rig.log.of("calibration.started")[0]
+    assert started.data["delay_s"] == 5.0 and started.data["autosave"] is True
+    snap = rig.finished()
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS and not snap.pending_accept
+    done = rig.log.wait("calibration.done")[0]
+    assert done.data["autosaved"] is True and done.data["report"]["autosaved"] is True
+    rig.log.wait("calibration.accepted")  # without an accept()
+    stored, _ = load_calibration(str(tmp_path / "state"))
+    assert stored == rig.daemon.engine.calibration != Calibration()
+    assert rig.log.kinds().index("calibration.done") < rig.log.kinds().index("calibration.accepted")
+    after = rig.ctl.snapshot()
+    assert after.calibration_saved and after.calibration_source == "mag"
+    assert after.calibration_age_s is not None and after.calibration_age_s < 60.0
+
+
+def test_wrong_field_fails_bad_radius_and_retry_restarts(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    settings = CalibratorSettings(capacity=100, no_data_timeout_s=40.0)
+    rig = rigs(
+        tmp_path,
+        Tumble(4, rate_dps=90.0, reference_ned=FIELD.ned_G),
+        fast=True,
+        settings=settings,
+        seed=4,
+    )
+    # A configured field twice the real one: the fit would need a scale factor of 2.
+    wrong = EarthField(FIELD.north_G * 2, FIELD.east_G * 2, FIELD.down_G * 2, 0.0, 63.0)
+    rig.ctl.set_field(wrong)
+    assert rig.ctl.start_mag().ok
+    snap = rig.finished()
+    assert snap.status is MagCalStatus.MAG_CAL_BAD_RADIUS  # = MAG_CAL_FAILED_RADIUS (7)
+    failed = rig.log.wait("calibration.failed")[0]
+    assert failed.severity is Severity.ERROR and failed.data["cal_status_code"] == 7
+    assert "scale factor" in failed.data["reason"]
+    assert rig.ctl.accept().result is Result.FAILED
+    assert rig.daemon.engine.calibration == Calibration()
+
+    # with retry the controller starts over instead of failing (until cancelled)
+    assert rig.ctl.start_mag(retry=True).ok
+    rig.wait(lambda s: s.attempt >= 2 and s.running)
+    retry = rig.log.wait("calibration.instruction")[0]
+    assert retry.text.startswith("Attempt 2") and "scale factor" in retry.data["reason"]
+    assert len(rig.log.of("calibration.failed")) == 1  # the retry emitted no new failure
+    assert rig.ctl.cancel().result is Result.ACCEPTED
+    rig.log.wait("calibration.cancelled")
+
+
+def test_cancel_mid_way_and_when_idle(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    rig = rigs(
+        tmp_path,
+        Tumble(6, rate_dps=90.0, reference_ned=FIELD.ned_G),
+        fast=True,
+        settings=FAST,
+        seed=6,
+    )
+    idle = rig.ctl.cancel()
+    assert idle.result is Result.ACCEPTED and idle.ok  # QGroundControl probes with this
+    assert rig.ctl.accept().result is Result.ACCEPTED
+    assert rig.log.of("calibration.cancelled") == []
+
+    assert rig.ctl.start_mag().ok
+    rig.wait(lambda s: s.completion_pct >= 10.0)
+    assert rig.ctl.cancel().result is Result.ACCEPTED
+    cancelled = rig.log.wait("calibration.cancelled")[0]
+    assert cancelled.data["mode"] == "mag"
+    snap = rig.ctl.snapshot()
+    assert snap.status is MagCalStatus.MAG_CAL_NOT_STARTED and not snap.running
+    n_progress = len(rig.log.of("calibration.progress"))
+    time.sleep(0.5)  # 5 simulated seconds of tumbling: nothing more happens
+    assert len(rig.log.of("calibration.progress")) == n_progress
+    assert "calibration.done" not in rig.log.kinds()
+    assert rig.daemon.engine.calibration == Calibration()
+    assert not (tmp_path / "state" / "calibration.json").exists()
+    # and a new calibration can start at once
+    assert rig.ctl.start_mag().ok
+    assert rig.ctl.cancel().ok
+
+
+def test_still_device_times_out(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    settings = CalibratorSettings(timeout_s=8.0, no_data_timeout_s=40.0)
+    rig = rigs(tmp_path, Still.from_deg(5.0, -3.0, 40.0), fast=True, settings=settings)
+    assert rig.ctl.start_mag().ok
+    snap = rig.finished()
+    assert snap.status is MagCalStatus.MAG_CAL_FAILED
+    failed = rig.log.wait("calibration.failed")[0]
+    assert "timed out" in failed.data["reason"]
+    assert failed.data["report"]["cal_status"] == "MAG_CAL_FAILED"
+    assert failed.text.startswith("Calibration failed") and len(failed.text) <= 50
+    # a still unit offers one direction: nowhere near a third of the sphere
+    pct = [e.data["completion_pct"] for e in rig.log.of("calibration.progress")]
+    assert max(pct) < 5.0
+
+
+def test_silent_compass_fails_the_calibration(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    # The daemon's own controller (real clock, ArduPilot-like 2 s without data).
+    rig = rigs(tmp_path, Tumble(1), fast=False)
+    assert rig.ctl.start_mag().ok
+    rig.wait(lambda s: s.status is MagCalStatus.MAG_CAL_RUNNING_STEP_ONE)
+    rig.daemon.link.close()  # the compass goes silent mid-calibration
+    failed = rig.log.wait("calibration.failed", timeout=10.0)[0]
+    assert "no data from the compass" in failed.data["reason"]
+    assert rig.ctl.snapshot().status is MagCalStatus.MAG_CAL_FAILED
+
+
+# =====================================================================================
+# accelerometer: six faces (PX4 param5=1) and level (param5=2)
+# =====================================================================================
+
+
+def test_six_face_accel_calibration(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    motion = _lead_in(SixFaces(dwell_s=6.0, transition_s=3.0))
+    rig = rigs(tmp_path, motion, fast=True, settings=FAST, seed=8)
+    truth = rig.fw.sensor.errors.true_calibration()
+    assert rig.ctl.start_accel().result is Result.IN_PROGRESS
+    snap = rig.finished(timeout=DEADLINE_S)
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS, rig.log.kinds()
+
+    # PX4's wording and order: each face detected, then done, in the order shown
+    order = ["down", "left", "right", "front", "back", "up"]
+    detected = [e.data["side"] for e in rig.log.of("calibration.face_detected")]
+    assert detected == order
+    done_faces = rig.log.of("calibration.face_done")
+    assert [e.data["side"] for e in done_faces] == order
+    assert done_faces[0].text == "down side done, rotate to a different side"
+    assert rig.log.of("calibration.face_detected")[3].text == "front orientation detected"
+    pct = [e.data["completion_pct"] for e in rig.log.of("calibration.progress")]
+    assert pct == sorted(pct) and pct[-1] >= 80.0
+    done = rig.log.wait("calibration.done")[0]
+    assert done.text == "Calibration done: accel" and done.data["sensor"] == "accel"
+
+    # saved at once (PX4 has no accept step) and the gravity vector is right on any attitude
+    rig.log.wait("calibration.accepted")
+    new = rig.daemon.engine.calibration
+    stored, _ = load_calibration(str(tmp_path / "state"))
+    assert stored == new and new.accel != Calibration().accel
+    R = _attitudes(np.random.default_rng(3), 200, 180.0)
+    s = rig.fw.sensor.sample(R, np.random.default_rng(4))
+    g_new = new.accel.apply(acc_counts_to_g(s.acc_counts))
+    g_true = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, 1.0]))
+    g_raw = acc_counts_to_g(s.acc_counts)
+    err_new = np.linalg.norm(g_new - g_true, axis=1)
+    err_raw = np.linalg.norm(g_raw - g_true, axis=1)
+    assert float(np.max(err_new)) < 0.01  # 10 mg, from up to ~0.2 g uncalibrated
+    assert float(np.mean(err_raw)) > 3 * float(np.mean(err_new))
+    assert np.allclose(new.accel.offset, truth.accel.offset, atol=0.005)
+    assert new.mag == Calibration().mag  # the magnetometer part is left as it was
+
+
+def test_host_level_calibration_in_real_time(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    # The daemon's own controller (real clock), built from the configuration.
+    rig = rigs(tmp_path, Still.from_deg(3.0, -2.0, 70.0), fast=False)
+    f = rig.fw.truth[-1].frame
+    a0 = rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+    # uncalibrated, the unit's accelerometer offsets add to its 3 / -2 deg tilt
+    assert abs(math.degrees(a0.roll)) > 0.3 or abs(math.degrees(a0.pitch)) > 0.3
+    assert rig.ctl.start_level(onboard=False).result is Result.IN_PROGRESS
+    snap = rig.finished(timeout=10.0)
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS
+    rep = rig.log.wait("calibration.done")[0].data["report"]
+    assert abs(rep["trim_roll_deg"] - math.degrees(a0.roll)) < 0.3
+    assert abs(rep["trim_pitch_deg"] - math.degrees(a0.pitch)) < 0.3
+    rig.log.wait("calibration.accepted")
+    # and from now on the vehicle reads level in that attitude
+    f = rig.fw.truth[-1].frame
+    a = rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+    assert abs(math.degrees(a.roll)) < 0.3 and abs(math.degrees(a.pitch)) < 0.3
+    assert load_calibration(str(tmp_path / "state"))[0] == rig.daemon.engine.calibration
+
+
+def test_level_calibration_refuses_a_moving_unit(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    rig = rigs(tmp_path, Tumble(2), fast=False)
+    assert rig.ctl.start_level().ok
+    snap = rig.finished(timeout=10.0)
+    assert snap.status is MagCalStatus.MAG_CAL_FAILED
+    assert "moved" in rig.log.wait("calibration.failed")[0].data["reason"]
+    assert rig.daemon.engine.calibration == Calibration()
+
+
+# =====================================================================================
+# the compass's on-board routines (BRG_CAL_ONBOARD = 1)
+# =====================================================================================
+
+
+def test_onboard_magcal_guided_and_ended_by_the_controller(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    motion = _lead_in(OnboardCalRotation(turn_s=20.0, tip_s=3.0, yaw0=0.3), seconds=10.0)
+    rig = rigs(tmp_path, motion, fast=True, settings=FAST, onboard=True, seed=9)
+    truth = rig.fw.sensor.errors.true_calibration()
+    flash_before = _params(rig.fw)
+    host_before = rig.daemon.engine.calibration
+
+    ended_at: list[float] = []
+    rig.daemon.events.subscribe(
+        lambda e: ended_at.append(rig.clock()) if e.kind == "calibration.done" else None
+    )
+    assert rig.ctl.start_mag().result is Result.IN_PROGRESS  # routed by onboard=True
+    rig.log.wait("calibration.instruction")
+    assert rig.fw.calibrating  # MAGCAL,START reached the device
+    snap = rig.finished()
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS, rig.log.kinds()
+    assert not rig.fw.calibrating
+
+    texts = [e.text for e in rig.log.of("calibration.instruction")]
+    assert texts == [INSTRUCTION_LEVEL_TURN, INSTRUCTION_SIDE_TURN]
+    # END went out only after both turns: the side turn ends at 10 + 20 + 3 + 20 = 53 s
+    # (simulated); the controller needs the full turn plus two $PGMRC reports
+    epoch = rig.fw.motion_epoch
+    assert epoch is not None and len(ended_at) == 1
+    assert ended_at[0] - epoch >= 50.0
+    prog = [e.data for e in rig.log.of("calibration.progress")]
+    assert prog[-1]["completion_pct"] >= 85.0 and prog[-1]["spans"][2] >= 400
+    assert any(p["cal_status"] == "MAG_CAL_RUNNING_STEP_TWO" for p in prog)
+
+    done = rig.log.wait("calibration.done")[0]
+    rep = done.data["report"]
+    assert done.data["onboard"] is True and rep["autosaved"] is True
+    # the device's flash holds what it answered, and PAR,GET (the link's view) agrees
+    page = rig.fw.flash.page
+    assert page.magok and _params(rig.fw) != flash_before
+    dev = rep["device"]
+    assert (dev["xoff"], dev["yoff"], dev["zoff"]) == (page.xoff, page.yoff, page.zoff)
+    assert rig.daemon.link.params is not None
+    assert rig.daemon.link.params.values() == _params(rig.fw)
+    # min/max offsets land near the unit's true ones (counts; min/max is cruder than a fit)
+    true_counts = [2458.0 + 2560.0 * o for o in truth.mag.offset]
+    assert np.allclose([page.xoff, page.yoff, page.zoff], true_counts, atol=40.0)
+    # the host's own calibration is untouched (the result lives in the device)
+    assert rig.daemon.engine.calibration == host_before
+
+
+def test_onboard_range_failure_over_a_real_pty(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    fw = make_firmware(11, motion=Still(), location=DEFAULT_LOCATION)
+    link_path = tmp_path / "ttyGMR"
+    with PtyCompass(fw, str(link_path)):
+        cfg = make_config(tmp_path, device={"port": str(link_path)}, calibration={"onboard": True})
+        daemon = Daemon(cfg)
+        log = EventLog()
+        daemon.events.subscribe(log)
+        daemon.start()
+        try:
+            assert daemon.link.wait_state(LinkState.STREAMING, DEADLINE_S)
+            before = _params(fw)
+            assert daemon.calibrator.start_mag().ok
+            log.wait("calibration.instruction")  # the device is in MAGCAL now
+            # the unit is never turned; the operator accepts anyway -> MAGCAL,END -> ERR,RANGE
+            assert daemon.calibrator.accept().result is Result.IN_PROGRESS
+            failed = log.wait("calibration.failed")[0]
+            assert failed.data["report"]["device_error"] == "RANGE"
+            assert "RANGE" in failed.data["reason"]
+            assert daemon.calibrator.snapshot().status is MagCalStatus.MAG_CAL_FAILED
+            assert _params(fw) == before and not fw.calibrating
+        finally:
+            daemon.stop()
+
+
+def test_onboard_cancel_aborts_the_device(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    rig = rigs(tmp_path, YawTurns(30.0), fast=False, onboard=True)
+    before = _params(rig.fw)
+    assert rig.ctl.start_mag().ok
+    rig.log.wait("calibration.instruction")
+    assert rig.fw.calibrating
+    assert _wait(lambda: bool(rig.fw.truth[-1].frame.flags & Flags.CAL))
+    assert rig.ctl.cancel().result is Result.ACCEPTED
+    rig.log.wait("calibration.cancelled")
+    assert _wait(lambda: not rig.fw.calibrating), "MAGCAL,ABORT did not reach the device"
+    assert _wait(lambda: not rig.fw.truth[-1].frame.flags & Flags.CAL)
+    assert _params(rig.fw) == before
+    assert "calibration.failed" not in rig.log.kinds()
+
+
+def test_onboard_level_acccal_success_and_motion_failure(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    still = rigs(tmp_path / "a", Still.from_deg(1.0, 2.0, 0.0), fast=False, onboard=True)
+    assert still.ctl.start_level().result is Result.IN_PROGRESS
+    snap = still.finished(timeout=10.0)
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS
+    rep = still.log.wait("calibration.done")[0].data["report"]
+    page = still.fw.flash.page
+    assert page.accok and (rep["gxoff"], rep["gyoff"], rep["gzoff"]) == (
+        page.gxoff,
+        page.gyoff,
+        page.gzoff,
+    )
+    assert rep["device_params"]["gzoff"] == page.gzoff  # refreshed with PAR,GET
+
+    moving = rigs(tmp_path / "b", Tumble(1), fast=False, onboard=True)
+    before = _params(moving.fw)
+    assert moving.ctl.start_level().ok
+    snap = moving.finished(timeout=10.0)
+    assert snap.status is MagCalStatus.MAG_CAL_FAILED
+    failed = moving.log.wait("calibration.failed")[0]
+    assert failed.data["report"]["device_error"] == "MOTION"
+    assert "moved" in failed.data["reason"]
+    assert _params(moving.fw) == before
+
+
+# =====================================================================================
+# fixed yaw, storage failure
+# =====================================================================================
+
+
+def test_fixed_yaw_sets_offsets_from_the_wmm_field(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    yaw = 40.0
+    rig = rigs(tmp_path, Still.from_deg(4.0, -6.0, yaw), fast=False)
+
+    def true_heading() -> float:
+        f = rig.fw.truth[-1].frame
+        a = rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+        assert a.heading_true_deg is not None
+        return a.heading_true_deg
+
+    assert abs(((true_heading() - yaw + 180.0) % 360.0) - 180.0) > 3.0  # hard iron
+    assert _wait(lambda: len(rig.fw.truth) > 15)
+    out = rig.ctl.fixed_yaw(yaw)
+    assert out.result is Result.ACCEPTED, out
+    assert abs(((true_heading() - yaw + 180.0) % 360.0) - 180.0) < 0.5
+    rep = rig.log.wait("calibration.done")[0].data["report"]
+    assert rep["method"] == "fixed_yaw" and rep["yaw_deg"] == yaw
+    assert load_calibration(str(tmp_path / "state"))[0] == rig.daemon.engine.calibration
+    rig.log.wait("calibration.device_updated")  # offsets written with PAR,SET too
+    assert rig.fw.flash.page.magok
+
+
+def test_fixed_yaw_refuses_without_position_or_when_moving(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    cfg = make_config(tmp_path)
+    cfg = Config(
+        device=cfg.device, storage=cfg.storage, zenoh=cfg.zenoh, calibration=cfg.calibration
+    )  # no [location]
+    rig = rigs(tmp_path, Tumble(1), fast=False, cfg=cfg)
+    out = rig.ctl.fixed_yaw(10.0)
+    assert out.result is Result.FAILED and "position" in out.message
+    assert _wait(lambda: len(rig.fw.truth) > 15)
+    moving = rig.ctl.fixed_yaw(10.0, latitude_deg=LAT, longitude_deg=LON)
+    assert moving.result is Result.FAILED and "moving" in moving.message
+    assert rig.ctl.fixed_yaw(math.nan).result is Result.FAILED
+    assert rig.ctl.fixed_yaw(10.0, mask=2).result is Result.FAILED  # no compass 1
+    assert rig.daemon.engine.calibration == Calibration()
+
+
+def test_storage_failure_keeps_the_calibration_in_memory(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("a file where the state directory should be\n")
+    cfg = make_config(tmp_path, storage={"dir": str(blocker / "state")})
+    rig = rigs(tmp_path, Still.from_deg(2.0, 1.0, 0.0), fast=False, cfg=cfg)
+    assert rig.ctl.start_level().ok
+    rig.finished(timeout=10.0)
+    err = rig.log.wait("calibration.storage_error")[0]
+    assert err.severity is Severity.ERROR and "cannot save" in err.data["error"]
+    accepted = rig.log.wait("calibration.accepted")[0]
+    assert accepted.data["saved"] is False
+    # in memory and in use, and the bridge keeps running
+    assert rig.daemon.engine.calibration != Calibration()
+    snap = rig.ctl.snapshot()
+    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS and not snap.calibration_saved
+    n = rig.daemon.samples
+    assert _wait(lambda: rig.daemon.samples > n + 3)
+    assert rig.daemon.pipeline_errors == 0 and rig.ctl.errors == 0
+    json.dumps(snap.to_dict())  # status queries stay serialisable

@@ -1,0 +1,443 @@
+"""The calibration controller's pure parts: collectors, device parameters, fixed yaw, reports.
+
+Inputs are built from geometry and the simulator's physics (known hard iron,
+known attitudes), so every expected value is derived independently of the
+code under test.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bridge.calibration.accel_faces import Face
+from bridge.calibration.coverage import section
+from bridge.calibration.model import AffineCalibration, Calibration, CalibrationReport
+from bridge.calibrator.collect import (
+    FaceCollector,
+    MagCollector,
+    OnboardMagTracker,
+    StillCollector,
+    counts_to_nominal,
+    sphere_step,
+)
+from bridge.calibrator.controller import (
+    CalibrationController,
+    CalibratorSettings,
+    Outcome,
+    Result,
+)
+from bridge.calibrator.results import (
+    device_params_for,
+    fixed_yaw_calibration,
+    mag_report,
+    orientation_confidence,
+)
+from bridge.core.attitude import AttitudeEngine
+from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, random_rotations
+from bridge.core.mounting import Rotation, rotation_matrix
+from bridge.events import EventBus
+from bridge.link.serial_link import CompassLink
+from bridge.link.transport import SimTransport
+from bridge.protocol.gmr import AttitudeFrame, CalProgressFrame, Flags, ParamsFrame
+from bridge.sim.firmware import make_firmware
+
+B_NED = np.array([0.21, 0.01, 0.43])  # gauss, a mid-latitude field
+V3 = tuple[float, float, float]
+
+
+def _v(a: np.ndarray) -> V3:
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+# -- nominal transfer and saturation --------------------------------------------------
+
+
+def test_counts_to_nominal_and_saturation() -> None:
+    mag, acc, sat = counts_to_nominal(2458 + 256, 2458, 2458 - 512, 2458, 2458, 2458 + 491)
+    assert mag == pytest.approx((0.1, 0.0, -0.2))
+    assert acc == pytest.approx((0.0, 0.0, 491 / 491.5))
+    assert not sat
+    for rail in (0, 4095):
+        assert counts_to_nominal(rail, 2000, 2000, 2458, 2458, 2949)[2]
+        assert counts_to_nominal(2000, 2000, 2000, 2458, rail, 2949)[2]
+
+
+# -- MagCollector -----------------------------------------------------------------
+
+
+def _sphere_samples(n: int, centre: np.ndarray, seed: int = 0) -> np.ndarray:
+    R = random_rotations(np.random.default_rng(seed), n)
+    return np.einsum("nji,j->ni", R, B_NED) + centre
+
+
+def test_mag_collector_keeps_pairs_never_saturated_and_reaches_step_two() -> None:
+    centre = np.array([0.05, -0.08, 0.12])
+    col = MagCollector(capacity=60, seed=1)
+    # a saturated frame is never kept, however new its direction
+    assert not col.offer((1.0, 1.0, 1.0), (0.0, 0.0, 1.0), True)
+    assert col.acceptor.counters.saturated == 1 and len(col) == 0
+    x = _sphere_samples(4000, centre)
+    for m in x:
+        mv = _v(m)
+        col.offer(mv, (2.0 * mv[0], 2.0 * mv[1], 2.0 * mv[2]), False)
+        if col.full:
+            break
+    assert col.full and col.step == 1
+    assert col.percent == pytest.approx(33.3)
+    # step one's sphere: centre and radius of the field
+    sph = sphere_step(col.acceptor.samples)
+    assert sph is not None
+    assert np.allclose(sph[0], centre, atol=1e-6) and sph[1] == pytest.approx(
+        float(np.linalg.norm(B_NED)), abs=1e-6
+    )
+    removed = col.begin_step_two(*sph)
+    assert removed > 0 and col.step == 2 and not col.full
+    assert col.percent == pytest.approx(33.3)
+    mag, acc = col.data()
+    assert len(mag) == 60 - removed
+    assert np.allclose(acc, 2.0 * mag)  # each accelerometer sample stayed with its frame
+    # coverage is seen from the fitted centre: every kept sample's section is marked
+    hit = {section(m - centre) for m in mag}
+    assert hit == set(col.sections_hit)
+    assert bin(int.from_bytes(col.mask, "little")).count("1") == len(hit)
+
+
+def test_mag_collector_direction_hint_points_at_an_unvisited_section() -> None:
+    centre = np.zeros(3)
+    col = MagCollector(capacity=300)
+    x = _sphere_samples(3000, centre, seed=2)
+    upper = x[x[:, 2] > 0.1]  # only directions with the field pointing down-body
+    for m in upper:
+        col.offer(_v(m), (0.0, 0.0, 1.0), False)
+    hint = np.asarray(col.direction_hint())
+    assert float(np.linalg.norm(hint)) == pytest.approx(1.0)
+    assert section(hint) not in col.sections_hit
+    assert hint[2] < 0.5  # towards the unvisited (upper-body) half
+    assert MagCollector().direction_hint() == (0.0, 0.0, 0.0)  # nothing known yet
+
+
+# -- FaceCollector / StillCollector ---------------------------------------------------
+
+
+def _face_frames(
+    face: Face, t0: float, seconds: float, rate: float, rng: np.random.Generator
+) -> list[tuple[float, V3]]:
+    g = np.asarray(face.gravity_body) * 1.03 + np.array([0.02, -0.01, 0.03])  # an uncalibrated unit
+    n = round(seconds * rate)
+    return [(t0 + k / rate, _v(g + rng.normal(0.0, 0.002, 3))) for k in range(n)]
+
+
+def test_face_collector_follows_px4_six_faces() -> None:
+    rng = np.random.default_rng(3)
+    col = FaceCollector(still_s=1.0, collect_s=1.5)
+    notices: list[tuple[str, str]] = []
+    t = 0.0
+    order = [Face.LEVEL, Face.LEFT_SIDE, Face.NOSE_DOWN, Face.LEVEL, Face.UPSIDE_DOWN]
+    order += [Face.RIGHT_SIDE, Face.NOSE_UP]
+    for face in order:
+        for tt, acc in _face_frames(face, t, 3.0, 20.0, rng):
+            notices += [(n.kind, n.face.px4_side) for n in col.feed(tt, acc)]
+        t += 3.0
+        # turning to the next face: not still
+        for k in range(20):
+            a = rng.normal(0.0, 0.5, 3)
+            notices += [(n.kind, n.face.px4_side) for n in col.feed(t + k / 20.0, _v(a))]
+        t += 1.0
+    assert notices == [
+        ("detected", "down"),
+        ("done", "down"),
+        ("detected", "left"),
+        ("done", "left"),
+        ("detected", "front"),
+        ("done", "front"),
+        ("already_done", "down"),
+        ("detected", "up"),
+        ("done", "up"),
+        ("detected", "right"),
+        ("done", "right"),
+        ("detected", "back"),
+        ("done", "back"),
+    ]
+    assert col.done and col.percent == pytest.approx(100.0)
+    want = np.asarray(Face.NOSE_DOWN.gravity_body) * 1.03 + np.array([0.02, -0.01, 0.03])
+    assert np.allclose(col.means[Face.NOSE_DOWN], want, atol=0.002)
+
+
+def test_face_collector_restarts_a_face_when_the_unit_moves() -> None:
+    rng = np.random.default_rng(4)
+    col = FaceCollector(still_s=1.0, collect_s=1.5)
+    kinds = []
+    for tt, acc in _face_frames(Face.LEVEL, 0.0, 1.5, 20.0, rng):  # detected, not yet done
+        kinds += [n.kind for n in col.feed(tt, acc)]
+    for k in range(5):  # a knock
+        kinds += [n.kind for n in col.feed(1.5 + k / 20.0, (0.3, 0.2, 0.8))]
+    assert kinds == ["detected", "moved"]
+    assert Face.LEVEL not in col.means and col.current is None
+    assert col.feed(2.0, (math.nan, 0.0, 1.0)) == []  # non-finite: ignored
+
+
+def test_still_collector_means_and_motion() -> None:
+    still = StillCollector(collect_s=1.0, still_tol_g=0.02)
+    for k in range(11):
+        still.feed(k / 10.0, (0.2, 0.0, 0.4), (0.01, 0.02, 0.99 + 0.001 * (k % 2)))
+    assert still.complete and still.still
+    mag, acc, _ = still.means()
+    assert np.allclose(mag, (0.2, 0.0, 0.4)) and np.allclose(
+        acc, (0.01, 0.02, 0.99 + 0.001 * 5 / 11)
+    )
+    moving = StillCollector(collect_s=1.0)
+    for k in range(11):
+        moving.feed(k / 10.0, (0.2, 0.0, 0.4), (0.1 * k, 0.0, 1.0))
+    assert moving.complete and not moving.still
+
+
+# -- OnboardMagTracker ------------------------------------------------------------------
+
+
+class _Device:
+    """Min/max as the datasheet's MAGCAL tracks it, for synthetic turns (counts)."""
+
+    def __init__(self) -> None:
+        self.xy: list[int] | None = None
+        self.z: list[int] | None = None
+        self.n = 0
+
+    def see(self, m: tuple[int, int, int], where: str) -> None:
+        if where == "level":
+            if self.xy is None:
+                self.xy = [m[0], m[0], m[1], m[1]]
+            else:
+                self.xy = [
+                    min(self.xy[0], m[0]),
+                    max(self.xy[1], m[0]),
+                    min(self.xy[2], m[1]),
+                    max(self.xy[3], m[1]),
+                ]
+        if where == "side":
+            self.z = (
+                [m[2], m[2]] if self.z is None else [min(self.z[0], m[2]), max(self.z[1], m[2])]
+            )
+        self.n += 1
+
+    def report(self) -> CalProgressFrame:
+        xy, z = self.xy or [0, 0, 0, 0], self.z or [0, 0]
+        return CalProgressFrame(self.n, xy[0], xy[1], xy[2], xy[3], z[0], z[1])
+
+
+LEVEL_ACC = (2458, 2458, 2949)  # level: +1 g on z
+SIDE_ACC = (2458, 2949, 2458)  # right side down: +1 g on y
+
+
+def _turn(
+    tracker: OnboardMagTracker,
+    dev: _Device,
+    where: str,
+    start_deg: float,
+    degrees: float,
+    rate_hz: int = 10,
+) -> list[str]:
+    """Turn from ``start_deg`` by ``degrees`` at 20 deg/s, with a $PGMRC report every second."""
+    off = np.array([2600.0, 2300.0, 2500.0])
+    h = 0.21 * 2560.0
+    out: list[str] = []
+    steps = round(degrees / 20.0 * rate_hz)
+    for k in range(steps + 1):
+        yaw = math.radians(start_deg + 20.0 * k / rate_hz)
+        if where == "level":
+            m = off + np.array([h * math.cos(yaw), -h * math.sin(yaw), 1100.0])
+            acc = LEVEL_ACC
+        else:
+            m = off + np.array([h * math.cos(yaw), 1100.0, h * math.sin(yaw)])
+            acc = SIDE_ACC
+        mc = (int(m[0]), int(m[1]), int(m[2]))
+        tracker.frame(*mc, *acc)
+        dev.see(mc, where)
+        if k % rate_hz == 0:
+            what = tracker.progress(dev.report())
+            if what:
+                out.append(what)
+    return out
+
+
+def test_onboard_tracker_needs_both_full_turns() -> None:
+    tr, dev = OnboardMagTracker(), _Device()
+    assert tr.classify(*LEVEL_ACC) == "level" and tr.classify(*SIDE_ACC) == "side"
+    assert tr.classify(2458, 2458 + 300, 2949 - 60) == "other"  # tilted 30 deg: neither
+    # half a level turn, then a long pause: the spans stop growing but it is not a turn
+    assert _turn(tr, dev, "level", 0.0, 180.0) == [] and tr.step == 1
+    for _ in range(5):
+        assert tr.progress(dev.report()) is None
+    assert tr.percent < 40.0
+    # the rest of the turn (and a little more): level done
+    events = _turn(tr, dev, "level", 180.0, 240.0)
+    assert events == ["level_done"] and tr.step == 2
+    assert tr.level_swept >= 330.0
+    assert tr.percent == pytest.approx(50.0, abs=1.0)
+    # one full turn on the side: side done once the z span has settled
+    events = _turn(tr, dev, "side", 0.0, 380.0)
+    for _ in range(3):
+        if tr.step == 2:
+            events += [e for e in [tr.progress(dev.report())] if e]
+    assert events == ["side_done"] and tr.step == 3
+    assert min(tr.spans) >= 400
+
+
+def test_onboard_tracker_is_not_fooled_by_a_half_turn_on_the_side() -> None:
+    tr, dev = OnboardMagTracker(), _Device()
+    assert _turn(tr, dev, "level", 0.0, 400.0) == ["level_done"]
+    assert _turn(tr, dev, "side", 0.0, 200.0) == []
+    for _ in range(5):
+        assert tr.progress(dev.report()) is None
+    assert tr.step == 2 and 50.0 <= tr.percent < 90.0
+
+
+def test_onboard_tracker_uses_the_device_level_reference() -> None:
+    # A device whose flash level reference is tilted: it judges "level" by that page.
+    page = ParamsFrame(2458, 2458, 2458, 1, 1, 1, 2458.0, 2458.0 + 250.0, 2949.5)
+    tr = OnboardMagTracker(page)
+    assert tr.classify(2458, 2458 + 250, 2949) == "level"
+    assert OnboardMagTracker().classify(2458, 2458 + 250, 2949) == "other"
+
+
+# -- device parameters -----------------------------------------------------------------
+
+
+def test_device_params_from_a_host_calibration() -> None:
+    R = axis_angle_to_dcm((0.3, -0.2, 0.9), math.radians(2.0))  # a little alignment
+    S = np.diag([1.10, 0.99, 1.21])
+    cal = AffineCalibration.from_arrays((0.1, -0.05, 0.02), R @ S)
+    p = device_params_for(cal)
+    assert (p.xoff, p.yoff, p.zoff) == (2714.0, 2330.0, 2509.2)  # 2458 + 2560 * offset
+    assert (
+        p.kx == 1.0
+        and p.ky == pytest.approx(0.9, abs=1e-4)
+        and p.kz == pytest.approx(1.1, abs=1e-4)
+    )
+    page = p.with_level_reference(ParamsFrame(1, 2, 3, 1, 1, 1, 2400.0, 2500.0, 2900.0))
+    assert page.values() == (2714.0, 2330.0, 2509.2, 1.0, 0.9, 1.1, 2400.0, 2500.0, 2900.0)
+    with pytest.raises(ValueError, match="outside the device"):
+        device_params_for(AffineCalibration.from_arrays((1.0, 0.0, 0.0), np.eye(3)))  # 5018 counts
+    with pytest.raises(ValueError, match="Kz"):
+        device_params_for(AffineCalibration.from_arrays((0, 0, 0), np.diag([1.0, 1.0, 20.0])))
+
+
+# -- fixed yaw ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("orient", [Rotation.ROTATION_NONE, Rotation.ROTATION_YAW_90])
+def test_fixed_yaw_recovers_the_hard_iron(orient: Rotation) -> None:
+    hard = np.array([0.07, -0.11, 0.05])
+    mnt = rotation_matrix(orient)  # sensor -> vehicle
+    M = np.diag([1.0, 1.0, 1.0])
+    yaw_deg, roll, pitch = 123.0, math.radians(4.0), math.radians(-7.0)
+    R = euler_to_dcm(roll, pitch, math.radians(yaw_deg))  # vehicle -> NED
+    raw_mag = mnt.T @ (R.T @ B_NED) + hard  # what a unit with this hard iron reads
+    raw_acc = mnt.T @ (R.T @ np.array([0.0, 0.0, 1.0]))
+    cal = fixed_yaw_calibration(raw_mag, raw_acc, yaw_deg, B_NED, Calibration(), mnt)
+    assert np.allclose(cal.mag.offset, hard, atol=1e-9)
+    assert np.allclose(cal.mag.matrix_array, M)
+    # the matrix in use is kept, and the offset accounts for it
+    scaled = Calibration(mag=AffineCalibration.from_arrays((0, 0, 0), 1.2 * np.eye(3)))
+    raw2 = mnt.T @ (R.T @ B_NED) / 1.2 + hard
+    cal2 = fixed_yaw_calibration(raw2, raw_acc, yaw_deg, B_NED, scaled, mnt)
+    assert np.allclose(cal2.mag.offset, hard, atol=1e-9)
+    assert np.allclose(cal2.mag.matrix_array, 1.2 * np.eye(3))
+    with pytest.raises(ValueError):
+        fixed_yaw_calibration(raw_mag, np.zeros(3), yaw_deg, B_NED, Calibration())
+
+
+# -- orientation confidence and reports ------------------------------------------------
+
+
+def test_orientation_confidence_tells_right_from_wrong() -> None:
+    Rs = random_rotations(np.random.default_rng(5), 300)
+    mag = np.einsum("nji,j->ni", Rs, B_NED) + np.random.default_rng(6).normal(0, 5e-4, (300, 3))
+    grav = np.einsum("nji,j->ni", Rs, np.array([0.0, 0.0, 1.0]))
+    assert orientation_confidence(mag, grav) > 100.0
+    flipped = mag @ rotation_matrix(Rotation.ROTATION_ROLL_180).T  # compass mounted upside down
+    assert orientation_confidence(flipped, grav) < 0.01
+    assert math.isnan(orientation_confidence(mag[:5], grav[:5]))
+
+
+def test_mag_report_is_ardupilot_shaped_and_json_ready() -> None:
+    cal = Calibration(
+        mag=AffineCalibration.from_arrays((0.1, -0.2, 0.05), np.diag([1.1, 0.9, 1.0]))
+    )
+    rep = mag_report(
+        cal,
+        CalibrationReport("ellipsoid_aligned", fitness_mG=1.5, radius_G=0.48),
+        autosaved=True,
+        confidence=12.0,
+    )
+    assert (rep["ofs_x"], rep["ofs_y"], rep["ofs_z"]) == pytest.approx((-100.0, 200.0, -50.0))
+    assert rep["scale_factor"] == pytest.approx(1.0)
+    assert (rep["diag_x"], rep["diag_y"]) == pytest.approx((1.1, 0.9))
+    assert rep["cal_status_code"] == 4 and rep["autosaved"] is True
+    assert rep["coverage_pct"] is None  # NaN becomes null
+    json.dumps(rep, allow_nan=False)
+
+
+def test_outcome_and_settings_validation() -> None:
+    assert Outcome(Result.IN_PROGRESS).ok and not Outcome(Result.DENIED, "busy").ok
+    assert Outcome(Result.FAILED, "x").to_dict() == {
+        "result": "failed",
+        "ok": False,
+        "message": "x",
+    }
+    with pytest.raises(ValueError):
+        CalibratorSettings(timeout_s=0.0)
+    with pytest.raises(ValueError):
+        CalibratorSettings(capacity=5)
+
+
+# -- the controller on its own: bad input never crashes it ------------------------------
+
+
+def _frame(
+    seq: int, m: tuple[int, int, int], a: tuple[int, int, int], flags: int = 0
+) -> AttitudeFrame:
+    return AttitudeFrame(seq, 0.0, 0.0, 0.0, *m, *a, Flags(flags))
+
+
+def test_bad_commands_get_clear_answers_and_junk_is_ignored() -> None:
+    bus = EventBus()
+    seen: list[str] = []
+    bus.subscribe(lambda e: seen.append(e.kind))
+    with CalibrationController(AttitudeEngine(), bus) as ctl:  # host only: no link, no store
+        assert ctl.start_mag(mask=2).result is Result.FAILED  # no compass 1 here
+        assert ctl.start_mag(mask=1.5).result is Result.FAILED
+        assert ctl.start_mag(delay_s=math.nan).result is Result.FAILED
+        assert ctl.start_mag(delay_s=-1.0).result is Result.FAILED
+        out = ctl.start_mag(onboard=True)
+        assert out.result is Result.FAILED and "no device link" in out.message
+        assert ctl.fixed_yaw("north").result is Result.FAILED  # type: ignore[arg-type]
+        bad = ctl.fixed_yaw(10.0, latitude_deg=95.0, longitude_deg=0.0)
+        assert bad.result is Result.FAILED and "bad position" in bad.message
+        assert "no position" in ctl.fixed_yaw(10.0).message
+        assert ctl.cancel(mask=0.0).result is Result.ACCEPTED
+        assert ctl.accept(mask=1.0).result is Result.ACCEPTED
+        for junk in (None, "x", b"\x00", 3.0, CalProgressFrame(1, 0, 0, 0, 0, 0, 0)):
+            ctl.feed(junk)
+        # a running calibration never keeps a saturated frame
+        assert ctl.start_mag(mask=1.0).ok
+        for k in range(60):
+            ctl.feed(_frame(k, (4095, 2000 + 20 * k, 2400), (2458, 2458, 2949)))
+            ctl.feed(_frame(k, (2000 + 20 * k, 1800, 2400), (2458, 2458, 2949), int(Flags.SAT)))
+        snap = ctl.snapshot()
+        assert snap.running and snap.completion_pct == 0.0
+        assert ctl.start_accel().result is Result.DENIED
+        assert ctl.cancel().ok
+        assert ctl.errors == 0
+    assert seen.count("calibration.started") == 1 and seen.count("calibration.cancelled") == 1
+    assert "calibration.failed" not in seen
+
+
+def test_heading_only_compass_cannot_be_calibrated() -> None:
+    link = CompassLink(SimTransport(make_firmware(1)), protocol="nmea", rate_hz=None)
+    with CalibrationController(AttitudeEngine(), EventBus(), link=link) as ctl:
+        for out in (ctl.start_mag(), ctl.start_accel(), ctl.start_level(), ctl.fixed_yaw(0.0)):
+            assert out.result is Result.FAILED and "heading-only" in out.message
