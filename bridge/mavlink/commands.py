@@ -1,0 +1,307 @@
+"""Commands and calibration reporting: the pure half of the command protocol.
+
+* :class:`Command` normalises COMMAND_LONG and COMMAND_INT (whose param5/6
+  are the int32 ``x``/``y`` and param7 the float ``z``) and says whether it
+  is addressed to us;
+* :func:`result_code` maps a :class:`~bridge.calibrator.Outcome` to MAV_RESULT;
+* :class:`CalibrationRelay` turns the calibration controller's events into
+  what each ground-station flow expects:
+
+  - **ArduPilot flow** (MAV_CMD_DO_START_MAG_CAL; Mission Planner, MAVProxy
+    ``magcal``, QGroundControl on ArduPilot): MAG_CAL_PROGRESS while running
+    (sent from the controller's snapshot by the output), MAG_CAL_REPORT at
+    the end, plain STATUSTEXT for the rest;
+  - **PX4 flow** (MAV_CMD_PREFLIGHT_CALIBRATION; QGroundControl on PX4): the
+    ``[cal]`` STATUSTEXT lines QGroundControl's sensor calibration page parses
+    (PX4's ``calibration_messages.h``, calibration protocol version 2)::
+
+        [cal] calibration started: 2 <mag|accel|level>
+        [cal] progress <N>
+        [cal] <side> orientation detected
+        [cal] <side> side done, rotate to a different side
+        [cal] calibration done: <mag|accel|level>
+        [cal] calibration failed: <reason>
+        [cal] calibration cancelled
+
+    ``<side>`` is PX4's name: down, up, left, right, front (nose down), back.
+    The angle brackets around N are literal: QGroundControl takes the number
+    between ``<`` and ``>``.
+
+Calibrations started elsewhere (zenoh, the CLI) are relayed ArduPilot-style.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from bridge.calibration.sanity import MagCalStatus
+from bridge.calibrator import Outcome, Result
+from bridge.events import Event
+from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
+from bridge.mavlink.telemetry import (
+    STATUSTEXT_LEN,
+    MagCalReport,
+    mag_cal_report,
+    statustext,
+)
+from bridge.mavlink.wire import Packet
+
+Flow = Literal["ardupilot", "px4"]
+
+#: PX4's calibration protocol version, which QGroundControl checks in "calibration started".
+PX4_CAL_VERSION = 2
+
+# Command ids used here (names as in MAVLink's MAV_CMD).
+DO_START_MAG_CAL = int(M.MAV_CMD_DO_START_MAG_CAL)
+DO_ACCEPT_MAG_CAL = int(M.MAV_CMD_DO_ACCEPT_MAG_CAL)
+DO_CANCEL_MAG_CAL = int(M.MAV_CMD_DO_CANCEL_MAG_CAL)
+FIXED_MAG_CAL_YAW = int(M.MAV_CMD_FIXED_MAG_CAL_YAW)
+PREFLIGHT_CALIBRATION = int(M.MAV_CMD_PREFLIGHT_CALIBRATION)
+PREFLIGHT_STORAGE = int(M.MAV_CMD_PREFLIGHT_STORAGE)
+SET_MESSAGE_INTERVAL = int(M.MAV_CMD_SET_MESSAGE_INTERVAL)
+GET_MESSAGE_INTERVAL = int(M.MAV_CMD_GET_MESSAGE_INTERVAL)
+REQUEST_MESSAGE = int(M.MAV_CMD_REQUEST_MESSAGE)
+REQUEST_AUTOPILOT_CAPABILITIES = int(M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES)
+
+ACCEPTED = int(M.MAV_RESULT_ACCEPTED)
+TEMPORARILY_REJECTED = int(M.MAV_RESULT_TEMPORARILY_REJECTED)
+DENIED = int(M.MAV_RESULT_DENIED)
+UNSUPPORTED = int(M.MAV_RESULT_UNSUPPORTED)
+FAILED = int(M.MAV_RESULT_FAILED)
+IN_PROGRESS = int(M.MAV_RESULT_IN_PROGRESS)
+
+RESULT_NAMES = {
+    ACCEPTED: "ACCEPTED",
+    TEMPORARILY_REJECTED: "TEMPORARILY_REJECTED",
+    DENIED: "DENIED",
+    UNSUPPORTED: "UNSUPPORTED",
+    FAILED: "FAILED",
+    IN_PROGRESS: "IN_PROGRESS",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A COMMAND_LONG or COMMAND_INT, with params 1..7 as numbers."""
+
+    command: int
+    params: tuple[float, float, float, float, float, float, float]
+    target_system: int
+    target_component: int
+    source_system: int
+    source_component: int
+    is_int: bool = False
+
+    def p(self, i: int) -> float:
+        """Parameter ``i`` (1..7)."""
+        return self.params[i - 1]
+
+    def addressed_to(self, system_id: int, component_id: int) -> bool:
+        """For our system (or all) and our component (or all)."""
+        return self.target_system in (0, system_id) and self.target_component in (0, component_id)
+
+    @property
+    def broadcast(self) -> bool:
+        """Sent to every component (target_component 0)."""
+        return self.target_component == 0
+
+
+def command_from_message(msg: Any) -> Command:
+    """A :class:`Command` from a received COMMAND_LONG or COMMAND_INT."""
+    is_int = msg.get_type() == "COMMAND_INT"
+    # COMMAND_INT: x and y (int32) take the places of param5 and param6, z of param7.
+    p5, p6, p7 = (msg.x, msg.y, msg.z) if is_int else (msg.param5, msg.param6, msg.param7)
+    params = (
+        float(msg.param1),
+        float(msg.param2),
+        float(msg.param3),
+        float(msg.param4),
+        float(p5),
+        float(p6),
+        float(p7),
+    )
+    return Command(
+        command=int(msg.command),
+        params=params,
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        source_system=int(msg.get_srcSystem()),
+        source_component=int(msg.get_srcComponent()),
+        is_int=is_int,
+    )
+
+
+def whole(v: float) -> int | None:
+    """``v`` as an int when it is a whole finite number (command params are floats)."""
+    if not math.isfinite(v) or v != math.floor(v):
+        return None
+    return int(v)
+
+
+def result_code(outcome: Outcome, *, in_progress_is_final: bool = True) -> int:
+    """MAV_RESULT for a controller outcome.
+
+    A calibration *started* (IN_PROGRESS) is answered ACCEPTED, as ArduPilot and
+    PX4 do -- its progress travels as MAG_CAL_PROGRESS / STATUSTEXT -- unless
+    ``in_progress_is_final`` is False (the caller then sends IN_PROGRESS and a
+    final ack later). "Not now" (DENIED) is TEMPORARILY_REJECTED.
+    """
+    if outcome.result is Result.ACCEPTED:
+        return ACCEPTED
+    if outcome.result is Result.IN_PROGRESS:
+        return ACCEPTED if in_progress_is_final else IN_PROGRESS
+    if outcome.result is Result.DENIED:
+        return TEMPORARILY_REJECTED
+    return FAILED
+
+
+# ---------------------------------------------------------------------------- calibration events
+
+
+def _px4_sensor(data: dict[str, Any]) -> str:
+    """PX4's sensor word: "mag", "accel" or "level"."""
+    mode = str(data.get("mode", ""))
+    if mode in ("level", "onboard_level"):
+        return "level"
+    return str(data.get("sensor", "mag"))
+
+
+def cal_line(text: str) -> str:
+    """A ``[cal]`` line that fits one STATUSTEXT (QGroundControl parses single messages)."""
+    line = "[cal] " + text
+    return line if len(line.encode("utf-8")) <= STATUSTEXT_LEN else line[:STATUSTEXT_LEN]
+
+
+def px4_text(event: Event) -> str | None:
+    """The PX4 ``[cal]`` line for a calibration event (None: no PX4 equivalent)."""
+    d = event.data
+    k = event.kind
+    if k == "calibration.started":
+        return f"[cal] calibration started: {PX4_CAL_VERSION} {_px4_sensor(d)}"
+    if k == "calibration.progress":
+        pct = d.get("completion_pct")
+        if not isinstance(pct, int | float) or not math.isfinite(pct):
+            return None
+        return f"[cal] progress <{max(0, min(100, int(pct)))}>"
+    if k == "calibration.face_detected":
+        return f"[cal] {d.get('side', '?')} orientation detected"
+    if k == "calibration.face_done":
+        return f"[cal] {d.get('side', '?')} side done, rotate to a different side"
+    if k == "calibration.done":
+        return f"[cal] calibration done: {_px4_sensor(d)}"
+    if k == "calibration.failed":
+        return cal_line(f"calibration failed: {d.get('reason', 'unknown')}")
+    if k == "calibration.cancelled":
+        return "[cal] calibration cancelled"
+    if k == "calibration.instruction":
+        return cal_line(event.text)
+    return None
+
+
+_MAG_MODES = frozenset({"mag", "onboard_mag", "fixed_yaw"})
+
+
+def report_from_dict(report: dict[str, Any]) -> MagCalReport:
+    """A controller report (``bridge.calibrator.results.mag_report`` shape) as MAG_CAL_REPORT."""
+
+    def num(key: str, default: float = 0.0) -> float:
+        v = report.get(key)
+        return float(v) if isinstance(v, int | float) and math.isfinite(v) else default
+
+    status = MagCalStatus.parse(report.get("cal_status", "MAG_CAL_FAILED"))
+    return MagCalReport(
+        # Codes 8-10 are newer than many ground stations; ArduPilot sends FAILED for them.
+        cal_status=int(status.legacy),
+        autosaved=bool(report.get("autosaved", False)),
+        fitness=num("fitness"),
+        ofs=(num("ofs_x"), num("ofs_y"), num("ofs_z")),
+        diag=(num("diag_x", 1.0), num("diag_y", 1.0), num("diag_z", 1.0)),
+        offdiag=(num("offdiag_x"), num("offdiag_y"), num("offdiag_z")),
+        orientation_confidence=num("orientation_confidence"),
+        old_orientation=int(num("old_orientation")),
+        new_orientation=int(num("new_orientation")),
+        scale_factor=num("scale_factor", 1.0),
+    )
+
+
+class CalibrationRelay:
+    """Calibration events -> MAVLink packets, in the style of the flow that started them.
+
+    :meth:`begin` is called *before* the controller is asked to start (the
+    ``started`` event is emitted from inside the start call); the flow ends
+    with the session (done, failed, cancelled). Thread-safe: events arrive on
+    the controller's threads.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._flow: Flow | None = None
+        self._last_pct: int | None = None
+        self.last_report: MagCalReport | None = None
+
+    @property
+    def flow(self) -> Flow | None:
+        """The flow of the calibration in progress (None: none, or started elsewhere)."""
+        with self._lock:
+            return self._flow
+
+    def begin(self, flow: Flow | None) -> None:
+        """A calibration is about to be started by ``flow``."""
+        with self._lock:
+            self._flow = flow
+            self._last_pct = None
+
+    def packets(self, event: Event) -> list[Packet]:
+        """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
+        if not event.kind.startswith("calibration."):
+            return statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
+        if (
+            event.kind == "calibration.accepted"
+            and event.data.get("source") == "parameters"
+            and event.data.get("saved")
+        ):
+            return []  # a PARAM_SET of COMPASS_*: its PARAM_VALUE echo says enough
+        with self._lock:
+            flow = self._flow
+            if event.kind in ("calibration.done", "calibration.failed", "calibration.cancelled"):
+                self._flow = None
+            if event.kind == "calibration.progress":
+                pct = event.data.get("completion_pct")
+                ipct = int(pct) if isinstance(pct, int | float) and math.isfinite(pct) else None
+                if ipct is not None and ipct == self._last_pct:
+                    return []  # QGroundControl needs changes only
+                self._last_pct = ipct
+        out: list[Packet] = []
+        data = event.data
+        mode = str(data.get("mode", ""))
+        if event.kind in ("calibration.done", "calibration.failed") and mode in _MAG_MODES:
+            report = data.get("report")
+            if isinstance(report, dict):
+                r = report_from_dict(report)
+                self.last_report = r
+                out.append(mag_cal_report(r))
+        # The controller cuts texts to one STATUSTEXT; a failure's whole reason is worth
+        # a second (chunked) message: "MAGCAL,END: too little rotation (RANGE)".
+        text = event.text
+        reason = data.get("reason")
+        if event.kind == "calibration.failed" and isinstance(reason, str) and reason:
+            text = f"Calibration failed: {reason}"
+        if flow == "px4":
+            line = px4_text(event)
+            if line is not None:
+                out += statustext(int(event.severity), line)
+                if event.kind == "calibration.failed" and len(line) >= STATUSTEXT_LEN:
+                    # the [cal] line had to be cut: the whole reason follows for the log
+                    out += statustext(int(event.severity), text, chunk_id=_chunk_id(event))
+            return out
+        if event.kind == "calibration.progress":
+            return out  # ArduPilot flow: MAG_CAL_PROGRESS carries it
+        return out + statustext(int(event.severity), text, chunk_id=_chunk_id(event))
+
+
+def _chunk_id(event: Event) -> int:
+    # Any non-zero id that differs between consecutive long texts will do.
+    return (int(event.t_monotonic * 1000) & 0xFFFF) or 1

@@ -1,0 +1,551 @@
+"""The bridge's MAVLink parameters: table, validation, and the calibration they describe (pure).
+
+Names follow ArduPilot where ArduPilot has one, so MAVProxy / QGroundControl /
+Mission Planner users find what they know; the bridge's own live under
+``BRG_``. Types are ArduPilot's; integer values travel C-cast in
+``param_value`` (a 1 is sent as 1.0), which AUTOPILOT_VERSION advertises
+(MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST).
+
+The calibration group (COMPASS_OFS_*, COMPASS_DIA_*, COMPASS_ODI_*,
+COMPASS_SCALE, COMPASS_ORIENT, BRG_ALIGN_*) *is* the magnetometer
+calibration, written the ArduPilot way (see
+:meth:`bridge.calibration.model.AffineCalibration.ardupilot_view`)::
+
+    corrected = COMPASS_SCALE * R(COMPASS_ORIENT) @ R(BRG_ALIGN) @ S @ (raw + COMPASS_OFS / 1000)
+    S = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]
+
+``R(BRG_ALIGN)`` is the rotation the symmetric ArduPilot form cannot hold (a
+rotation vector in radians: the magnetometer-to-accelerometer alignment the
+best fit finds). A fitted rotation of more than 45 deg is split into the
+nearest ArduPilot rotation (COMPASS_ORIENT) and a residual, as ArduPilot's
+own calibrator reports a new orientation. The values a user sets are kept as
+set (so every PARAM_VALUE echo equals the SET), and the calibration is
+rebuilt from them; a new calibration (a fit) rewrites the group.
+
+A SET is refused -- the echo then carries the unchanged value -- when the
+name is unknown or read-only, the type is not the parameter's, the value is
+NaN/inf, out of range, or not a whole number for an integer type, or when
+the calibration it would give is singular.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
+from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
+from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation, rotation_matrix
+from bridge.core.quality import QualityLimits
+from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
+from bridge.mavlink.telemetry import HEADING_FEEDS, STREAMS
+
+INT8 = int(M.MAV_PARAM_TYPE_INT8)
+INT16 = int(M.MAV_PARAM_TYPE_INT16)
+INT32 = int(M.MAV_PARAM_TYPE_INT32)
+REAL32 = int(M.MAV_PARAM_TYPE_REAL32)
+_INT_TYPES = {INT8: (-128, 127), INT16: (-32768, 32767), INT32: (-(2**31), 2**31 - 1)}
+_TYPE_NAMES = {INT8: "INT8", INT16: "INT16", INT32: "INT32", REAL32: "REAL32"}
+
+NAME_MAX = 16  #: param_id is char[16]
+
+#: Device id reported as COMPASS_DEV_ID, built the ArduPilot way
+#: (bus type 6 = SERIAL, bus 0, address 0, devtype 0x47 'G').
+COMPASS_DEV_ID = (6 & 0x7) | (0 << 3) | (0 << 8) | (0x47 << 16)
+
+#: ArduPilot rotations a parameter may name: the fixed ones (custom rotations need CUST_ROT*).
+ROTATION_CHOICES: tuple[int, ...] = tuple(int(r) for r in ROTATION_EULER_DEG)
+
+
+@dataclass(frozen=True, slots=True)
+class ParamSpec:
+    """One parameter: name, MAV_PARAM_TYPE, default, range and what it means."""
+
+    name: str
+    ptype: int
+    default: float
+    minimum: float
+    maximum: float
+    doc: str
+    unit: str = ""
+    group: str = "bridge"
+    read_only: bool = False
+    choices: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if not 0 < len(self.name) <= NAME_MAX or not self.name.isascii():
+            raise ValueError(f"bad parameter name {self.name!r}")
+
+
+def _f32(v: float) -> float:
+    """``v`` as the float32 it becomes on the wire (so the echo equals the stored value)."""
+    return float(struct.unpack("<f", struct.pack("<f", v))[0])
+
+
+def _stream_specs() -> list[ParamSpec]:
+    out = []
+    for s in STREAMS:
+        what = "heading feed" if s.param == "BRG_SR_FEED" else M.mavlink_map[s.msgid].msgname
+        out.append(
+            ParamSpec(
+                s.param,
+                REAL32,
+                s.default_hz,
+                0.0,
+                50.0,
+                f"{what} rate (0 = off)",
+                "Hz",
+                "rates",
+            )
+        )
+    return out
+
+
+#: Every parameter, in index order (PARAM_VALUE.param_index).
+SPECS: tuple[ParamSpec, ...] = (
+    # -- the magnetometer calibration (ArduPilot's names and units)
+    ParamSpec(
+        "COMPASS_OFS_X", REAL32, 0.0, -10000, 10000, "offset added to raw x", "mGauss", "cal"
+    ),
+    ParamSpec(
+        "COMPASS_OFS_Y", REAL32, 0.0, -10000, 10000, "offset added to raw y", "mGauss", "cal"
+    ),
+    ParamSpec(
+        "COMPASS_OFS_Z", REAL32, 0.0, -10000, 10000, "offset added to raw z", "mGauss", "cal"
+    ),
+    ParamSpec("COMPASS_DIA_X", REAL32, 1.0, 0.05, 20.0, "soft-iron diagonal x", "", "cal"),
+    ParamSpec("COMPASS_DIA_Y", REAL32, 1.0, 0.05, 20.0, "soft-iron diagonal y", "", "cal"),
+    ParamSpec("COMPASS_DIA_Z", REAL32, 1.0, 0.05, 20.0, "soft-iron diagonal z", "", "cal"),
+    ParamSpec("COMPASS_ODI_X", REAL32, 0.0, -5.0, 5.0, "soft-iron off-diagonal xy", "", "cal"),
+    ParamSpec("COMPASS_ODI_Y", REAL32, 0.0, -5.0, 5.0, "soft-iron off-diagonal xz", "", "cal"),
+    ParamSpec("COMPASS_ODI_Z", REAL32, 0.0, -5.0, 5.0, "soft-iron off-diagonal yz", "", "cal"),
+    ParamSpec("COMPASS_SCALE", REAL32, 1.0, 0.01, 100.0, "field scale factor", "", "cal"),
+    ParamSpec(
+        "COMPASS_ORIENT",
+        INT8,
+        0,
+        0,
+        max(ROTATION_CHOICES),
+        "magnetometer rotation relative to the accelerometer (ArduPilot Rotation)",
+        "",
+        "cal",
+        choices=ROTATION_CHOICES,
+    ),
+    ParamSpec(
+        "BRG_ALIGN_X",
+        REAL32,
+        0.0,
+        -math.pi,
+        math.pi,
+        "mag-to-accel alignment, rotation vector x",
+        "rad",
+        "cal",
+    ),
+    ParamSpec(
+        "BRG_ALIGN_Y",
+        REAL32,
+        0.0,
+        -math.pi,
+        math.pi,
+        "mag-to-accel alignment, rotation vector y",
+        "rad",
+        "cal",
+    ),
+    ParamSpec(
+        "BRG_ALIGN_Z",
+        REAL32,
+        0.0,
+        -math.pi,
+        math.pi,
+        "mag-to-accel alignment, rotation vector z",
+        "rad",
+        "cal",
+    ),
+    # -- compass use, identity, fit threshold
+    ParamSpec(
+        "COMPASS_USE",
+        INT8,
+        1,
+        0,
+        1,
+        "use the compass for heading (SYS_STATUS enabled, heading feed)",
+        "",
+        "use",
+    ),
+    ParamSpec(
+        "COMPASS_DEV_ID",
+        INT32,
+        COMPASS_DEV_ID,
+        COMPASS_DEV_ID,
+        COMPASS_DEV_ID,
+        "device id (read-only)",
+        "",
+        "info",
+        read_only=True,
+    ),
+    ParamSpec(
+        "COMPASS_CAL_FIT",
+        REAL32,
+        16.0,
+        1.0,
+        100.0,
+        "largest fitness (RMS residual) a calibration may have",
+        "mGauss",
+        "cal_fit",
+    ),
+    # -- declination
+    ParamSpec(
+        "COMPASS_AUTODEC",
+        INT8,
+        1,
+        0,
+        1,
+        "declination from the World Magnetic Model at the position",
+        "",
+        "dec",
+    ),
+    ParamSpec(
+        "COMPASS_DEC",
+        REAL32,
+        0.0,
+        -math.pi,
+        math.pi,
+        "declination, east positive (set by the WMM when COMPASS_AUTODEC = 1)",
+        "rad",
+        "dec",
+    ),
+    # -- mounting
+    ParamSpec(
+        "AHRS_ORIENTATION",
+        INT8,
+        0,
+        0,
+        max(ROTATION_CHOICES),
+        "the unit's orientation in the vehicle (ArduPilot Rotation)",
+        "",
+        "mount",
+        choices=ROTATION_CHOICES,
+    ),
+    # -- quality limits (bridge.core.quality.QualityLimits)
+    ParamSpec(
+        "BRG_FIELD_TOL",
+        REAL32,
+        0.15,
+        0.01,
+        1.0,
+        "field strength tolerance before 'disturbed'",
+        "",
+        "limits",
+    ),
+    ParamSpec(
+        "BRG_DIP_TOL",
+        REAL32,
+        5.0,
+        0.5,
+        45.0,
+        "dip angle tolerance before 'disturbed'",
+        "deg",
+        "limits",
+    ),
+    ParamSpec(
+        "BRG_ACC_TOL",
+        REAL32,
+        0.1,
+        0.01,
+        1.0,
+        "|accel| - 1 g tolerance before 'accelerating'",
+        "g",
+        "limits",
+    ),
+    ParamSpec(
+        "BRG_DEGR_PITCH",
+        REAL32,
+        85.0,
+        10.0,
+        90.0,
+        "|pitch| beyond which the attitude is 'degraded'",
+        "deg",
+        "limits",
+    ),
+    # -- calibration routing
+    ParamSpec(
+        "BRG_CAL_ONBOARD",
+        INT8,
+        0,
+        0,
+        1,
+        "magnetometer/level calibration by the compass itself (1) or the host (0)",
+        "",
+        "routing",
+    ),
+    # -- autopilot heading feed
+    ParamSpec(
+        "BRG_HDG_FEED",
+        INT8,
+        0,
+        0,
+        len(HEADING_FEEDS) - 1,
+        "heading feed: 0 off, 1 PX4 ODOMETRY, 2 ArduPilot VISION_POSITION_ESTIMATE",
+        "",
+        "feed",
+    ),
+    ParamSpec(
+        "BRG_YAW_SIGMA",
+        REAL32,
+        2.0,
+        0.1,
+        90.0,
+        "heading feed yaw standard deviation",
+        "deg",
+        "feed",
+    ),
+    # -- stream rates
+    *_stream_specs(),
+)
+
+CAL_PARAMS: tuple[str, ...] = tuple(s.name for s in SPECS if s.group == "cal")
+
+
+@dataclass(frozen=True, slots=True)
+class SetOutcome:
+    """Result of :meth:`ParamTable.set`: ``accepted``, the value now in force, and why not."""
+
+    accepted: bool
+    spec: ParamSpec | None
+    index: int
+    value: float
+    reason: str = ""
+
+
+class ParamTable:
+    """The parameter values (pure, not thread-safe: one owner).
+
+    ``overrides`` replaces defaults (e.g. from the configuration file);
+    :meth:`set` validates; :meth:`put` stores without validation (values the
+    bridge computes itself, e.g. a new calibration's view).
+    """
+
+    def __init__(
+        self, specs: Iterable[ParamSpec] = SPECS, overrides: Mapping[str, float] | None = None
+    ) -> None:
+        self.specs: tuple[ParamSpec, ...] = tuple(specs)
+        self._index = {s.name: i for i, s in enumerate(self.specs)}
+        if len(self._index) != len(self.specs):
+            raise ValueError("duplicate parameter names")
+        self.defaults: dict[str, float] = {s.name: self._normal(s, s.default) for s in self.specs}
+        for name, v in (overrides or {}).items():
+            spec = self.spec(name)
+            if spec is None:
+                raise KeyError(f"unknown parameter {name!r}")
+            reason = self.check(spec, v, spec.ptype)
+            if reason:
+                raise ValueError(f"{name}: {reason}")
+            self.defaults[name] = self._normal(spec, v)
+        self._values: dict[str, float] = dict(self.defaults)
+
+    def __len__(self) -> int:
+        return len(self.specs)
+
+    def spec(self, name: str) -> ParamSpec | None:
+        """The spec of ``name`` (None if unknown)."""
+        i = self._index.get(name)
+        return None if i is None else self.specs[i]
+
+    def index(self, name: str) -> int:
+        """The index of ``name`` (``KeyError`` if unknown)."""
+        return self._index[name]
+
+    def get(self, name: str) -> float:
+        """The value of ``name`` (``KeyError`` if unknown)."""
+        return self._values[name]
+
+    def values(self) -> dict[str, float]:
+        """All values by name (a copy)."""
+        return dict(self._values)
+
+    def by_index(self, index: int) -> tuple[ParamSpec, float]:
+        """(spec, value) at ``index`` (``IndexError`` if out of range)."""
+        if not 0 <= index < len(self.specs):
+            raise IndexError(index)
+        s = self.specs[index]
+        return s, self._values[s.name]
+
+    @staticmethod
+    def _normal(spec: ParamSpec, v: float) -> float:
+        return float(int(v)) if spec.ptype in _INT_TYPES else _f32(float(v))
+
+    @staticmethod
+    def check(spec: ParamSpec, value: Any, ptype: int) -> str:
+        """Why ``value`` (of MAV_PARAM_TYPE ``ptype``) may not be set; "" if it may."""
+        if spec.read_only:
+            return "read-only"
+        if ptype != spec.ptype:
+            want = _TYPE_NAMES.get(spec.ptype, str(spec.ptype))
+            return f"wrong type {_TYPE_NAMES.get(ptype, str(ptype))}, the parameter is {want}"
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return f"not a number: {value!r}"
+        v = float(value)
+        if not math.isfinite(v):
+            return f"not finite: {v}"
+        if spec.ptype in _INT_TYPES:
+            if v != math.floor(v):
+                return f"{v} is not a whole number"
+            tlo, thi = _INT_TYPES[spec.ptype]
+            if not tlo <= v <= thi:
+                return f"{v:g} does not fit {_TYPE_NAMES[spec.ptype]}"
+        # float32 rounding of the limits themselves (pi as REAL32) must not refuse them
+        lo, hi = spec.minimum, spec.maximum
+        if spec.ptype == REAL32:
+            lo, hi = min(lo, _f32(lo)), max(hi, _f32(hi))
+        if not lo <= v <= hi:
+            return f"{v:g} outside [{spec.minimum:g}, {spec.maximum:g}]"
+        if spec.choices is not None and int(v) not in spec.choices:
+            return f"{int(v)} is not one of the allowed values"
+        return ""
+
+    def set(self, name: str, value: Any, ptype: int) -> SetOutcome:
+        """Validate and store; on refusal nothing changes and the outcome carries the reason."""
+        spec = self.spec(name)
+        if spec is None:
+            return SetOutcome(False, None, -1, math.nan, "unknown parameter")
+        i = self._index[name]
+        reason = self.check(spec, value, ptype)
+        if reason:
+            return SetOutcome(False, spec, i, self._values[name], reason)
+        self._values[name] = self._normal(spec, float(value))
+        return SetOutcome(True, spec, i, self._values[name])
+
+    def put(self, name: str, value: float) -> None:
+        """Store a value the bridge computed (no range check; still normalised to the wire type)."""
+        spec = self.spec(name)
+        if spec is None:
+            raise KeyError(name)
+        self._values[name] = self._normal(spec, value)
+
+    def restore(self, name: str, value: float) -> None:
+        """Put back a previous value (undo of a refused side effect)."""
+        self._values[name] = value
+
+
+# ---------------------------------------------------------------------------- the calibration view
+
+_ORIENT_SPLIT_DEG = 45.0  # rotations beyond this are COMPASS_ORIENT + a residual
+
+
+def split_rotation(R: np.ndarray[Any, Any]) -> tuple[Rotation, np.ndarray[Any, Any]]:
+    """(nearest ArduPilot rotation, residual rotation vector) with ``R = M(orient) @ R(residual)``.
+
+    Rotations within 45 deg of identity stay whole (orientation NONE): a real
+    alignment error is a few degrees, a wrong mounting is a multiple of 45.
+    """
+    angle = math.degrees(float(np.linalg.norm(dcm_to_rotvec(R))))
+    if angle <= _ORIENT_SPLIT_DEG:
+        return Rotation.ROTATION_NONE, dcm_to_rotvec(R)
+    best, best_angle, best_res = Rotation.ROTATION_NONE, math.inf, dcm_to_rotvec(R)
+    for rot in ROTATION_EULER_DEG:
+        Mr = rotation_matrix(rot)
+        res = dcm_to_rotvec(Mr.T @ R)
+        a = float(np.linalg.norm(res))
+        if a < best_angle - 1e-9:
+            best, best_angle, best_res = rot, a, res
+    return best, best_res
+
+
+def view_values(mag: AffineCalibration) -> dict[str, float]:
+    """The calibration group's values for a magnetometer calibration."""
+    v = mag.ardupilot_view()
+    orient, residual = split_rotation(rotvec_to_dcm(v.rotation_rotvec))
+    return {
+        "COMPASS_OFS_X": v.ofs_mG[0],
+        "COMPASS_OFS_Y": v.ofs_mG[1],
+        "COMPASS_OFS_Z": v.ofs_mG[2],
+        "COMPASS_DIA_X": v.diag[0],
+        "COMPASS_DIA_Y": v.diag[1],
+        "COMPASS_DIA_Z": v.diag[2],
+        "COMPASS_ODI_X": v.offdiag[0],
+        "COMPASS_ODI_Y": v.offdiag[1],
+        "COMPASS_ODI_Z": v.offdiag[2],
+        "COMPASS_SCALE": v.scale,
+        "COMPASS_ORIENT": float(int(orient)),
+        "BRG_ALIGN_X": float(residual[0]),
+        "BRG_ALIGN_Y": float(residual[1]),
+        "BRG_ALIGN_Z": float(residual[2]),
+    }
+
+
+def mag_from_values(values: Mapping[str, float]) -> AffineCalibration:
+    """Inverse of :func:`view_values`; ``ValueError`` if the result is singular or not finite."""
+    g = values.__getitem__
+    R = rotation_matrix(int(g("COMPASS_ORIENT"))) @ rotvec_to_dcm(
+        [g("BRG_ALIGN_X"), g("BRG_ALIGN_Y"), g("BRG_ALIGN_Z")]
+    )
+    view = ArduPilotView(
+        ofs_mG=(g("COMPASS_OFS_X"), g("COMPASS_OFS_Y"), g("COMPASS_OFS_Z")),
+        diag=(g("COMPASS_DIA_X"), g("COMPASS_DIA_Y"), g("COMPASS_DIA_Z")),
+        offdiag=(g("COMPASS_ODI_X"), g("COMPASS_ODI_Y"), g("COMPASS_ODI_Z")),
+        scale=g("COMPASS_SCALE"),
+        rotation_rotvec=tuple(float(x) for x in dcm_to_rotvec(R)),  # type: ignore[arg-type]
+    )
+    return AffineCalibration.from_ardupilot(view)
+
+
+def calibration_from_values(values: Mapping[str, float], accel: AffineCalibration) -> Calibration:
+    """The full calibration the parameters describe (the accelerometer part is kept as given)."""
+    return Calibration(mag=mag_from_values(values), accel=accel)
+
+
+def same_calibration(a: Calibration, b: Calibration, tol: float = 1e-6) -> bool:
+    """Equal up to ``tol`` (absolute, on offsets in gauss and matrix entries)."""
+    pairs = ((a.mag, b.mag), (a.accel, b.accel))
+    return all(
+        np.allclose(x.offset_array, y.offset_array, atol=tol, rtol=0.0)
+        and np.allclose(x.matrix_array, y.matrix_array, atol=tol, rtol=0.0)
+        for x, y in pairs
+    )
+
+
+def decimal7(v: float) -> float:
+    """A float32 parameter as the decimal a GCS shows (0.15000000596 -> 0.15)."""
+    return float(f"{v:.7g}")
+
+
+def limits_from_values(
+    values: Mapping[str, float], base: QualityLimits | None = None
+) -> QualityLimits:
+    """QualityLimits from BRG_FIELD_TOL / BRG_DIP_TOL / BRG_ACC_TOL / BRG_DEGR_PITCH."""
+    b = base if base is not None else QualityLimits()
+    return QualityLimits(
+        field_tolerance=decimal7(values["BRG_FIELD_TOL"]),
+        dip_tolerance_deg=decimal7(values["BRG_DIP_TOL"]),
+        accel_tolerance_g=decimal7(values["BRG_ACC_TOL"]),
+        degraded_pitch_deg=decimal7(values["BRG_DEGR_PITCH"]),
+        raise_after=b.raise_after,
+        clear_after=b.clear_after,
+    )
+
+
+def limits_values(limits: QualityLimits) -> dict[str, float]:
+    """Inverse of :func:`limits_from_values` (to show the engine's limits as parameters)."""
+    return {
+        "BRG_FIELD_TOL": limits.field_tolerance,
+        "BRG_DIP_TOL": limits.dip_tolerance_deg,
+        "BRG_ACC_TOL": limits.accel_tolerance_g,
+        "BRG_DEGR_PITCH": limits.degraded_pitch_deg,
+    }
+
+
+def mounting_from_values(values: Mapping[str, float]) -> Mounting:
+    """The engine's mounting: AHRS_ORIENTATION."""
+    return Mounting(orientation=Rotation(int(values["AHRS_ORIENTATION"])))
+
+
+def param_name(raw: bytes | str) -> str:
+    """A received param_id as text (NUL-terminated unless 16 characters long)."""
+    if isinstance(raw, bytes):
+        raw = raw.split(b"\0", 1)[0].decode("ascii", "replace")
+    return raw.split("\0", 1)[0]

@@ -1,0 +1,135 @@
+"""MAVLink 2 message signing: signing what we send, checking what we are told to do.
+
+The signature (MAVLink 2 spec, "Message Signing") is 13 bytes after the CRC::
+
+    link_id (1) | timestamp (6, little endian, 10 us units since 2015-01-01 UTC) | sig (6)
+    sig = SHA-256(secret_key + header + payload + CRC + link_id + timestamp)[:6]
+
+pymavlink can sign and check (``MAVLink.signing``), but its checker records
+a stream's timestamp *before* it verifies the signature (so one forged packet
+with a far-future timestamp locks the real sender out), keeps its replay
+table per parser instance (one per connection here, so a packet captured on
+one link could be replayed on another), and is not thread-safe. The bridge
+therefore parses without a key and checks signatures in one place,
+:class:`Signing`, shared by every endpoint:
+
+* **sign**: :meth:`Signing.sign` appends the 13 bytes to a framed packet. The
+  timestamp is ``max(last + 1, wall clock)``: strictly increasing per the
+  spec, and close to real time so that a peer that restarts accepts our
+  "new stream" (a receiver refuses a new stream more than a minute older
+  than its own clock).
+* **verify**: :meth:`Signing.verify` checks the signature *first*, then the
+  replay rules: per stream ``(link_id, system, component)`` the timestamp
+  must increase; a stream seen for the first time must not be more than
+  :data:`NEW_STREAM_WINDOW_S` older than our own timestamp. Only a valid
+  packet updates the table and advances our own timestamp.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from enum import Enum
+
+from bridge.mavlink.dialect import IFLAG_SIGNED, MAGIC_V2, SIGNATURE_LEN
+
+#: 2015-01-01T00:00:00Z, the epoch of MAVLink signing timestamps.
+SIGNING_EPOCH_UNIX = 1420070400
+TICKS_PER_SECOND = 100_000  #: timestamps count 10 us ticks
+NEW_STREAM_WINDOW_S = 60.0  #: the spec's "one minute" for a stream not seen before
+KEY_BYTES = 32
+_MAX_STREAMS = 4096  # bounded replay table: oldest streams are forgotten first
+
+
+class Verdict(Enum):
+    """Outcome of :meth:`Signing.verify`."""
+
+    OK = "ok"
+    UNSIGNED = "unsigned"
+    BAD_SIGNATURE = "bad signature"
+    REPLAY = "replayed (timestamp not newer than the stream's last)"
+    STALE = "stale (new stream more than a minute old)"
+
+
+def unix_to_ticks(t_unix: float) -> int:
+    """A Unix time as a signing timestamp (never negative: a clock before 2015 gives 0)."""
+    return max(0, int((t_unix - SIGNING_EPOCH_UNIX) * TICKS_PER_SECOND))
+
+
+def is_signed(packet: bytes | bytearray) -> bool:
+    """A MAVLink 2 packet whose incompat flags announce a signature."""
+    return len(packet) > 2 and packet[0] == MAGIC_V2 and bool(packet[2] & IFLAG_SIGNED)
+
+
+class Signing:
+    """One secret key, the outgoing timestamp and the incoming replay table (thread-safe)."""
+
+    def __init__(self, key: bytes, *, clock: Callable[[], float] = time.time) -> None:
+        if not isinstance(key, bytes | bytearray) or len(key) != KEY_BYTES:
+            raise ValueError(f"a MAVLink signing key is {KEY_BYTES} bytes")
+        self._key = bytes(key)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._timestamp = 0
+        self._streams: OrderedDict[tuple[int, int, int], int] = OrderedDict()
+        self.accepted = 0
+        self.rejected: dict[Verdict, int] = {v: 0 for v in Verdict if v is not Verdict.OK}
+
+    @property
+    def timestamp(self) -> int:
+        """The last timestamp used or seen (10 us ticks since 2015)."""
+        with self._lock:
+            return self._timestamp
+
+    def _next_timestamp(self) -> int:
+        ts = max(self._timestamp + 1, unix_to_ticks(self._clock()))
+        self._timestamp = ts
+        return ts
+
+    def sign(self, packet: bytes, link_id: int) -> bytes:
+        """``packet`` (framed with the signed flag set, CRC included) plus its signature."""
+        with self._lock:
+            ts = self._next_timestamp()
+        tail = bytes((link_id & 0xFF,)) + ts.to_bytes(6, "little")
+        sig = hashlib.sha256(self._key + packet + tail).digest()[:6]
+        return packet + tail + sig
+
+    def verify(self, packet: bytes | bytearray, src_system: int, src_component: int) -> Verdict:
+        """Check one received packet (the full bytes, signature included)."""
+        if not is_signed(packet) or len(packet) < 12 + SIGNATURE_LEN:
+            return self._reject(Verdict.UNSIGNED)
+        data = bytes(packet)
+        expected = hashlib.sha256(self._key + data[:-6]).digest()[:6]
+        if not hmac.compare_digest(expected, data[-6:]):
+            return self._reject(Verdict.BAD_SIGNATURE)
+        link_id = data[-SIGNATURE_LEN]
+        ts = int.from_bytes(data[-12:-6], "little")
+        key = (link_id, src_system, src_component)
+        with self._lock:
+            last = self._streams.get(key)
+            if last is not None:
+                if ts <= last:
+                    self.rejected[Verdict.REPLAY] += 1
+                    return Verdict.REPLAY
+                self._streams.move_to_end(key)
+            else:
+                ours = max(self._timestamp, unix_to_ticks(self._clock()))
+                if ts + NEW_STREAM_WINDOW_S * TICKS_PER_SECOND < ours:
+                    self.rejected[Verdict.STALE] += 1
+                    return Verdict.STALE
+            self._streams[key] = ts
+            if len(self._streams) > _MAX_STREAMS:
+                self._streams.popitem(last=False)
+            # The spec: our next timestamp is at least the newest valid one we saw.
+            self._timestamp = max(self._timestamp, ts)
+            self.accepted += 1
+        return Verdict.OK
+
+    def _reject(self, verdict: Verdict) -> Verdict:
+        with self._lock:
+            self.rejected[verdict] += 1
+        return verdict

@@ -1,0 +1,301 @@
+"""Endpoints on real sockets and a real pseudo-terminal: every kind, and nobody stalls anybody."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
+
+from bridge.mavlink import endpoints as E  # noqa: N812 - short
+from bridge.mavlink.endpoints import Endpoint, Link, open_endpoint
+from bridge.mavlink.signing import Signing
+from bridge.mavlink.wire import Packet, codec
+
+KEY = bytes(range(32))
+
+
+class Inbox:
+    """An ``on_message`` handler that keeps (message, link) pairs."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[Any, Link]] = []
+        self._lock = threading.Lock()
+
+    def __call__(self, msg: Any, link: Link) -> None:
+        with self._lock:
+            self.items.append((msg, link))
+
+    def of(self, mtype: str) -> list[tuple[Any, Link]]:
+        with self._lock:
+            return [(m, lk) for m, lk in self.items if m.get_type() == mtype]
+
+
+def ping(i: int) -> Packet:
+    """A small numbered packet (SYSTEM_TIME, time_boot_ms = i)."""
+    return codec(M.MAVLINK_MSG_ID_SYSTEM_TIME).packet(time_unix_usec=i, time_boot_ms=i)
+
+
+def heartbeat_bytes(sysid: int = 255, compid: int = 190) -> bytes:
+    mav = M.MAVLink(None, sysid, compid)
+    return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+
+
+@pytest.fixture
+def endpoints() -> Iterator[Callable[..., Endpoint]]:
+    made: list[Endpoint] = []
+
+    def make(text: str, inbox: Inbox | None = None, **kw: Any) -> Endpoint:
+        ep = open_endpoint(
+            text, system_id=1, component_id=1, on_message=inbox or Inbox(), **kw
+        ).start()
+        made.append(ep)
+        return ep
+
+    yield make
+    for ep in made:
+        ep.close(2.0)
+
+
+def parse_all(data: bytes, key: bytes | None = None) -> list[Any]:
+    mav = M.MAVLink(None)
+    if key:
+        mav.signing.secret_key = key
+    return [m for m in (mav.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
+
+
+def recv_udp(sock: socket.socket, n: int, timeout: float = DEADLINE_S) -> list[bytes]:
+    out: list[bytes] = []
+    sock.settimeout(0.2)
+    deadline = time.monotonic() + timeout
+    while len(out) < n and time.monotonic() < deadline:
+        with contextlib.suppress(TimeoutError):
+            out.append(sock.recv(65535))
+    return out
+
+
+def test_udpout_sends_and_hears_replies(endpoints: Callable[..., Endpoint]) -> None:
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    inbox = Inbox()
+    ep = endpoints(f"udpout:127.0.0.1:{peer.getsockname()[1]}", inbox)
+    try:
+        assert wait_until(lambda: bool(ep.links))
+        for i in range(5):
+            ep.broadcast(ping(i))
+        got = recv_udp(peer, 5)
+        msgs = [parse_all(d)[0] for d in got]
+        assert [m.time_boot_ms for m in msgs] == [0, 1, 2, 3, 4]
+        assert [m.get_seq() for m in msgs] == [0, 1, 2, 3, 4]
+        # the GCS answers to where the packets came from
+        src = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        peer.sendto(heartbeat_bytes(), ("127.0.0.1", ep.local_address[1]))  # type: ignore[attr-defined]
+        assert wait_until(lambda: bool(inbox.of("HEARTBEAT")))
+        msg, link = inbox.of("HEARTBEAT")[0]
+        assert msg.get_srcSystem() == 255 and link is ep.links[0]
+        src.close()
+    finally:
+        peer.close()
+    c = ep.counters()
+    assert c.packets_sent == 5 and c.packets_received == 1 and c.errors == 0
+
+
+def test_udpin_learns_peers_and_answers_each_on_its_own(
+    endpoints: Callable[..., Endpoint], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    port = free_port()
+    inbox = Inbox()
+    ep = endpoints(f"udpin:127.0.0.1:{port}", inbox)
+    a, b = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    try:
+        assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+        ep.broadcast(ping(0))  # nobody yet: counted, not an error
+        assert wait_until(lambda: ep.counters().packets_unsent == 1)
+        for s, sysid in ((a, 10), (b, 11)):
+            s.sendto(heartbeat_bytes(sysid), ("127.0.0.1", port))
+        assert wait_until(lambda: len(ep.links) == 2)
+        ep.broadcast(ping(1))
+        assert [parse_all(d)[0].time_boot_ms for d in recv_udp(a, 1)] == [1]
+        assert [parse_all(d)[0].time_boot_ms for d in recv_udp(b, 1)] == [1]
+        # a reply goes to the link it came from only
+        _, link_a = next((m, lk) for m, lk in inbox.of("HEARTBEAT") if m.get_srcSystem() == 10)
+        link_a.send(ping(2))
+        assert [parse_all(d)[0].time_boot_ms for d in recv_udp(a, 1)] == [2]
+        assert recv_udp(b, 1, timeout=0.5) == []
+        # garbage on the port is counted and dropped; the endpoint lives on
+        a.sendto(b"\xfd\x09\x00garbage-garbage-garbage", ("127.0.0.1", port))
+        assert wait_until(lambda: ep.counters().bad_packets >= 1)
+        # a silent peer is forgotten
+        monkeypatch.setattr(E, "UDP_PEER_TIMEOUT_S", 0.3)
+        assert wait_until(lambda: len(ep.links) == 0, 5.0)
+    finally:
+        a.close()
+        b.close()
+
+
+def test_tcp_client_reconnects_after_the_server_drops_it(
+    endpoints: Callable[..., Endpoint],
+) -> None:
+    srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(2)
+    srv.settimeout(DEADLINE_S)
+    inbox = Inbox()
+    ep = endpoints(f"tcp:127.0.0.1:{srv.getsockname()[1]}", inbox)
+    try:
+        conn, _ = srv.accept()
+        assert wait_until(lambda: bool(ep.links))
+        ep.broadcast(ping(7))
+        conn.settimeout(DEADLINE_S)
+        first = parse_all(conn.recv(4096))
+        assert first[0].time_boot_ms == 7 and first[0].get_seq() == 0
+        conn.sendall(heartbeat_bytes())
+        assert wait_until(lambda: bool(inbox.of("HEARTBEAT")))
+        conn.close()  # the GCS goes away ...
+        conn2, _ = srv.accept()  # ... and the endpoint comes back by itself
+        assert wait_until(lambda: ep.counters().connects == 2)
+        ep.broadcast(ping(8))
+        conn2.settimeout(DEADLINE_S)
+        again = parse_all(conn2.recv(4096))
+        assert again[0].time_boot_ms == 8 and again[0].get_seq() == 0  # a new link, a new seq
+        conn2.close()
+    finally:
+        srv.close()
+
+
+def test_tcp_to_nobody_never_blocks_the_sender(endpoints: Callable[..., Endpoint]) -> None:
+    ep = endpoints(f"tcp:127.0.0.1:{free_port(socket.SOCK_STREAM)}")
+    t0 = time.monotonic()
+    for i in range(1000):
+        ep.broadcast(ping(i))
+    assert time.monotonic() - t0 < 5.0  # generous: the point is that it returns at all
+    assert wait_until(lambda: ep.counters().errors >= 1)  # connection refused, retried
+    assert ep.counters().packets_unsent >= 1000
+
+
+def test_tcpin_serves_several_clients_each_with_its_own_sequence(
+    endpoints: Callable[..., Endpoint],
+) -> None:
+    port = free_port(socket.SOCK_STREAM)
+    inbox = Inbox()
+    ep = endpoints(f"tcpin:127.0.0.1:{port}", inbox)
+    assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+    c1 = socket.create_connection(("127.0.0.1", port), timeout=DEADLINE_S)
+    try:
+        assert wait_until(lambda: len(ep.links) == 1)
+        for i in range(3):
+            ep.broadcast(ping(i))
+        c2 = socket.create_connection(("127.0.0.1", port), timeout=DEADLINE_S)
+        try:
+            assert wait_until(lambda: len(ep.links) == 2)
+            ep.broadcast(ping(3))
+            got1 = _read_packets(c1, 4)
+            got2 = _read_packets(c2, 1)
+            assert [m.get_seq() for m in got1] == [0, 1, 2, 3]
+            assert [(m.get_seq(), m.time_boot_ms) for m in got2] == [(0, 3)]
+            c2.sendall(heartbeat_bytes(42))
+            assert wait_until(lambda: bool(inbox.of("HEARTBEAT")))
+        finally:
+            c2.close()
+        assert wait_until(lambda: len(ep.links) == 1)
+    finally:
+        c1.close()
+
+
+def _read_packets(sock: socket.socket, n: int) -> list[Any]:
+    mav = M.MAVLink(None)
+    out: list[Any] = []
+    deadline = time.monotonic() + DEADLINE_S
+    while len(out) < n and time.monotonic() < deadline:
+        out += [m for m in (mav.parse_buffer(sock.recv(4096)) or []) if m.get_type() != "BAD_DATA"]
+    return out
+
+
+def test_a_stuck_tcp_client_costs_only_its_own_queue(endpoints: Callable[..., Endpoint]) -> None:
+    tport = free_port(socket.SOCK_STREAM)
+    stuck_ep = endpoints(f"tcpin:127.0.0.1:{tport}", queue_packets=32)
+    udp_peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp_peer.bind(("127.0.0.1", 0))
+    udp_peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+    live_ep = endpoints(f"udpout:127.0.0.1:{udp_peer.getsockname()[1]}", queue_packets=100_000)
+    stuck = socket.create_connection(("127.0.0.1", tport), timeout=DEADLINE_S)
+    stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # and it never reads
+    try:
+        assert wait_until(lambda: len(stuck_ep.links) == 1 and len(live_ep.links) == 1)
+        n = 20_000
+        t0 = time.monotonic()
+        for i in range(n):
+            stuck_ep.broadcast(ping(i))
+            live_ep.broadcast(ping(i))
+        elapsed = time.monotonic() - t0
+        assert elapsed < 10.0  # the producer never waited on the stuck client
+        got = recv_udp(udp_peer, n)
+        assert len(got) >= 0.95 * n  # the live peer got (nearly) everything, in order
+        seqs = [parse_all(d)[0].time_boot_ms for d in got]
+        assert seqs == sorted(seqs)
+        c = stuck_ep.counters()
+        assert c.packets_dropped > 0.5 * n  # the stuck one: its queue overflowed, counted
+        assert c.packets_sent + c.packets_dropped >= n - stuck_ep.queue_packets
+    finally:
+        stuck.close()
+        udp_peer.close()
+
+
+def test_serial_endpoint_over_a_pty(endpoints: Callable[..., Endpoint]) -> None:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    inbox = Inbox()
+    try:
+        ep = endpoints(f"{os.ttyname(slave)},115200", inbox)
+        assert wait_until(lambda: bool(ep.links))
+        assert ep.baud == 115200  # type: ignore[attr-defined]
+        for i in range(3):
+            ep.broadcast(ping(i))
+        mav = M.MAVLink(None)
+        got: list[Any] = []
+        deadline = time.monotonic() + DEADLINE_S
+        os.set_blocking(master, False)
+        while len(got) < 3 and time.monotonic() < deadline:
+            with contextlib.suppress(BlockingIOError):
+                got += mav.parse_buffer(os.read(master, 4096)) or []
+            time.sleep(0.01)
+        assert [m.time_boot_ms for m in got] == [0, 1, 2]
+        os.write(master, b"\x00noise\x01" + heartbeat_bytes())
+        assert wait_until(lambda: bool(inbox.of("HEARTBEAT")))
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_a_missing_serial_device_is_retried_quietly(
+    endpoints: Callable[..., Endpoint], tmp_path: Any
+) -> None:
+    ep = endpoints(str(tmp_path / "ttyNOPE"))
+    assert wait_until(lambda: ep.counters().errors >= 1)
+    ep.broadcast(ping(1))
+    assert wait_until(lambda: ep.counters().packets_unsent == 1)
+    assert ep.links == []
+
+
+def test_signed_endpoint_output_verifies_in_pymavlink(endpoints: Callable[..., Endpoint]) -> None:
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    ep = endpoints(f"udpout:127.0.0.1:{peer.getsockname()[1]}", signing=Signing(KEY), link_id=3)
+    try:
+        assert wait_until(lambda: bool(ep.links))
+        ep.broadcast(ping(5))
+        (data,) = recv_udp(peer, 1)
+    finally:
+        peer.close()
+    (msg,) = parse_all(data, KEY)
+    assert msg._signed and msg._link_id == 3 and msg.time_boot_ms == 5
+    with pytest.raises(M.MAVError):
+        parse_all(data, bytes(32))

@@ -1,0 +1,430 @@
+"""The MAVLink test rig: a real daemon on the simulated compass, a real pymavlink ground station.
+
+Imported by the other ``test_mavlink_*`` modules (``from test_mavlink_rig import ...``);
+its own tests check the rig's ground rules: the bytes on the wire are MAVLink 2
+and both UDP and TCP carry a conversation.
+
+* :class:`Gcs` wraps a ``pymavlink.mavutil`` connection (ardupilotmega, MAVLink 2)
+  with an inbox, so a test can wait for one message without losing the others,
+  and every wait has a deadline.
+* :func:`start_rig` builds a :class:`Rig`: configuration from a mapping, the
+  simulated compass in process (``fast``: on a clock ``SPEED`` times real time,
+  with the calibration controller rebuilt on that clock, as the calibrator's
+  own tests do), the daemon with a :class:`MavlinkOutput`, started.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect module
+from pymavlink import mavutil
+
+from bridge.calibrator import CalibrationController, CalibratorSettings
+from bridge.config import Config, config_from_mapping
+from bridge.core.wmm import earth_field
+from bridge.daemon import Daemon
+from bridge.link.serial_link import LinkState
+from bridge.link.transport import SimTransport
+from bridge.mavlink import MavlinkOutput, MavlinkSettings
+from bridge.sim.firmware import Firmware, make_firmware
+from bridge.sim.motion import Motion, YawTurns
+from bridge.sim.physics import DEFAULT_LOCATION
+from bridge.sim.pty import PtyCompass
+from bridge.storage import StateStore
+
+mavutil.set_dialect("ardupilotmega")
+M: Any = mavutil.mavlink
+
+DEADLINE_S = 20.0  #: real seconds any single wait may take before the test fails
+SPEED = 20.0  #: fast rigs: simulated seconds per real second
+LAT, LON, ALT = DEFAULT_LOCATION
+GCS_SYSID, GCS_COMPID = 255, 190
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A port nobody listens on right now (127.0.0.1)."""
+    s = socket.socket(socket.AF_INET, kind)
+    try:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+    finally:
+        s.close()
+
+
+class FastClock:
+    """Monotonic time running ``speed`` times faster than real time (and its sleep)."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+        self._t0 = time.monotonic()
+
+    def __call__(self) -> float:
+        return self._t0 + (time.monotonic() - self._t0) * self.speed
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(max(0.0, seconds) / self.speed)
+
+
+class Gcs:
+    """A pymavlink ground station with an inbox and bounded waits."""
+
+    def __init__(self, conn: Any) -> None:
+        self.conn = conn
+        self.mav = conn.mav
+        self.inbox: list[Any] = []
+        self.raw: list[bytes] = []  # every packet's bytes, as they arrived
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def pump(self, timeout: float = 0.05) -> None:
+        """Read whatever arrives within ``timeout`` into the inbox."""
+        m = self.conn.recv_match(blocking=True, timeout=timeout)
+        while m is not None:
+            if m.get_type() != "BAD_DATA":
+                self.inbox.append(m)
+                self.raw.append(bytes(m.get_msgbuf()))
+            m = self.conn.recv_match(blocking=False)
+
+    def wait(
+        self,
+        mtype: str | tuple[str, ...],
+        cond: Callable[[Any], bool] | None = None,
+        timeout: float = DEADLINE_S,
+        consume: bool = True,
+    ) -> Any:
+        """The oldest message of ``mtype`` (matching ``cond``) in the inbox or still to come.
+
+        Only that message leaves the inbox (``consume``): every type is its own queue, so
+        a STATUSTEXT sent just before a COMMAND_ACK is still there after waiting for the
+        ACK. Use :meth:`flush` to wait for something *newer* than what came so far.
+        Fails the test after ``timeout``.
+        """
+        types = (mtype,) if isinstance(mtype, str) else mtype
+        deadline = time.monotonic() + timeout
+        while True:
+            for i, m in enumerate(self.inbox):
+                if m.get_type() in types and (cond is None or cond(m)):
+                    if consume:
+                        del self.inbox[i]
+                    return m
+            if time.monotonic() > deadline:
+                seen = sorted({m.get_type() for m in self.inbox})
+                pytest.fail(f"no {types} within {timeout} s (inbox holds {seen})")
+            self.pump(0.05)
+
+    def nothing(self, mtype: str, cond: Callable[[Any], bool] | None, seconds: float) -> None:
+        """Assert that no such message comes within ``seconds``."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.pump(0.05)
+        bad = [m for m in self.inbox if m.get_type() == mtype and (cond is None or cond(m))]
+        assert not bad, f"unexpected {mtype}: {bad[0]}"
+
+    def collect(self, seconds: float) -> list[Any]:
+        """Everything that arrives within ``seconds`` (the inbox is emptied)."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.pump(0.05)
+        out, self.inbox = self.inbox, []
+        return out
+
+    def flush(self) -> None:
+        """Forget what arrived so far."""
+        self.pump(0.05)
+        self.inbox.clear()
+
+    def command(
+        self,
+        command: int,
+        *params: float,
+        target: tuple[int, int] = (1, 1),
+        use_int: bool = False,
+        timeout: float = DEADLINE_S,
+    ) -> Any:
+        """Send COMMAND_LONG (or COMMAND_INT) and return its first COMMAND_ACK."""
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        if use_int:
+            self.mav.command_int_send(
+                target[0],
+                target[1],
+                0,
+                command,
+                0,
+                0,
+                p[0],
+                p[1],
+                p[2],
+                p[3],
+                int(p[4]),
+                int(p[5]),
+                p[6],
+            )
+        else:
+            self.mav.command_long_send(target[0], target[1], command, 0, *p)
+        return self.wait("COMMAND_ACK", lambda m: m.command == command, timeout)
+
+    def param(
+        self, name: str, timeout: float = DEADLINE_S, target: tuple[int, int] = (1, 1)
+    ) -> Any:
+        """PARAM_REQUEST_READ by name -> its PARAM_VALUE."""
+        self.mav.param_request_read_send(target[0], target[1], name.encode(), -1)
+        return self.wait("PARAM_VALUE", lambda m: m.param_id == name, timeout)
+
+    def set_param(
+        self, name: str, value: float, ptype: int, target: tuple[int, int] = (1, 1)
+    ) -> Any:
+        """PARAM_SET -> the PARAM_VALUE echo."""
+        self.mav.param_set_send(target[0], target[1], name.encode(), value, ptype)
+        return self.wait("PARAM_VALUE", lambda m: m.param_id == name)
+
+
+def connect_gcs(url: str, sysid: int = GCS_SYSID, compid: int = GCS_COMPID, **kw: Any) -> Gcs:
+    """A pymavlink peer on ``url`` that announces itself with a HEARTBEAT."""
+    conn = mavutil.mavlink_connection(
+        url, source_system=sysid, source_component=compid, dialect="ardupilotmega", **kw
+    )
+    g = Gcs(conn)
+    g.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    return g
+
+
+def make_config(tmp_path: Path, state: str = "state", **sections: dict[str, Any]) -> Config:
+    raw: dict[str, Any] = {
+        "device": {"port": "sim", "stale_after": 5.0},
+        "storage": {"dir": str(tmp_path / state)},
+        "location": {"latitude": LAT, "longitude": LON, "altitude_m": ALT},
+        "zenoh": {"enabled": False},
+    }
+    for name, values in sections.items():
+        raw.setdefault(name, {}).update(values)
+    return config_from_mapping(raw, env={}, hostname="test")
+
+
+@dataclass
+class Rig:
+    """A running daemon with a MAVLink output on a simulated compass."""
+
+    daemon: Daemon
+    out: MavlinkOutput
+    fw: Firmware
+    cfg: Config
+    udp_port: int  #: our udpin port (a GCS connects with udpout:127.0.0.1:<port>)
+    tcp_port: int  #: our tcpin port
+    gcss: list[Gcs]
+    pty: PtyCompass | None = None  #: the simulated compass on a real pty (``pty=True``)
+    clock: Callable[[], float] = time.monotonic  #: the simulator's clock
+
+    def motion_time(self) -> float:
+        """Seconds into the simulator's motion script (its clock, not real time)."""
+        epoch = self.fw.motion_epoch
+        return 0.0 if epoch is None else self.clock() - epoch
+
+    def wait_motion_time(self, t: float) -> None:
+        """Wait (bounded) until the motion script reaches ``t`` simulated seconds."""
+        assert self.motion_time() <= t, f"too late: the motion is at {self.motion_time():.1f} s"
+        assert wait_until(lambda: self.motion_time() >= t), "motion clock stuck"
+
+    def gcs(self, kind: str = "udp", **kw: Any) -> Gcs:
+        url = (
+            f"udpout:127.0.0.1:{self.udp_port}"
+            if kind == "udp"
+            else f"tcp:127.0.0.1:{self.tcp_port}"
+        )
+        g = connect_gcs(url, **kw)
+        self.gcss.append(g)
+        # the first HEARTBEAT back means the endpoint knows us
+        g.wait("HEARTBEAT", lambda m: m.get_srcSystem() == self.out.identity.system_id)
+        return g
+
+    def stop(self) -> None:
+        for g in self.gcss:
+            g.close()
+        self.gcss.clear()
+        self.daemon.stop(timeout=5.0)
+        if self.pty is not None:
+            self.pty.stop()
+
+
+def start_rig(
+    tmp_path: Path,
+    *,
+    motion: Motion | None = None,
+    fast: bool = False,
+    seed: int = 3,
+    state: str = "state",
+    mavlink: dict[str, Any] | None = None,
+    calibration: dict[str, Any] | None = None,
+    settings: CalibratorSettings | None = None,
+    extra_endpoints: tuple[str, ...] = (),
+    device: dict[str, Any] | None = None,
+    ideal: bool = False,
+    pty: bool = False,
+) -> Rig:
+    """A started :class:`Rig` with a udpin and a tcpin endpoint on free ports.
+
+    ``ideal``: a perfect simulated unit (no calibration needed, never "disturbed");
+    ``pty``: the compass served on a real pseudo-terminal (it can be unplugged).
+    """
+    assert not (pty and fast), "a pty compass runs in real time"
+    udp, tcp = free_port(), free_port(socket.SOCK_STREAM)
+    mav: dict[str, Any] = {
+        "endpoints": [f"udpin:127.0.0.1:{udp}", f"tcpin:127.0.0.1:{tcp}", *extra_endpoints]
+    }
+    mav.update(mavlink or {})
+    dev = dict(device or {})
+    link_path = tmp_path / f"compass-{udp}.tty"
+    if pty:
+        dev["port"] = str(link_path)
+    cfg = make_config(
+        tmp_path,
+        state,
+        mavlink=mav,
+        calibration=calibration or {},
+        device=dev,
+    )
+    fw = make_firmware(
+        seed, motion=motion or YawTurns(10.0), location=DEFAULT_LOCATION, ideal=ideal
+    )
+    server: PtyCompass | None = None
+    transport: SimTransport | None = None
+    fc = FastClock(SPEED)
+    if pty:
+        server = PtyCompass(fw, link_path).start()
+    elif fast:
+        transport = SimTransport(fw, clock=fc, sleep=fc.sleep)
+    else:
+        transport = SimTransport(fw)
+    holder: list[Daemon] = []
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: holder[0])
+    daemon = Daemon(cfg, [out], transport=transport)
+    holder.append(daemon)
+    if fast:
+        # The controller the daemon builds, on the simulator's clock (as test_calibrator).
+        daemon.calibrator = CalibrationController(
+            daemon.engine,
+            daemon.events,
+            link=daemon.link,
+            store=StateStore(cfg.storage.dir),
+            field=earth_field(LAT, LON, ALT),
+            onboard=cfg.calibration.onboard,
+            settings=settings or CalibratorSettings(no_data_timeout_s=40.0),
+            clock=fc,
+        )
+    daemon.start()
+    rig = Rig(daemon, out, fw, cfg, udp, tcp, [], server, fc if fast else time.monotonic)
+    try:
+        assert daemon.link.wait_state(LinkState.STREAMING, DEADLINE_S), "compass not streaming"
+        assert wait_until(lambda: daemon.link.params is not None), "no PAR,GET in the handshake"
+        assert wait_until(lambda: daemon.samples >= 3), "no samples through the pipeline"
+    except BaseException:
+        rig.stop()
+        raise
+    return rig
+
+
+def wait_until(cond: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
+def rig_factory() -> Iterator[Callable[..., Rig]]:
+    """Factory of started rigs; every one is stopped at the end.
+
+    Test modules wrap it in their own fixture (``yield from rig_factory()``).
+    """
+    made: list[Rig] = []
+
+    def make(tmp_path: Path, **kw: Any) -> Rig:
+        r = start_rig(tmp_path, **kw)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.stop()
+
+
+@pytest.fixture
+def rigs() -> Iterator[Callable[..., Rig]]:
+    """Started rigs, stopped at the end of the test."""
+    yield from rig_factory()
+
+
+# ------------------------------------------------------------------------------ the rig's own tests
+
+
+def test_bytes_on_the_wire_are_mavlink2(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    """A raw UDP socket (no pymavlink in between) sees 0xFD packets from our ids."""
+    rig = rigs(tmp_path)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.settimeout(1.0)
+    try:
+        # Any datagram makes the udpin endpoint treat us as a peer: send a real HEARTBEAT.
+        gcs_mav = M.MAVLink(None, GCS_SYSID, GCS_COMPID)
+        sock.sendto(
+            gcs_mav.heartbeat_encode(6, 8, 0, 0, 0).pack(gcs_mav), ("127.0.0.1", rig.udp_port)
+        )
+        got: list[bytes] = []
+        deadline = time.monotonic() + DEADLINE_S
+        while len(got) < 20 and time.monotonic() < deadline:
+            try:
+                got.append(sock.recv(65535))
+            except TimeoutError:
+                continue
+    finally:
+        sock.close()
+    assert len(got) >= 20
+    assert all(d[0] == 0xFD for d in got), [d[:1].hex() for d in got]
+    # header: len, incompat, compat, seq, sysid, compid: our ids, unsigned, consecutive seq
+    assert {(d[5], d[6]) for d in got} == {(1, 1)}
+    assert all(d[2] == 0 for d in got)
+    seqs = [d[4] for d in got]
+    assert all((b - a) % 256 == 1 for a, b in itertools.pairwise(seqs))
+
+
+def test_udp_and_tcp_peers_both_get_a_conversation(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    rig = rigs(tmp_path)
+    udp, tcp = rig.gcs("udp"), rig.gcs("tcp")
+    for g in (udp, tcp):
+        att = g.wait("ATTITUDE")
+        assert att.get_srcSystem() == 1 and att.get_srcComponent() == 1
+        assert g.conn.WIRE_PROTOCOL_VERSION == "2.0"
+        ack = g.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+        assert ack.result == M.MAV_RESULT_ACCEPTED
+        assert (ack.target_system, ack.target_component) == (GCS_SYSID, GCS_COMPID)
+        g.wait("AUTOPILOT_VERSION")
+    # an ACK goes to the link that asked, not to the other one
+    udp.flush()
+    tcp.command(M.MAV_CMD_GET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE)
+    udp.nothing("COMMAND_ACK", None, 0.5)
+
+
+def test_threads_of_a_stopped_rig_are_gone(tmp_path: Path) -> None:
+    before = {t.name for t in threading.enumerate()}
+    rig = start_rig(tmp_path)
+    assert any(t.name.startswith("mavlink-") for t in threading.enumerate())
+    rig.stop()
+    assert wait_until(
+        lambda: (
+            not ({t.name for t in threading.enumerate() if t.name.startswith("mavlink-")} - before)
+        ),
+        5.0,
+    )

@@ -1,0 +1,145 @@
+"""MAVLink 2 signing with a real signed pymavlink peer: who may command the compass."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_mavlink_rig import (
+    GCS_COMPID,
+    GCS_SYSID,
+    Gcs,
+    M,
+    Rig,
+    connect_gcs,
+    rig_factory,
+)
+
+from bridge.mavlink.signing import NEW_STREAM_WINDOW_S, TICKS_PER_SECOND, unix_to_ticks
+
+
+@pytest.fixture
+def rigs() -> Iterator[Callable[..., Rig]]:
+    yield from rig_factory()
+
+
+KEY = bytes.fromhex("a3" * 16 + "5c" * 16)
+WRONG_KEY = bytes(32)
+REAL32 = M.MAV_PARAM_TYPE_REAL32
+ATT = M.MAVLINK_MSG_ID_ATTITUDE
+
+
+def signed_rig(tmp_path: Path, rigs: Callable[..., Rig]) -> Rig:
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(KEY.hex() + "\n")
+    return rigs(tmp_path, mavlink={"signing_key_file": str(key_file)})
+
+
+def gcs_with_key(rig: Rig, key: bytes | None, kind: str = "udp") -> Gcs:
+    url = f"udpout:127.0.0.1:{rig.udp_port}" if kind == "udp" else f"tcp:127.0.0.1:{rig.tcp_port}"
+    g = connect_gcs(url)
+    if key is not None:
+        # A wrong key would make pymavlink refuse *our* packets too; let it listen anyway.
+        listen_anyway = None if key == KEY else (lambda mav, msgid: True)
+        g.conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=listen_anyway)
+    rig.gcss.append(g)
+    g.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    g.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 1)
+    return g
+
+
+def interval_of(g: Gcs, msgid: int) -> int:
+    g.mav.command_long_send(1, 1, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, msgid, 0, 0, 0, 0, 0, 0)
+    return int(g.wait("MESSAGE_INTERVAL", lambda m: m.message_id == msgid).interval_us)
+
+
+def test_outgoing_is_signed_and_a_signed_ground_station_may_do_everything(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    rig = signed_rig(tmp_path, rigs)
+    g = gcs_with_key(rig, KEY, "tcp")
+    g.flush()
+    for m in g.collect(1.0):
+        # pymavlink checked each signature with the key; a bad one would be BAD_DATA
+        assert m._signed, m.get_type()
+        assert m._link_id == 1  # tcpin is the second endpoint: link id 1
+    assert g.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, ATT, 250_000).result == M.MAV_RESULT_ACCEPTED
+    assert interval_of(g, ATT) == 250_000
+    assert g.set_param("BRG_SR_HUD", 1.0, REAL32).param_value == 1.0
+    assert rig.out.signing is not None and rig.out.signing.accepted >= 3
+
+
+def test_unsigned_and_wrongly_signed_commands_are_refused(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    rig = signed_rig(tmp_path, rigs)
+    for key in (None, WRONG_KEY):
+        g = gcs_with_key(rig, key)
+        g.flush()
+        # reads stay open: a ground station without the key can still watch
+        assert g.param("BRG_SR_HUD").param_value == 4.0
+        g.mav.command_long_send(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ATT, -1, 0, 0, 0, 0, 0)
+        g.mav.command_int_send(1, 1, 0, M.MAV_CMD_PREFLIGHT_STORAGE, 0, 0, 3, 0, 0, 0, 0, 0, 0)
+        g.mav.param_set_send(1, 1, b"BRG_SR_HUD", 1.0, REAL32)
+        g.nothing("COMMAND_ACK", None, 1.0)
+        assert not any(
+            m.get_type() == "PARAM_VALUE" and m.param_id == "BRG_SR_HUD" for m in g.inbox
+        )
+        assert rig.out.params.get("BRG_SR_HUD") == 4.0  # nothing changed
+        assert rig.out.schedule.rate(ATT) == 10.0
+        g.flush()
+        assert any(m.get_type() == "ATTITUDE" for m in g.collect(0.5))  # still streaming
+    c = rig.out.counters
+    assert c.refused_unsigned == 3 and c.refused_bad_signature == 3
+    assert c.commands == 0
+
+
+def test_replayed_and_stale_commands_are_refused(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
+    rig = signed_rig(tmp_path, rigs)
+    g = gcs_with_key(rig, KEY)
+
+    def packed(command_interval_us: float, mav: Any = None) -> bytes:
+        mav = mav or g.mav
+        msg = mav.command_long_encode(
+            1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ATT, command_interval_us, 0, 0, 0, 0, 0
+        )
+        return bytes(msg.pack(mav))
+
+    first = packed(500_000)  # captured off the air by an attacker
+    g.conn.write(first)
+    assert g.wait("COMMAND_ACK").result == M.MAV_RESULT_ACCEPTED
+    assert interval_of(g, ATT) == 500_000
+    g.conn.write(packed(0))  # the operator goes back to the default rate
+    assert g.wait("COMMAND_ACK").result == M.MAV_RESULT_ACCEPTED
+    g.flush()
+    g.conn.write(first)  # the replay
+    g.nothing("COMMAND_ACK", None, 1.0)
+    assert interval_of(g, ATT) == 100_000  # unchanged by the replay
+    assert rig.out.counters.refused_replay == 1
+    # a packet signed two minutes ago on a stream never seen: a recording, refused
+    old = M.MAVLink(None, GCS_SYSID, GCS_COMPID)
+    old.signing.secret_key = KEY
+    old.signing.sign_outgoing = True
+    old.signing.link_id = 9
+    old.signing.timestamp = unix_to_ticks(time.time()) - int(
+        2 * NEW_STREAM_WINDOW_S * TICKS_PER_SECOND
+    )
+    g.flush()
+    g.conn.write(packed(-1, old))
+    g.nothing("COMMAND_ACK", None, 1.0)
+    assert rig.out.counters.refused_replay == 2
+    assert rig.out.schedule.rate(ATT) == 10.0
+
+
+def test_a_bad_key_file_refuses_the_start(tmp_path: Path) -> None:
+    from test_mavlink_rig import make_config
+
+    from bridge.config import ConfigError
+
+    bad = tmp_path / "bad.key"
+    bad.write_text("not hex")
+    with pytest.raises(ConfigError, match="signing_key_file"):
+        make_config(tmp_path, mavlink={"signing_key_file": str(bad)})

@@ -1,0 +1,262 @@
+"""Telemetry encoders and the stream schedule (pure), decoded by pymavlink."""
+
+from __future__ import annotations
+
+import math
+import random
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bridge.core.attitude import AttitudeEngine, FieldReference
+from bridge.core.geometry import euler_to_dcm, euler_to_quaternion
+from bridge.core.sensor import STANDARD_GRAVITY, g_to_acc_counts, gauss_to_mag_counts
+from bridge.daemon import CompassSample
+from bridge.link.serial_link import LinkState
+from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module
+from bridge.mavlink.wire import Framer, Packet
+
+B_NED = np.array([0.21, 0.0, 0.42])  # gauss: north and down (dip 63 deg), as in Zurich
+DECL = 3.0  # deg east
+
+
+def decode(p: Packet) -> Any:
+    (msg,) = M.MAVLink(None).parse_buffer(Framer(1, 1).frame(p))
+    return msg
+
+
+def make_sample(
+    roll_deg: float = 0.0,
+    pitch_deg: float = 0.0,
+    yaw_deg: float = 30.0,
+    *,
+    declination: float | None = DECL,
+    t: float = 12.5,
+    field_scale: float = 1.0,
+) -> CompassSample:
+    """A host sample of a perfect unit at the given attitude (truth from the geometry)."""
+    R = euler_to_dcm(*(math.radians(a) for a in (roll_deg, pitch_deg, yaw_deg)))
+    mag = R.T @ (B_NED * field_scale)
+    acc = R.T @ np.array([0.0, 0.0, 1.0])
+    ref = FieldReference(declination, float(np.linalg.norm(B_NED)), 63.4, "test")
+    engine = AttitudeEngine(reference=ref)
+    a = None
+    for _ in range(6):  # past the quality debounce
+        a = engine.solve_vectors(mag, acc)
+    assert a is not None
+    mc = np.rint(gauss_to_mag_counts(mag)).astype(int)
+    ac = np.rint(g_to_acc_counts(acc)).astype(int)
+    return CompassSample(
+        t=t,
+        source="host",
+        heading_deg=a.heading_deg,
+        heading_reference=a.heading_reference,
+        heading_magnetic_deg=a.heading_magnetic_deg,
+        heading_true_deg=a.heading_true_deg,
+        declination_deg=a.declination_deg,
+        pitch_deg=math.degrees(a.pitch),
+        roll_deg=math.degrees(a.roll),
+        attitude=a,
+        raw_counts=(int(mc[0]), int(mc[1]), int(mc[2]), int(ac[0]), int(ac[1]), int(ac[2])),
+    )
+
+
+def test_attitude_and_quaternion_carry_the_published_heading() -> None:
+    s = make_sample(roll_deg=5.0, pitch_deg=-10.0, yaw_deg=30.0)
+    att = decode(T.attitude(s, 4321))
+    assert att.time_boot_ms == 4321
+    assert math.degrees(att.roll) == pytest.approx(5.0, abs=1e-4)
+    assert math.degrees(att.pitch) == pytest.approx(-10.0, abs=1e-4)
+    assert math.degrees(att.yaw) == pytest.approx(30.0, abs=1e-4)  # magnetic, as published
+    assert (att.rollspeed, att.pitchspeed, att.yawspeed) == (0.0, 0.0, 0.0)  # no gyro
+    q = decode(T.attitude_quaternion(s, 4321))
+    want = euler_to_quaternion(math.radians(5.0), math.radians(-10.0), math.radians(30.0))
+    assert np.allclose([q.q1, q.q2, q.q3, q.q4], want, atol=1e-6)
+    hud = decode(T.vfr_hud(make_sample(yaw_deg=359.6), alt_m=12.5))
+    assert hud.heading == 0 and hud.alt == 12.5  # whole degrees, 360 folds to 0
+    assert decode(T.vfr_hud(make_sample(yaw_deg=181.4))).heading == 181
+
+
+def test_heading_only_sample_gives_attitude_but_no_imu() -> None:
+    s = CompassSample(
+        t=1.0, source="device", heading_deg=270.0, heading_reference="magnetic",
+        heading_magnetic_deg=270.0, heading_true_deg=None, declination_deg=None,
+        pitch_deg=None, roll_deg=None,
+    )  # fmt: skip
+    att = decode(T.attitude(s, 0))
+    assert math.degrees(att.yaw) == pytest.approx(-90.0) and att.roll == 0.0
+    assert T.scaled_imu(s, 0) is None and T.highres_imu(s, 0) is None and T.raw_imu(s, 0) is None
+
+
+def test_imu_messages_units_and_signs() -> None:
+    s = make_sample(yaw_deg=0.0)
+    si = decode(T.scaled_imu(s, 77))  # type: ignore[arg-type]
+    # a level unit at rest: specific force straight up = -1 g on z (MAVLink IMU convention)
+    assert (si.xacc, si.yacc) == (0, 0) and si.zacc == -1000
+    assert si.xmag == 210 and si.ymag == 0 and si.zmag == 420  # mgauss, facing north
+    hr = decode(T.highres_imu(s, 5_000_000))  # type: ignore[arg-type]
+    assert hr.time_usec == 5_000_000
+    assert hr.zacc == pytest.approx(-STANDARD_GRAVITY, abs=1e-5)
+    assert hr.xmag == pytest.approx(0.21, abs=1e-6) and hr.zmag == pytest.approx(0.42, abs=1e-6)
+    assert hr.fields_updated == 0b111 | 0b111 << 6  # accelerometer and magnetometer only
+    raw = decode(T.raw_imu(s, 99))  # type: ignore[arg-type]
+    assert (raw.xmag, raw.ymag, raw.zmag, raw.xacc, raw.yacc, raw.zacc) == s.raw_counts
+    # a field too strong for int16 mgauss is clipped, not wrapped
+    big = decode(T.scaled_imu(make_sample(yaw_deg=0.0, field_scale=200.0), 0))  # type: ignore[arg-type]
+    assert big.xmag == 32767
+
+
+def test_heading_feed_messages() -> None:
+    s = make_sample(roll_deg=2.0, pitch_deg=1.0, yaw_deg=100.0)
+    od = decode(T.odometry(s, 123_000, sigma_deg=2.0, reset_counter=3))
+    assert od.frame_id == M.MAV_FRAME_LOCAL_NED and od.child_frame_id == M.MAV_FRAME_BODY_FRD
+    assert od.estimator_type == M.MAV_ESTIMATOR_TYPE_VISION and od.reset_counter == 3
+    assert (od.x, od.y, od.z) == (0.0, 0.0, 0.0)  # finite: PX4 then takes the NED pose frame
+    want = euler_to_quaternion(math.radians(2.0), math.radians(1.0), math.radians(100.0 + DECL))
+    assert np.allclose(list(od.q), want, atol=1e-5)  # the TRUE heading
+    assert od.pose_covariance[20] == pytest.approx(math.radians(2.0) ** 2, rel=1e-6)
+    assert od.pose_covariance[0] >= 1e3  # position: no information
+    assert math.isnan(od.velocity_covariance[0]) and math.isnan(od.vx)
+    vpe = decode(T.vision_position_estimate(s, 123_000, sigma_deg=2.0))
+    assert math.degrees(vpe.yaw) == pytest.approx(100.0 + DECL, abs=1e-4)
+    assert vpe.covariance[20] == pytest.approx(math.radians(2.0) ** 2, rel=1e-6)
+    # no declination: the magnetic heading, flagged as such
+    nodecl = make_sample(yaw_deg=100.0, declination=None)
+    assert T.feed_euler(nodecl)[3] is False and T.feed_euler(s)[3] is True
+    assert math.degrees(T.feed_euler(nodecl)[2]) == pytest.approx(100.0, abs=1e-6)
+
+
+def test_feed_is_withheld_when_disturbed_and_widened_when_accelerating() -> None:
+    calm = make_sample()
+    assert T.feed_usable(calm)
+    disturbed = make_sample(field_scale=1.5)  # 50 % too strong: not the Earth's field
+    assert disturbed.attitude is not None and disturbed.attitude.disturbed
+    assert not T.feed_usable(disturbed)
+    acc = calm.attitude
+    assert acc is not None
+    shaken = CompassSample(**{**_fields(calm), "attitude": _replace(acc, accelerating=True)})
+    assert T.feed_yaw_sigma_rad(shaken, 2.0) == pytest.approx(5 * T.feed_yaw_sigma_rad(calm, 2.0))
+
+
+def _fields(s: CompassSample) -> dict[str, Any]:
+    return {n: getattr(s, n) for n in CompassSample.__dataclass_fields__}
+
+
+def _replace(a: Any, **kw: Any) -> Any:
+    from dataclasses import replace
+
+    return replace(a, **kw)
+
+
+def health(**kw: Any) -> T.Health:
+    base: dict[str, Any] = dict(
+        link_state=LinkState.STREAMING, fresh=True, calibrating=False, disturbed=False,
+        saturated=False, compass_use=True,
+    )  # fmt: skip
+    base.update(kw)
+    return T.Health(**base)
+
+
+MAG, ACC = M.MAV_SYS_STATUS_SENSOR_3D_MAG, M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+
+
+@pytest.mark.parametrize(
+    ("kw", "healthy", "enabled"),
+    [
+        ({}, MAG | ACC, MAG | ACC),
+        ({"disturbed": True}, ACC, MAG | ACC),
+        ({"fresh": False}, 0, MAG | ACC),
+        ({"link_state": LinkState.STALE}, 0, MAG | ACC),
+        ({"saturated": True}, 0, MAG | ACC),
+        ({"compass_use": False}, MAG | ACC, ACC),
+    ],
+)
+def test_sys_status_sensor_bits(kw: dict[str, Any], healthy: int, enabled: int) -> None:
+    m = decode(T.sys_status(health(**kw)))
+    assert m.onboard_control_sensors_present == MAG | ACC
+    assert m.onboard_control_sensors_enabled == enabled
+    assert m.onboard_control_sensors_health == healthy
+
+
+def test_sys_status_link_counters() -> None:
+    m = decode(T.sys_status(health(bad_lines=5, good_lines=995, lost_frames=70000, reconnects=2)))
+    assert m.drop_rate_comm == 50 and m.errors_comm == 5  # 0.5 % in c%
+    assert m.errors_count1 == 65535 and m.errors_count2 == 2  # clipped, not wrapped
+    assert m.voltage_battery == 65535 and m.battery_remaining == -1  # unknown
+
+
+def test_heartbeat_by_role_and_state() -> None:
+    sa = decode(T.heartbeat(T.Identity(1, 1, "standalone"), T.system_status(health())))
+    assert (sa.type, sa.autopilot) == (M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_INVALID)
+    assert sa.system_status == M.MAV_STATE_ACTIVE and sa.mavlink_version == 3
+    co = decode(T.heartbeat(T.Identity(1, 200, "companion"), 0))
+    assert co.type == M.MAV_TYPE_IMU
+    assert T.system_status(health(calibrating=True)) == M.MAV_STATE_CALIBRATING
+    assert T.system_status(health(link_state=LinkState.OPENING, fresh=False)) == M.MAV_STATE_BOOT
+    assert T.system_status(health(link_state=LinkState.STALE)) == M.MAV_STATE_CRITICAL
+    assert T.system_status(health(link_state=LinkState.ABSENT, fresh=False)) == M.MAV_STATE_CRITICAL
+
+
+def test_statustext_chunks_long_texts_without_splitting_characters() -> None:
+    short = T.statustext(6, "Compass link restored")
+    assert len(short) == 1 and decode(short[0]).id == 0
+    text = "Magnetic disturbance near the sensor: " + "é" * 40 + " -- move away from the iron"
+    packets = T.statustext(4, text, chunk_id=77)
+    assert len(packets) >= 2
+    chunks = [codec_text(p) for p in packets]
+    assert all(len(c) <= 50 for c in chunks)
+    assert b"".join(chunks).decode("utf-8") == text  # each chunk ends on a character boundary
+    msgs = [decode(p) for p in packets]
+    assert {m.id for m in msgs} == {77} and [m.chunk_seq for m in msgs] == list(range(len(msgs)))
+    assert all(m.severity == 4 for m in msgs)
+
+
+def codec_text(p: Packet) -> bytes:
+    # wire layout "<B50sHB": severity, text, id, chunk_seq
+    raw = p.payload + bytes(54 - len(p.payload))
+    return raw[1:51].rstrip(b"\0")
+
+
+def test_schedule_keeps_the_rate_on_jittery_samples() -> None:
+    rng = random.Random(1)
+    sched = T.StreamSchedule({T.ATTITUDE: 10.0, T.VFR_HUD: 4.0, T.SCALED_IMU: 0.0})
+    counts = {T.ATTITUDE: 0, T.VFR_HUD: 0, T.SCALED_IMU: 0}
+    t = 0.0
+    for _ in range(1000):  # 100 s of 10 Hz frames with +-20 % timing jitter
+        t += 0.1 * rng.uniform(0.8, 1.2)
+        for m in sched.due_on_sample(counts, t):
+            counts[m] += 1
+    assert 940 <= counts[T.ATTITUDE] <= 1000  # equal rates: (almost) every frame goes out
+    assert 390 <= counts[T.VFR_HUD] <= 410
+    assert counts[T.SCALED_IMU] == 0  # off
+
+
+def test_schedule_overrides_and_clock_streams() -> None:
+    sched = T.StreamSchedule({T.SYS_STATUS: 2.0, T.ATTITUDE: 10.0})
+    assert sched.rate(T.HEARTBEAT) == 1.0 and sched.interval_us(T.ATTITUDE) == 100_000
+    sent = {T.HEARTBEAT: 0, T.SYS_STATUS: 0}
+    t = 0.0
+    while t < 10.0:  # no samples at all: clock streams go on
+        for m in sched.due_on_clock(t):
+            sent[m] += 1
+        t = max(t + 0.01, sched.next_clock_due(t))
+    assert 10 <= sent[T.HEARTBEAT] <= 11 and 20 <= sent[T.SYS_STATUS] <= 21
+    assert T.ATTITUDE not in sched.due_on_clock(20.0)  # sample streams never go by the clock
+    sched.set_override(T.ATTITUDE, 0.0)
+    assert sched.interval_us(T.ATTITUDE) == -1 and sched.due_on_sample([T.ATTITUDE], 30.0) == []
+    sched.set_override(T.ATTITUDE, None)
+    assert sched.rate(T.ATTITUDE) == 10.0
+    with pytest.raises(ValueError):
+        sched.set_base(T.ATTITUDE, math.nan)
+
+
+def test_autopilot_version_and_capabilities() -> None:
+    m = decode(T.autopilot_version("0.1.0", "2.1.0", "GMR-000417", uid=42))
+    assert m.flight_sw_version == (0 << 24 | 1 << 16 | 0 << 8 | 255)
+    assert m.middleware_sw_version == (2 << 24 | 1 << 16 | 0 << 8 | 255)
+    assert m.capabilities & M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    assert m.capabilities & M.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+    assert not m.capabilities & M.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    assert bytes(m.uid2).rstrip(b"\0") == b"GMR-000417" and m.uid == 42
