@@ -1,0 +1,656 @@
+"""The Zenoh output: publications, queryables, remote calibration and a liveliness token.
+
+Threads, and why:
+
+* the pipeline thread calls :meth:`ZenohOutput.publish` for every sample: it
+  appends to a bounded deque and sets an event -- O(1), never blocks, never
+  raises. If the publisher falls more than ``queue_len`` samples behind, the
+  oldest are dropped and counted (``dropped_samples``).
+* the **publisher** thread (``zenoh-output``) opens the session (only here:
+  after any fork, and a slow or failing open never holds up the daemon),
+  declares everything, then turns samples, events and the 1 Hz status into
+  puts. Sensor streams use ``CongestionControl.DROP``: a stalled subscriber
+  makes zenoh drop *its* copies after a short bounded wait instead of blocking
+  this thread, let alone the pipeline.
+* the **command** thread (``zenoh-commands``, only with remote calibration)
+  runs calibration commands, which talk to the compass and may take a while,
+  so neither zenoh's callback threads nor the publisher wait on them.
+* queryables (status, calibration, params) answer from zenoh's own callback
+  threads with snapshots: quick, and they never raise into zenoh.
+
+The session is closed on every exit path of the publisher thread (and, as a
+last resort, by :meth:`close` if that thread does not stop in time): an
+unclosed session keeps the interpreter alive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Final
+
+from bridge.fleet import schema
+from bridge.fleet.mirror import MirrorMessage, SentPacket, mirror_key
+from bridge.fleet.pacing import Decimator, RateMeter
+from bridge.fleet.session import ZenohSettings, describe_error, endpoints_text, open_session
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from bridge.daemon import CompassSample, DaemonStatus
+    from bridge.events import Event
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+#: Remote calibration commands, as ``<prefix>/cmd/calibration/<name>``.
+CALIBRATION_COMMANDS: Final = ("start", "accept", "cancel")
+
+#: Seconds between attempts to open the session after a failure.
+REOPEN_INTERVAL_S: Final = 0.5
+#: How often the publisher looks for a status change (link state, calibration state).
+_CHANGE_POLL_S: Final = 0.05
+
+
+@dataclass(frozen=True, slots=True)
+class CommandOutcome:
+    """What a remote calibration command did: ``ok``, a sentence, and details (JSON-ready)."""
+
+    ok: bool
+    message: str
+    detail: Mapping[str, Any] | None = None
+
+
+def _no_state() -> Mapping[str, Any]:
+    return {}
+
+
+def _nothing() -> None:
+    """An unsubscribe that has nothing to undo."""
+
+
+@dataclass(slots=True)
+class FleetServices:
+    """What the Zenoh output asks of the rest of the bridge; every part but ``status`` optional.
+
+    All callables are called from the output's or zenoh's threads and must be
+    quick and thread-safe, except ``run_command`` (its own thread).
+
+    * ``status`` -- the daemon's :class:`~bridge.daemon.DaemonStatus`.
+    * ``calibration_state`` -- a small JSON-ready dict for ``<prefix>/status``
+      (``state``, ``source``, ``percent``, ``fitness_mG`` ...).
+    * ``calibration`` -- ``{"calibration", "source", "report", "state"}`` for
+      the ``<prefix>/calibration`` query.
+    * ``params`` -- the parameter table (name -> value), or None without one.
+    * ``run_command`` -- ``(name, args) -> CommandOutcome`` for remote calibration.
+    * ``subscribe_events`` / ``subscribe_mavlink`` -- register a callback,
+      return the function that unregisters it.
+    * ``mavlink_source`` -- the object ``subscribe_mavlink`` attaches to (the
+      MAVLink output): when it changes (a reload), the mirror re-subscribes.
+    """
+
+    status: Callable[[], DaemonStatus]
+    calibration_state: Callable[[], Mapping[str, Any]] = _no_state
+    calibration: Callable[[], Mapping[str, Any]] | None = None
+    params: Callable[[], Mapping[str, float]] | None = None
+    run_command: Callable[[str, Mapping[str, Any]], CommandOutcome] | None = None
+    subscribe_events: Callable[[Callable[[Event], None]], Callable[[], None]] | None = None
+    subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
+    mavlink_source: Callable[[], object] | None = None
+
+
+@dataclass(slots=True)
+class ZenohCounters:
+    """The output's own counters (also published in ``<prefix>/status`` under ``zenoh``)."""
+
+    published: dict[str, int] = field(default_factory=dict)
+    dropped_samples: int = 0  #: samples dropped because the publisher lagged ``queue_len`` behind
+    unsent: int = 0  #: samples that came while no session was open
+    decimated: int = 0  #: samples not published because of a rate cap
+    put_errors: int = 0
+    open_failures: int = 0
+    sessions_opened: int = 0
+    queries: int = 0
+    query_errors: int = 0
+    commands: int = 0
+    commands_refused: int = 0
+    events_dropped: int = 0
+    mirror_dropped: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready copy."""
+        return {
+            "published": dict(self.published),
+            "dropped_samples": self.dropped_samples,
+            "unsent": self.unsent,
+            "decimated": self.decimated,
+            "put_errors": self.put_errors,
+            "open_failures": self.open_failures,
+            "sessions_opened": self.sessions_opened,
+            "queries": self.queries,
+            "query_errors": self.query_errors,
+            "commands": self.commands,
+            "commands_refused": self.commands_refused,
+            "events_dropped": self.events_dropped,
+            "mirror_dropped": self.mirror_dropped,
+        }
+
+
+class ZenohOutput:
+    """Publishes the bridge on Zenoh (see the module docstring). An :class:`~bridge.daemon.Output`."""
+
+    def __init__(
+        self,
+        settings: ZenohSettings,
+        services: FleetServices,
+        *,
+        queue_len: int = 256,
+        clock: Clock = time.monotonic,
+        wall: Clock = time.time,
+    ) -> None:
+        if queue_len < 1:
+            raise ValueError(f"queue_len must be >= 1, got {queue_len}")
+        self.settings = settings
+        self.services = services
+        self._clock = clock
+        self._wall = wall
+        self._samples: deque[CompassSample] = deque(maxlen=queue_len)
+        self._events: deque[Event] = deque(maxlen=100)
+        self._mirror: deque[MirrorMessage | SentPacket] = deque(maxlen=queue_len)
+        self._mirror_seq = 0
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._cmd_thread: threading.Thread | None = None
+        self._commands: queue.Queue[tuple[str, Any] | None] = queue.Queue(maxsize=8)
+        self._session: zenoh.Session | None = None
+        self._session_lock = threading.Lock()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._mirror_publishers: dict[str, zenoh.Publisher] = {}
+        self._keep: list[Any] = []  # queryables, token: undeclared when dropped, so kept here
+        self._unsubscribe: list[Callable[[], None]] = []
+        self._mirror_detach: Callable[[], None] = _nothing
+        self._mirror_source: object = None
+        self._decimators = {
+            "heading": Decimator(settings.heading_rate_hz),
+            "attitude": Decimator(settings.attitude_rate_hz),
+            "imu": Decimator(settings.imu_rate_hz),
+        }
+        self._rate = RateMeter(window=2.0)
+        self._rate_lock = threading.Lock()
+        self._started_at = clock()
+        self._logged: set[str] = set()
+        self.counters = ZenohCounters()
+        self.connected = threading.Event()  #: set while a session is open
+
+    # -- Output protocol ----------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        """``"zenoh"``."""
+        return "zenoh"
+
+    def start(self) -> None:
+        """Start the publisher thread (which opens the session)."""
+        if self._thread is not None:
+            raise RuntimeError("zenoh output already started")
+        self._started_at = self._clock()
+        s = self.services
+        if s.subscribe_events is not None:
+            self._unsubscribe.append(s.subscribe_events(self._on_event))
+        self._attach_mirror()
+        self._thread = threading.Thread(target=self._run, name="zenoh-output", daemon=True)
+        self._thread.start()
+        if self.settings.remote_calibration:
+            self._cmd_thread = threading.Thread(
+                target=self._run_commands, name="zenoh-commands", daemon=True
+            )
+            self._cmd_thread.start()
+
+    def publish(self, sample: CompassSample) -> None:
+        """Queue ``sample`` for publication; O(1), never blocks."""
+        if not self.connected.is_set():
+            # No session (yet, or it failed): a backlog would go out as a stale burst later.
+            self.counters.unsent += 1
+            return
+        if len(self._samples) == self._samples.maxlen:
+            self.counters.dropped_samples += 1  # the append below pushes the oldest out
+        self._samples.append(sample)
+        self._wake.set()
+
+    def close(self, timeout: float) -> None:
+        """Stop the threads and close the session within about ``timeout`` seconds."""
+        deadline = self._clock() + timeout
+        self._stop.set()
+        self._wake.set()
+        for unsubscribe in [*self._unsubscribe, self._mirror_detach]:
+            with contextlib.suppress(Exception):
+                unsubscribe()
+        self._unsubscribe.clear()
+        with contextlib.suppress(queue.Full):
+            self._commands.put_nowait(None)
+        for th in (self._thread, self._cmd_thread):
+            if th is not None and th is not threading.current_thread():
+                th.join(max(0.05, deadline - self._clock()))
+        if self._thread is not None and self._thread.is_alive():
+            log.error("zenoh output did not stop within %.1f s; closing its session", timeout)
+            self._close_session()
+
+    def _attach_mirror(self) -> None:
+        """(Re-)attach the MAVLink mirror to the current MAVLink output, if it changed."""
+        s = self.services
+        if not self.settings.mavlink_mirror or s.subscribe_mavlink is None:
+            return
+        source = s.mavlink_source() if s.mavlink_source is not None else None
+        if self._mirror_detach is not _nothing and source is self._mirror_source:
+            return
+        self._mirror_detach()
+        self._mirror_source = source
+        self._mirror_detach = s.subscribe_mavlink(self._on_mavlink)
+
+    # -- callbacks from other threads -----------------------------------------------
+
+    def _on_event(self, event: Event) -> None:
+        if len(self._events) == self._events.maxlen:
+            self.counters.events_dropped += 1
+        self._events.append(event)
+        self._wake.set()
+
+    def _on_mavlink(self, msg: Any) -> None:
+        # Called from the MAVLink side for every message it sends: keep it quick; decoding,
+        # enum names and JSON happen later on our thread.
+        try:
+            m = msg if isinstance(msg, MirrorMessage | SentPacket) else MirrorMessage.capture(msg)
+        except Exception:
+            self.counters.mirror_dropped += 1
+            return
+        if len(self._mirror) == self._mirror.maxlen:
+            self.counters.mirror_dropped += 1
+        self._mirror.append(m)
+        self._wake.set()
+
+    # -- the publisher thread ---------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            if not self._open():
+                return
+            self._declare()
+            self._loop()
+        except Exception:
+            log.exception("zenoh output failed; zenoh publishing stops (the bridge carries on)")
+        finally:
+            self._close_session()
+
+    def _open(self) -> bool:
+        """Open the session, retrying until it opens or the output stops."""
+        st = self.settings
+        while not self._stop.is_set():
+            try:
+                session, notes = open_session(st)
+            except Exception as e:  # zenoh.ZError, OSError (config file), ValueError
+                self.counters.open_failures += 1
+                level = logging.WARNING if self.counters.open_failures == 1 else logging.DEBUG
+                log.log(
+                    level,
+                    "zenoh: cannot open the session (%s); retrying every %.1f s",
+                    describe_error(e),
+                    REOPEN_INTERVAL_S,
+                )
+                self._stop.wait(REOPEN_INTERVAL_S)
+                continue
+            for note in notes:
+                log.warning("zenoh: %s", note)
+            with self._session_lock:
+                self._session = session
+            self.counters.sessions_opened += 1
+            self.connected.set()
+            log.info(
+                "zenoh: session %s open (%s; connect %s; listen %s); publishing under %s",
+                session.zid(),
+                st.mode,
+                endpoints_text(st.connect),
+                endpoints_text(st.listen) if st.listen else "default",
+                st.key_prefix,
+            )
+            return True
+        return False
+
+    def _declare(self) -> None:
+        import zenoh
+
+        session = self._session
+        assert session is not None
+        st = self.settings
+        streams = {
+            "heading": schema.HEADING,
+            "attitude": schema.ATTITUDE,
+            "imu": schema.IMU,
+            "status": schema.STATUS,
+            "events": schema.EVENT,
+        }
+        for stream, name in streams.items():
+            self._publishers[stream] = session.declare_publisher(
+                st.key(stream),
+                encoding=zenoh.Encoding(schema.encoding_text(name)),
+                # Never block on a slow subscriber: zenoh drops its copy instead.
+                congestion_control=zenoh.CongestionControl.DROP,
+                # Events and status are rare and matter to the operator: ahead of the stream.
+                priority=zenoh.Priority.DATA_HIGH
+                if stream in ("status", "events")
+                else zenoh.Priority.DATA,
+            )
+        self._keep.append(session.declare_queryable(st.key("status"), self._answer_status))
+        self._keep.append(
+            session.declare_queryable(st.key("calibration"), self._answer_calibration)
+        )
+        self._keep.append(session.declare_queryable(st.key("params"), self._answer_params))
+        if st.remote_calibration:
+            for cmd in CALIBRATION_COMMANDS:
+                key = st.key("cmd", "calibration", cmd)
+                self._keep.append(
+                    session.declare_queryable(key, self._command_handler(cmd, key), complete=False)
+                )
+            log.warning(
+                "zenoh: remote calibration enabled on %s/cmd/calibration/*: restrict it with "
+                "zenoh access control",
+                st.key_prefix,
+            )
+        # Declared last: fleet software seeing the token can query everything at once.
+        self._keep.append(session.liveliness().declare_token(st.key_prefix))
+
+    def _loop(self) -> None:
+        next_status = self._clock()  # the first status goes out at once
+        next_poll = self._clock()
+        last_key: tuple[Any, ...] | None = None
+        while not self._stop.is_set():
+            now = self._clock()
+            self._wake.wait(max(0.0, min(next_status, next_poll) - now))
+            if self._stop.is_set():
+                break
+            self._wake.clear()
+            self._drain_samples()
+            self._drain_events()
+            self._drain_mirror()
+            now = self._clock()
+            if now >= next_poll:
+                next_poll = now + _CHANGE_POLL_S
+                doc = self._status_doc(sample_rate=True)
+                key = schema.status_key(doc)
+                if now >= next_status or key != last_key:
+                    self._put("status", doc)
+                    last_key = key
+                    next_status = now + self.settings.status_period_s
+                    self._attach_mirror()  # a reload may have replaced the MAVLink output
+
+    def _drain_samples(self) -> None:
+        while True:
+            try:
+                sample = self._samples.popleft()
+            except IndexError:
+                return
+            self._publish_sample(sample)
+
+    def _publish_sample(self, sample: CompassSample) -> None:
+        session = self._session
+        assert session is not None
+        wanted = [name for name, dec in self._decimators.items() if dec.accept(sample.t)]
+        self.counters.decimated += 3 - len(wanted)
+        if not wanted:
+            return
+        ts = session.new_timestamp()
+        times = schema.SampleTimes(
+            t_monotonic=sample.t,
+            t_unix=self._wall() - (self._clock() - sample.t),
+            zenoh_time=ts.to_string_rfc3339_lossy(),
+        )
+        for stream in wanted:
+            if stream == "heading":
+                doc: dict[str, Any] | None = schema.heading_doc(sample, times)
+            elif stream == "attitude":
+                doc = schema.attitude_doc(sample, times)
+            else:
+                doc = schema.imu_doc(sample, times)
+            if doc is not None:
+                self._put(stream, doc, ts)
+
+    def _drain_events(self) -> None:
+        while True:
+            try:
+                event = self._events.popleft()
+            except IndexError:
+                return
+            self._put("events", schema.event_doc(event))
+
+    def _drain_mirror(self) -> None:
+        import zenoh
+
+        session = self._session
+        assert session is not None
+        while True:
+            try:
+                m = self._mirror.popleft()
+            except IndexError:
+                return
+            try:
+                if isinstance(m, SentPacket):
+                    # Each MAVLink link numbers its own packets; the mirror is one more "link".
+                    m = MirrorMessage.from_packet(
+                        m.message_id,
+                        m.payload,
+                        system_id=m.system_id,
+                        component_id=m.component_id,
+                        sequence=self._mirror_seq,
+                    )
+                    self._mirror_seq = (self._mirror_seq + 1) & 0xFF
+                key, body = mirror_key(m), m.to_json()
+                pub = self._mirror_publishers.get(key)
+                if pub is None:
+                    pub = session.declare_publisher(
+                        key,
+                        encoding=zenoh.Encoding.APPLICATION_JSON,
+                        congestion_control=zenoh.CongestionControl.DROP,
+                    )
+                    self._mirror_publishers[key] = pub
+                pub.put(body)
+                self._count("mirror")
+            except Exception as e:
+                self._put_failed("mirror", e)
+
+    def _put(self, stream: str, doc: Mapping[str, Any], ts: Any = None) -> None:
+        try:
+            self._publishers[stream].put(schema.dumps(doc), timestamp=ts)
+            self._count(stream)
+        except Exception as e:  # a closed/broken session: count, say once, carry on
+            self._put_failed(stream, e)
+
+    def _count(self, stream: str) -> None:
+        p = self.counters.published
+        p[stream] = p.get(stream, 0) + 1
+
+    def _put_failed(self, stream: str, e: Exception) -> None:
+        self.counters.put_errors += 1
+        if stream not in self._logged:
+            self._logged.add(stream)
+            log.warning(
+                "zenoh: publishing %s failed (%s); further failures are only counted",
+                stream,
+                describe_error(e),
+            )
+
+    def _status_doc(self, *, sample_rate: bool = False) -> dict[str, Any]:
+        """The status document; ``sample_rate`` (publisher thread only) feeds the rate meter."""
+        status = self.services.status()
+        c = status.counters
+        now = self._clock()
+        with self._rate_lock:  # queries read it from zenoh's threads
+            if sample_rate:
+                self._rate.add(now, c.attitude_frames or c.frames)
+            frame_rate = self._rate.rate()
+        return schema.status_doc(
+            status,
+            frame_rate_hz=frame_rate,
+            calibration=self._safe(self.services.calibration_state, {}),
+            publisher=self.counters.as_dict(),
+            t_unix=self._wall(),
+            uptime_s=now - self._started_at,
+        )
+
+    def _safe(self, fn: Callable[[], Mapping[str, Any]], default: Mapping[str, Any]) -> Any:
+        try:
+            return fn()
+        except Exception:
+            if "state" not in self._logged:
+                self._logged.add("state")
+                log.exception("zenoh: a status source failed (further failures not logged)")
+            return default
+
+    def _close_session(self) -> None:
+        self.connected.clear()
+        with self._session_lock:
+            session, self._session = self._session, None
+        self._keep.clear()
+        self._publishers.clear()
+        self._mirror_publishers.clear()
+        if session is not None:
+            try:
+                session.close()
+            except Exception as e:
+                log.warning("zenoh: closing the session failed: %s", describe_error(e))
+            else:
+                log.info("zenoh: session closed")
+
+    # -- queryables (zenoh's callback threads) ------------------------------------------
+
+    def _reply(self, query: zenoh.Query, key: str, name: str, build: Callable[[], Any]) -> None:
+        import zenoh
+
+        self.counters.queries += 1
+        try:
+            doc = build()
+            query.reply(key, schema.dumps(doc), encoding=zenoh.Encoding(schema.encoding_text(name)))
+        except Exception as e:
+            self.counters.query_errors += 1
+            log.debug("zenoh: answering %s failed", key, exc_info=True)
+            with contextlib.suppress(Exception):
+                query.reply_err(json.dumps({"error": describe_error(e)}).encode())
+
+    def _answer_status(self, query: zenoh.Query) -> None:
+        self._reply(query, self.settings.key("status"), schema.STATUS, self._status_doc)
+
+    def _answer_calibration(self, query: zenoh.Query) -> None:
+        def build() -> dict[str, Any]:
+            get = self.services.calibration
+            info: Mapping[str, Any] = get() if get is not None else {}
+            return schema.calibration_doc(
+                info.get("calibration"),
+                source=str(info.get("source", "unknown")),
+                report=info.get("report"),
+                state=info.get("state"),
+            )
+
+        self._reply(query, self.settings.key("calibration"), schema.CALIBRATION, build)
+
+    def _answer_params(self, query: zenoh.Query) -> None:
+        def build() -> dict[str, Any]:
+            get = self.services.params
+            if get is None:
+                raise LookupError("this bridge has no parameter table")
+            return schema.params_doc(get())
+
+        self._reply(query, self.settings.key("params"), schema.PARAMS, build)
+
+    # -- remote calibration -----------------------------------------------------------------
+
+    def _command_handler(self, cmd: str, key: str) -> Callable[[zenoh.Query], None]:
+        def handler(query: zenoh.Query) -> None:
+            # Only a query for exactly this key is a command: a fleet tool's
+            # `get fleet/**` reaches this queryable too and must not start anything.
+            # (It would also slip past an ACL rule on cmd/**, which matches by inclusion.)
+            if str(query.key_expr) != key:
+                return
+            try:
+                self._commands.put_nowait((cmd, query))
+            except queue.Full:
+                self.counters.commands_refused += 1
+                outcome = CommandOutcome(False, "busy: too many commands pending")
+                self._reply_command(query, key, cmd, outcome)
+
+        return handler
+
+    def _run_commands(self) -> None:
+        while True:
+            item = self._commands.get()
+            if item is None or self._stop.is_set():
+                return
+            cmd, query = item
+            self._execute(cmd, query)
+
+    def _execute(self, cmd: str, query: zenoh.Query) -> None:
+        key = self.settings.key("cmd", "calibration", cmd)
+        self.counters.commands += 1
+        run = self.services.run_command
+        try:
+            args = _command_args(query)
+            if run is None:
+                outcome = CommandOutcome(False, "calibration is not available on this bridge")
+            else:
+                log.info("zenoh: remote calibration command %s %s", cmd, dict(args) or "")
+                outcome = run(cmd, args)
+        except ValueError as e:
+            outcome = CommandOutcome(False, f"bad arguments: {e}")
+        except Exception as e:
+            log.exception("zenoh: calibration command %s failed", cmd)
+            outcome = CommandOutcome(False, f"failed: {describe_error(e)}")
+        self._reply_command(query, key, cmd, outcome)
+
+    def _reply_command(
+        self, query: zenoh.Query, key: str, cmd: str, outcome: CommandOutcome
+    ) -> None:
+        import zenoh
+
+        doc = schema.command_result_doc(cmd, outcome.ok, outcome.message, outcome.detail)
+        try:
+            query.reply(
+                key,
+                schema.dumps(doc),
+                encoding=zenoh.Encoding(schema.encoding_text(schema.COMMAND_RESULT)),
+            )
+        except Exception as e:
+            log.debug("zenoh: replying to %s failed: %s", key, describe_error(e))
+        finally:
+            with contextlib.suppress(Exception):
+                query.drop()  # sends the final reply now, not when the object is collected
+
+
+def _command_args(query: zenoh.Query) -> dict[str, Any]:
+    """Arguments from the query's JSON payload (an object) and its selector parameters.
+
+    Selector parameters (``...start?onboard=true``) are strings, parsed as
+    JSON where they can be (``true``, ``1``), else kept as text.
+    """
+    args: dict[str, Any] = {}
+    pairs: list[tuple[str, str]] = list(query.parameters)  # type: ignore[call-overload]  # stub: __iter__ -> list
+    for k, v in pairs:
+        try:
+            args[k] = json.loads(v)
+        except ValueError:
+            args[k] = v
+    payload = query.payload
+    if payload is not None and len(payload) > 0:
+        try:
+            body = json.loads(payload.to_bytes())
+        except ValueError as e:
+            raise ValueError(f"payload is not JSON: {e}") from None
+        if not isinstance(body, dict):
+            raise ValueError("payload must be a JSON object")
+        args.update(body)
+    return args

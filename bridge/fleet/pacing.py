@@ -1,0 +1,69 @@
+"""Publication pacing: rate caps per stream and a frame-rate meter. PURE (times come in)."""
+
+from __future__ import annotations
+
+from collections import deque
+
+
+class Decimator:
+    """Lets samples through at most ``rate_hz`` (0 = every sample).
+
+    Frames arrive with jitter (serial + USB + scheduling), so a strict
+    ``t - last >= period`` would skip a frame that came a millisecond early
+    and publish at two thirds of the asked rate. Instead each accepted sample
+    books the next slot one period later, and a sample up to a quarter
+    period early still takes its slot; a gap longer than a period restarts the
+    schedule at the sample (no burst to catch up).
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        if not rate_hz >= 0.0:
+            raise ValueError(f"rate_hz must be >= 0, got {rate_hz}")
+        self.rate_hz = rate_hz
+        self._period = 1.0 / rate_hz if rate_hz > 0 else 0.0
+        self._due: float | None = None
+
+    def accept(self, t: float) -> bool:
+        """Whether the sample at time ``t`` (seconds, monotonic) is published."""
+        if self._period == 0.0:
+            return True
+        if self._due is None or t >= self._due + self._period:
+            self._due = t + self._period
+            return True
+        if t >= self._due - 0.25 * self._period:
+            self._due += self._period
+            return True
+        return False
+
+
+class RateMeter:
+    """Frames per second from a cumulative counter, over a sliding window.
+
+    ``add(t, count)`` records the counter's value at time ``t``; ``rate(t)``
+    is the counter's growth over the last ``window`` seconds. A counter that
+    goes backwards (a new link) restarts the window.
+    """
+
+    def __init__(self, window: float = 2.0) -> None:
+        if not window > 0.0:
+            raise ValueError(f"window must be positive, got {window}")
+        self.window = window
+        self._points: deque[tuple[float, int]] = deque()
+
+    def add(self, t: float, count: int) -> None:
+        """Record the cumulative ``count`` at time ``t``."""
+        if self._points and count < self._points[-1][1]:
+            self._points.clear()
+        self._points.append((t, count))
+        # Keep one point at or before the window's start so the span covers the whole window.
+        while len(self._points) > 2 and self._points[1][0] <= t - self.window:
+            self._points.popleft()
+
+    def rate(self) -> float | None:
+        """Counts per second over the window, or None before two points a moment apart."""
+        if len(self._points) < 2:
+            return None
+        (t0, c0), (t1, c1) = self._points[0], self._points[-1]
+        if t1 - t0 < 1e-3:
+            return None
+        return (c1 - c0) / (t1 - t0)
