@@ -1,0 +1,267 @@
+"""Test harness: the daemon as a subprocess under a fake service manager.
+
+* :class:`FakeServiceManager` -- what systemd is to a ``Type=notify`` service:
+  a real ``AF_UNIX`` datagram socket (abstract, so nothing is left on disk)
+  handed over as ``$NOTIFY_SOCKET``; a thread records every message with the
+  monotonic time it arrived.
+* :class:`DaemonProcess` -- ``python -m bridge run --config FILE`` with
+  ``$NOTIFY_SOCKET``, ``$WATCHDOG_USEC`` (and optional test hooks) set, stderr
+  to a file; signals, bounded waits, exit code.
+
+Every wait here has a deadline: nothing can hang a test run.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pymavlink.dialects.v20 import ardupilotmega as apm
+
+DEADLINE_S = 20.0
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """One sd_notify datagram: its assignments and when it arrived (monotonic)."""
+
+    t: float
+    fields: Mapping[str, str] = field(default_factory=dict)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self.fields
+
+    def get(self, key: str, default: str | None = None) -> str | None:
+        return self.fields.get(key, default)
+
+
+class FakeServiceManager:
+    """A notify socket and the messages a service sent to it."""
+
+    def __init__(self) -> None:
+        self.name = f"compass-bridge-test-{os.getpid()}-{id(self):x}"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind("\0" + self.name)
+        self.sock.settimeout(0.05)
+        self._lock = threading.Lock()
+        self._messages: list[Message] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fake-systemd", daemon=True)
+        self._thread.start()
+
+    @property
+    def notify_socket(self) -> str:
+        """The ``$NOTIFY_SOCKET`` value (abstract: ``@name``)."""
+        return "@" + self.name
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            now = time.monotonic()
+            fields = dict(
+                line.split("=", 1) for line in data.decode("utf-8").split("\n") if "=" in line
+            )
+            with self._lock:
+                self._messages.append(Message(now, fields))
+
+    @property
+    def messages(self) -> list[Message]:
+        with self._lock:
+            return list(self._messages)
+
+    def since(self, index: int) -> list[Message]:
+        return self.messages[index:]
+
+    def wait_for(
+        self,
+        pred: Callable[[Message], bool],
+        *,
+        after: int = 0,
+        timeout: float = DEADLINE_S,
+        proc: DaemonProcess | None = None,
+    ) -> tuple[int, Message]:
+        """The first message from index ``after`` on that satisfies ``pred`` (index, message)."""
+        end = time.monotonic() + timeout
+        while True:
+            msgs = self.messages
+            for i in range(after, len(msgs)):
+                if pred(msgs[i]):
+                    return i, msgs[i]
+            if proc is not None and proc.exited:
+                raise AssertionError(f"daemon exited ({proc.returncode}):\n{proc.log()[-3000:]}")
+            if time.monotonic() > end:
+                tail = [m.fields for m in msgs[after:]][-10:]
+                raise AssertionError(f"no matching sd_notify message in {timeout} s; last: {tail}")
+            time.sleep(0.05)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.sock.close()
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def toml_config(
+    port: str,
+    storage: Path,
+    *,
+    mavlink: Sequence[str] = (),
+    zenoh: bool = False,
+    extra: str = "",
+    baud: int = 115200,
+    rate_hz: int = 10,
+) -> str:
+    """A configuration for tests (loopback only, zenoh off unless asked)."""
+    endpoints = ", ".join(f'"{e}"' for e in mavlink)
+    return (
+        f'[device]\nport = "{port}"\nbaud = {baud}\nrate_hz = {rate_hz}\nstale_after = 1.0\n\n'
+        f"[mavlink]\nendpoints = [{endpoints}]\n\n"
+        f"[zenoh]\nenabled = {'true' if zenoh else 'false'}\n\n"
+        f'[storage]\ndir = "{storage}"\n\n{extra}'
+    )
+
+
+class DaemonProcess:
+    """``compass-bridge run`` in a subprocess, as systemd would start it."""
+
+    def __init__(
+        self,
+        config: Path,
+        manager: FakeServiceManager | None,
+        log_path: Path,
+        *,
+        watchdog_usec: int | None = 1_000_000,
+        hooks: str = "",
+        env: Mapping[str, str] | None = None,
+        preexec_fn: Callable[[], None] | None = None,
+        args: Sequence[str] = ("-v",),
+    ) -> None:
+        e = dict(os.environ if env is None else env)
+        for k in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "JOURNAL_STREAM"):
+            e.pop(k, None)
+        if manager is not None:
+            e["NOTIFY_SOCKET"] = manager.notify_socket
+        if watchdog_usec is not None:
+            e["WATCHDOG_USEC"] = str(watchdog_usec)
+        if hooks:
+            e["COMPASS_BRIDGE_TEST_HOOKS"] = hooks
+        self.log_path = log_path
+        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in wait()/kill()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "bridge", *args, "run", "--config", str(config)],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=self._log,
+            env=e,
+            preexec_fn=preexec_fn,
+        )
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    @property
+    def exited(self) -> bool:
+        return self.proc.poll() is not None
+
+    @property
+    def returncode(self) -> int | None:
+        return self.proc.returncode
+
+    def signal(self, sig: int) -> None:
+        self.proc.send_signal(sig)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def wait_log(self, text: str, timeout: float = DEADLINE_S) -> str:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            out = self.log()
+            if text in out:
+                return out
+            if self.exited:
+                break
+            time.sleep(0.05)
+        raise AssertionError(f"{text!r} not in the daemon's log:\n{self.log()[-3000:]}")
+
+    def wait(self, timeout: float) -> int:
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            if self.proc.poll() is not None:
+                self._log.close()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        self._log.close()
+
+    def stop(self, timeout: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise
+
+
+class GroundStation:
+    """A UDP listener that decodes what the bridge sends (pymavlink, MAVLink 2)."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.port = int(self.sock.getsockname()[1])
+        self.mav = apm.MAVLink(None)
+        self.lock = threading.Lock()
+        self.seen: list[tuple[float, str, object]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            now = time.monotonic()
+            for msg in self.mav.parse_buffer(data) or []:
+                with self.lock:
+                    self.seen.append((now, msg.get_type(), msg))
+
+    def count(self, kind: str, since: float, until: float = float("inf")) -> int:
+        with self.lock:
+            return sum(1 for t, k, _ in self.seen if k == kind and since <= t < until)
+
+    def last(self, kind: str) -> object | None:
+        with self.lock:
+            found = [m for _, k, m in self.seen if k == kind]
+        return found[-1] if found else None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.sock.close()

@@ -1,0 +1,149 @@
+"""MAVLink faults of the running daemon (subprocess, fake service manager, simulated compass
+on a pty, real UDP/TCP sockets on 127.0.0.1): endpoints that lead nowhere, and a peer
+flooding commands. The telemetry a healthy ground station receives keeps its rate.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as apm
+from service_harness import (
+    DaemonProcess,
+    FakeServiceManager,
+    GroundStation,
+    Message,
+    toml_config,
+)
+
+from bridge.sim.firmware import make_firmware
+from bridge.sim.pty import PtyCompass
+
+DEADLINE_S = 20.0
+
+
+def _free(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _status(m: Message) -> str:
+    return m.get("STATUS") or ""
+
+
+def _rate(m: Message) -> float:
+    found = re.search(r"streaming .* at ([0-9.]+) Hz", _status(m))
+    return float(found.group(1)) if found else -1.0
+
+
+@pytest.fixture
+def manager() -> Iterator[FakeServiceManager]:
+    m = FakeServiceManager()
+    yield m
+    m.close()
+
+
+@pytest.fixture
+def gcs() -> Iterator[GroundStation]:
+    g = GroundStation()
+    yield g
+    g.close()
+
+
+def _wait(pred: object, what: str, timeout: float = DEADLINE_S) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():  # type: ignore[operator]
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_unreachable_endpoints_do_not_slow_the_others(
+    tmp_path: Path, manager: FakeServiceManager, gcs: GroundStation
+) -> None:
+    closed_udp, closed_tcp = _free(socket.SOCK_DGRAM), _free(socket.SOCK_STREAM)
+    endpoints = [
+        f"udpout:127.0.0.1:{closed_udp}",  # nobody listens: ICMP port unreachable
+        f"tcp:127.0.0.1:{closed_tcp}",  # connection refused, retried
+        "tcp:192.0.2.1:5760",  # TEST-NET-1: never answers (or unreachable)
+        f"udpout:127.0.0.1:{gcs.port}",  # the one ground station that is there
+    ]
+    with PtyCompass(make_firmware(21), tmp_path / "compass") as sim:
+        cfg = tmp_path / "bridge.toml"
+        cfg.write_text(toml_config(str(sim.link_path), tmp_path / "state", mavlink=endpoints))
+        d = DaemonProcess(cfg, manager, tmp_path / "daemon.log")
+        try:
+            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
+            _wait(lambda: gcs.count("ATTITUDE", 0.0) > 5, "ATTITUDE at the ground station")
+            t0 = time.monotonic()
+            time.sleep(4.0)
+            n = gcs.count("ATTITUDE", t0, t0 + 4.0)
+            print(f"ATTITUDE at the live endpoint beside 3 dead ones: {n / 4.0:.1f} Hz")
+            assert 32 <= n <= 48, n  # 10 Hz (the compass's frame rate), not throttled
+            assert gcs.count("HEARTBEAT", t0, t0 + 4.0) >= 3
+            mark = len(manager.messages)
+            manager.wait_for(
+                lambda m: sum(x.get("WATCHDOG") == "1" for x in manager.since(mark)) >= 3,
+                after=mark,
+                proc=d,
+            )
+            assert "Traceback" not in d.log()
+            assert d.stop() == 0
+        finally:
+            d.kill()
+
+
+def test_a_command_flood_does_not_starve_telemetry(
+    tmp_path: Path, manager: FakeServiceManager, gcs: GroundStation
+) -> None:
+    cmd_port = _free(socket.SOCK_DGRAM)
+    endpoints = [f"udpin:127.0.0.1:{cmd_port}", f"udpout:127.0.0.1:{gcs.port}"]
+    with PtyCompass(make_firmware(22), tmp_path / "compass") as sim:
+        cfg = tmp_path / "bridge.toml"
+        cfg.write_text(toml_config(str(sim.link_path), tmp_path / "state", mavlink=endpoints))
+        d = DaemonProcess(cfg, manager, tmp_path / "daemon.log")
+        flooder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
+            _wait(lambda: gcs.count("ATTITUDE", 0.0) > 5, "ATTITUDE at the ground station")
+            # A peer hammering COMMAND_LONGs addressed to us (a command we do not support,
+            # so each costs the dispatcher a COMMAND_ACK), ~2000 a second for 4 s.
+            mav = apm.MAVLink(None, srcSystem=255, srcComponent=190)
+            pkt = mav.command_long_encode(1, 1, 183, 0, 1, 1500, 0, 0, 0, 0, 0).pack(mav)
+            sent = 0
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 4.0:
+                for _ in range(50):
+                    flooder.sendto(pkt, ("127.0.0.1", cmd_port))
+                    sent += 1
+                time.sleep(0.025)
+            t1 = time.monotonic()
+            n = gcs.count("ATTITUDE", t0, t1)
+            rate = n / (t1 - t0)
+            print(f"flood: {sent / (t1 - t0):.0f} COMMAND_LONG/s; ATTITUDE kept {rate:.1f} Hz")
+            assert sent > 4000
+            assert 8.0 <= rate <= 12.0, rate  # telemetry kept the compass's 10 Hz
+            flooder.settimeout(0.5)
+            acks = apm.MAVLink(None)
+            got: list[Any] = []
+            for _ in range(20):  # the flooder was answered too (not a dead dispatcher)
+                try:
+                    got += acks.parse_buffer(flooder.recv(65536)) or []
+                except TimeoutError:
+                    break
+            assert any(m.get_type() == "COMMAND_ACK" and m.command == 183 for m in got)
+            mark = len(manager.messages)
+            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, after=mark, proc=d)
+            assert not d.exited and "Traceback" not in d.log()
+            assert d.stop() == 0
+        finally:
+            flooder.close()
+            d.kill()
