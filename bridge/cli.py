@@ -8,6 +8,7 @@ Subcommands::
     compass-bridge simulate --link PATH [--seed N] # serve a simulated compass on a pty
     compass-bridge record --port DEV --out FILE    # record the raw byte stream
     compass-bridge bench accuracy [...]            # accuracy benchmark
+    compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
 
 Exit codes: 0 ok (including a stop by SIGINT/SIGTERM), 2 usage or
 configuration error (message on stderr), 1 anything else.
@@ -19,6 +20,7 @@ so ``--version`` and usage errors answer at once.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import signal
@@ -27,10 +29,10 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from types import FrameType
-from typing import Any
+from typing import Any, NoReturn
 
 from bridge import __version__
-from bridge.config import SIM_MOTIONS, ConfigError, load_config, to_toml
+from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config, to_toml
 
 log = logging.getLogger("bridge.cli")
 
@@ -167,7 +169,89 @@ def build_parser() -> argparse.ArgumentParser:
         help="heading accuracy of the calibration methods (prints figures, JSON)",
     )
     acc.set_defaults(func=cmd_bench_accuracy, passthrough=True)
+    pipe = bench_sub.add_parser(
+        "pipeline",
+        add_help=False,
+        help="speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
+    )
+    pipe.set_defaults(func=cmd_bench_pipeline, passthrough=True)
+    _tools_parsers(sub, common)
+
+    mon = sub.add_parser(
+        "monitor",
+        parents=[common],
+        help="live table of every compass bridge on Zenoh (heading, attitude, rate, link, age)",
+    )
+    mon.add_argument(
+        "keyexpr",
+        nargs="?",
+        default="fleet/**",
+        metavar="KEYEXPR",
+        help="key expression the bridges publish under (default fleet/**)",
+    )
+    mon.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        type=_zenoh_endpoint,
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to (repeatable; default tcp/127.0.0.1:7447, "
+        "this host's bridge, unless --listen or --zenoh-config is given)",
+    )
+    mon.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        type=_zenoh_endpoint,
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on (repeatable; default none)",
+    )
+    mon.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh mode")
+    mon.add_argument(
+        "--zenoh-config", metavar="FILE", help="zenoh JSON5 configuration used as the base"
+    )
+    mon.add_argument(
+        "--multicast-scouting", action="store_true", help="find bridges by multicast scouting"
+    )
+    mon.add_argument(
+        "--interval", type=_positive, default=1.0, metavar="S", help="refresh every S seconds"
+    )
+    mon.add_argument(
+        "--once",
+        action="store_true",
+        help="collect for a moment (--duration, default 2.5 s), print one table, exit "
+        "(exit code 1 if no bridge was seen)",
+    )
+    mon.add_argument(
+        "--duration", type=_positive, default=None, metavar="S", help="stop after S seconds"
+    )
+    mon.add_argument(
+        "--plain",
+        action="store_true",
+        help="plain blocks of lines even on a terminal (the default when not a terminal)",
+    )
+    mon.set_defaults(func=cmd_monitor)
     return parser
+
+
+def _zenoh_endpoint(text: str) -> str:
+    """``--connect``/``--listen`` value: a zenoh endpoint (same rule as the config)."""
+    from bridge.config import zenoh_endpoint
+
+    try:
+        return str(zenoh_endpoint(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return v
 
 
 # ---------------------------------------------------------------------------
@@ -190,11 +274,11 @@ def _location(text: str) -> tuple[float, float, float]:
 
 def _setup_logging(args: argparse.Namespace) -> None:
     level = args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
-    # Under systemd the journal stamps time and unit itself.
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    if not os.environ.get("JOURNAL_STREAM"):
-        fmt = "%(asctime)s " + fmt
-    logging.basicConfig(level=level, format=fmt, stream=sys.stderr, force=True)
+    # One line per record, rate-limited repeats; under systemd (stderr is the journal)
+    # with <N> priority prefixes and no timestamps: the journal stamps time and unit itself.
+    from bridge.logsetup import setup_logging
+
+    setup_logging(level, sys.stderr)
 
 
 @contextmanager
@@ -263,9 +347,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from bridge.daemon import run_daemon
 
+    def reload_config() -> Config:
+        # SIGHUP: the same file and overrides as at start, read and validated afresh.
+        return load_config(args.config, overrides)
+
     stop = threading.Event()
     with stop_on_signals(stop):
-        return run_daemon(cfg, stop, console=args.simulate or args.console)
+        return run_daemon(
+            cfg, stop, console=args.simulate or args.console, reload_config=reload_config
+        )
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -312,6 +402,98 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     return int(accuracy_main(args.rest) or 0)
 
 
+def cmd_bench_pipeline(args: argparse.Namespace) -> int:
+    """``bench pipeline``: hand over to the benchmark's own command line."""
+    from bridge.bench.pipeline import main as pipeline_main
+
+    return int(pipeline_main(args.rest) or 0)
+
+
+def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
+    """``calibrate`` and ``status`` (bridge/tools)."""
+    cal = sub.add_parser(
+        "calibrate",
+        parents=[common],
+        help="calibrate the magnetometer: offline on a recording, or a running bridge over MAVLink",
+    )
+    where = cal.add_mutually_exclusive_group(required=True)
+    where.add_argument("--recording", metavar="FILE", help="a `record` recording to fit offline")
+    where.add_argument(
+        "--mavlink", metavar="URL", help="pymavlink connection to a running bridge (udpin:...)"
+    )
+    cal.add_argument("--method", default="best", help="engine method (offline; default best)")
+    cal.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="for the WMM")
+    cal.add_argument("--state-dir", metavar="DIR", help="offline: save an accepted result here")
+    cal.add_argument("--plot", metavar="FILE.png", help="draw raw vs calibrated (offline)")
+    cal.add_argument("--target-system", type=int, default=1, metavar="ID")
+    cal.add_argument("--target-component", type=int, default=1, metavar="ID")
+    cal.add_argument("--timeout", type=_positive, default=180.0, metavar="S")
+    yn = cal.add_mutually_exclusive_group()
+    yn.add_argument("--yes", action="store_true", help="accept without asking")
+    yn.add_argument("--no", action="store_true", help="show the result, never accept")
+    cal.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+    cal.set_defaults(func=cmd_calibrate)
+
+    st = sub.add_parser(
+        "status", parents=[common], help="one-shot health of running bridges (over Zenoh)"
+    )
+    st.add_argument(
+        "keyexpr", nargs="?", default="fleet/**/status", metavar="KEYEXPR", help="bridges to ask"
+    )
+    st.add_argument("--connect", action="append", default=[], type=_zenoh_endpoint)
+    st.add_argument("--json", action="store_true", help="JSON for scripts")
+    st.add_argument("--timeout", type=_positive, default=3.0, metavar="S")
+    st.set_defaults(func=cmd_status)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """``calibrate``: see :mod:`bridge.tools.calibrate`."""
+    from bridge.calibration.methods import canonical_name
+    from bridge.tools.calibrate import cmd_calibrate as run
+
+    try:
+        canonical_name(args.method)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    return run(args)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """``status``: see :mod:`bridge.tools.status`."""
+    from bridge.fleet.monitor import MonitorOptions
+    from bridge.tools.status import run_status
+
+    opts = MonitorOptions(keyexpr=args.keyexpr, connect=tuple(args.connect))
+    return run_status(opts, sys.stdout, as_json=args.json, timeout=args.timeout)
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    """``monitor``: the fleet view; stops on SIGINT/SIGTERM, ``--duration`` or ``--once``."""
+    import zenoh
+
+    from bridge.fleet.monitor import MonitorOptions, run_monitor
+
+    try:
+        zenoh.KeyExpr(args.keyexpr)
+    except zenoh.ZError as e:
+        raise UsageError(f"{args.keyexpr!r} is not a key expression: {e}") from None
+    opts = MonitorOptions(
+        keyexpr=args.keyexpr,
+        mode=args.mode,
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        config_file=args.zenoh_config or "",
+        multicast_scouting=args.multicast_scouting,
+        interval=args.interval,
+        once=args.once,
+        duration=args.duration,
+        tty=False if args.plain else None,
+    )
+    stop = threading.Event()
+    with stop_on_signals(stop):
+        return run_monitor(opts, sys.stdout, stop=stop)
+
+
 # ---------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------
@@ -321,6 +503,22 @@ def _exit_code(e: SystemExit) -> int:
     if e.code is None:
         return EXIT_OK
     return e.code if isinstance(e.code, int) else EXIT_USAGE
+
+
+def _end_process(code: int) -> NoReturn:
+    """Exit with ``code`` at once, skipping the interpreter's finalization.
+
+    Called after ``run`` stopped cleanly: outputs closed, state saved (fsynced),
+    logs flushed below. Finalizing the interpreter would then tear down native
+    runtimes that still own threads (zenoh's); that aborts the process now and
+    then (SIGABRT, glibc "exception not rethrown", about 1 stop in 20 after a
+    zenoh query), which systemd records as a crash of the service.
+    """
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -336,7 +534,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     _setup_logging(args)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
-        return func(args)
+        code = func(args)
+        if argv is None and args.command == "run":
+            _end_process(code)  # the program itself (not a caller in-process): see there
+        return code
     except SystemExit as e:  # a passed-through parser (bench) exiting on --help or bad usage
         return _exit_code(e)
     except ConfigError as e:

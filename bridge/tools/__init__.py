@@ -1,0 +1,1 @@
+"""Operator tools: calibrate, status, plots, progress bars (``compass-bridge calibrate|status``)."""

@@ -1,0 +1,140 @@
+"""Progress bars and spinners with an ETA for the long CLI operations.
+
+``calibrate``, ``bench`` and ``record`` take seconds to minutes; a person at
+a terminal wants to see that something moves and how long is left. The
+renderers (:func:`render_bar`, :func:`render_spinner`) are pure; a
+:class:`Progress` writes them to a stream (stderr by default, so stdout stays
+clean for the figures and ``--json``), rewriting one line in place with
+``\\r`` at most ten times a second. On a stream that is not a terminal it
+stays silent (a log or a pipe does not want a hundred ``\\r`` lines), unless
+``enabled=True`` asks for it.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from types import TracebackType
+from typing import TextIO
+
+SPINNER = "|/-\\"
+#: Minimum time between two redraws (a terminal does not need more than 10 frames/s).
+REDRAW_S = 0.1
+
+
+def format_duration(seconds: float) -> str:
+    """``m:ss`` (or ``h:mm:ss``) for an ETA; ``--:--`` when unknown."""
+    if not math.isfinite(seconds) or seconds < 0:
+        return "--:--"
+    s = round(seconds)
+    h, rem = divmod(s, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+def eta_seconds(done: float, total: float, elapsed: float) -> float:
+    """Remaining time at the average rate so far; ``nan`` before any progress."""
+    if done <= 0 or elapsed <= 0 or total <= 0:
+        return math.nan
+    return max(0.0, elapsed * (total - done) / done)
+
+
+def render_bar(
+    label: str, done: float, total: float, elapsed: float, *, width: int = 30, note: str = ""
+) -> str:
+    """``label [#######.......]  45%  ETA 0:12  note`` (``done`` clamped to ``[0, total]``)."""
+    frac = 0.0 if total <= 0 else min(1.0, max(0.0, done / total))
+    filled = int(frac * width)
+    bar = "#" * filled + "." * (width - filled)
+    eta = "done" if frac >= 1.0 else f"ETA {format_duration(eta_seconds(done, total, elapsed))}"
+    line = f"{label} [{bar}] {100.0 * frac:3.0f}%  {eta}"
+    return f"{line}  {note}" if note else line
+
+
+def render_spinner(label: str, tick: int, elapsed: float, *, note: str = "") -> str:
+    """``label |  0:12  note`` for work of unknown length."""
+    line = f"{label} {SPINNER[tick % len(SPINNER)]} {format_duration(elapsed)}"
+    return f"{line}  {note}" if note else line
+
+
+class Progress:
+    """A live progress line: a bar when ``total`` is known, else a spinner.
+
+    Use as a context manager; call :meth:`update` as often as you like (redraws
+    are rate-limited). :meth:`close` ends the line so later output starts on a
+    fresh one.
+    """
+
+    def __init__(
+        self,
+        label: str,
+        total: float | None = None,
+        *,
+        stream: TextIO | None = None,
+        enabled: bool | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.label = label
+        self.total = total
+        self._stream = stream if stream is not None else sys.stderr
+        self.enabled = self._stream.isatty() if enabled is None else enabled
+        self._clock = clock
+        self._t0 = clock()
+        self._last_draw = -math.inf
+        self._tick = 0
+        self._width = 0
+        self.done = 0.0
+        self.note = ""
+
+    @property
+    def elapsed(self) -> float:
+        """Seconds since the bar was made."""
+        return self._clock() - self._t0
+
+    def line(self) -> str:
+        """The line as it would be drawn now."""
+        if self.total is None:
+            return render_spinner(self.label, self._tick, self.elapsed, note=self.note)
+        return render_bar(self.label, self.done, self.total, self.elapsed, note=self.note)
+
+    def update(self, done: float | None = None, *, note: str | None = None) -> None:
+        """Set progress (and an optional short note) and redraw if it is time."""
+        if done is not None:
+            self.done = done
+        if note is not None:
+            self.note = note
+        now = self._clock()
+        if now - self._last_draw >= REDRAW_S:
+            self._last_draw = now
+            self._tick += 1
+            self._draw()
+
+    def _draw(self) -> None:
+        if not self.enabled:
+            return
+        text = self.line()
+        pad = max(0, self._width - len(text))
+        self._width = len(text)
+        self._stream.write("\r" + text + " " * pad)
+        self._stream.flush()
+
+    def close(self) -> None:
+        """Draw the final state and end the line."""
+        self._draw()  # stopped early, the bar shows where it stopped
+        if self.enabled and self._width:
+            self._stream.write("\n")
+            self._stream.flush()
+        self._width = 0
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

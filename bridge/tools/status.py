@@ -1,0 +1,252 @@
+"""``compass-bridge status``: one-shot health of running bridges, for people and scripts.
+
+How it reaches the daemon: over Zenoh, which every bridge already speaks. It
+asks the ``<prefix>/status`` queryable (link state, frame rate, counters,
+calibration state and age) and ``<prefix>/calibration`` (the report of the
+calibration in use: fitness, field spread), and listens to
+``<prefix>/heading`` for a moment for the latest quality flags (disturbance).
+By default it connects to ``tcp/127.0.0.1:7447``, the listener a bridge on
+this host opens (the same default as ``compass-bridge monitor``). No unix
+socket or MAVLink link is needed, and a bridge on another host answers the
+same way (``--connect tcp/HOST:7447``).
+
+:func:`summarise` (pure) turns the answers into one record per bridge;
+:func:`format_human` prints it; ``--json`` prints the records.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, TextIO
+
+from bridge.fleet.monitor import MonitorOptions, monitor_config
+
+#: What ``status`` asks when no key expression is given: every bridge's status.
+DEFAULT_STATUS_KEYEXPR = "fleet/**/status"
+
+
+@dataclass(slots=True)
+class BridgeAnswers:
+    """The raw documents one bridge gave (any may be missing)."""
+
+    prefix: str
+    status: dict[str, Any] | None = None
+    calibration: dict[str, Any] | None = None
+    heading: dict[str, Any] | None = None
+    errors: list[str] = field(default_factory=list)
+
+
+def _age_text(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds):
+        return "unknown age"
+    if seconds < 120:
+        return f"{seconds:.0f} s old"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min old"
+    if seconds < 172800:
+        return f"{seconds / 3600:.1f} h old"
+    return f"{seconds / 86400:.1f} days old"
+
+
+def summarise(a: BridgeAnswers) -> dict[str, Any]:
+    """One bridge's health as a flat, JSON-ready record. PURE.
+
+    ``healthy`` is True when the link streams at a non-zero rate and the last
+    heading was not flagged disturbed or saturated.
+    """
+    st = a.status or {}
+    link = st.get("link") or {}
+    counters = link.get("counters") or {}
+    cal_state = st.get("calibration") or {}
+    cal = a.calibration or {}
+    report = cal.get("report") or {}
+    flags = (a.heading or {}).get("flags") or {}
+    rate = link.get("frame_rate_hz")
+    state = link.get("state")
+    disturbed = flags.get("disturbed") if flags else None
+    rec: dict[str, Any] = {
+        "bridge": a.prefix,
+        "link": {
+            "port": link.get("port"),
+            "state": state,
+            "frame_rate_hz": rate,
+        },
+        "counters": {
+            k: counters.get(k)
+            for k in (
+                "frames",
+                "attitude_frames",
+                "lost_frames",
+                "bad_lines_total",
+                "reconnects",
+                "stale_events",
+                "resets",
+            )
+            if k in counters
+        },
+        "samples": st.get("samples"),
+        "pipeline_errors": st.get("pipeline_errors"),
+        "uptime_s": st.get("uptime_s"),
+        "calibration": {
+            "source": cal_state.get("source", cal.get("source")),
+            "state": cal_state.get("state"),
+            "age_s": cal_state.get("age_s"),
+            "method": report.get("method"),
+            "status": report.get("cal_status", report.get("status")),
+            "fitness_mG": cal_state.get("fitness_mG", report.get("fitness_mG")),
+            "field_spread_before_nT": report.get("field_spread_before_nT"),
+            "field_spread_after_nT": report.get("field_spread_after_nT"),
+        },
+        "quality": {
+            "disturbed": disturbed,
+            "saturated": flags.get("saturated") if flags else None,
+            "degraded": flags.get("degraded") if flags else None,
+            "accelerating": flags.get("accelerating") if flags else None,
+            "heading_deg": (a.heading or {}).get("heading_deg"),
+        },
+        "errors": list(a.errors),
+    }
+    rec["healthy"] = bool(
+        state == "streaming"
+        and isinstance(rate, int | float)
+        and rate > 0
+        and not disturbed
+        and not flags.get("saturated")
+    )
+    return rec
+
+
+def format_human(records: list[dict[str, Any]]) -> str:
+    """A few lines per bridge for a person."""
+    if not records:
+        return "no compass bridge answered"
+    out: list[str] = []
+    for r in records:
+        link, c, cal, q = r["link"], r["counters"], r["calibration"], r["quality"]
+        out.append(f"{r['bridge']}: {'OK' if r['healthy'] else 'NOT OK'}")
+        rate = link.get("frame_rate_hz")
+        rate_s = f"{rate:.1f} frames/s" if isinstance(rate, int | float) else "rate unknown"
+        out.append(f"  link         {link.get('state')} on {link.get('port')}, {rate_s}")
+        out.append(
+            "  counters     "
+            + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in c.items() if v is not None)
+        )
+        up = r.get("uptime_s")
+        out.append(
+            f"  pipeline     {r.get('samples')} samples, {r.get('pipeline_errors')} errors"
+            + (f", up {up:.0f} s" if isinstance(up, int | float) else "")
+        )
+        parts = [str(cal.get("source") or "unknown"), _age_text(cal.get("age_s"))]
+        if cal.get("method"):
+            parts.append(f"method {cal['method']}")
+        if isinstance(cal.get("fitness_mG"), int | float):
+            parts.append(f"fitness {cal['fitness_mG']:.2f} mG")
+        b, a = cal.get("field_spread_before_nT"), cal.get("field_spread_after_nT")
+        if isinstance(b, int | float) and isinstance(a, int | float):
+            parts.append(f"field spread ±{b:.0f} -> ±{a:.0f} nT")
+        if cal.get("state") and cal["state"] != "idle":
+            parts.append(f"calibration {cal['state']}")
+        out.append("  calibration  " + ", ".join(parts))
+        if q.get("disturbed") is None:
+            out.append("  disturbance  unknown (no heading heard)")
+        else:
+            flags = [n for n in ("disturbed", "saturated", "degraded", "accelerating") if q.get(n)]
+            hdg = q.get("heading_deg")
+            h = f"heading {hdg:.1f}, " if isinstance(hdg, int | float) else ""
+            out.append(f"  quality      {h}{', '.join(flags).upper() if flags else 'clean'}")
+        for e in r.get("errors") or []:
+            out.append(f"  error        {e}")
+    return "\n".join(out)
+
+
+def _prefix_of(key: str, leaf: str) -> str:
+    return key[: -len(leaf) - 1] if key.endswith("/" + leaf) else key
+
+
+def query(opts: MonitorOptions, keyexpr: str, *, timeout: float = 2.0) -> list[BridgeAnswers]:
+    """Ask every bridge matching ``keyexpr`` (a ``.../status`` expression) for its health."""
+    import zenoh
+
+    session = zenoh.open(monitor_config(opts))
+    try:
+        answers: dict[str, BridgeAnswers] = {}
+        deadline = time.monotonic() + timeout
+        # A fresh session needs a moment to meet the bridge's; retry the query until then.
+        while not answers and time.monotonic() < deadline:
+            for reply in session.get(keyexpr, timeout=max(0.1, deadline - time.monotonic())):
+                if reply.ok is None:
+                    continue
+                key = str(reply.ok.key_expr)
+                prefix = _prefix_of(key, "status")
+                try:
+                    answers.setdefault(prefix, BridgeAnswers(prefix)).status = json.loads(
+                        reply.ok.payload.to_bytes()
+                    )
+                except ValueError as e:
+                    answers.setdefault(prefix, BridgeAnswers(prefix)).errors.append(
+                        f"{key}: not JSON ({e})"
+                    )
+            if not answers:
+                time.sleep(0.1)
+        headings: dict[str, dict[str, Any]] = {}
+        lock = threading.Lock()
+
+        def on_heading(sample: zenoh.Sample) -> None:
+            try:
+                doc = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            with lock:
+                headings[_prefix_of(str(sample.key_expr), "heading")] = doc
+
+        subs = [session.declare_subscriber(f"{p}/heading", on_heading) for p in answers]
+        for prefix, a in answers.items():
+            for reply in session.get(f"{prefix}/calibration", timeout=timeout):
+                if reply.ok is not None:
+                    try:
+                        a.calibration = json.loads(reply.ok.payload.to_bytes())
+                    except ValueError as e:
+                        a.errors.append(f"calibration: not JSON ({e})")
+        end = time.monotonic() + 1.0  # a bridge at 1 Hz or faster publishes a heading by then
+        while time.monotonic() < end:
+            with lock:
+                if all(p in headings for p in answers):
+                    break
+            time.sleep(0.05)
+        for s in subs:
+            s.undeclare()
+        with lock:
+            for prefix, a in answers.items():
+                a.heading = headings.get(prefix)
+        return [answers[p] for p in sorted(answers)]
+    finally:
+        session.close()
+
+
+def run_status(
+    opts: MonitorOptions, out: TextIO, *, as_json: bool = False, timeout: float = 2.0
+) -> int:
+    """Print the health of every answering bridge; 0 if all are healthy, 1 otherwise/none."""
+    keyexpr = opts.keyexpr
+    if not keyexpr.endswith("/status"):
+        keyexpr = keyexpr.rstrip("/") + "/status"
+    records = [summarise(a) for a in query(opts, keyexpr, timeout=timeout)]
+    if as_json:
+        out.write(json.dumps({"bridges": records}, indent=2) + "\n")
+    else:
+        out.write(format_human(records) + "\n")
+    return 0 if records and all(r["healthy"] for r in records) else 1
+
+
+__all__ = [
+    "DEFAULT_STATUS_KEYEXPR",
+    "BridgeAnswers",
+    "format_human",
+    "query",
+    "run_status",
+    "summarise",
+]

@@ -1,0 +1,55 @@
+"""``compass-bridge bench pipeline``: a small, quick run; structure and sanity, never speed."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from bridge.bench.pipeline import Figure, live, main, match_latencies
+
+
+def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    code = main(
+        ["--frames", "300", "--repeat", "1", "--fit-samples", "500", "--skip-live",
+         "--json", str(out), "--no-progress"]
+    )  # fmt: skip
+    doc = json.loads(out.read_text())
+    figs = {f["name"]: f for f in doc["figures"]}
+    assert set(figs) == {"throughput", "calibration_fit"}
+    t = figs["throughput"]
+    assert t["value"] > 0 and t["target"] == 5000 and t["target_is"] == "min"
+    assert t["passed"] is (t["value"] >= 5000)
+    assert t["detail"]["frames"] == 300 and t["detail"]["zenoh_puts_per_frame"] == 3.0
+    assert t["detail"]["zenoh_received"] > 0  # the puts really crossed the loopback link
+    assert figs["calibration_fit"]["detail"]["status"] == "MAG_CAL_SUCCESS"
+    assert doc["passed"] is all(f["passed"] is not False for f in doc["figures"])
+    assert code == (0 if doc["passed"] else 1)
+
+
+def test_live_daemon_run_matches_every_attitude_to_its_frame() -> None:
+    figs = {f.name: f for f in live(1.0)}
+    lat = figs["latency_p99"]
+    assert lat.detail["matched"] >= 20 and lat.detail["unmatched"] == 0
+    assert 0.0 < lat.detail["p50_ms"] <= lat.value <= lat.detail["max_ms"] < 1000.0
+    assert 0.0 < figs["daemon_rss"].value < 1000.0
+    assert 0.0 < figs["first_attitude"].value < 15.0
+    assert math.isfinite(figs["daemon_cpu"].value) and figs["daemon_cpu"].value >= 0.0
+
+
+def test_match_latencies_pairs_each_datagram_with_its_frame() -> None:
+    written = [(1.000, 0.10), (1.010, 0.20), (1.020, 0.30)]
+    got, unmatched = match_latencies(written, [(1.0125, 0.20), (1.021, 0.30), (1.03, 2.0)])
+    assert got == pytest.approx([0.0025, 0.001])
+    assert unmatched == 1
+
+
+def test_figure_verdicts() -> None:
+    assert Figure("x", 1.0, "ms", 2.0).verdict() == "PASS"
+    assert Figure("x", 3.0, "ms", 2.0).verdict() == "FAIL"
+    assert Figure("x", 10.0, "fps", 5.0, lower_is_better=False).passed is True
+    assert Figure("x", float("nan"), "ms", 2.0).passed is False
+    assert Figure("x", 1.0, "s").verdict() == "-"

@@ -1,0 +1,122 @@
+"""``compass-bridge calibrate`` offline: a recording of the simulated compass, fitted and saved."""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.calibration.coverage import N_SECTIONS
+from bridge.cli import main
+from bridge.daemon import load_calibration
+from bridge.link.record import RecordingWriter
+from bridge.sim.firmware import make_firmware
+from bridge.sim.motion import Motion, Tumble, YawTurns
+from bridge.tools.calibrate import coverage_map, heading_error_estimate_deg
+
+LOCATION = "47.397742,8.545594,488"
+
+
+def make_recording(path: Path, motion: Motion, seconds: float, seed: int = 5) -> Path:
+    """The simulated compass's byte stream on a simulated clock (10 Hz frames), as `record` writes it."""
+    fw = make_firmware(seed, motion=motion)
+    with RecordingWriter(path, "sim", 115200, 0.0) as w:
+        t = 0.0
+        while t < seconds:
+            out = fw.poll(t)
+            if out:
+                w.write(t, out)
+            t += 0.05
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging() -> Iterator[None]:
+    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
+@pytest.fixture(scope="module")
+def tumble(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_recording(tmp_path_factory.mktemp("rec") / "tumble.rec", Tumble(5), 240.0)
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
+    assert data[12:16] == b"IHDR"
+    w, h = struct.unpack(">II", data[16:24])
+    return w, h
+
+
+def test_offline_fit_is_saved_where_the_daemon_loads_it_and_plotted(
+    tumble: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    state = tmp_path / "state"
+    png = tmp_path / "cal.png"
+    code = main(
+        ["calibrate", "--recording", str(tumble), "--location", LOCATION, "--yes",
+         "--state-dir", str(state), "--plot", str(png), "--no-progress"]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "MAG_CAL_SUCCESS" in out and "saved to" in out
+    assert f"{N_SECTIONS}/{N_SECTIONS} sections" in out  # a tumble reaches every section
+    # The daemon picks the result up, and it is the unit's true calibration (simulator truth).
+    cal, source = load_calibration(str(state))
+    assert source == "stored"
+    truth = make_firmware(5).sensor.errors.true_calibration()
+    assert np.allclose(cal.mag.offset, truth.mag.offset, atol=2e-3)  # 2 mG of ~480 mG
+    assert png_size(png) == (1200, 1000)
+
+
+def test_every_engine_method_name_is_accepted_and_unknown_ones_refused(
+    tumble: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["calibrate", "--recording", str(tumble), "--method", "minmax", "--no"])
+    out = capsys.readouterr().out
+    assert code == 0 and "method minmax" in out and "shown, not saved" in out
+    assert main(["calibrate", "--recording", str(tumble), "--method", "voodoo"]) == 2
+    assert "unknown calibration method" in capsys.readouterr().err
+
+
+def test_a_level_turn_leaves_sections_missing_and_the_map_shows_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rec = make_recording(tmp_path / "turns.rec", YawTurns(20.0), 40.0)
+    main(["calibrate", "--recording", str(rec), "--method", "ellipsoid", "--no"])
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("sphere coverage"))
+    covered = int(line.split()[2].split("/")[0])
+    assert covered < N_SECTIONS // 2  # one horizontal circle of field directions
+    assert "." in out and "#" in out
+
+
+def test_not_a_recording_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "x.rec"
+    bad.write_bytes(b"hello, not a recording")
+    assert main(["calibrate", "--recording", str(bad), "--no"]) == 1
+    assert "not a recording" in capsys.readouterr().err
+
+
+def test_coverage_map_marks_exactly_the_missing_sections() -> None:
+    full = coverage_map(())
+    assert "." not in full
+    empty = coverage_map(range(N_SECTIONS))
+    assert "#" not in empty
+
+
+def test_heading_error_estimate() -> None:
+    # 2 mG RMS residual across a 0.2 G horizontal field: atan(0.01) = 0.573 deg.
+    assert heading_error_estimate_deg(2.0, 0.2) == pytest.approx(0.5729, abs=1e-3)
+    assert np.isnan(heading_error_estimate_deg(float("nan"), 0.2))

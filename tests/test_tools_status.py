@@ -1,0 +1,56 @@
+"""``compass-bridge status`` against a running bridge (simulated compass, zenoh on loopback)."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+from test_zenoh_output import Bridge, free_port, wait_until
+
+from bridge.fleet.monitor import MonitorOptions
+from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
+
+
+def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path) -> None:
+    port = free_port()
+    with Bridge(tmp_path, "boat7", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
+        wait_until(lambda: b.daemon.samples >= 40, 15.0, "frames flowing")
+        opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
+        out = io.StringIO()
+        code = run_status(opts, out, as_json=True, timeout=5.0)
+        doc = json.loads(out.getvalue())
+        human = io.StringIO()
+        run_status(opts, human, timeout=5.0)
+    (rec,) = doc["bridges"]
+    assert rec["bridge"] == b.prefix
+    assert rec["link"]["state"] == "streaming"
+    assert 10.0 <= rec["link"]["frame_rate_hz"] <= 30.0  # the device's 20 Hz
+    assert rec["counters"]["frames"] >= 40 and rec["counters"]["lost_frames"] == 0
+    assert rec["calibration"]["source"] == "none (identity)"
+    # The simulated unit is uncalibrated and has no [location]: disturbance flag known, not set.
+    assert rec["quality"]["disturbed"] is False
+    assert isinstance(rec["quality"]["heading_deg"], float)
+    assert code == (0 if rec["healthy"] else 1)
+    text = human.getvalue()
+    assert text.startswith(f"{b.prefix}: ") and "streaming on" in text and "frames/s" in text
+
+
+def test_no_bridge_answering_exits_1(tmp_path: Path) -> None:
+    opts = MonitorOptions(keyexpr="fleet/**", connect=(f"tcp/127.0.0.1:{free_port()}",))
+    out = io.StringIO()
+    assert run_status(opts, out, timeout=0.5) == 1
+    assert "no compass bridge answered" in out.getvalue()
+
+
+def test_summary_of_a_stale_link_is_not_healthy() -> None:
+    a = BridgeAnswers(
+        "fleet/x/compass",
+        status={"link": {"state": "stale", "port": "/dev/ttyUSB0", "frame_rate_hz": 0.0},
+                "calibration": {"source": "stored", "age_s": 7200.0, "state": "idle"}},
+    )  # fmt: skip
+    rec = summarise(a)
+    assert rec["healthy"] is False
+    text = format_human([rec])
+    assert "NOT OK" in text and "stale" in text and "2.0 h old" in text
+    assert "unknown (no heading heard)" in text
