@@ -6,9 +6,18 @@ Subcommands::
     compass-bridge run --simulate                  # built-in simulated compass, live console line
     compass-bridge config [--config FILE] [--set ...]   # validate, print the effective config
     compass-bridge simulate --link PATH [--seed N] # serve a simulated compass on a pty
-    compass-bridge record --port DEV --out FILE    # record the raw byte stream
+    compass-bridge record --port DEV --out FILE [--duration S]  # raw byte stream, live line
+    compass-bridge calibrate --recording FILE [--method NAME] [--plot FILE.png]
+                             [--state-dir DIR] [--yes|--no]   # offline fit of a recording
+    compass-bridge calibrate --mavlink URL [--target-system N --target-component N]
+                             [--plot FILE.png] [--yes|--no]   # a running bridge, ArduPilot flow
+    compass-bridge status [KEYEXPR] [--json]       # one-shot health of running bridges (Zenoh)
     compass-bridge bench accuracy [...]            # accuracy benchmark
+    compass-bridge bench pipeline [...]            # speed and footprint benchmark
     compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
+
+Long operations (record, calibrate, bench) draw a progress bar or spinner with
+an ETA on stderr when it is a terminal; ``--progress/--no-progress`` forces it.
 
 Exit codes: 0 ok (including a stop by SIGINT/SIGTERM), 2 usage or
 configuration error (message on stderr), 1 anything else.
@@ -156,6 +165,12 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, metavar="FILE", help="recording to write")
     rec.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+    )
+    rec.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="live line on stderr (default: when stderr is a terminal)",
     )
     rec.set_defaults(func=cmd_record)
 
@@ -384,9 +399,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_record(args: argparse.Namespace) -> int:
     """``record``: write the raw byte stream of a port to a recording (stops on SIGINT/SIGTERM)."""
-    from bridge.link.record import record
+    from bridge.tools.recording import record_with_progress
 
-    summary = record(args.port, args.baud, args.out, args.duration)
+    summary = record_with_progress(
+        args.port, args.baud, args.out, args.duration, enabled=args.progress
+    )
     print(
         f"recorded {summary.bytes} bytes in {summary.records} records over "
         f"{summary.seconds:.1f} s to {summary.path} (port lost {summary.port_losses} times)",
@@ -424,14 +441,23 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     cal.add_argument("--method", default="best", help="engine method (offline; default best)")
     cal.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="for the WMM")
     cal.add_argument("--state-dir", metavar="DIR", help="offline: save an accepted result here")
-    cal.add_argument("--plot", metavar="FILE.png", help="draw raw vs calibrated (offline)")
+    cal.add_argument(
+        "--plot",
+        metavar="FILE.png",
+        help="draw raw vs calibrated samples (offline: the recording; live: RAW_IMU of the run)",
+    )
     cal.add_argument("--target-system", type=int, default=1, metavar="ID")
     cal.add_argument("--target-component", type=int, default=1, metavar="ID")
     cal.add_argument("--timeout", type=_positive, default=180.0, metavar="S")
     yn = cal.add_mutually_exclusive_group()
     yn.add_argument("--yes", action="store_true", help="accept without asking")
     yn.add_argument("--no", action="store_true", help="show the result, never accept")
-    cal.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+    cal.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="live bar (and coverage map) on stderr (default: when stderr is a terminal)",
+    )
     cal.set_defaults(func=cmd_calibrate)
 
     st = sub.add_parser(

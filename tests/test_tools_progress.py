@@ -3,8 +3,29 @@
 from __future__ import annotations
 
 import io
+import logging
+import re
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
 
-from bridge.tools.progress import Progress, eta_seconds, format_duration, render_bar
+import pytest
+
+from bridge.bench.accuracy import main as accuracy_main
+from bridge.cli import main
+from bridge.tools.progress import REDRAW_S, Progress, eta_seconds, format_duration, render_bar
+from bridge.tools.recording import format_bytes
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging() -> Iterator[None]:
+    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
 
 
 def test_bar_shows_fraction_and_eta_at_the_average_rate() -> None:
@@ -37,3 +58,62 @@ def test_progress_is_silent_on_a_pipe() -> None:
     with Progress("record", None, stream=s) as p:
         p.update(note="x")
     assert s.getvalue() == ""
+
+
+def test_detail_block_is_redrawn_in_place_under_the_bar() -> None:
+    now = [0.0]
+    s = io.StringIO()
+    with Progress("cal", 100, stream=s, enabled=True, clock=lambda: now[0]) as p:
+        p.update(10, detail="a\nb\nc")
+        now[0] += 1.0
+        p.update(50, detail="x\ny")  # a shorter block: the old third row is erased
+    text = s.getvalue()
+    first, second = text.split("\r")[1:3]
+    assert first.startswith("cal [") and first.count("\n") == 3  # bar + 3 detail rows
+    # back up over the 3 rows drawn before, then bar, x, y and one erased row
+    assert second.startswith("\x1b[3A") and " 50%" in second
+    rows = second.split("\n")
+    assert [r.replace("\x1b[K", "") for r in rows[1:4]] == ["x", "y", ""]
+    assert text.endswith("\n")
+
+
+def test_a_ticking_spinner_turns_without_updates_and_stops_on_close() -> None:
+    s = io.StringIO()
+    p = Progress("fit", None, stream=s, enabled=True, tick=True)
+    deadline = time.monotonic() + 5.0
+    while s.getvalue().count("\r") < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    p.close()
+    drawn = s.getvalue()
+    assert drawn.count("\r") >= 3  # it redrew itself with nobody calling update()
+    assert len({line[:6] for line in drawn.split("\r")[1:]}) >= 2  # the spinner character moved
+    time.sleep(3 * REDRAW_S)
+    assert s.getvalue() == drawn  # closed: the thread is gone, nothing more is written
+    assert not any(t.name == "progress" for t in threading.enumerate())
+
+
+def test_record_shows_a_bar_with_bytes_and_stops_at_its_duration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "sim.rec"
+    assert (
+        main(["record", "--port", "sim", "--out", str(out), "--duration", "1.5", "--progress"]) == 0
+    )
+    err = capsys.readouterr().err
+    assert "recording [" in err and "done" in err and str(out) in err
+    size = out.stat().st_size
+    assert size > 0
+    shown = re.findall(r"(\d+(?:\.\d+)?) (B|kB|MB) to ", err)
+    assert shown and format_bytes(size) == " ".join(shown[-1])  # the final size, as on disk
+
+
+def test_bench_accuracy_counts_units_on_its_bar(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--units", "2", "--samples", "300", "--eval-samples", "100", "--timing-samples", "0"]
+    accuracy_main([*args, "--progress"])
+    cap = capsys.readouterr()
+    assert "unit 1/2" in cap.err and "unit 2/2" in cap.err and "100%" in cap.err
+    assert "accuracy [" not in cap.out  # figures on stdout, the bar on stderr
+
+
+def test_format_bytes() -> None:
+    assert [format_bytes(n) for n in (999, 12_345, 4_560_000)] == ["999 B", "12.3 kB", "4.56 MB"]

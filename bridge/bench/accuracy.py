@@ -39,7 +39,7 @@ import math
 import statistics
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -298,12 +298,23 @@ def time_full_fit(cfg: BenchConfig, field_ef: EarthField) -> dict[str, Any]:
     }
 
 
-def run(cfg: BenchConfig) -> dict[str, Any]:
-    """Run the whole benchmark; returns the JSON-ready result (``summary``, ``targets``, ``units``)."""
+def run(cfg: BenchConfig, progress: Callable[[float, str], None] | None = None) -> dict[str, Any]:
+    """Run the whole benchmark; returns the JSON-ready result (``summary``, ``targets``, ``units``).
+
+    ``progress(fraction, note)`` is called after each simulated unit (and
+    before the timing fit), for a progress bar.
+    """
     lat, lon, alt = cfg.location
     field_ef = earth_field(lat, lon, alt, cfg.year)
     errs = _Errors()
-    units = [_unit_run(i, cfg, field_ef, errs) for i in range(cfg.units)]
+    units = []
+    steps = cfg.units + (1 if cfg.timing_samples > 0 else 0)
+    for i in range(cfg.units):
+        units.append(_unit_run(i, cfg, field_ef, errs))
+        if progress is not None:
+            progress((i + 1) / steps, f"unit {i + 1}/{cfg.units}")
+    if progress is not None and cfg.timing_samples > 0:
+        progress(cfg.units / steps, f"timing a {cfg.timing_samples}-sample fit")
     summary: dict[str, Any] = {
         m: {f"{t:g}": _stats(errs.pooled(m, t)) for t in cfg.tilt_bins_deg}
         for m in (FLOOR, *HEADING_METHODS)
@@ -488,6 +499,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="hard-iron magnitude range as a fraction of the field (default 0.1 0.3)",
     )
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
+    p.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="progress bar with ETA on stderr (default: when stderr is a terminal)",
+    )
     args = p.parse_args(list(argv) if argv is not None else None)
     cfg = BenchConfig(
         units=args.units,
@@ -497,7 +514,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         timing_samples=max(0, args.timing_samples),
         hard_iron_frac=(args.hard_iron[0], args.hard_iron[1]),
     )
-    result = run(cfg)
+    from bridge.tools.progress import Progress
+
+    with Progress("accuracy", 1.0, enabled=args.progress, tick=True) as bar:
+        result = run(cfg, lambda frac, note: bar.update(frac, note=note))
     print(format_report(result))
     if args.json is not None:
         try:

@@ -13,17 +13,24 @@ Two ways:
   percentage drives the bar, ``completion_mask`` the map of the 80 sphere
   sections still missing), ``MAG_CAL_REPORT``, then ``DO_ACCEPT_MAG_CAL`` or
   ``DO_CANCEL_MAG_CAL``. MAG_CAL_REPORT carries fitness and parameters but
-  no field spread: the estimated heading error is computed from the fitness
-  and the horizontal field (WMM at ``--location``; see
-  :func:`heading_error_estimate_deg`).
+  no field spread, so the tool raises RAW_IMU to 10 Hz for the run
+  (SET_MESSAGE_INTERVAL, put back to the configured rate at the end) and
+  computes the spread before/after itself from those raw counts and the
+  reported parameters (:func:`add_live_figures`); the same samples feed
+  ``--plot``. The estimated heading error comes from the fitness and the
+  horizontal field (WMM at ``--location``, else the field the calibrated
+  samples show; see :func:`heading_error_estimate_deg`). Ctrl-C, a timeout or
+  a failed fit cancel the calibration on the bridge.
 
 The report pieces (:func:`report_lines`, :func:`coverage_map`,
-:func:`heading_error_estimate_deg`) are pure.
+:func:`heading_error_estimate_deg`, :func:`report_mag_calibration`,
+:class:`RawImuCollector`) are pure.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -35,7 +42,12 @@ import numpy.typing as npt
 
 from bridge.calibration.coverage import N_SECTIONS, mask_sections, sections
 from bridge.calibration.methods import CalibrationData, calibrate
-from bridge.calibration.model import Calibration, CalibrationResult
+from bridge.calibration.model import (
+    AffineCalibration,
+    ArduPilotView,
+    Calibration,
+    CalibrationResult,
+)
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 
 FloatArray = npt.NDArray[np.float64]
@@ -250,17 +262,131 @@ def save_offline(state_dir: str, res: CalibrationResult, report: dict[str, Any])
 
 
 # ---------------------------------------------------------------------------
-# Live over MAVLink
+# Live over MAVLink: the pure pieces
+# ---------------------------------------------------------------------------
+
+#: The ADC's range; a channel at either end is saturated (datasheet, "Frame content").
+ADC_MIN, ADC_MAX = 0, 4095
+
+#: RAW_IMU rate asked for (MAV_CMD_SET_MESSAGE_INTERVAL) while a live calibration
+#: runs. The bridge's default (BRG_SR_RIMU) is 2 Hz: a minute of tumbling would
+#: give ~100 samples, too few for a field spread and a plot worth looking at.
+RAW_IMU_RATE_HZ = 10.0
+
+
+class RawImuCollector:
+    """RAW_IMU counts seen during a live calibration: the before/after samples.
+
+    Frames with a channel at 0 or 4095 (saturated) are counted and dropped, as
+    the engine never fits them; values outside the 12-bit range cannot come
+    from the compass and are counted as invalid. PURE.
+    """
+
+    def __init__(self) -> None:
+        self._rows: list[tuple[int, int, int, int, int, int]] = []
+        self.saturated = 0
+        self.invalid = 0
+
+    def add(self, mx: int, my: int, mz: int, ax: int, ay: int, az: int) -> None:
+        """One RAW_IMU's xmag..zmag, xacc..zacc (ADC counts)."""
+        row = (mx, my, mz, ax, ay, az)
+        if any(not ADC_MIN <= v <= ADC_MAX for v in row):
+            self.invalid += 1
+        elif any(v in (ADC_MIN, ADC_MAX) for v in row):
+            self.saturated += 1
+        else:
+            self._rows.append(row)
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def vectors(self) -> RecordedVectors:
+        """The samples in nominal units (the same shape the offline path fits)."""
+        a = np.asarray(self._rows, dtype=np.float64).reshape(-1, 6)
+        return RecordedVectors(
+            mag_counts_to_gauss(a[:, :3]),
+            acc_counts_to_g(a[:, 3:]),
+            np.zeros(a.shape[0], dtype=bool),
+            self.invalid,
+        )
+
+
+def report_mag_calibration(report: dict[str, Any]) -> AffineCalibration:
+    """The magnetometer calibration a MAG_CAL_REPORT describes (COMPASS_OFS/DIA/ODI/SCALE).
+
+    The bridge's alignment rotation is not on the wire (MAG_CAL_REPORT has no
+    field for it), so it is left out: a rotation changes no field magnitude
+    (the spread after is exact) and only turns the calibrated cloud in the
+    plot. Raises ``ValueError`` on missing, non-finite or singular parameters.
+    """
+
+    def v3(prefix: str) -> tuple[float, float, float]:
+        return (
+            float(report[prefix + "x"]),
+            float(report[prefix + "y"]),
+            float(report[prefix + "z"]),
+        )
+
+    try:
+        view = ArduPilotView(
+            ofs_mG=v3("ofs_"),
+            diag=v3("diag_"),
+            offdiag=v3("offdiag_"),
+            scale=float(report.get("scale_factor") or 1.0),
+            rotation_rotvec=(0.0, 0.0, 0.0),
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"MAG_CAL_REPORT without its parameters: {e}") from None
+    return AffineCalibration.from_ardupilot(view)
+
+
+def add_live_figures(
+    report: dict[str, Any], samples: RecordedVectors, location: tuple[float, float, float] | None
+) -> float:
+    """Field spread before/after (into ``report``) from RAW_IMU samples; returns the heading error.
+
+    Before: ``|B|`` of the raw samples at the nominal transfer; after: with the
+    reported parameters applied; both as the engine reports them (+- half peak
+    to peak, nT). The heading error is estimated from the fitness across the
+    horizontal field: the WMM's at ``location``, else the one the calibrated
+    samples show (their mean ``|B|`` and the dip between field and gravity).
+    """
+    from bridge.calibration.scalar import field_spread_nT
+
+    fitness = float(report.get("fitness") or math.nan)
+    try:
+        cal = report_mag_calibration(report)
+    except ValueError:
+        cal = None
+    if cal is not None and samples.mag_G.shape[0] >= 2:
+        report["field_spread_before_nT"] = field_spread_nT(samples.mag_G)[0]
+        report["field_spread_after_nT"] = field_spread_nT(cal.apply(samples.mag_G))[0]
+        report["spread_samples"] = int(samples.mag_G.shape[0])
+    if location is not None:
+        from bridge.core.wmm import earth_field
+
+        f = earth_field(*location)
+        return heading_error_estimate_deg(fitness, horizontal_field_G(f.total_G, f.inclination_deg))
+    if cal is None or samples.mag_G.shape[0] == 0:
+        return math.nan
+    return heading_error_estimate_deg(
+        fitness, _measured_horizontal_G(Calibration(mag=cal), samples)
+    )
+
+
+# ---------------------------------------------------------------------------
+# Live over MAVLink: the conversation
 # ---------------------------------------------------------------------------
 
 
 @dataclass(slots=True)
 class LiveOutcome:
-    """What the MAVLink flow ended with."""
+    """What the MAVLink flow ended with (``samples``: the RAW_IMU seen while it ran)."""
 
     report: dict[str, Any] | None
     accepted: bool
     message: str
+    samples: RawImuCollector
 
 
 def run_mavlink(
@@ -269,77 +395,132 @@ def run_mavlink(
     target_system: int,
     target_component: int,
     timeout_s: float,
-    accept: Callable[[dict[str, Any]], bool],
+    accept: Callable[[dict[str, Any], RawImuCollector], bool],
     on_progress: Callable[[float, frozenset[int]], None],
+    on_text: Callable[[str], None] | None = None,
     source_system: int = 255,
+    raw_imu_hz: float = RAW_IMU_RATE_HZ,
 ) -> LiveOutcome:
-    """The ArduPilot magcal flow against a bridge at ``url`` (pymavlink connection string)."""
+    """The ArduPilot magcal flow against a bridge at ``url`` (a pymavlink connection string).
+
+    HEARTBEAT from the target first (so a udpin link knows where to send);
+    RAW_IMU raised to ``raw_imu_hz``; ``DO_START_MAG_CAL`` (all compasses, no
+    retry, no autosave: the person decides); ``MAG_CAL_PROGRESS`` ->
+    ``on_progress(completion_pct, missing sections)``, STATUSTEXT ->
+    ``on_text``, RAW_IMU collected; on ``MAG_CAL_REPORT`` with
+    ``MAG_CAL_SUCCESS`` ``accept(report, samples)`` decides between
+    ``DO_ACCEPT_MAG_CAL`` and ``DO_CANCEL_MAG_CAL``. A timeout, a failed fit
+    or Ctrl-C cancels the calibration on the bridge; RAW_IMU goes back to its
+    configured rate (SET_MESSAGE_INTERVAL 0) whatever happens.
+    """
+    os.environ.setdefault("MAVLINK20", "1")  # the bridge speaks MAVLink 2 only
     from pymavlink import mavutil
 
     conn = mavutil.mavlink_connection(
         url, source_system=source_system, source_component=190, dialect="ardupilotmega"
     )
-    M = mavutil.mavlink
+    M: Any = mavutil.mavlink
+    samples = RawImuCollector()
+    texts: list[str] = []
+
+    def ours(m: Any) -> bool:
+        return bool(m.get_srcSystem() == target_system and m.get_srcComponent() == target_component)
+
+    def command(cmd: int, *params: float, final_wait_s: float = 30.0) -> int | None:
+        """COMMAND_LONG, resent up to 3 times; the final result (after IN_PROGRESS acks)."""
+        p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
+        for confirmation in range(3):
+            conn.mav.command_long_send(target_system, target_component, cmd, confirmation, *p)
+            end = time.monotonic() + 1.5
+            while time.monotonic() < end:
+                ack = conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.2)
+                if ack is None or ack.command != cmd or not ours(ack):
+                    continue
+                if ack.result != M.MAV_RESULT_IN_PROGRESS:
+                    return int(ack.result)
+                # long work on the bridge (the compass's own MAGCAL,END): wait, do not resend
+                end = time.monotonic() + final_wait_s
+        return None
+
+    started = False
+    linked = False  # the bridge answered: there is something to put back at the end
     try:
         deadline = time.monotonic() + min(10.0, timeout_s)
-        # udpin learns the bridge's address from its first packet; tcp/udpout can send at once.
         hb = None
         while hb is None and time.monotonic() < deadline:
             conn.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            hb = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+            end = min(deadline, time.monotonic() + 1.0)
+            while hb is None and time.monotonic() < end:
+                m = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=0.2)
+                hb = m if m is not None and ours(m) else None
         if hb is None:
-            return LiveOutcome(None, False, f"no HEARTBEAT from the bridge on {url}")
-
-        def command(cmd: int, *params: float) -> int | None:
-            p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
-            for _ in range(3):
-                conn.mav.command_long_send(target_system, target_component, cmd, 0, *p)
-                end = time.monotonic() + 1.5
-                while time.monotonic() < end:
-                    ack = conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.2)
-                    if ack is not None and ack.command == cmd:
-                        return int(ack.result)
-            return None
-
-        # mag mask 0 (all), retry 0, autosave 0 (we ask the person), delay 0.
+            return LiveOutcome(
+                None,
+                False,
+                f"no HEARTBEAT from system {target_system} component {target_component} on {url}",
+                samples,
+            )
+        linked = True
+        command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_RAW_IMU, round(1e6 / raw_imu_hz))
         result = command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0)
         if result != M.MAV_RESULT_ACCEPTED:
-            return LiveOutcome(None, False, f"DO_START_MAG_CAL refused (result {result})")
-        end = time.monotonic() + timeout_s
-        report = None
-        while time.monotonic() < end:
-            m = conn.recv_match(
-                type=["MAG_CAL_PROGRESS", "MAG_CAL_REPORT"], blocking=True, timeout=0.2
+            why = (
+                "a calibration is already running (DO_CANCEL_MAG_CAL it first)"
+                if result == M.MAV_RESULT_TEMPORARILY_REJECTED
+                else f"result {result}"
             )
-            if m is None:
+            return LiveOutcome(None, False, f"DO_START_MAG_CAL refused: {why}", samples)
+        started = True
+        end = time.monotonic() + timeout_s
+        report: dict[str, Any] | None = None
+        kinds = ["MAG_CAL_PROGRESS", "MAG_CAL_REPORT", "RAW_IMU", "STATUSTEXT"]
+        while report is None and time.monotonic() < end:
+            m = conn.recv_match(type=kinds, blocking=True, timeout=0.2)
+            if m is None or not ours(m):
                 continue
-            if m.get_type() == "MAG_CAL_PROGRESS":
+            kind = m.get_type()
+            if kind == "RAW_IMU":
+                samples.add(m.xmag, m.ymag, m.zmag, m.xacc, m.yacc, m.zacc)
+            elif kind == "STATUSTEXT":
+                texts.append(str(m.text))
+                if on_text is not None:
+                    on_text(str(m.text))
+            elif kind == "MAG_CAL_PROGRESS":
                 missing = frozenset(range(N_SECTIONS)) - mask_sections(bytes(m.completion_mask))
                 on_progress(float(m.completion_pct), missing)
             else:
                 report = m.to_dict()
-                break
         if report is None:
-            command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0)
-            return LiveOutcome(None, False, f"no MAG_CAL_REPORT within {timeout_s:g} s")
+            return LiveOutcome(None, False, f"no MAG_CAL_REPORT within {timeout_s:g} s", samples)
         report["cal_status"] = _mag_cal_status_name(M, int(report.get("cal_status", -1)))
         if report["cal_status"] != "MAG_CAL_SUCCESS":
-            return LiveOutcome(report, False, f"calibration failed: {report['cal_status']}")
-        if accept(report):
+            why = next((t for t in reversed(texts) if "fail" in t.lower()), "")
+            return LiveOutcome(
+                report,
+                False,
+                f"calibration failed: {report['cal_status']}" + (f" ({why})" if why else ""),
+                samples,
+            )
+        if accept(report, samples):
             r = command(M.MAV_CMD_DO_ACCEPT_MAG_CAL, 0)
             ok = r == M.MAV_RESULT_ACCEPTED
-            return LiveOutcome(report, ok, "accepted" if ok else f"accept refused ({r})")
-        command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0)
-        return LiveOutcome(report, False, "cancelled: the bridge keeps its previous calibration")
+            started = not ok  # refused: cancel below, so the bridge is not left waiting
+            return LiveOutcome(report, ok, "accepted" if ok else f"accept refused ({r})", samples)
+        return LiveOutcome(
+            report, False, "cancelled: the bridge keeps its previous calibration", samples
+        )
     finally:
+        # Also on Ctrl-C: never leave the bridge calibrating (or waiting for an accept).
+        if started:
+            command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0)
+        if linked:
+            command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_RAW_IMU, 0)
         conn.close()
 
 
 def _mag_cal_status_name(M: Any, code: int) -> str:
-    for name, entry in M.enums["MAG_CAL_STATUS"].items():
-        if name == code:
-            return str(entry.name)
-    return f"MAG_CAL_STATUS({code})"
+    entry = M.enums["MAG_CAL_STATUS"].get(code)
+    return str(entry.name) if entry is not None else f"MAG_CAL_STATUS({code})"
 
 
 # ---------------------------------------------------------------------------
@@ -349,11 +530,26 @@ def _mag_cal_status_name(M: Any, code: int) -> str:
 
 def write_coverage(out: TextIO, missing: frozenset[int]) -> None:
     """The coverage map with its legend."""
-    out.write(
+    out.write(coverage_text(missing) + "\n")
+
+
+def coverage_text(missing: frozenset[int]) -> str:
+    """Legend line and map of the sections still ``missing``. PURE."""
+    return (
         f"sphere coverage: {N_SECTIONS - len(missing)}/{N_SECTIONS} sections "
-        "(# covered, . still missing)\n"
+        "(# covered, . still missing)\n" + coverage_map(missing)
     )
-    out.write(coverage_map(missing) + "\n")
+
+
+def _plot(out: TextIO, path: str, raw_G: FloatArray, cal_G: FloatArray, title: str) -> None:
+    from bridge.tools.plot import PlotUnavailableError, plot_calibration
+
+    try:
+        plot_calibration(path, raw_G, cal_G, title=title)
+    except (PlotUnavailableError, OSError, ValueError) as e:
+        out.write(f"no plot: {e}\n")
+        return
+    out.write(f"plot written to {path}\n")
 
 
 def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = None) -> int:
@@ -373,7 +569,7 @@ def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = N
     if args.recording:
         with Progress("reading", 1.0, enabled=args.progress) as bar:
             vectors = read_recording(args.recording, lambda f: bar.update(f))
-        with Progress(f"fitting ({args.method})", None, enabled=args.progress) as bar:
+        with Progress(f"fitting ({args.method})", None, enabled=args.progress, tick=True) as bar:
             bar.update(note=f"{len(vectors.mag_G)} frames")
             res, herr = fit_recording(vectors, args.method, location)
         report = offline_report(res)
@@ -384,13 +580,14 @@ def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = N
         write_coverage(out, calibrated_missing(res.calibration, vectors))
         out.write("\n".join(report_lines(report, herr)) + "\n")
         if args.plot:
-            from bridge.tools.plot import plot_calibration
-
             ok = ~vectors.saturated
-            plot_calibration(
-                args.plot, vectors.mag_G[ok], res.calibration.mag.apply(vectors.mag_G[ok])
+            _plot(
+                out,
+                args.plot,
+                vectors.mag_G[ok],
+                res.calibration.mag.apply(vectors.mag_G[ok]),
+                f"{args.recording}: {res.report.method}",
             )
-            out.write(f"plot written to {args.plot}\n")
         if not res.report.ok:
             out.write("calibration failed: nothing to accept\n")
             return 1
@@ -403,38 +600,72 @@ def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = N
             return 0
         out.write("not saved\n")
         return 1
+    return _cmd_calibrate_live(args, out, decide)
 
-    from bridge.tools.progress import Progress as Bar
 
-    h = math.nan
-    if location is not None:
-        from bridge.core.wmm import earth_field
+def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]], bool]) -> int:
+    from bridge.tools.progress import Progress
 
-        f = earth_field(*location)
-        h = horizontal_field_G(f.total_G, f.inclination_deg)
-    bar = Bar("calibrating", 100.0, enabled=args.progress)
+    if getattr(args, "method", "best") not in (None, "best"):
+        out.write("note: --method applies offline; the bridge fits with its configured method\n")
+    bar = Progress("calibrating", 100.0, enabled=args.progress)
     last_missing: list[frozenset[int]] = []
+    shown: list[bool] = []
+    out.write(
+        "turn the compass slowly through every direction (a tumble: over, round, on its side)\n"
+    )
+    out.flush()
 
     def on_progress(pct: float, missing: frozenset[int]) -> None:
         last_missing[:] = [missing]
-        bar.update(pct, note=f"{len(missing)} sections missing")
+        n = len(missing)
+        bar.update(
+            pct, note=f"{n} section{'' if n == 1 else 's'} missing", detail=coverage_text(missing)
+        )
 
-    def accept(report: dict[str, Any]) -> bool:
+    def on_text(text: str) -> None:
+        bar.update(note=text[:60])
+
+    def show(report: dict[str, Any], samples: RawImuCollector) -> None:
         bar.close()
+        shown.append(True)
         if last_missing:
             write_coverage(out, last_missing[0])
-        out.write("\n".join(report_lines(report, heading_error_estimate_deg(
-            float(report.get("fitness", math.nan)), h))) + "\n")  # fmt: skip
+        vec = samples.vectors()
+        herr = add_live_figures(report, vec, args.location)
+        out.write("\n".join(report_lines(report, herr)) + "\n")
+        out.write(
+            f"RAW_IMU during the run: {len(samples)} samples "
+            f"({samples.saturated} saturated, {samples.invalid} invalid dropped)\n"
+        )
+        if args.plot:
+            try:
+                cal = report_mag_calibration(report)
+            except ValueError as e:
+                out.write(f"no plot: {e}\n")
+                return
+            if len(samples) == 0:
+                out.write("no plot: no RAW_IMU samples came during the run\n")
+                return
+            _plot(out, args.plot, vec.mag_G, cal.apply(vec.mag_G), f"{args.mavlink}: live")
+
+    def accept(report: dict[str, Any], samples: RawImuCollector) -> bool:
+        show(report, samples)
         return decide(report)
 
-    outcome = run_mavlink(
-        args.mavlink,
-        target_system=args.target_system,
-        target_component=args.target_component,
-        timeout_s=args.timeout,
-        accept=accept,
-        on_progress=on_progress,
-    )
-    bar.close()
+    try:
+        outcome = run_mavlink(
+            args.mavlink,
+            target_system=args.target_system,
+            target_component=args.target_component,
+            timeout_s=args.timeout,
+            accept=accept,
+            on_progress=on_progress,
+            on_text=on_text,
+        )
+    finally:
+        bar.close()
+    if outcome.report is not None and not shown:
+        show(outcome.report, outcome.samples)  # a failed fit: its figures say why
     out.write(outcome.message + "\n")
     return 0 if outcome.accepted else 1
