@@ -342,6 +342,9 @@ class DeviceConfig(Section):
         "no valid frame for this long -> stale, reconnect",
         "s",
     )
+    replay_realtime: bool = setting(
+        True, None, "replay:PATH at the recorded pace (false: as fast as it decodes)"
+    )
 
     def finish(self, ctx: LoadContext) -> Self:
         """Require ``stale_after`` to span two frame periods at the requested rate."""

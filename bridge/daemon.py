@@ -370,7 +370,7 @@ def field_reference(cfg: Config) -> FieldReference | None:
 def make_transport(cfg: Config) -> Transport:
     """The transport ``cfg.device`` names; ``"sim"`` is built from ``[sim]`` and ``[location]``."""
     if cfg.device.port != "sim":
-        return open_transport(cfg.device.port, cfg.device.baud)
+        return open_transport(cfg.device.port, cfg.device.baud, realtime=cfg.device.replay_realtime)
     from bridge.sim.pty import MOTIONS  # only the simulated port needs the simulator
 
     sim = cfg.sim

@@ -358,6 +358,30 @@ def test_replay_runs_to_the_end_and_exits_zero(tmp_path: Path) -> None:
     assert done == [0]
 
 
+@pytest.mark.parametrize("realtime", [True, False])
+def test_replay_pace_follows_device_replay_realtime(
+    tmp_path: Path, running: Callable[[Daemon], Daemon], realtime: bool
+) -> None:
+    """A recording spanning 2.4 s: at its pace with replay_realtime, at once without."""
+    rec = tmp_path / "run.cbrec"
+    lines = gmr_lines(UnitErrors.ideal(), [float(y) for y in range(0, 360, 15)])
+    with RecordingWriter(rec, "/dev/ttyUSB0", 115200, start_wall=0.0) as w:
+        for i, line in enumerate(lines):
+            w.write(i * 0.1, line)
+    out = Collect()
+    cfg = config(tmp_path, f"replay:{rec}", f"device.replay_realtime={str(realtime).lower()}")
+    t0 = time.monotonic()
+    running(Daemon(cfg, [out]))
+    samples = out.wait_for(len(lines))
+    took = time.monotonic() - t0
+    assert len(samples) >= len(lines)
+    span = samples[-1].t - samples[0].t
+    if realtime:
+        assert span >= 2.0, span  # recorded span 2.3 s between first and last frame
+    else:
+        assert span < 1.0 and took < DEADLINE_S, span
+
+
 # --- console line ------------------------------------------------------------------------
 
 
