@@ -451,6 +451,7 @@ class Daemon:
         self.pipeline_alive_at = time.monotonic()
         self._disturbed = False  # disturbance state last reported as an event (pipeline thread)
         self._disturbed_at = -math.inf  # when it was reported
+        self._disturbed_seen_while_calibrating = False  # muted disturbance (diagnostics, tests)
         self._link_lost = False  # link.lost emitted, link.restored not yet (reader thread)
         self._stop = threading.Event()
         self._pipeline: threading.Thread | None = None
@@ -499,7 +500,9 @@ class Daemon:
             counters=self.link.counters,
             samples=self.samples,
             pipeline_errors=self.pipeline_errors,
-            calibration_source=self.calibration_source,
+            # After an accept the calibrator knows better than the start-up value.
+            calibration_source=self.calibrator.snapshot().calibration_source
+            or self.calibration_source,
         )
 
     # -- the per-frame path --------------------------------------------------------
@@ -562,6 +565,11 @@ class Daemon:
         when it ends, if it still holds then.
         """
         if t - self._disturbed_at < DISTURBANCE_EVENT_MIN_S:
+            return
+        if self.calibrator.calibrating:
+            # An uncalibrated unit tumbling for its calibration is "disturbed" half the
+            # time: that is expected, not news. The state is re-judged once it ends.
+            self._disturbed_seen_while_calibrating |= disturbed
             return
         self._disturbed, self._disturbed_at = disturbed, t
         data = {"field_mG": round(1000.0 * a.field_strength_G, 1), "dip_deg": round(a.dip_deg, 1)}

@@ -298,6 +298,9 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     assert 0.8 < rep["scale_factor"] < 1.25
     assert rig.daemon.engine.calibration == before  # not applied before accept
     assert not (tmp_path / "state" / "calibration.json").exists()
+    # the uncalibrated tumble looked "disturbed" (the engine flagged it) but raised no alarm
+    assert rig.daemon._disturbed_seen_while_calibrating
+    assert not rig.log.of("disturbance.start")
 
     # accept: applied, persisted (reloads equal), written to the compass flash
     acc = rig.ctl.accept()
@@ -359,6 +362,7 @@ def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[...
     assert rig.log.kinds().index("calibration.done") < rig.log.kinds().index("calibration.accepted")
     after = rig.ctl.snapshot()
     assert after.calibration_saved and after.calibration_source == "mag"
+    assert rig.daemon.status().calibration_source == "mag"  # not the start-up "none"
     assert after.calibration_age_s is not None and after.calibration_age_s < 60.0
 
 

@@ -429,6 +429,12 @@ class CalibrationController:
         """The Earth field fits are scaled to."""
         return self._field
 
+    @property
+    def calibrating(self) -> bool:
+        """A session is waiting, collecting or fitting (a cheap, lock-free read for the pipeline)."""
+        s = self._session
+        return s is not None and s.status in _RUNNING
+
     # ------------------------------------------------------------------ the per-frame hook
 
     def feed(self, frame: object) -> None:
