@@ -458,13 +458,13 @@ class ZenohConfig(Section):
         'zenoh JSON5 file used as the base (TLS, user/password, access control); "" = none',
     )
     heading_rate_hz: float = setting(
-        0.0, between(0.0, 100.0), "cap of <prefix>/heading; 0 = every frame", "Hz"
+        10.0, between(0.0, 100.0), "cap of <prefix>/heading; 0 = every frame", "Hz"
     )
     attitude_rate_hz: float = setting(
-        0.0, between(0.0, 100.0), "cap of <prefix>/attitude; 0 = every frame", "Hz"
+        10.0, between(0.0, 100.0), "cap of <prefix>/attitude; 0 = every frame", "Hz"
     )
     imu_rate_hz: float = setting(
-        0.0, between(0.0, 100.0), "cap of <prefix>/imu; 0 = every frame", "Hz"
+        10.0, between(0.0, 100.0), "cap of <prefix>/imu; 0 = every frame", "Hz"
     )
     remote_calibration: bool = setting(
         False, None, "answer <prefix>/cmd/calibration/*; pair with zenoh access control"

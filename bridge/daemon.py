@@ -12,8 +12,10 @@
 Outputs are pluggable (:class:`Output`); today there is the console line
 (:class:`ConsoleOutput`); MAVLink and Zenoh outputs plug in the same way in
 :func:`build_outputs`. ``publish`` must never block the pipeline: an output
-keeps the latest sample and does its I/O in its own thread
-(:class:`LatestSampleWorker`).
+either keeps the latest sample and does its I/O in its own thread
+(:class:`LatestSampleWorker`: console, Zenoh), or does only bounded,
+non-blocking work (MAVLink encodes the streams that are due and hands the
+packets to non-blocking UDP sends or per-peer bounded queues).
 
 Threads: the link's reader and handshake threads, the pipeline thread, one
 per output. :meth:`Daemon.stop` stops them all within a bounded time.

@@ -140,6 +140,10 @@ class Bridge:
                 f"device.port={self.link_path}",
                 f"device.rate_hz={rate_hz}",
                 f"storage.dir={self.state_dir}",
+                # Every frame on the sensor streams (the product default caps them at 10 Hz).
+                "zenoh.heading_rate_hz=0",
+                "zenoh.attitude_rate_hz=0",
+                "zenoh.imu_rate_hz=0",
                 # MAVLink to a test socket when asked, else nowhere.
                 f"mavlink.endpoints=['udpout:127.0.0.1:{mavlink_port}']"
                 if mavlink_port
@@ -664,6 +668,7 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
                 f"zenoh.listen=['tcp/127.0.0.1:{free_port()}']",
                 "zenoh.key_prefix=wired/<hostname>/compass",
                 "zenoh.heading_rate_hz=5",
+                "zenoh.attitude_rate_hz=0",  # every frame (the default caps it at 10 Hz)
                 "zenoh.mavlink_mirror=true",
                 f"mavlink.endpoints=['udpout:127.0.0.1:{gcs.port}']",
             ],

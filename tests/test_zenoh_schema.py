@@ -320,7 +320,8 @@ def test_new_zenoh_keys_are_validated_at_load(tmp_path: Path) -> None:
         hostname="h",
     )
     st = ZenohSettings.from_config(cfg.zenoh)
-    assert (st.heading_rate_hz, st.attitude_rate_hz, st.imu_rate_hz) == (5.0, 0.0, 0.0)
+    # The streams not set keep the default cap (10 Hz, MAVLink's default ATTITUDE rate).
+    assert (st.heading_rate_hz, st.attitude_rate_hz, st.imu_rate_hz) == (5.0, 10.0, 10.0)
     assert st.remote_calibration and st.mavlink_mirror and st.multicast_scouting
     with pytest.raises(ConfigError, match="does not exist") as e:
         load_config(None, [f"zenoh.config_file={tmp_path / 'nope.json5'}"], env={})

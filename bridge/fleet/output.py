@@ -3,9 +3,10 @@
 Threads, and why:
 
 * the pipeline thread calls :meth:`ZenohOutput.publish` for every sample: it
-  appends to a bounded deque and sets an event -- O(1), never blocks, never
-  raises. If the publisher falls more than ``queue_len`` samples behind, the
-  oldest are dropped and counted (``dropped_samples``).
+  applies the rate caps (so a sample no stream wants never wakes the
+  publisher), appends to a bounded deque and sets an event -- O(1), never
+  blocks, never raises. If the publisher falls more than ``queue_len``
+  samples behind, the oldest are dropped and counted (``dropped_samples``).
 * the **publisher** thread (``zenoh-output``) opens the session (only here:
   after any fork, and a slow or failing open never holds up the daemon),
   declares everything, then turns samples, events and the 1 Hz status into
@@ -57,7 +58,8 @@ CALIBRATION_COMMANDS: Final = ("start", "accept", "cancel")
 #: Seconds between attempts to open the session after a failure.
 REOPEN_INTERVAL_S: Final = 0.5
 #: How often the publisher looks for a status change (link state, calibration state).
-_CHANGE_POLL_S: Final = 0.05
+#: Changes that come with an event (link lost/restored, calibration) are looked for at once.
+_CHANGE_POLL_S: Final = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,7 +164,8 @@ class ZenohOutput:
         self.services = services
         self._clock = clock
         self._wall = wall
-        self._samples: deque[CompassSample] = deque(maxlen=queue_len)
+        # Each sample with the streams (heading/attitude/imu) its rate caps let through.
+        self._samples: deque[tuple[CompassSample, tuple[str, ...]]] = deque(maxlen=queue_len)
         self._events: deque[Event] = deque(maxlen=100)
         self._mirror: deque[MirrorMessage | SentPacket] = deque(maxlen=queue_len)
         self._mirror_seq = 0
@@ -221,9 +224,17 @@ class ZenohOutput:
             # No session (yet, or it failed): a backlog would go out as a stale burst later.
             self.counters.unsent += 1
             return
+        # The caps are applied here, in the pipeline thread (the decimators are used by no
+        # other): a sample no stream wants costs no wake-up of the publisher thread.
+        t = sample.t
+        wanted = tuple(name for name, dec in self._decimators.items() if dec.accept(t))
+        if len(wanted) < 3:
+            self.counters.decimated += 3 - len(wanted)
+            if not wanted:
+                return
         if len(self._samples) == self._samples.maxlen:
             self.counters.dropped_samples += 1  # the append below pushes the oldest out
-        self._samples.append(sample)
+        self._samples.append((sample, wanted))
         self._wake.set()
 
     def close(self, timeout: float) -> None:
@@ -378,15 +389,15 @@ class ZenohOutput:
                 break
             self._wake.clear()
             self._drain_samples()
-            self._drain_events()
+            evented = self._drain_events()
             self._drain_mirror()
             now = self._clock()
-            if now >= next_poll:
+            if now >= next_poll or evented:
                 next_poll = now + _CHANGE_POLL_S
-                doc = self._status_doc(sample_rate=True)
-                key = schema.status_key(doc)
+                # The key alone is cheap; the whole document is built only to be published.
+                key = self._status_change_key()
                 if now >= next_status or key != last_key:
-                    self._put("status", doc)
+                    self._put("status", self._status_doc(sample_rate=True))
                     last_key = key
                     next_status = now + self.settings.status_period_s
                     self._attach_mirror()  # a reload may have replaced the MAVLink output
@@ -394,18 +405,14 @@ class ZenohOutput:
     def _drain_samples(self) -> None:
         while True:
             try:
-                sample = self._samples.popleft()
+                sample, wanted = self._samples.popleft()
             except IndexError:
                 return
-            self._publish_sample(sample)
+            self._publish_sample(sample, wanted)
 
-    def _publish_sample(self, sample: CompassSample) -> None:
+    def _publish_sample(self, sample: CompassSample, wanted: tuple[str, ...]) -> None:
         session = self._session
         assert session is not None
-        wanted = [name for name, dec in self._decimators.items() if dec.accept(sample.t)]
-        self.counters.decimated += 3 - len(wanted)
-        if not wanted:
-            return
         ts = session.new_timestamp()
         times = schema.SampleTimes(
             t_monotonic=sample.t,
@@ -422,12 +429,15 @@ class ZenohOutput:
             if doc is not None:
                 self._put(stream, doc, ts)
 
-    def _drain_events(self) -> None:
+    def _drain_events(self) -> bool:
+        """Publish the queued events; True if there were any."""
+        any_event = False
         while True:
             try:
                 event = self._events.popleft()
             except IndexError:
-                return
+                return any_event
+            any_event = True
             self._put("events", schema.event_doc(event))
 
     def _drain_mirror(self) -> None:
@@ -485,6 +495,15 @@ class ZenohOutput:
                 stream,
                 describe_error(e),
             )
+
+    def _status_change_key(self) -> tuple[Any, ...]:
+        """:func:`schema.status_key` of the status document, without building the document."""
+        status = self.services.status()
+        c = status.counters
+        with self._rate_lock:  # fed at every look, so the frame rate is over the whole window
+            self._rate.add(self._clock(), c.attitude_frames or c.frames)
+        cal = self._safe(self.services.calibration_state, {})
+        return (status.state.value, cal.get("state"), cal.get("source"))
 
     def _status_doc(self, *, sample_rate: bool = False) -> dict[str, Any]:
         """The status document; ``sample_rate`` (publisher thread only) feeds the rate meter."""

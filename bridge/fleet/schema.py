@@ -145,8 +145,11 @@ class SampleTimes:
     zenoh_time: str | None = None
 
 
-def _times(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
+def _stamped(schema: str, sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
+    """The schema name, version, sequence and times: the head of every sensor-stream document."""
     return {
+        "schema": schema,
+        "version": VERSIONS[schema],
         "seq": sample.seq,
         "t_monotonic": round(times.t_monotonic, 6),
         "t_unix": round(times.t_unix, 6),
@@ -167,8 +170,7 @@ def quality_flags(sample: CompassSample) -> dict[str, bool]:
 
 def heading_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
     """``<prefix>/heading``: magnetic and true heading, declination, quality flags, times."""
-    doc = _head(HEADING)
-    doc.update(_times(sample, times))
+    doc = _stamped(HEADING, sample, times)
     doc.update(
         {
             "source": sample.source,
@@ -204,8 +206,7 @@ def attitude_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | 
         degraded = False
     else:
         return None
-    doc = _head(ATTITUDE)
-    doc.update(_times(sample, times))
+    doc = _stamped(ATTITUDE, sample, times)
     doc.update(
         {
             "source": sample.source,
@@ -242,8 +243,7 @@ def imu_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | None:
     if a is None:
         return None
     raw_mag, raw_acc = raw_counts(sample)
-    doc = _head(IMU)
-    doc.update(_times(sample, times))
+    doc = _stamped(IMU, sample, times)
     doc.update(
         {
             "raw": {"mag": raw_mag, "accel": raw_acc},

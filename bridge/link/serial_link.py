@@ -637,7 +637,8 @@ class CompassLink:
                 if frames:
                     last_valid = now
                     self._handle(frames, now)
-                    if self.state is not LinkState.STREAMING:
+                    # Only this thread writes the state: a plain read, not the lock, per frame.
+                    if self._state is not LinkState.STREAMING:
                         self._set_state(LinkState.STREAMING)
                         backoff = self._backoff_initial
             if now - last_valid > self.stale_after:

@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
+import os
+import select
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -90,11 +93,10 @@ class Transport(Protocol):
 class SerialTransport:
     """A real serial port through pyserial: 8N1, no flow control, exclusive.
 
-    pyserial on Linux reports a vanished port (USB unplug, pty master closed)
-    either as ``read failed: [Errno 5]`` or as "device reports readiness to
-    read but returned no data"; ``in_waiting`` raises EIO. All of those come
-    out of :meth:`read` as :class:`TransportError`, so the link sees the loss
-    at once instead of spinning on empty reads.
+    On Linux a vanished port (USB unplug, pty master closed) either fails a
+    read with EIO or polls readable and reads nothing. Both come out of
+    :meth:`read` as :class:`TransportError`, so the link sees the loss at
+    once instead of spinning on empty reads.
     """
 
     #: A write that cannot drain in this long means the port is wedged.
@@ -108,7 +110,8 @@ class SerialTransport:
         self.port = port
         self.baud = baud
         self._ser: serial.Serial | None = None
-        self._timeout: float | None = None
+        self._fd = -1
+        self._poller: select.poll | None = None
 
     @property
     def name(self) -> str:
@@ -139,7 +142,11 @@ class SerialTransport:
             )
         except (serial.SerialException, OSError, ValueError) as e:
             raise TransportError(f"cannot open {self.port}: {e}") from e
-        self._timeout = 0.05
+        # pyserial opened the fd O_NONBLOCK: read() polls it directly (see read()).
+        self._fd = self._ser.fd
+        poller = select.poll()
+        poller.register(self._fd, select.POLLIN | select.POLLPRI)
+        self._poller = poller
 
     def _port(self) -> serial.Serial:
         if self._ser is None:
@@ -147,25 +154,37 @@ class SerialTransport:
         return self._ser
 
     def read(self, max_bytes: int, timeout: float) -> bytes:
-        """Whatever has arrived (up to ``max_bytes``), waiting up to ``timeout`` for a byte."""
-        ser = self._port()
+        """Whatever has arrived (up to ``max_bytes``), waiting up to ``timeout`` for a byte.
+
+        The hot path bypasses pyserial's ``read()`` (a select() on two fds, a
+        Timeout object and a per-chunk loop on every call) and its
+        ``in_waiting`` ioctl: one poll() on the port's non-blocking fd, then one
+        os.read() of everything that has arrived -- one wake and two system
+        calls per burst. pyserial still opens, configures, writes and closes.
+        """
+        poller = self._poller
+        if poller is None or self._fd < 0:
+            raise TransportError(f"{self.port} is not open")
         try:
-            waiting = ser.in_waiting
-            if waiting:
-                return bytes(ser.read(min(waiting, max_bytes)))
-            if timeout != self._timeout:
-                # Setting the timeout reconfigures the port (tcsetattr): only when it changes.
-                ser.timeout = timeout
-                self._timeout = timeout
-            first = bytes(ser.read(1))
-            if not first or max_bytes <= 1:
-                return first
-            waiting = ser.in_waiting
-            if waiting:
-                return first + bytes(ser.read(min(waiting, max_bytes - 1)))
-            return first
-        except (serial.SerialException, OSError) as e:
-            raise TransportError(f"{self.port}: {e}") from e
+            events = poller.poll(math.ceil(timeout * 1000.0) if timeout > 0 else 0)
+            if not events:
+                return b""
+            if events[0][1] & select.POLLNVAL:
+                raise TransportError(f"{self.port}: port descriptor is no longer valid")
+            data = os.read(self._fd, max_bytes)
+        except (BlockingIOError, InterruptedError):
+            return b""  # readiness that another reader took (exclusive makes it rare): no data
+        except OSError as e:
+            # EIO: the pty master closed or the USB adapter went away.
+            raise TransportError(f"{self.port}: read failed: {e}") from e
+        if not data:
+            # A vanished port (hang-up) polls readable forever and reads nothing: without
+            # this the link would spin on empty reads instead of reopening.
+            raise TransportError(
+                f"{self.port}: device reports readiness to read but returned no data "
+                "(device disconnected?)"
+            )
+        return data
 
     def write(self, data: bytes) -> None:
         """Write all of ``data`` (bounded by :attr:`WRITE_TIMEOUT_S`)."""
@@ -178,6 +197,7 @@ class SerialTransport:
     def close(self) -> None:
         """Close the port (idempotent; errors from a vanished port are ignored)."""
         ser, self._ser = self._ser, None
+        self._fd, self._poller = -1, None
         if ser is not None:
             with contextlib.suppress(serial.SerialException, OSError):
                 ser.close()

@@ -66,6 +66,11 @@ BACKOFF_MAX_S = 5.0
 _MAX_WAIT_S = 0.5  # select() timeout: bounds how late close() and timers are noticed
 _READ_BYTES = 65536
 _PENDING_LOW_WATER = 8192  # stream links: refill the byte buffer below this
+#: UDP: at most this many packets per _DIRECT_WINDOW_S go out from the sender's thread
+#: (a frame's telemetry); a larger burst (a parameter list) is queued for the endpoint's
+#: thread, so a sender's time per call stays bounded and bursts keep their old pacing.
+_DIRECT_BURST = 16
+_DIRECT_WINDOW_S = 0.01
 
 
 @dataclass(slots=True)
@@ -129,9 +134,16 @@ class Link:
         self.closed = False
 
     def send(self, packet: Packet) -> None:
-        """Queue ``packet`` for this peer; never blocks (drops the oldest when full)."""
+        """Queue ``packet`` for this peer; never blocks (drops the oldest when full).
+
+        A UDP endpoint with nothing queued sends it at once from the calling
+        thread instead (a non-blocking ``sendto``): no wake-up of the endpoint's
+        thread for every telemetry message.
+        """
         if self.closed:
             self.endpoint.count_unsent()
+            return
+        if not self.queue and self.endpoint.send_now(self, packet):
             return
         q = self.queue
         if len(q) >= self.limit:
@@ -188,6 +200,13 @@ class Endpoint:
         self._last_error = ""
 
     # ------------------------------------------------------------------ public
+
+    def send_now(self, link: Link, packet: Packet) -> bool:
+        """Send ``packet`` to ``link`` from the calling thread if that cannot block; True if done.
+
+        False (the default) means "queue it for the endpoint's thread".
+        """
+        return False
 
     def make_framer(self) -> Framer:
         """A new framer for a link of this endpoint (our ids, signing, link id)."""
@@ -424,9 +443,45 @@ class UdpEndpoint(Endpoint):
         self.kind = "udpout" if spec.kind == "udpout" else "udpin"
         self._sock: socket.socket | None = None
         self._by_addr: dict[Any, Link] = {}
+        # Framing (the per-link sequence number) and sendto happen in the endpoint's thread
+        # (_flush) and in senders' threads (send_now): one at a time.
+        self._send_lock = threading.Lock()
+        self._direct_window = 0.0  # start of the current direct-send window (monotonic)
+        self._direct_count = 0  # packets sent directly in it
 
     def _is_open(self) -> bool:
         return self._sock is not None
+
+    def send_now(self, link: Link, packet: Packet) -> bool:
+        """A datagram needs no waiting: frame and send it here, unless packets wait ahead of it."""
+        if not self._send_lock.acquire(blocking=False):
+            return False  # the endpoint's thread is sending: queue behind it
+        try:
+            sock = self._sock
+            if sock is None or link.closed or link.queue or link.pending:
+                return False
+            now = time.monotonic()
+            if now - self._direct_window >= _DIRECT_WINDOW_S:
+                self._direct_window, self._direct_count = now, 0
+            if self._direct_count >= _DIRECT_BURST:
+                return False
+            self._direct_count += 1
+            data = link.framer.frame(packet)
+            try:
+                n = sock.sendto(data, link.address)
+            except (BlockingIOError, InterruptedError):
+                link.pending[:] = data  # the endpoint's thread sends it when writable
+                self.wake()
+                return True
+            except OSError as e:
+                self._count("errors")
+                log.debug("mavlink %s: sendto %s: %s", self.name, link.address, e)
+                return True  # lost, as in _flush: the endpoint lives on
+        finally:
+            self._send_lock.release()
+        self._count("packets_sent")
+        self._count("bytes_sent", n)
+        return True
 
     def _open(self) -> None:
         family, addr = _resolve(self.spec.host, self.spec.port, socket.SOCK_DGRAM)
@@ -500,6 +555,10 @@ class UdpEndpoint(Endpoint):
         """Writes happen in :meth:`_flush`; writability just ends the wait."""
 
     def _flush(self) -> None:
+        with self._send_lock:
+            self._flush_locked()
+
+    def _flush_locked(self) -> None:
         sock = self._sock
         if sock is None:
             return
@@ -539,10 +598,11 @@ class UdpEndpoint(Endpoint):
                 self._forget(link)
 
     def _close_transport(self) -> None:
-        if self._sock is not None:
-            with contextlib.suppress(OSError):
-                self._sock.close()
-        self._sock = None
+        with self._send_lock:  # not under a send_now() in another thread
+            if self._sock is not None:
+                with contextlib.suppress(OSError):
+                    self._sock.close()
+            self._sock = None
         for link in list(self._links):
             self._drop_link(link)
         self._by_addr = {}

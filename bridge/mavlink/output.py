@@ -3,9 +3,13 @@
 It is a daemon :class:`~bridge.daemon.Output`: ``publish`` keeps the latest
 sample (one reference store, never blocks); its threads do the rest:
 
-* the **telemetry** thread wakes on a new sample or the next clock stream and
-  encodes what is due (:class:`~bridge.mavlink.telemetry.StreamSchedule`),
-  plus MAG_CAL_PROGRESS while a magnetometer calibration runs;
+* ``publish`` (the pipeline thread) encodes the sample streams that are due
+  (:class:`~bridge.mavlink.telemetry.StreamSchedule`) and queues them on the
+  endpoints -- a few microseconds per due message, never blocking: at 100 Hz
+  most frames carry no due message, and waking a thread per frame just to find
+  that out cost more than the encoding;
+* the **telemetry** thread wakes on the clock only: HEARTBEAT, SYS_STATUS,
+  MAG_CAL_PROGRESS while a magnetometer calibration runs, command time-outs;
 * the **dispatcher** thread handles what ground stations send (parameters,
   commands, the autopilot's position), one message at a time, in order;
 * one thread per **endpoint** (:mod:`bridge.mavlink.endpoints`) does the I/O.
@@ -187,6 +191,7 @@ class OutputCounters:
     commands: int = 0
     events_relayed: int = 0
     tap_errors: int = 0
+    publish_errors: int = 0  #: sample streams that failed to encode (logged once)
 
 
 class MavlinkOutput:
@@ -214,7 +219,7 @@ class MavlinkOutput:
         self.relay = C.CalibrationRelay()
         self._svc: BridgeServices | None = None
         self._latest: CompassSample | None = None
-        self._fresh = False
+        self._running = False  # publish() sends only between start() and close()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._inbox: deque[tuple[Any, Link]] = deque()
@@ -248,10 +253,24 @@ class MavlinkOutput:
         return "mavlink"
 
     def publish(self, sample: CompassSample) -> None:
-        """Keep ``sample`` as the latest and wake the telemetry thread; O(1)."""
+        """Keep ``sample`` as the latest and queue the sample streams now due; never blocks.
+
+        Runs in the caller's (pipeline) thread: encoding is pure and cheap, and
+        :meth:`Link.send <bridge.mavlink.endpoints.Link.send>` only appends to a
+        bounded queue and pokes the endpoint's thread. Never raises: a failure
+        is counted in ``counters.publish_errors`` and logged once.
+        """
         self._latest = sample
-        self._fresh = True
-        self._wake.set()
+        if not self._running:
+            return
+        try:
+            out = self._sample_packets(sample, self._clock())
+            if out:
+                self.broadcast(out)
+        except Exception:
+            self.counters.publish_errors += 1
+            if self.counters.publish_errors == 1:
+                log.exception("mavlink: encoding telemetry failed (further failures counted)")
 
     def start(self) -> None:
         """Resolve the daemon's services, restore parameters, open endpoints, start threads."""
@@ -275,6 +294,7 @@ class MavlinkOutput:
             self.endpoints.append(ep)
         for ep in self.endpoints:
             ep.start()
+        self._running = True
         self._unsubscribe = svc.events.subscribe(self._on_event)
         for target, name in (
             (self._telemetry_loop, "telemetry"),
@@ -302,6 +322,7 @@ class MavlinkOutput:
     def close(self, timeout: float) -> None:
         """Stop threads and endpoints within about ``timeout`` seconds; pending saves are written."""
         deadline = self._clock() + timeout
+        self._running = False
         self._stop.set()
         self._wake.set()
         with self._inbox_cond:
@@ -434,25 +455,33 @@ class MavlinkOutput:
         # VISION_POSITION_ESTIMATE shares the heading feed's schedule slot.
         return T.ODOMETRY if msgid == T.VISION_POSITION_ESTIMATE else msgid
 
+    def _sample_packets(self, sample: CompassSample, now: float) -> list[Packet]:
+        """The sample streams due with ``sample`` arriving at ``now``, encoded."""
+        wanted = self._sample_streams()
+        due = self.schedule.due_on_sample({self._schedule_id(m) for m in wanted}, now)
+        out: list[Packet] = []
+        if due:
+            for msgid in wanted:
+                if self._schedule_id(msgid) in due:
+                    p = self._encode_sample(msgid, sample)
+                    if p is not None:
+                        out.append(p)
+        return out
+
     def _telemetry_loop(self) -> None:
+        # Paced by the clock streams and the calibration keep-alive, not by the frame rate:
+        # sample streams go out from publish().
         while not self._stop.is_set():
             now = self._clock()
-            wait = min(0.5, max(0.0, self.schedule.next_clock_due(now) - now))
-            self._wake.wait(wait)
+            due_at = min(
+                self.schedule.next_clock_due(now), self._last_progress + _PROGRESS_PERIOD_S
+            )
+            self._wake.wait(min(0.5, max(0.0, due_at - now)))
             self._wake.clear()
             if self._stop.is_set():
                 break
             now = self._clock()
             out: list[Packet] = []
-            sample, self._fresh = (self._latest if self._fresh else None), False
-            if sample is not None:
-                wanted = self._sample_streams()
-                due = set(self.schedule.due_on_sample({self._schedule_id(m) for m in wanted}, now))
-                for msgid in wanted:
-                    if self._schedule_id(msgid) in due:
-                        p = self._encode_sample(msgid, sample)
-                        if p is not None:
-                            out.append(p)
             clock_due = self.schedule.due_on_clock(now)
             if clock_due:
                 h = self._health(now)
@@ -948,6 +977,7 @@ class MavlinkOutput:
             self.relay.begin(None)
             log.warning("mavlink: magnetometer calibration not started: %s", out.message)
         self._last_progress = -math.inf
+        self._wake.set()  # the first MAG_CAL_PROGRESS now, not at the telemetry thread's next tick
         return C.result_code(out)
 
     def _cmd_accept_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
@@ -1015,6 +1045,7 @@ class MavlinkOutput:
                 T.statustext(int(Severity.ERROR), C.cal_line(f"calibration failed: {out.message}"))
             )
         self._last_progress = -math.inf
+        self._wake.set()  # the first MAG_CAL_PROGRESS now, not at the telemetry thread's next tick
         return C.result_code(out)
 
     def _cmd_preflight_storage(self, cmd: C.Command, link: Link) -> int | None:

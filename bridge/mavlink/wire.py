@@ -41,7 +41,7 @@ class Packet:
 class Codec:
     """Encoder for one message type, built from pymavlink's generated class."""
 
-    __slots__ = ("_chars", "_layout", "_struct", "crc_extra", "msgid", "name")
+    __slots__ = ("_chars", "_layout", "_names", "_struct", "crc_extra", "msgid", "name")
 
     def __init__(self, msgid: int) -> None:
         cls = message_class(msgid)
@@ -55,6 +55,11 @@ class Codec:
         self._layout: tuple[tuple[str, int], ...] = tuple(
             zip(cls.ordered_fieldnames, cls.array_lengths, strict=True)
         )
+        # Scalar-only messages (ATTITUDE, SCALED_IMU, ...: the telemetry) take a fast path.
+        simple = not self._chars and not any(n for _name, n in self._layout)
+        self._names: tuple[str, ...] | None = (
+            tuple(name for name, _n in self._layout) if simple else None
+        )
 
     def payload(self, fields: Mapping[str, Any]) -> bytes:
         """Pack ``fields`` (every field by name; arrays as sequences, char fields as str/bytes).
@@ -62,6 +67,9 @@ class Codec:
         Raises ``KeyError`` for a missing field and ``struct.error`` for a value
         that does not fit its type.
         """
+        names = self._names
+        if names is not None:
+            return trim(self._struct.pack(*[fields[name] for name in names]))
         values: list[Any] = []
         for name, n in self._layout:
             v = fields[name]
@@ -83,10 +91,8 @@ class Codec:
 
 def trim(payload: bytes) -> bytes:
     """MAVLink 2 payload truncation: trailing zero bytes dropped, at least one byte kept."""
-    n = len(payload)
-    while n > 1 and payload[n - 1] == 0:
-        n -= 1
-    return payload[:n]
+    out = payload.rstrip(b"\0")  # in C: this runs for every message sent
+    return out if out else payload[:1]
 
 
 _CODECS: dict[int, Codec] = {}

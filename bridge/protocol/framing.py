@@ -293,9 +293,12 @@ class DecodeError(ValueError):
 
 def check_int(value: object, name: str, lo: int, hi: int | None) -> int:
     """An integer (any Integral, not bool) in lo..hi (hi None: unbounded), else DecodeError."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise DecodeError(DropReason.NUMBER, f"{name} must be an integer, got {value!r}")
-    v = operator.index(value)
+    if type(value) is int:  # the decoders' case: no bool/ABC checks needed (per-frame path)
+        v = value
+    else:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise DecodeError(DropReason.NUMBER, f"{name} must be an integer, got {value!r}")
+        v = operator.index(value)
     if v < lo or (hi is not None and v > hi):
         raise DecodeError(DropReason.RANGE, f"{name}={v} outside {lo}..{hi}")
     return v
@@ -303,9 +306,12 @@ def check_int(value: object, name: str, lo: int, hi: int | None) -> int:
 
 def check_real(value: object, name: str, lo: float, hi: float, *, hi_open: bool = False) -> float:
     """A finite real in [lo, hi] (or [lo, hi) with ``hi_open``) as float, else DecodeError."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise DecodeError(DropReason.NUMBER, f"{name} must be a number, got {value!r}")
-    v = float(value)
+    if type(value) is float:  # the decoders' case: no bool/ABC checks needed (per-frame path)
+        v = value
+    else:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise DecodeError(DropReason.NUMBER, f"{name} must be a number, got {value!r}")
+        v = float(value)
     if not math.isfinite(v):
         raise DecodeError(DropReason.NUMBER, f"{name} must be finite, got {v!r}")
     if v < lo or v > hi or (hi_open and v >= hi):

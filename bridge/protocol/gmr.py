@@ -611,7 +611,8 @@ def _decode_attitude(f: list[str]) -> AttitudeFrame:
     )
     if not _HEX2_RE.fullmatch(f[10]):
         raise DecodeError(DropReason.NUMBER, f"flags {f[10]!r} are not two hex digits")
-    return AttitudeFrame(seq, hdg, pitch, roll, mx, my, mz, ax, ay, az, Flags(int(f[10], 16)))
+    # The plain int: __post_init__ range-checks it and makes the Flags (once, not twice).
+    return AttitudeFrame(seq, hdg, pitch, roll, mx, my, mz, ax, ay, az, int(f[10], 16))  # type: ignore[arg-type]
 
 
 def _decode_version(f: list[str]) -> VersionFrame:
