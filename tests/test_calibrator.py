@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from test_mavlink_rig import FastClock  # the shared simulated-compass harness
 
 from bridge.calibration.model import Calibration
 from bridge.calibration.sanity import MagCalStatus
@@ -68,20 +69,6 @@ SPEED = 20.0  #: fast runs: simulated seconds per real second
 DEADLINE_S = 30.0  #: real seconds any single wait may take before the test fails
 LAT, LON, ALT = DEFAULT_LOCATION
 FIELD: EarthField = earth_field(LAT, LON, ALT)
-
-
-class FastClock:
-    """Monotonic time running ``speed`` times faster than real time (and its sleep)."""
-
-    def __init__(self, speed: float) -> None:
-        self.speed = speed
-        self._t0 = time.monotonic()
-
-    def __call__(self) -> float:
-        return self._t0 + (time.monotonic() - self._t0) * self.speed
-
-    def sleep(self, seconds: float) -> None:
-        time.sleep(max(0.0, seconds) / self.speed)
 
 
 class EventLog:
