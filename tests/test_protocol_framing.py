@@ -5,7 +5,9 @@ from __future__ import annotations
 import functools
 import operator
 
+import codec_props as props
 import pytest
+from codec_props import feed_in_chunks
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -241,10 +243,8 @@ def test_drop_counters_mapping() -> None:
 
 body_chars = st.characters(min_codepoint=0x20, max_codepoint=0x7E, exclude_characters="$*")
 bodies = st.text(body_chars, min_size=0, max_size=MAX_BODY_BYTES)
-between_noise = st.binary(max_size=40).map(lambda b: b.replace(b"$", b""))
-inside_noise = st.binary(min_size=1, max_size=5).map(
-    lambda b: bytes(x | 0x80 if x in (0x0A, 0x0D) or 0x20 <= x <= 0x7E else x for x in b)
-)
+between_noise = props.between_noise(40)
+inside_noise = props.inside_noise(5)
 
 
 @FAST
@@ -257,11 +257,7 @@ def test_chunking_never_changes_the_result(
     expected = whole.feed(stream)
     cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=12)))
     chunked = LineSplitter()
-    got: list[str] = []
-    prev = 0
-    for c in [*cuts, len(stream)]:
-        got += chunked.feed(stream[prev:c])
-        prev = c
+    got = feed_in_chunks(chunked, stream, cuts)
     assert got == expected
     assert chunked.counters.snapshot() == whole.counters.snapshot()
     # Noise between lines never contains "$", so every line survives.

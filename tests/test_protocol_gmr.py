@@ -5,8 +5,10 @@ from __future__ import annotations
 import functools
 import operator
 
+import codec_props as props
 import numpy as np
 import pytest
+from codec_props import feed_in_chunks, stream_with_noise
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -501,19 +503,13 @@ def test_any_chunking_gives_the_same_frames(
     expected = whole.feed(stream)
     cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=10)))
     chunked = GmrDecoder()
-    got: list[GmrFrame] = []
-    prev = 0
-    for c in [*cuts, len(stream)]:
-        got += chunked.feed(stream[prev:c])
-        prev = c
+    got = feed_in_chunks(chunked, stream, cuts)
     assert got == expected
     assert chunked.counters.dropped.snapshot() == whole.counters.dropped.snapshot()
 
 
-between_noise = st.binary(max_size=30).map(lambda b: b.replace(b"$", b""))
-inside_noise = st.binary(min_size=1, max_size=4).map(
-    lambda b: bytes(x | 0x80 if x in (0x0A, 0x0D) or 0x20 <= x <= 0x7E else x for x in b)
-)
+between_noise = props.between_noise(30)
+inside_noise = props.inside_noise(4)
 
 
 @FAST
@@ -531,16 +527,7 @@ def test_noise_yields_exactly_the_frames_it_did_not_touch(
     """Junk between frames never holds "$" (so it cannot start or cut a line); junk
     inside a frame is control/non-ASCII bytes (which kill that line). The output is
     therefore exactly the untouched frames, in order."""
-    stream = b""
-    expected: list[GmrFrame] = []
-    for frame, between, inside in items:
-        raw = encode(frame)
-        if inside is None:
-            expected.append(frame)
-        else:
-            at = 1 + inside[0] % (len(raw) - 1)
-            raw = raw[:at] + inside[1] + raw[at:]
-        stream += between + raw
+    stream, expected = stream_with_noise(items, encode)
     dec = GmrDecoder()
     assert dec.feed(stream) == expected
     touched = len(items) - len(expected)
