@@ -251,7 +251,7 @@ class WatchedTransport:
         self._liveness = liveness
         self._beat_name = name
         self._clock = clock
-        self._hang = threading.Event()
+        self._hang_armed = False  # test hook (a plain flag: read for every frame)
         self._released = threading.Event()
         self._swap_lock = threading.Lock()
         self._pending: Any = None
@@ -282,6 +282,10 @@ class WatchedTransport:
             self._pending = inner
 
     def _swap(self) -> bool:
+        if self._pending is None:
+            # Unlocked peek (one attribute read) on the per-read path: a reload's replace()
+            # racing it is seen at the next read, a few milliseconds later.
+            return False
         with self._swap_lock:
             new, self._pending = self._pending, None
         if new is None:
@@ -303,11 +307,12 @@ class WatchedTransport:
 
     def read(self, max_bytes: int, timeout: float) -> bytes:
         """Read from the wrapped transport (a beat on return)."""
-        if self._hang.is_set():
+        # Attribute peeks before the calls: this runs for every frame.
+        if self._hang_armed:
             log.warning("test hook: the serial reader hangs now")
             self._released.wait()
-            self._hang.clear()
-        if self._swap():
+            self._hang_armed = False
+        if self._pending is not None and self._swap():
             self._liveness.beat(self._beat_name, self._clock())
             raise TransportError("port settings changed by a reload; reopening")
         try:
@@ -328,7 +333,7 @@ class WatchedTransport:
     def hang(self) -> None:
         """TEST HOOK: make the reader block in its next read until close/release."""
         self._released.clear()
-        self._hang.set()
+        self._hang_armed = True
 
     def release(self) -> None:
         """TEST HOOK: let a hung read return."""

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core import sensor
@@ -329,3 +331,27 @@ def test_vectorised_heading_matches_the_fast_path() -> None:
         tilt_compensated_heading(mag, acc[:5])
     with pytest.raises(ValueError):
         attitude_matrix_from_vectors(np.array([0.0, 0.0, 0.5]), np.array([0.0, 0.0, 1.0]))
+
+
+@given(
+    st.floats(-1e6, 1e6, allow_nan=False),
+    st.one_of(st.none(), st.floats(-180.0, 180.0), st.sampled_from([-180.0, 180.0, 180.000005])),
+)
+def test_inline_heading_folds_match_fold_360(x: float, decl: float | None) -> None:
+    """The per-frame path folds headings inline; it must agree with _fold_360 (the rule:
+    [0, 360), and never 360.0) for the atan2 heading and for heading + declination."""
+    from bridge.core.attitude import _DEG, _fold_360
+
+    eng = AttitudeEngine(
+        Calibration(), reference=FieldReference(declination_deg=decl), heading_reference="true"
+    )
+    # A level unit whose field points at atan2 angle x: heading = fold(-x) in degrees.
+    ang = math.radians(x)
+    s = eng._state
+    a = eng._finish(s, math.cos(ang), math.sin(ang), 0.4, 0.0, 0.0, 1.0)
+    assert 0.0 <= a.heading_magnetic_deg < 360.0
+    assert a.heading_magnetic_deg == _fold_360(math.atan2(-math.sin(ang), math.cos(ang)) * _DEG)
+    if decl is None:
+        assert a.heading_true_deg is None
+    else:
+        assert a.heading_true_deg == _fold_360(a.heading_magnetic_deg + decl)

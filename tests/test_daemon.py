@@ -289,6 +289,45 @@ def test_a_stuck_output_does_not_stall_the_others(
         stuck.release.set()
 
 
+class Wedged(Collect):
+    """An output that breaks the contract: its publish() blocks (a bug, a wedged lock)."""
+
+    name = "wedged"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def publish(self, sample: CompassSample) -> None:
+        super().publish(sample)
+        if len(self.samples) == 5:
+            self.entered.set()
+            self.release.wait(DEADLINE_S)
+
+
+def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    """The per-frame path runs in the link's reader thread (no queue, no second thread), and
+    ``pipeline_alive_at`` -- what the service watchdog reads -- stays at the arrival of a frame
+    that never comes out, then moves again once it does."""
+    with PtyFeeder(gmr_lines(UnitErrors.ideal(), [0.0, 90.0]), period=0.01) as pty:
+        out = Wedged()
+        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        assert out.entered.wait(DEADLINE_S)
+        stuck_at = d.pipeline_alive_at
+        time.sleep(0.3)
+        assert d.pipeline_alive_at == stuck_at  # frozen while the frame is inside
+        assert time.monotonic() - stuck_at >= 0.3
+        assert d.link.get(timeout=0.1) is None  # no consumer queue
+        assert d.link.counters.consumer_drops == 0
+        out.release.set()
+        out.wait_for(10)
+        assert time.monotonic() - d.pipeline_alive_at < 0.1  # idle between frames: alive now
+        assert d.pipeline_errors == 0
+
+
 # --- heading-only compasses -----------------------------------------------------------
 
 

@@ -424,6 +424,21 @@ def test_lagging_consumer_loses_oldest_frames_only(peer: Peer) -> None:
     assert [i.frame for i in col.items[idx : idx + 5]] == newest
 
 
+def test_without_a_queue_every_frame_goes_to_on_frame_only(peer: Peer) -> None:
+    """queue_size=0 (the daemon's set-up): the reader hands frames to on_frame and keeps
+    no queue, so nothing is ever counted as dropped for want of a consumer."""
+    with pytest.raises(ValueError, match="on_frame"):
+        make_link(peer.path, None, queue_size=0)
+    col = Collector()
+    with make_link(peer.path, col, queue_size=0) as link:
+        assert wait_until(lambda: len(col.seqs()) >= 40, 5.0)
+        assert link.get(timeout=0.05) is None
+        assert link.get(timeout=None) is None  # would block forever with a queue
+        assert link.counters.consumer_drops == 0
+    seqs = col.seqs()
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # in order, none lost
+
+
 # ---------------------------------------------------------------------------- commands
 
 

@@ -226,18 +226,24 @@ def test_a_stuck_tcp_client_costs_only_its_own_queue(endpoints: Callable[..., En
     udp_peer.bind(("127.0.0.1", 0))
     udp_peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
     live_ep = endpoints(f"udpout:127.0.0.1:{udp_peer.getsockname()[1]}", queue_packets=100_000)
+    assert wait_until(lambda: stuck_ep.local_address is not None)  # type: ignore[attr-defined]
     stuck = socket.create_connection(("127.0.0.1", tport), timeout=DEADLINE_S)
     stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # and it never reads
     try:
         assert wait_until(lambda: len(stuck_ep.links) == 1 and len(live_ep.links) == 1)
         n = 20_000
+        # The live peer reads while the producer sends, as a ground station does: a socket
+        # buffer left to fill would drop datagrams however well the endpoint did.
+        got: list[bytes] = []
+        reader = threading.Thread(target=lambda: got.extend(recv_udp(udp_peer, n)))
+        reader.start()
         t0 = time.monotonic()
         for i in range(n):
             stuck_ep.broadcast(ping(i))
             live_ep.broadcast(ping(i))
         elapsed = time.monotonic() - t0
         assert elapsed < 10.0  # the producer never waited on the stuck client
-        got = recv_udp(udp_peer, n)
+        reader.join(DEADLINE_S + 1.0)
         assert len(got) >= 0.95 * n  # the live peer got (nearly) everything, in order
         seqs = [parse_all(d)[0].time_boot_ms for d in got]
         assert seqs == sorted(seqs)
@@ -299,3 +305,51 @@ def test_signed_endpoint_output_verifies_in_pymavlink(endpoints: Callable[..., E
     assert msg._signed and msg._link_id == 3 and msg.time_boot_ms == 5
     with pytest.raises(M.MAVError):
         parse_all(data, bytes(32))
+
+
+def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """At most _DIRECT_BURST packets per _DIRECT_WINDOW_S go out from the sender's thread;
+    the rest wait for the endpoint's thread, and nothing overtakes them."""
+    now = [500.0]
+    monkeypatch.setattr(E, "_monotonic", lambda: now[0])
+    burst = E._DIRECT_BURST
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    # Not started: the test plays the endpoint thread's part (_flush) itself.
+    ep: Any = open_endpoint(
+        f"udpout:127.0.0.1:{peer.getsockname()[1]}", system_id=1, component_id=1,
+        on_message=Inbox(), queue_packets=1000,
+    )  # fmt: skip
+    try:
+        ep._open()
+        (link,) = ep.links
+        direct = [ep.send_now(link, ping(i)) for i in range(burst)]
+        assert direct == [True] * burst
+        assert not ep.send_now(link, ping(999))  # one window's worth went out
+        now[0] += E._DIRECT_WINDOW_S * 0.9
+        assert not ep.send_now(link, ping(999))  # still the same window
+        now[0] += E._DIRECT_WINDOW_S * 0.2
+        # A new window: Link.send sends directly again, up to the limit, then queues.
+        for i in range(burst, 3 * burst):
+            link.send(ping(i))
+        assert [p.payload for p in link.queue] == [
+            ping(i).payload for i in range(2 * burst, 3 * burst)
+        ]
+        now[0] += 1.0
+        link.send(ping(3 * burst))  # the window is over, but packets wait: behind them
+        assert link.queue[-1].payload == ping(3 * burst).payload
+        ep._flush()
+        assert not link.queue
+        n = 3 * burst + 1
+        got = [parse_all(d)[0] for d in recv_udp(peer, n)]
+        assert [m.time_boot_ms for m in got] == list(range(n))
+        assert [m.get_seq() for m in got] == list(range(n))  # framed once each, in order
+        c = ep.counters()
+        assert c.packets_sent == n
+        assert c.bytes_sent == sum(len(m.get_msgbuf()) for m in got)
+    finally:
+        ep.close(1.0)
+        peer.close()

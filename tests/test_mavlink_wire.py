@@ -6,7 +6,11 @@ import math
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink import wire
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module
 from bridge.mavlink.signing import (
     NEW_STREAM_WINDOW_S,
@@ -15,7 +19,7 @@ from bridge.mavlink.signing import (
     Verdict,
     unix_to_ticks,
 )
-from bridge.mavlink.wire import Framer, codec, trim
+from bridge.mavlink.wire import Framer, Packet, codec, trim
 
 KEY = bytes(range(32))
 OTHER_KEY = bytes(range(1, 33))
@@ -195,3 +199,165 @@ def test_unix_to_ticks() -> None:
     assert unix_to_ticks(1420070401.5) == 150_000
     assert unix_to_ticks(0.0) == 0  # a clock before 2015 (no RTC): not negative
     assert math.isclose(unix_to_ticks(1.8e9), (1.8e9 - 1420070400) * 1e5, rel_tol=1e-12)
+
+
+# ---------------------------------------------------------------------------- the fast paths
+
+_f32 = st.floats(width=32, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    seq=st.integers(0, 255),
+    sysid=st.integers(1, 255),
+    compid=st.integers(0, 255),
+    link_id=st.integers(0, 255),
+    signed=st.booleans(),
+    t_ms=st.integers(0, 2**32 - 1),
+    angles=st.tuples(_f32, _f32, _f32),
+    rates=st.tuples(_f32, _f32, _f32),
+)
+def test_frames_are_byte_for_byte_what_pymavlink_sends(
+    seq: int,
+    sysid: int,
+    compid: int,
+    link_id: int,
+    signed: bool,
+    t_ms: int,
+    angles: tuple[float, float, float],
+    rates: tuple[float, float, float],
+) -> None:
+    now = 1.8e9
+    signing = Signing(KEY, clock=Clock(now)) if signed else None
+    framer = Framer(sysid, compid, signing=signing, link_id=link_id)
+    framer.seq = seq
+    p = codec(M.MAVLINK_MSG_ID_ATTITUDE).packet(
+        time_boot_ms=t_ms,
+        roll=angles[0],
+        pitch=angles[1],
+        yaw=angles[2],
+        rollspeed=rates[0],
+        pitchspeed=rates[1],
+        yawspeed=rates[2],
+    )
+    ours = framer.frame(p)
+    mav = M.MAVLink(None, sysid, compid)
+    mav.seq = seq
+    if signed:
+        mav.signing.secret_key = KEY
+        mav.signing.sign_outgoing = True
+        mav.signing.link_id = link_id
+        mav.signing.timestamp = unix_to_ticks(now)
+    theirs = mav.attitude_encode(t_ms, *angles, *rates).pack(mav)
+    assert ours == theirs
+    assert framer.seq == (seq + 1) & 0xFF
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=300))
+def test_the_crc_is_pymavlinks_x25crc(data: bytes) -> None:
+    # The frame CRC calls fastcrc directly; without it, pymavlink's own object.
+    assert wire._crc(data) == wire._x25crc(data) == M.x25crc(data).crc
+
+
+# Each packer the telemetry uses, and one that reorders (VFR_HUD's wire order differs).
+_PACKERS: list[tuple[int, tuple[str, ...], dict[str, Any]]] = [
+    (T.ATTITUDE, ("time_boot_ms", "roll", "pitch", "yaw"),
+     {"rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0}),
+    (T.ATTITUDE_QUATERNION, ("time_boot_ms", "q1", "q2", "q3", "q4"),
+     {"rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0, "repr_offset_q": (0.0, 1.5, 0.0, 2.0)}),
+    (T.VFR_HUD, ("heading", "alt"), {"airspeed": 0.0, "groundspeed": 0.0, "throttle": 7, "climb": 0.0}),
+    (T.VFR_HUD, ("climb", "throttle", "heading", "alt", "airspeed", "groundspeed"), {}),
+    (T.SCALED_IMU, ("time_boot_ms", "xacc", "yacc", "zacc", "xmag", "ymag", "zmag"),
+     {"xgyro": 0, "ygyro": 0, "zgyro": 0, "temperature": 0}),
+    (T.RAW_IMU, ("time_usec", "xacc", "yacc", "zacc", "xmag", "ymag", "zmag"),
+     {"xgyro": 0, "ygyro": 0, "zgyro": 0, "id": 0, "temperature": 0}),
+    (T.HIGHRES_IMU, ("time_usec", "xacc", "yacc", "zacc", "xmag", "ymag", "zmag"),
+     {"xgyro": 0.0, "ygyro": 0.0, "zgyro": 0.0, "abs_pressure": 0.0, "diff_pressure": 0.0,
+      "pressure_alt": 0.0, "temperature": 0.0, "fields_updated": 0x1C7, "id": 0}),
+    (M.MAVLINK_MSG_ID_STATUSTEXT, ("severity", "id"), {"text": "hello", "chunk_seq": 0}),
+]  # fmt: skip
+_INT_RANGE = {"B": (0, 255), "b": (-128, 127), "H": (0, 65535), "h": (-32768, 32767),
+              "I": (0, 2**32 - 1), "Q": (0, 2**64 - 1)}  # fmt: skip
+
+
+@settings(max_examples=60, deadline=None)
+@given(which=st.integers(0, len(_PACKERS) - 1), data=st.data())
+def test_packer_gives_the_bytes_packet_gives(which: int, data: st.DataObject) -> None:
+    msgid, names, constants = _PACKERS[which]
+    c = codec(msgid)
+    cls = M.mavlink_map[msgid]
+    types = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
+    values: list[Any] = []
+    for name in names:
+        t = types[name]
+        if t.startswith(("float", "double")):
+            values.append(data.draw(st.one_of(st.just(0.0), _f32), label=name))
+        else:
+            fmt = {"uint8_t": "B", "int8_t": "b", "uint16_t": "H", "int16_t": "h",
+                   "uint32_t": "I", "uint64_t": "Q"}[t]  # fmt: skip
+            lo, hi = _INT_RANGE[fmt]
+            values.append(data.draw(st.one_of(st.just(0), st.integers(lo, hi)), label=name))
+    fast = c.packer(names, **constants)(*values)
+    general = c.packet(**dict(zip(names, values, strict=True)), **constants)
+    assert fast == general and type(fast) is Packet
+    (msg,) = parse(Framer(1, 1).frame(fast))
+    for name, v in zip(names, values, strict=True):
+        assert getattr(msg, name) == v
+
+
+def test_packer_refuses_a_wrong_field_list() -> None:
+    c = codec(M.MAVLINK_MSG_ID_ATTITUDE)
+    with pytest.raises(KeyError, match="no value for yawspeed"):
+        c.packer(("time_boot_ms", "roll", "pitch", "yaw"), rollspeed=0.0, pitchspeed=0.0)
+    with pytest.raises(KeyError, match="no field"):
+        c.packer(("time_boot_ms", "bogus"))
+    with pytest.raises(ValueError, match="named twice"):
+        c.packer(("roll", "roll"))
+    with pytest.raises(ValueError, match="only as constants"):
+        codec(M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION).packer(
+            ("time_boot_ms", "q1", "q2", "q3", "q4", "repr_offset_q"),
+            rollspeed=0.0, pitchspeed=0.0, yawspeed=0.0,
+        )  # fmt: skip
+
+
+def test_telemetry_functions_equal_the_general_encoder() -> None:
+    from test_mavlink_telemetry import make_sample
+
+    for s in (make_sample(5.0, -10.0, 30.0), make_sample(-40.0, 20.0, 250.0, field_scale=1.5)):
+        a = s.attitude
+        assert a is not None and s.raw_counts is not None
+        g, m = a.accel_g, a.mag_G
+
+        def i16(v: float) -> int:
+            return max(-32767, min(32767, round(v)))
+
+        assert T.attitude(s, 1234) == codec(T.ATTITUDE).packet(
+            time_boot_ms=1234, roll=a.roll, pitch=a.pitch, yaw=a.yaw,
+            rollspeed=0.0, pitchspeed=0.0, yawspeed=0.0,
+        )  # fmt: skip
+        q = a.quaternion
+        assert T.attitude_quaternion(s, 2**32 + 5) == codec(T.ATTITUDE_QUATERNION).packet(
+            time_boot_ms=5, q1=q[0], q2=q[1], q3=q[2], q4=q[3],
+            rollspeed=0.0, pitchspeed=0.0, yawspeed=0.0, repr_offset_q=[0.0] * 4,
+        )  # fmt: skip
+        assert T.vfr_hud(s, 12.5) == codec(T.VFR_HUD).packet(
+            airspeed=0.0, groundspeed=0.0, heading=round(s.heading_deg) % 360, throttle=0,
+            alt=12.5, climb=0.0,
+        )  # fmt: skip
+        assert T.scaled_imu(s, 77) == codec(T.SCALED_IMU).packet(
+            time_boot_ms=77, xacc=i16(-1000 * g[0]), yacc=i16(-1000 * g[1]),
+            zacc=i16(-1000 * g[2]), xgyro=0, ygyro=0, zgyro=0, xmag=i16(1000 * m[0]),
+            ymag=i16(1000 * m[1]), zmag=i16(1000 * m[2]), temperature=0,
+        )  # fmt: skip
+        mx, my, mz, ax, ay, az = s.raw_counts
+        assert T.raw_imu(s, 99) == codec(T.RAW_IMU).packet(
+            time_usec=99, xacc=ax, yacc=ay, zacc=az, xgyro=0, ygyro=0, zgyro=0,
+            xmag=mx, ymag=my, zmag=mz, id=0, temperature=0,
+        )  # fmt: skip
+        k = -9.80665
+        assert T.highres_imu(s, 5) == codec(T.HIGHRES_IMU).packet(
+            time_usec=5, xacc=k * g[0], yacc=k * g[1], zacc=k * g[2], xgyro=0.0, ygyro=0.0,
+            zgyro=0.0, xmag=m[0], ymag=m[1], zmag=m[2], abs_pressure=0.0, diff_pressure=0.0,
+            pressure_alt=0.0, temperature=0.0, fields_updated=0x1C7, id=0,
+        )  # fmt: skip

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from bridge.core import sensor
 from bridge.core.attitude import AttitudeEngine, FieldReference
@@ -146,3 +148,41 @@ def test_no_reference_means_no_disturbance_judgement() -> None:
     # once the expected field is known, the same frame is judged
     eng.update_reference(FieldReference(total_G=TOTAL, dip_deg=DIP))
     assert eng.solve_counts(*_frame(R, extra_mag_G=np.array([0.3, 0.0, 0.0]))).disturbed
+
+
+_maybe = st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True, width=32))
+
+
+@given(
+    frames=st.lists(
+        st.tuples(
+            st.floats(0.0, 1.2) | st.sampled_from([math.nan, math.inf]),
+            _maybe,
+            st.floats(0.0, 2.5) | st.sampled_from([math.nan]),
+            st.sampled_from([None, 0.0, 0.5]),
+            st.sampled_from([None, 60.0, -30.0]),
+        ),
+        max_size=40,
+    ),
+    raise_after=st.integers(1, 4),
+    clear_after=st.integers(1, 4),
+)
+def test_monitor_update_is_the_limit_functions_debounced(
+    frames: list[tuple[float, float | None, float, float | None, float | None]],
+    raise_after: int,
+    clear_after: int,
+) -> None:
+    """QualityMonitor.update is written out flat for speed: it must judge exactly as
+    accel_out_of_limits / field_out_of_limits (dip ignored under acceleration) fed
+    through two Debounce flags."""
+    lim = QualityLimits(raise_after=raise_after, clear_after=clear_after)
+    mon = QualityMonitor(lim)
+    field_flag, accel_flag = Debounce(raise_after, clear_after), Debounce(raise_after, clear_after)
+    for field_G, dip, acc, exp_total, exp_dip in frames:
+        accel_bad = accel_out_of_limits(acc, lim)
+        field_bad = field_out_of_limits(
+            field_G, None if accel_bad else dip, exp_total, exp_dip, lim
+        )
+        want = (field_flag.update(field_bad), accel_flag.update(accel_bad))
+        assert mon.update(field_G, dip, acc, exp_total, exp_dip) == want
+        assert (mon.disturbed, mon.accelerating) == want

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from bridge.calibration.model import Calibration
 from bridge.config import ConfigError, load_config
@@ -404,3 +406,19 @@ def test_mirror_decodes_the_bridges_own_encoded_packets() -> None:
     assert s["message"]["severity"] == {"type": "MAV_SEVERITY_INFO"}
     with pytest.raises(ValueError):
         MirrorMessage.from_packet(253, bytes(100), system_id=1, component_id=1)
+
+
+@given(
+    rate=st.sampled_from([0.0, 1.0, 10.0, 20.0, 100.0]),
+    gaps=st.lists(st.floats(0.0, 0.5), min_size=1, max_size=60),
+)
+def test_decimator_opens_at_is_exactly_when_accept_says_yes(rate: float, gaps: list[float]) -> None:
+    """The zenoh output skips a frame on ``t < opens_at`` without asking the decimator:
+    that must be the same answer accept() gives, at every step of any schedule."""
+    d, probe = Decimator(rate), Decimator(rate)
+    t = 100.0
+    for gap in gaps:
+        t += gap
+        probe._due = d._due  # the same state, asked without side effects on d
+        assert probe.accept(t) == (t >= d.opens_at)
+        d.accept(t)

@@ -1000,6 +1000,7 @@ class CalibrationController:
         s = _Session(mode=mode, gen=self._gen, started_at=now, start_at=now)
         self._session = s
         self._changed.notify_all()
+        self._jobs.put(None)  # wake the worker: it only ticks while a session runs
         return s
 
     def _new_tracker(self, params: ParamsFrame | None) -> OnboardMagTracker:
@@ -1181,8 +1182,11 @@ class CalibrationController:
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            # Time-outs and delayed starts need a tick every 0.1 s while a session runs;
+            # otherwise the worker sleeps until a job (or a new session, or close()) comes.
+            s = self._session
             try:
-                job = self._jobs.get(timeout=0.1)
+                job = self._jobs.get(timeout=0.1 if s is not None and s.running else None)
             except queue.Empty:
                 job = None
             if job is None and self._stop.is_set():

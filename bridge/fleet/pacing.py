@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 
@@ -22,6 +23,15 @@ class Decimator:
         self.rate_hz = rate_hz
         self._period = 1.0 / rate_hz if rate_hz > 0 else 0.0
         self._due: float | None = None
+
+    @property
+    def opens_at(self) -> float:
+        """The earliest time a sample is accepted: ``accept(t)`` is True exactly when
+        ``t >= opens_at`` (``-inf`` when the next sample is taken whenever it comes)."""
+        if self._period == 0.0 or self._due is None:
+            return -math.inf
+        # A restart (t >= due + period) is also past this, so it is the one condition.
+        return self._due - 0.25 * self._period
 
     def accept(self, t: float) -> bool:
         """Whether the sample at time ``t`` (seconds, monotonic) is published."""

@@ -203,7 +203,10 @@ class CompassLink:
     ``transport`` is a :class:`~bridge.link.transport.Transport` (not yet
     open). Frames go to a bounded queue read with :meth:`get` and, if given,
     to ``on_frame(received)`` -- called in the reader thread, so it must be
-    quick and must not block (hand the frame on; do work elsewhere).
+    quick and must never block (the daemon's whole per-frame pipeline runs
+    there: decode, attitude, non-blocking output hand-offs). ``queue_size=0``
+    keeps no queue (for an ``on_frame`` consumer; :meth:`get` then always
+    returns None).
     ``on_state(old, new)`` is called in the reader thread on each state change.
     Use as a context manager or call :meth:`start` / :meth:`close`.
     """
@@ -229,8 +232,10 @@ class CompassLink:
             CommandFrame.rate(rate_hz)  # ValueError for a rate the device does not offer
         if not stale_after > 0:
             raise ValueError(f"stale_after must be positive, got {stale_after}")
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be at least 1, got {queue_size}")
+        if queue_size < 0:
+            raise ValueError(f"queue_size must be at least 0, got {queue_size}")
+        if queue_size == 0 and on_frame is None:
+            raise ValueError("queue_size=0 needs an on_frame consumer (frames would go nowhere)")
         if not 0 < backoff_initial <= backoff_max:
             raise ValueError("need 0 < backoff_initial <= backoff_max")
         self._transport = transport
@@ -246,6 +251,7 @@ class CompassLink:
 
         self._decoder: _Decoder = self._make_decoder()
         self._stop = threading.Event()
+        self._closing = False  # the same as _stop, as a plain flag the reader checks per read
         self._ended = threading.Event()
         self._reader: threading.Thread | None = None
         self._worker: threading.Thread | None = None
@@ -254,7 +260,10 @@ class CompassLink:
         self._state_cond = threading.Condition()
         self._state = LinkState.ABSENT
 
-        # Counters: ints written by the reader (and command callers) under _stats_lock.
+        # Counters: one dict of ints. Each key has one kind of writer: the per-frame ones
+        # (bytes_read, frames, attitude_frames) only the reader, which bumps them without
+        # the lock (a store to another key cannot lose them; the snapshot copies under the
+        # lock); every other key is written under _stats_lock by whoever counts it.
         self._stats_lock = threading.Lock()
         self._c: dict[str, int] = {
             f: 0 for f in LinkCounters.__dataclass_fields__ if f != "bad_lines"
@@ -342,6 +351,7 @@ class CompassLink:
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop the threads (within about ``timeout`` s) and close the port."""
+        self._closing = True
         self._stop.set()
         for cond in (self._answer_cond, self._gen_cond, self._queue_cond, self._state_cond):
             with cond:
@@ -364,6 +374,8 @@ class CompassLink:
 
     def get(self, timeout: float | None = None) -> Received | None:
         """The oldest queued frame, waiting up to ``timeout`` s (None: forever); None if none."""
+        if not self._queue_size:
+            return None  # no queue (an on_frame consumer takes every frame)
         with self._queue_cond:
             if not self._queue and timeout != 0:
                 self._queue_cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout)
@@ -590,7 +602,7 @@ class CompassLink:
         opened_before = False
         is_open = False
         last_valid = 0.0
-        while not self._stop.is_set():
+        while not self._closing:
             if not is_open:
                 try:
                     self._open_port()
@@ -632,7 +644,7 @@ class CompassLink:
                 continue
             now = self._clock()
             if data:
-                self._count("bytes_read", len(data))
+                self._c["bytes_read"] += len(data)  # reader-only key: no lock (see __init__)
                 frames = self._decoder.feed(data)
                 if frames:
                     last_valid = now
@@ -656,24 +668,38 @@ class CompassLink:
         self._set_state(LinkState.ABSENT, why)
 
     def _handle(self, frames: Sequence[Frame], now: float) -> None:
-        with self._stats_lock:
-            self._c["frames"] += len(frames)
+        c = self._c
+        c["frames"] += len(frames)  # reader-only key: no lock (see __init__)
         for frame in frames:
-            if isinstance(frame, AttitudeFrame):
-                self._track_seq(frame.seq)
+            if type(frame) is AttitudeFrame:
+                # _track_seq's common case inline (per frame: a call costs more than this).
+                last = self._last_seq
+                c["attitude_frames"] += 1  # reader-only key: no lock (see __init__)
+                if last is not None and frame.seq == last + 1 and not self._restart_expected:
+                    self._last_seq = frame.seq
+                else:
+                    self._track_seq(frame.seq)
             elif isinstance(frame, VersionFrame | ParamsFrame | AckFrame):
                 if isinstance(frame, VersionFrame):
                     self._version = frame
                 elif isinstance(frame, ParamsFrame):
                     self._params = frame
                 self._route_answer(frame, now)
-            self._deliver(Received(frame, now))
+            item = Received(frame, now)
+            if self._queue_size:
+                self._enqueue(item)
+            if self._on_frame is not None:
+                try:
+                    self._on_frame(item)
+                except Exception:
+                    self._count("callback_errors")
+                    if self.counters.callback_errors == 1:
+                        log.exception("compass %s: on_frame callback failed", self.name)
 
     def _track_seq(self, seq: int) -> None:
+        """A $PGMRA frame's sequence number (counted in attitude_frames by the caller)."""
         last = self._last_seq
         self._last_seq = seq
-        with self._stats_lock:
-            self._c["attitude_frames"] += 1
         if last is None or self._restart_expected:
             # First frame of a connection, or a reset announced by $PGMRV: the sequence
             # starts afresh, there is no gap to count.
@@ -701,7 +727,7 @@ class CompassLink:
         self._restart_expected = True
         self._bump_generation()
 
-    def _deliver(self, item: Received) -> None:
+    def _enqueue(self, item: Received) -> None:
         with self._queue_cond:
             if len(self._queue) >= self._queue_size:
                 self._queue.popleft()
@@ -712,13 +738,6 @@ class CompassLink:
             self._queue_cond.notify()
         if dropped:
             self._count("consumer_drops")
-        if self._on_frame is not None:
-            try:
-                self._on_frame(item)
-            except Exception:
-                self._count("callback_errors")
-                if self.counters.callback_errors == 1:
-                    log.exception("compass %s: on_frame callback failed", self.name)
 
     # ------------------------------------------------------------------ handshake
 

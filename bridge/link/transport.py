@@ -30,6 +30,8 @@ import serial
 
 from bridge.link.record import Chunk, RecordingReader
 
+_POLLNVAL = select.POLLNVAL  # a module constant: read() tests it for every frame
+
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
@@ -169,7 +171,7 @@ class SerialTransport:
             events = poller.poll(math.ceil(timeout * 1000.0) if timeout > 0 else 0)
             if not events:
                 return b""
-            if events[0][1] & select.POLLNVAL:
+            if events[0][1] & _POLLNVAL:
                 raise TransportError(f"{self.port}: port descriptor is no longer valid")
             data = os.read(self._fd, max_bytes)
         except (BlockingIOError, InterruptedError):

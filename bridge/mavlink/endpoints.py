@@ -71,6 +71,7 @@ _PENDING_LOW_WATER = 8192  # stream links: refill the byte buffer below this
 #: thread, so a sender's time per call stays bounded and bursts keep their old pacing.
 _DIRECT_BURST = 16
 _DIRECT_WINDOW_S = 0.01
+_monotonic = time.monotonic  # the direct-send window's clock (a test steps it)
 
 
 @dataclass(slots=True)
@@ -143,9 +144,9 @@ class Link:
         if self.closed:
             self.endpoint.count_unsent()
             return
-        if not self.queue and self.endpoint.send_now(self, packet):
-            return
         q = self.queue
+        if not q and self.endpoint.send_now(self, packet):
+            return
         if len(q) >= self.limit:
             try:
                 q.popleft()
@@ -188,6 +189,8 @@ class Endpoint:
         self.queue_packets = queue_packets
         self._counters = EndpointCounters()
         self._count_lock = threading.Lock()
+        # Never changed in place, only replaced (one reference store): broadcast() in any
+        # thread iterates the list it read without copying it.
         self._links: list[Link] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -224,11 +227,11 @@ class Endpoint:
 
     def broadcast(self, packet: Packet) -> None:
         """Queue ``packet`` for every current peer (counted as unsent when there is none)."""
-        links = self._links
+        links = self._links  # replaced, never changed in place: no copy needed
         if not links:
             self.count_unsent()
             return
-        for link in list(links):
+        for link in links:
             link.send(packet)
 
     def start(self) -> Endpoint:
@@ -369,7 +372,7 @@ class Endpoint:
         if n:
             self.count_unsent(n)
         if link in self._links:
-            self._links.remove(link)
+            self._links = [lk for lk in self._links if lk is not link]
 
     def _fill(self, link: Link) -> None:
         """Stream links: frame queued packets into the byte buffer."""
@@ -444,7 +447,10 @@ class UdpEndpoint(Endpoint):
         self._sock: socket.socket | None = None
         self._by_addr: dict[Any, Link] = {}
         # Framing (the per-link sequence number) and sendto happen in the endpoint's thread
-        # (_flush) and in senders' threads (send_now): one at a time.
+        # (_flush) and in senders' threads (send_now): one at a time. packets_sent and
+        # bytes_sent of a UDP endpoint are only ever written under this lock, so they are
+        # counted there without the counters' own lock (counters() may see one of the two
+        # already counted and not the other, as it could before).
         self._send_lock = threading.Lock()
         self._direct_window = 0.0  # start of the current direct-send window (monotonic)
         self._direct_count = 0  # packets sent directly in it
@@ -454,17 +460,22 @@ class UdpEndpoint(Endpoint):
 
     def send_now(self, link: Link, packet: Packet) -> bool:
         """A datagram needs no waiting: frame and send it here, unless packets wait ahead of it."""
-        if not self._send_lock.acquire(blocking=False):
+        lock = self._send_lock
+        if not lock.acquire(blocking=False):
             return False  # the endpoint's thread is sending: queue behind it
         try:
             sock = self._sock
             if sock is None or link.closed or link.queue or link.pending:
                 return False
-            now = time.monotonic()
-            if now - self._direct_window >= _DIRECT_WINDOW_S:
-                self._direct_window, self._direct_count = now, 0
+            # The burst window needs the clock only once its count could matter: a frame's
+            # few packets never read it, a parameter list does from its 16th packet on.
             if self._direct_count >= _DIRECT_BURST:
-                return False
+                now = _monotonic()
+                if now - self._direct_window < _DIRECT_WINDOW_S:
+                    return False
+                self._direct_window, self._direct_count = now, 0
+            elif self._direct_count == 0:
+                self._direct_window = _monotonic()
             self._direct_count += 1
             data = link.framer.frame(packet)
             try:
@@ -477,11 +488,12 @@ class UdpEndpoint(Endpoint):
                 self._count("errors")
                 log.debug("mavlink %s: sendto %s: %s", self.name, link.address, e)
                 return True  # lost, as in _flush: the endpoint lives on
+            c = self._counters  # under _send_lock: see __init__
+            c.packets_sent += 1
+            c.bytes_sent += n
+            return True
         finally:
-            self._send_lock.release()
-        self._count("packets_sent")
-        self._count("bytes_sent", n)
-        return True
+            lock.release()
 
     def _open(self) -> None:
         family, addr = _resolve(self.spec.host, self.spec.port, socket.SOCK_DGRAM)
@@ -586,8 +598,9 @@ class UdpEndpoint(Endpoint):
                     n = -1
                 link.pending.clear()
                 if n >= 0:
-                    self._count("packets_sent")
-                    self._count("bytes_sent", n)
+                    c = self._counters  # under _send_lock: see __init__
+                    c.packets_sent += 1
+                    c.bytes_sent += n
 
     def _housekeeping(self, now: float) -> None:
         if self.kind != "udpin":

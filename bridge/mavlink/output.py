@@ -7,7 +7,8 @@ sample (one reference store, never blocks); its threads do the rest:
   (:class:`~bridge.mavlink.telemetry.StreamSchedule`) and queues them on the
   endpoints -- a few microseconds per due message, never blocking: at 100 Hz
   most frames carry no due message, and waking a thread per frame just to find
-  that out cost more than the encoding;
+  that out cost more than the encoding. A frame with none due costs one
+  comparison (``StreamSchedule.sample_due_at``);
 * the **telemetry** thread wakes on the clock only: HEARTBEAT, SYS_STATUS,
   MAG_CAL_PROGRESS while a magnetometer calibration runs, command time-outs;
 * the **dispatcher** thread handles what ground stations send (parameters,
@@ -41,6 +42,7 @@ import zlib
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MethodType
 from typing import Any, ClassVar, Protocol
 
 from bridge import __version__
@@ -89,6 +91,11 @@ _SIGNED_TYPES = frozenset(
 )
 _INBOX_TYPES = _SIGNED_TYPES | {"PARAM_REQUEST_LIST", "PARAM_REQUEST_READ"}
 _FEED_INDEX = {"off": 0, "px4_odometry": 1, "ardupilot_vision": 2}
+
+
+def _nothing(_s: CompassSample) -> Packet | None:
+    """The heading feed's slot while the feed is off."""
+    return None
 
 
 class BridgeServices(Protocol):
@@ -236,6 +243,9 @@ class MavlinkOutput:
         self._alt_m = 0.0
         self._reset_counter = 0
         self._warned_magnetic_feed = False
+        # Schedule id -> encoder of the per-sample stream in that slot (the heading feed's
+        # slot holds the feed BRG_HDG_FEED chooses): see _apply_rates.
+        self._sample_encoders: dict[int, Callable[[CompassSample], Packet | None]] = {}
         self._pending: list[_PendingAck] = []
         # Re-entrant: an event may be emitted (and finish a pending command) from inside the
         # very controller call the dispatcher makes while it holds this lock.
@@ -264,9 +274,17 @@ class MavlinkOutput:
         if not self._running:
             return
         try:
-            out = self._sample_packets(sample, self._clock())
-            if out:
-                self.broadcast(out)
+            now = self._clock()
+            # The fast path, most frames at 100 Hz: no sample stream can be due before
+            # sample_due_at (the schedule resets it on every rate, override or stream-set
+            # change, so a change takes effect with the very next sample).
+            if now < self.schedule.sample_due_at:
+                return
+            encoders = self._sample_encoders
+            for sid in self.schedule.due_samples(now):
+                p = encoders[sid](sample)
+                if p is not None:
+                    self._broadcast_one(p)
         except Exception:
             self.counters.publish_errors += 1
             if self.counters.publish_errors == 1:
@@ -368,14 +386,20 @@ class MavlinkOutput:
 
     def broadcast(self, packets: list[Packet] | Packet) -> None:
         """Queue packets for every peer of every endpoint."""
-        for p in [packets] if isinstance(packets, Packet) else packets:
-            for ep in self.endpoints:
-                ep.broadcast(p)
-            for tap in self._taps:
-                try:
-                    tap(p)
-                except Exception:  # a broken mirror must not stop the telemetry thread
-                    self.counters.tap_errors += 1
+        if isinstance(packets, Packet):
+            self._broadcast_one(packets)
+        else:
+            for p in packets:
+                self._broadcast_one(p)
+
+    def _broadcast_one(self, p: Packet) -> None:
+        for ep in self.endpoints:
+            ep.broadcast(p)
+        for tap in self._taps:
+            try:
+                tap(p)
+            except Exception:  # a broken mirror must not stop the telemetry thread
+                self.counters.tap_errors += 1
 
     def add_tap(self, fn: Callable[[Packet], None]) -> Callable[[], None]:
         """Also hand every broadcast packet to ``fn`` (the Zenoh MAVLink mirror); returns the
@@ -423,50 +447,66 @@ class MavlinkOutput:
         return ids
 
     def _encode_sample(self, msgid: int, s: CompassSample) -> Packet | None:
-        """One per-sample message (None when the sample cannot fill it)."""
-        if msgid == T.ATTITUDE:
-            return T.attitude(s, self.time_boot_ms(s.t))
-        if msgid == T.ATTITUDE_QUATERNION:
-            return T.attitude_quaternion(s, self.time_boot_ms(s.t))
-        if msgid == T.VFR_HUD:
-            return T.vfr_hud(s, self._alt_m)
-        if msgid == T.SCALED_IMU:
-            return T.scaled_imu(s, self.time_boot_ms(s.t))
-        if msgid == T.RAW_IMU:
-            return T.raw_imu(s, self._us(s.t))
-        if msgid == T.HIGHRES_IMU:
-            return T.highres_imu(s, self._us(s.t))
-        if msgid in T.FEED_MSGIDS:
-            if self.params.get("COMPASS_USE") == 0 or not T.feed_usable(s):
-                return None
-            if s.heading_true_deg is None and not self._warned_magnetic_feed:
-                self._warned_magnetic_feed = True
-                log.warning(
-                    "mavlink: heading feed sends the MAGNETIC heading: no declination known "
-                    "(set [location], or COMPASS_AUTODEC=0 and COMPASS_DEC)"
-                )
-            sigma = self.params.get("BRG_YAW_SIGMA")
-            if msgid == T.ODOMETRY:
-                return T.odometry(s, self._us(s.t), sigma, self._reset_counter)
-            return T.vision_position_estimate(s, self._us(s.t), sigma, self._reset_counter)
-        return None
+        """One per-sample message (None when the sample cannot fill it, or not one)."""
+        enc = self._ENCODERS.get(msgid)
+        return enc(self, s) if enc is not None else None
+
+    def _enc_attitude(self, s: CompassSample) -> Packet:
+        # time_boot_ms(), inlined: the 50 Hz stream
+        return T.attitude(s, max(0, int((s.t - self._t0) * 1000.0)))
+
+    def _enc_attitude_quaternion(self, s: CompassSample) -> Packet:
+        return T.attitude_quaternion(s, self.time_boot_ms(s.t))
+
+    def _enc_vfr_hud(self, s: CompassSample) -> Packet:
+        return T.vfr_hud(s, self._alt_m)
+
+    def _enc_scaled_imu(self, s: CompassSample) -> Packet | None:
+        return T.scaled_imu(s, self.time_boot_ms(s.t))
+
+    def _enc_raw_imu(self, s: CompassSample) -> Packet | None:
+        return T.raw_imu(s, self._us(s.t))
+
+    def _enc_highres_imu(self, s: CompassSample) -> Packet | None:
+        return T.highres_imu(s, self._us(s.t))
+
+    def _feed_ok(self, s: CompassSample) -> bool:
+        if self.params.get("COMPASS_USE") == 0 or not T.feed_usable(s):
+            return False
+        if s.heading_true_deg is None and not self._warned_magnetic_feed:
+            self._warned_magnetic_feed = True
+            log.warning(
+                "mavlink: heading feed sends the MAGNETIC heading: no declination known "
+                "(set [location], or COMPASS_AUTODEC=0 and COMPASS_DEC)"
+            )
+        return True
+
+    def _enc_odometry(self, s: CompassSample) -> Packet | None:
+        if not self._feed_ok(s):
+            return None
+        sigma = self.params.get("BRG_YAW_SIGMA")
+        return T.odometry(s, self._us(s.t), sigma, self._reset_counter)
+
+    def _enc_vision_position_estimate(self, s: CompassSample) -> Packet | None:
+        if not self._feed_ok(s):
+            return None
+        sigma = self.params.get("BRG_YAW_SIGMA")
+        return T.vision_position_estimate(s, self._us(s.t), sigma, self._reset_counter)
+
+    _ENCODERS: ClassVar[dict[int, Callable[[MavlinkOutput, CompassSample], Packet | None]]] = {
+        T.ATTITUDE: _enc_attitude,
+        T.ATTITUDE_QUATERNION: _enc_attitude_quaternion,
+        T.VFR_HUD: _enc_vfr_hud,
+        T.SCALED_IMU: _enc_scaled_imu,
+        T.RAW_IMU: _enc_raw_imu,
+        T.HIGHRES_IMU: _enc_highres_imu,
+        T.ODOMETRY: _enc_odometry,
+        T.VISION_POSITION_ESTIMATE: _enc_vision_position_estimate,
+    }
 
     def _schedule_id(self, msgid: int) -> int:
         # VISION_POSITION_ESTIMATE shares the heading feed's schedule slot.
         return T.ODOMETRY if msgid == T.VISION_POSITION_ESTIMATE else msgid
-
-    def _sample_packets(self, sample: CompassSample, now: float) -> list[Packet]:
-        """The sample streams due with ``sample`` arriving at ``now``, encoded."""
-        wanted = self._sample_streams()
-        due = self.schedule.due_on_sample({self._schedule_id(m) for m in wanted}, now)
-        out: list[Packet] = []
-        if due:
-            for msgid in wanted:
-                if self._schedule_id(msgid) in due:
-                    p = self._encode_sample(msgid, sample)
-                    if p is not None:
-                        out.append(p)
-        return out
 
     def _telemetry_loop(self) -> None:
         # Paced by the clock streams and the calibration keep-alive, not by the frame rate:
@@ -728,13 +768,29 @@ class MavlinkOutput:
                 return str(e)
         elif group == "routing":
             svc.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
-        elif group == "rates":
+        elif group in ("rates", "feed"):
             self._apply_rates()
         return ""
 
     def _apply_rates(self) -> None:
+        """BRG_SR_* into the schedule's rates; BRG_HDG_FEED into its set of sample streams.
+
+        Called on every change of either (parameter SET, storage read/reset, start): the
+        schedule's fast path (see :meth:`publish`) depends on both.
+        """
         for s in T.STREAMS:
             self.schedule.set_base(s.msgid, self.params.get(s.param))
+        wanted = self._sample_streams()
+        enc = self._ENCODERS
+        # Encoders first, then the schedule: publish() in the pipeline thread may see the
+        # new encoders with the old streams (a feed just switched off: its slot encodes
+        # nothing), never a due stream without an encoder.
+        encoders: dict[int, Callable[[CompassSample], Packet | None]] = {
+            T.ODOMETRY: _nothing,
+            **{self._schedule_id(m): MethodType(enc[m], self) for m in wanted},
+        }
+        self._sample_encoders = encoders
+        self.schedule.set_sample_streams(self._schedule_id(m) for m in wanted)
 
     def _apply_mounting(self) -> None:
         engine = self.svc.engine

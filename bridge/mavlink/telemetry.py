@@ -119,6 +119,15 @@ class StreamSchedule:
     ``rates`` maps message id -> Hz (0 = off). A rate set with
     :meth:`set_override` (MAV_CMD_SET_MESSAGE_INTERVAL) wins over the base rate
     until cleared; base rates come from the BRG_SR_* parameters.
+
+    The per-sample fast path: :meth:`set_sample_streams` names the sample
+    streams the owner sends, :meth:`due_samples` is :meth:`due_on_sample` over
+    them, and :attr:`sample_due_at` is the earliest time any of them can next
+    fall due (``-inf``: unknown, ask :meth:`due_samples`; ``+inf``: none is on).
+    At 100 Hz frames and a 50 Hz ATTITUDE half the frames carry no due stream:
+    ``now < schedule.sample_due_at`` tells the caller so with one comparison
+    instead of a rate lookup per stream. Every change of a rate, an override
+    or the set of sample streams resets it to ``-inf``.
     """
 
     SLACK = 0.25  #: fraction of a period a sample may come early and still count as due
@@ -128,15 +137,31 @@ class StreamSchedule:
         self._override: dict[int, float] = {}
         self._next: dict[int, float] = {}
         self._clock: set[int] = {HEARTBEAT} | {s.msgid for s in STREAMS if s.clock}
+        self._sample_ids: tuple[int, ...] = ()
+        # Bumped by every change. due_samples() notices a change made (by another thread)
+        # while it ran, and then leaves sample_due_at at -inf rather than a stale value.
+        self._generation = 0
+        # (generation it was built for, ((msgid, period, SLACK * period), ...)) of the sample
+        # streams that are on: rebuilt when the generation moved on.
+        self._plan: tuple[int, tuple[tuple[int, float, float], ...]] = (-1, ())
+        #: Earliest time a sample stream can be due (see the class docstring).
+        self.sample_due_at = -math.inf
         for msgid, hz in rates.items():
             self.set_base(msgid, hz)
         self._base.setdefault(HEARTBEAT, HEARTBEAT_HZ)
+
+    def _changed(self) -> None:
+        # Order matters for a due_samples() running in another thread: the generation
+        # first, then the cached time (see due_samples).
+        self._generation += 1
+        self.sample_due_at = -math.inf
 
     def set_base(self, msgid: int, hz: float) -> None:
         """The configured rate of a stream (Hz, 0 = off)."""
         if not (math.isfinite(hz) and hz >= 0.0):
             raise ValueError(f"rate must be a finite number >= 0, got {hz!r}")
         self._base[msgid] = float(hz)
+        self._changed()
 
     def set_override(self, msgid: int, hz: float | None) -> None:
         """A temporary rate (``None``: back to the configured one)."""
@@ -147,6 +172,17 @@ class StreamSchedule:
                 raise ValueError(f"rate must be a finite number >= 0, got {hz!r}")
             self._override[msgid] = float(hz)
         self._next.pop(msgid, None)  # start the new rhythm with the next opportunity
+        self._changed()
+
+    def set_sample_streams(self, msgids: Iterable[int]) -> None:
+        """The sample streams :meth:`due_samples` looks at, in the order it reports them."""
+        self._sample_ids = tuple(m for m in dict.fromkeys(msgids) if m not in self._clock)
+        self._changed()
+
+    @property
+    def sample_streams(self) -> tuple[int, ...]:
+        """The streams set with :meth:`set_sample_streams` (clock streams left out)."""
+        return self._sample_ids
 
     def rate(self, msgid: int) -> float:
         """The rate in effect (Hz, 0 = off)."""
@@ -172,7 +208,46 @@ class StreamSchedule:
 
     def due_on_sample(self, msgids: Iterable[int], now: float) -> list[int]:
         """The sample streams among ``msgids`` to send with a sample arriving at ``now``."""
+        # It moves the streams' next times: the fast path's cached time must be worked out anew.
+        self.sample_due_at = -math.inf
         return [m for m in msgids if m not in self._clock and self._due(m, now)]
+
+    def due_samples(self, now: float) -> list[int]:
+        """:meth:`due_on_sample` over :meth:`set_sample_streams`'s streams; updates
+        :attr:`sample_due_at`.
+
+        The same arithmetic as :meth:`_due`, with each stream's period worked out
+        once per rate change instead of on every sample.
+        """
+        # The generation is read before anything it guards: a plan built from rates read
+        # after it carries it, so a change made meanwhile makes the plan stale, never wrong.
+        generation = self._generation
+        built_for, plan = self._plan
+        if built_for != generation:
+            rate = self.rate
+            plan = tuple(
+                (m, 1.0 / hz, self.SLACK * (1.0 / hz))
+                for m in self._sample_ids
+                if (hz := rate(m)) > 0.0
+            )
+            self._plan = (generation, plan)
+        nexts = self._next
+        due: list[int] = []
+        earliest = math.inf
+        for m, period, early in plan:
+            nxt = nexts.get(m)
+            if nxt is None or now >= nxt - early:
+                nxt = now + period if nxt is None or now - nxt > period else nxt + period
+                nexts[m] = nxt
+                due.append(m)
+            if nxt - early < earliest:
+                earliest = nxt - early
+        self.sample_due_at = earliest
+        if self._generation != generation:
+            # Changed meanwhile (another thread): the value just stored may predate the
+            # change, whose own reset may have come before it. Reset again.
+            self.sample_due_at = -math.inf
+        return due
 
     def due_on_clock(self, now: float) -> list[int]:
         """The clock streams due at ``now``."""
@@ -325,43 +400,57 @@ def _ms32(t_ms: int) -> int:
     return int(t_ms) & 0xFFFFFFFF
 
 
+# The per-sample messages go out up to 50 times a second: positional encoders, their
+# constant fields fixed once (Codec.packer: the same bytes as Codec.packet, tested).
+_ATTITUDE = codec(ATTITUDE).packer(
+    ("time_boot_ms", "roll", "pitch", "yaw"), rollspeed=0.0, pitchspeed=0.0, yawspeed=0.0
+)
+_ATTITUDE_QUATERNION = codec(ATTITUDE_QUATERNION).packer(
+    ("time_boot_ms", "q1", "q2", "q3", "q4"),
+    rollspeed=0.0,
+    pitchspeed=0.0,
+    yawspeed=0.0,
+    repr_offset_q=(0.0, 0.0, 0.0, 0.0),
+)
+_VFR_HUD = codec(VFR_HUD).packer(
+    ("heading", "alt"), airspeed=0.0, groundspeed=0.0, throttle=0, climb=0.0
+)
+_SCALED_IMU = codec(SCALED_IMU).packer(
+    ("time_boot_ms", "xacc", "yacc", "zacc", "xmag", "ymag", "zmag"),
+    xgyro=0,
+    ygyro=0,
+    zgyro=0,
+    temperature=0,  # 0 = no temperature
+)
+_RAW_IMU = codec(RAW_IMU).packer(
+    ("time_usec", "xacc", "yacc", "zacc", "xmag", "ymag", "zmag"),
+    xgyro=0,
+    ygyro=0,
+    zgyro=0,
+    id=0,
+    temperature=0,
+)
+
+
 def attitude(sample: CompassSample, time_boot_ms: int) -> Packet:
     """ATTITUDE."""
+    a = sample.attitude
+    if a is not None:  # euler_of(), inlined for the common case
+        return _ATTITUDE(int(time_boot_ms) & 0xFFFFFFFF, a.roll, a.pitch, a.yaw)
     roll, pitch, yaw = euler_of(sample)
-    return codec(ATTITUDE).packet(
-        time_boot_ms=_ms32(time_boot_ms),
-        roll=roll,
-        pitch=pitch,
-        yaw=yaw,
-        rollspeed=0.0,
-        pitchspeed=0.0,
-        yawspeed=0.0,
-    )
+    return _ATTITUDE(_ms32(time_boot_ms), roll, pitch, yaw)
 
 
 def attitude_quaternion(sample: CompassSample, time_boot_ms: int) -> Packet:
     """ATTITUDE_QUATERNION (q1..q4 = w, x, y, z)."""
     a = sample.attitude
     q = a.quaternion if a is not None else quaternion(*euler_of(sample))
-    return codec(ATTITUDE_QUATERNION).packet(
-        time_boot_ms=_ms32(time_boot_ms),
-        q1=q[0],
-        q2=q[1],
-        q3=q[2],
-        q4=q[3],
-        rollspeed=0.0,
-        pitchspeed=0.0,
-        yawspeed=0.0,
-        repr_offset_q=(0.0, 0.0, 0.0, 0.0),
-    )
+    return _ATTITUDE_QUATERNION(_ms32(time_boot_ms), q[0], q[1], q[2], q[3])
 
 
 def vfr_hud(sample: CompassSample, alt_m: float = 0.0) -> Packet:
     """VFR_HUD: heading in whole degrees (0..359)."""
-    hdg = round(sample.heading_deg) % 360
-    return codec(VFR_HUD).packet(
-        airspeed=0.0, groundspeed=0.0, heading=hdg, throttle=0, alt=alt_m, climb=0.0
-    )
+    return _VFR_HUD(round(sample.heading_deg) % 360, alt_m)
 
 
 def _i16(v: float) -> int:
@@ -377,19 +466,15 @@ def scaled_imu(sample: CompassSample, time_boot_ms: int) -> Packet | None:
         return None
     gx, gy, gz = a.accel_g
     mx, my, mz = a.mag_G
-    return codec(SCALED_IMU).packet(
-        time_boot_ms=_ms32(time_boot_ms),
+    return _SCALED_IMU(
+        _ms32(time_boot_ms),
         # specific force = -gravity vector, in mG
-        xacc=_i16(-1000.0 * gx),
-        yacc=_i16(-1000.0 * gy),
-        zacc=_i16(-1000.0 * gz),
-        xgyro=0,
-        ygyro=0,
-        zgyro=0,
-        xmag=_i16(1000.0 * mx),
-        ymag=_i16(1000.0 * my),
-        zmag=_i16(1000.0 * mz),
-        temperature=0,  # 0 = no temperature
+        _i16(-1000.0 * gx),
+        _i16(-1000.0 * gy),
+        _i16(-1000.0 * gz),
+        _i16(1000.0 * mx),
+        _i16(1000.0 * my),
+        _i16(1000.0 * mz),
     )
 
 
@@ -404,24 +489,23 @@ def raw_imu(sample: CompassSample, time_usec: int) -> Packet | None:
     if rc is None:
         return None
     mx, my, mz, ax, ay, az = rc
-    return codec(RAW_IMU).packet(
-        time_usec=max(0, int(time_usec)),
-        xacc=ax,
-        yacc=ay,
-        zacc=az,
-        xgyro=0,
-        ygyro=0,
-        zgyro=0,
-        xmag=mx,
-        ymag=my,
-        zmag=mz,
-        id=0,
-        temperature=0,
-    )
+    return _RAW_IMU(max(0, int(time_usec)), ax, ay, az, mx, my, mz)
 
 
 #: HIGHRES_IMU.fields_updated: xacc..zacc (bits 0-2) and xmag..zmag (bits 6-8).
 HIGHRES_FIELDS_ACC_MAG = 0b111 | (0b111 << 6)
+_HIGHRES_IMU = codec(HIGHRES_IMU).packer(
+    ("time_usec", "xacc", "yacc", "zacc", "xmag", "ymag", "zmag"),
+    xgyro=0.0,
+    ygyro=0.0,
+    zgyro=0.0,
+    abs_pressure=0.0,
+    diff_pressure=0.0,
+    pressure_alt=0.0,
+    temperature=0.0,
+    fields_updated=HIGHRES_FIELDS_ACC_MAG,
+    id=0,
+)
 
 
 def highres_imu(sample: CompassSample, time_usec: int) -> Packet | None:
@@ -432,24 +516,7 @@ def highres_imu(sample: CompassSample, time_usec: int) -> Packet | None:
     gx, gy, gz = a.accel_g
     mx, my, mz = a.mag_G
     k = -STANDARD_GRAVITY
-    return codec(HIGHRES_IMU).packet(
-        time_usec=max(0, int(time_usec)),
-        xacc=k * gx,
-        yacc=k * gy,
-        zacc=k * gz,
-        xgyro=0.0,
-        ygyro=0.0,
-        zgyro=0.0,
-        xmag=mx,
-        ymag=my,
-        zmag=mz,
-        abs_pressure=0.0,
-        diff_pressure=0.0,
-        pressure_alt=0.0,
-        temperature=0.0,
-        fields_updated=HIGHRES_FIELDS_ACC_MAG,
-        id=0,
-    )
+    return _HIGHRES_IMU(max(0, int(time_usec)), k * gx, k * gy, k * gz, mx, my, mz)
 
 
 # ---------------------------------------------------------------------------- autopilot heading feed

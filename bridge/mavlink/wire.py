@@ -14,28 +14,50 @@ would send; :class:`Framer` adds the 10-byte header, the CRC-16/MCRF4XX
 from __future__ import annotations
 
 import struct
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from operator import itemgetter
+from typing import Any, NamedTuple
 
 from bridge.mavlink.dialect import IFLAG_SIGNED, MAGIC_V2, mavlink, message_class
 from bridge.mavlink.signing import Signing
 
-_HEADER = struct.Struct("<BBBBBBBHB")
+# The header after the magic byte: what the CRC covers (len, incompat, compat, seq, sys,
+# comp, msgid low 16 bits, msgid high 8 bits).
+_HEADER_CRC = struct.Struct("<BBBBBBHB")
+_CRC16 = struct.Struct("<H")
+_MAGIC_BYTE = bytes((MAGIC_V2,))
+_BYTES = tuple(bytes((i,)) for i in range(256))  # the CRC extra byte, without a bytes() per frame
 
 
-def _crc(data: bytes) -> int:
-    # pymavlink's x25crc is CRC-16/MCRF4XX and uses the C ``fastcrc`` when installed.
+def _x25crc(data: bytes) -> int:
+    # pymavlink's x25crc object: CRC-16/MCRF4XX, in pure Python without fastcrc.
     return int(mavlink.x25crc(data).crc)
 
 
-@dataclass(frozen=True, slots=True)
-class Packet:
-    """An encoded, not yet framed, message."""
+try:
+    # What pymavlink's x25crc calls when it can (pymavlink 2.4.50 requires fastcrc):
+    # called directly, it saves the object and two Python calls per frame.
+    from fastcrc.crc16 import mcrf4xx as _mcrf4xx
+except ImportError:  # pragma: no cover - an older pymavlink without fastcrc
+    _crc: Callable[[bytes], int] = _x25crc
+else:
+    _crc = _mcrf4xx
+
+
+class Packet(NamedTuple):
+    """An encoded, not yet framed, message (immutable: one packet is shared by every link).
+
+    A named tuple rather than a frozen dataclass: it is made for every telemetry
+    message, and a tuple is built in C (a frozen dataclass runs ``__init__`` with
+    one ``object.__setattr__`` per field).
+    """
 
     msgid: int
     crc_extra: int
     payload: bytes
+
+
+_new_tuple = tuple.__new__  # Packet without its Python-level __new__ (see Codec.packer)
 
 
 class Codec:
@@ -88,6 +110,63 @@ class Codec:
         """Encode one message."""
         return Packet(self.msgid, self.crc_extra, self.payload(fields))
 
+    def packer(self, names: Sequence[str], **constants: Any) -> Callable[..., Packet]:
+        """A positional encoder for a message sent often: ``packer(names, **constants)(*values)``
+        is ``packet(**dict(zip(names, values)), **constants)``, the same bytes.
+
+        ``names`` are the fields that vary, in the order the caller passes them
+        (any order: the wire order, largest types first, is applied by one C-level
+        ``itemgetter``); ``constants`` are the others, fixed once here. Every field
+        must be in exactly one of the two; arrays and char fields only as constants.
+        The per-call cost is a tuple concatenation, the itemgetter, the struct
+        pack and the trim -- no dict of keyword arguments, no loop in Python.
+        """
+        variable = tuple(names)
+        sizes = dict(self._layout)
+        unknown = [n for n in (*variable, *constants) if n not in sizes]
+        if unknown:
+            raise KeyError(f"{self.name} has no field {', '.join(unknown)}")
+        both = set(variable) & set(constants)
+        if both or len(set(variable)) != len(variable):
+            raise ValueError(f"{self.name}: a field named twice ({sorted(both) or variable})")
+        missing = [n for n in sizes if n not in constants and n not in variable]
+        if missing:
+            raise KeyError(f"{self.name}: no value for {', '.join(missing)}")
+        fixed: list[Any] = []
+        order: list[int] = []  # index into values + fixed, in wire order
+        for name, n in self._layout:
+            if name in constants:
+                v = constants[name]
+                if name in self._chars:
+                    v = v.encode("utf-8") if isinstance(v, str) else bytes(v)
+                if n and name not in self._chars:
+                    seq = list(v)
+                    if len(seq) != n:
+                        raise ValueError(f"{self.name}.{name} needs {n} values, got {len(seq)}")
+                else:
+                    seq = [v]
+                for item in seq:
+                    order.append(len(variable) + len(fixed))
+                    fixed.append(item)
+            elif n or name in self._chars:
+                raise ValueError(f"{self.name}.{name}: arrays and text only as constants")
+            else:
+                order.append(variable.index(name))
+        st = self._struct
+        if len(st.unpack(bytes(st.size))) != len(order):  # pragma: no cover - pymavlink bug
+            raise ValueError(f"{self.name}: the layout does not match {st.format!r}")
+        consts = tuple(fixed)
+        # itemgetter of one index gives the item, not a 1-tuple
+        pick = itemgetter(*order) if len(order) > 1 else (lambda v, i=order[0]: (v[i],))
+        pack, msgid, crc_extra = self._struct.pack, self.msgid, self.crc_extra
+
+        def make(*values: Any) -> Packet:
+            raw = pack(*pick(values + consts))
+            # trim(), inlined: rstrip runs in C; an all-zero payload keeps one byte.
+            return _new_tuple(Packet, (msgid, crc_extra, raw.rstrip(b"\0") or raw[:1]))
+
+        return make
+
 
 def trim(payload: bytes) -> bytes:
     """MAVLink 2 payload truncation: trailing zero bytes dropped, at least one byte kept."""
@@ -112,7 +191,7 @@ class Framer:
     Not thread-safe: one framer belongs to one link and is used by that link's thread.
     """
 
-    __slots__ = ("_signing", "component_id", "link_id", "seq", "system_id")
+    __slots__ = ("_flags", "_signing", "component_id", "link_id", "seq", "system_id")
 
     def __init__(
         self, system_id: int, component_id: int, *, signing: Signing | None = None, link_id: int = 0
@@ -120,27 +199,32 @@ class Framer:
         self.system_id = system_id
         self.component_id = component_id
         self._signing = signing
+        self._flags = IFLAG_SIGNED if signing is not None else 0
         self.link_id = link_id
         self.seq = 0
 
     def frame(self, p: Packet) -> bytes:
         """The full packet bytes for ``p`` (0xFD header, payload, CRC, signature if signing)."""
-        flags = IFLAG_SIGNED if self._signing is not None else 0
-        head = _HEADER.pack(
-            MAGIC_V2,
-            len(p.payload),
-            flags,
-            0,
-            self.seq,
-            self.system_id,
-            self.component_id,
-            p.msgid & 0xFFFF,
-            p.msgid >> 16,
+        # Runs for every packet on every link: one pack for the header, one CRC call over
+        # header + payload + CRC extra, one pack for the CRC (a test holds the bytes equal
+        # to pymavlink's own, signed and unsigned).
+        payload, msgid, seq = p.payload, p.msgid, self.seq
+        self.seq = (seq + 1) & 0xFF
+        body = (
+            _HEADER_CRC.pack(
+                len(payload),
+                self._flags,
+                0,
+                seq,
+                self.system_id,
+                self.component_id,
+                msgid & 0xFFFF,
+                msgid >> 16,
+            )
+            + payload
         )
-        self.seq = (self.seq + 1) & 0xFF
-        body = head + p.payload
-        crc = _crc(body[1:] + bytes((p.crc_extra,)))
-        out = body + crc.to_bytes(2, "little")
-        if self._signing is not None:
-            out = self._signing.sign(out, self.link_id)
+        out = _MAGIC_BYTE + body + _CRC16.pack(_crc(body + _BYTES[p.crc_extra]))
+        signing = self._signing
+        if signing is not None:
+            return signing.sign(out, self.link_id)
         return out

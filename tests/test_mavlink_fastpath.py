@@ -1,0 +1,348 @@
+"""The per-frame fast path of the MAVLink output: it skips work, never behaviour.
+
+``MavlinkOutput.publish`` returns after one comparison while no sample stream
+can be due (``StreamSchedule.sample_due_at``). These tests hold that short cut
+to the general schedule (a property test over random operations) and check,
+on a started output with an injected clock and a real UDP ground station on
+127.0.0.1, that every way a rate or the set of streams changes takes effect
+with the very next sample.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import random
+import socket
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_mavlink_rig import DEADLINE_S, M
+from test_mavlink_telemetry import make_sample
+
+from bridge.config import config_from_mapping
+from bridge.daemon import CompassSample, Daemon
+from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
+from bridge.mavlink.wire import Packet
+
+SAMPLE_IDS = (
+    T.ATTITUDE,
+    T.ATTITUDE_QUATERNION,
+    T.VFR_HUD,
+    T.SCALED_IMU,
+    T.RAW_IMU,
+    T.HIGHRES_IMU,
+    T.ODOMETRY,
+)
+REAL32, INT8 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8
+ACCEPTED = M.MAV_RESULT_ACCEPTED
+
+
+# =====================================================================================
+# the schedule: fast path == general path
+# =====================================================================================
+
+_rates = st.one_of(st.just(0.0), st.floats(0.1, 120.0), st.sampled_from([1.0, 10.0, 50.0, 100.0]))
+_ops = st.one_of(
+    st.tuples(st.just("sample"), st.floats(0.0, 0.3)),  # a sample after dt seconds
+    st.tuples(st.just("sample"), st.sampled_from([0.0, 0.01, 0.02, 0.1])),
+    st.tuples(st.just("base"), st.sampled_from((*SAMPLE_IDS, T.SYS_STATUS)), _rates),
+    st.tuples(
+        st.just("override"),
+        st.sampled_from(SAMPLE_IDS),
+        st.one_of(st.none(), _rates),
+    ),
+    st.tuples(
+        st.just("streams"),
+        st.lists(st.sampled_from((*SAMPLE_IDS, T.SYS_STATUS)), unique=True),
+    ),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    initial=st.dictionaries(st.sampled_from(SAMPLE_IDS), _rates),
+    ops=st.lists(_ops, max_size=80),
+)
+def test_fast_path_gives_what_due_on_sample_gives(
+    initial: dict[int, float], ops: list[tuple[Any, ...]]
+) -> None:
+    general, fast = T.StreamSchedule(initial), T.StreamSchedule(initial)
+    ids: list[int] = list(SAMPLE_IDS)
+    fast.set_sample_streams(ids)
+    now = 1000.0
+    for op in ops:
+        kind = op[0]
+        if kind == "sample":
+            now += op[1]
+            want = general.due_on_sample(ids, now)
+            # what publish() does: one comparison, then the schedule's own loop
+            got = [] if now < fast.sample_due_at else fast.due_samples(now)
+            assert got == want, (now, op)
+        elif kind == "base":
+            general.set_base(op[1], op[2])
+            fast.set_base(op[1], op[2])
+        elif kind == "override":
+            general.set_override(op[1], op[2])
+            fast.set_override(op[1], op[2])
+        else:
+            ids = list(op[1])
+            fast.set_sample_streams(ids)
+    assert general.rate(T.ATTITUDE) == fast.rate(T.ATTITUDE)
+
+
+def test_a_change_made_while_due_samples_runs_is_not_lost() -> None:
+    # Another thread (the dispatcher) changes a rate between due_samples() reading the plan
+    # and storing the next due time: the stored time must not hide the change.
+    sched = T.StreamSchedule({T.ATTITUDE: 1.0})
+    sched.set_sample_streams([T.ATTITUDE])
+    assert sched.due_samples(10.0) == [T.ATTITUDE]
+    real_rate = sched.rate
+
+    def rate_then_change(msgid: int) -> float:
+        hz = real_rate(msgid)
+        sched.set_override(T.VFR_HUD, 5.0)  # any change, "meanwhile"
+        return hz
+
+    sched.rate = rate_then_change  # type: ignore[method-assign]
+    sched.set_base(T.ATTITUDE, 1.0)  # a new plan is built on the next call
+    sched.due_samples(10.5)
+    assert sched.sample_due_at == float("-inf")  # ask again next time, not in a second
+    sched.rate = real_rate  # type: ignore[method-assign]
+    sched.due_samples(10.6)
+    assert sched.sample_due_at == pytest.approx(11.0 - 0.25)
+
+
+@pytest.mark.parametrize(("hz", "jitter"), [(50.0, 0.0), (30.0, 0.003), (7.0, 0.004), (100.0, 0.0)])
+def test_the_average_rate_stays_exact(hz: float, jitter: float) -> None:
+    rng = random.Random(int(hz))
+    sched = T.StreamSchedule({T.ATTITUDE: hz, T.VFR_HUD: 4.0})
+    sched.set_sample_streams([T.ATTITUDE, T.VFR_HUD])
+    times = [50.0 + i * 0.01 + rng.uniform(-jitter, jitter) for i in range(6000)]  # 60 s, 100 Hz
+    counts = {T.ATTITUDE: 0, T.VFR_HUD: 0}
+    for now in times:
+        if now >= sched.sample_due_at:
+            for m in sched.due_samples(now):
+                counts[m] += 1
+    # The first goes with the first frame; the k-th falls due k periods later, a quarter
+    # period early at most; a frame comes every 10 +- 3 ms, so none is late by a period.
+    assert counts[T.ATTITUDE] == expected_count(hz, times[-1] - times[0])
+    assert counts[T.VFR_HUD] == expected_count(4.0, times[-1] - times[0])
+
+
+def expected_count(hz: float, seconds: float) -> int:
+    """Messages of an exact ``hz`` stream in ``seconds`` of frames (the first one at 0)."""
+    period = 1.0 / hz
+    return int((seconds + T.StreamSchedule.SLACK * period) / period) + 1
+
+
+# =====================================================================================
+# a started output: injected clock, taps, a real ground station on UDP
+# =====================================================================================
+
+
+class Clock:
+    """The output's clock, stepped by the test."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Peer:
+    """A ground station on a plain UDP socket; pymavlink encodes and parses."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.port = int(self.sock.getsockname()[1])
+        self.mav = M.MAVLink(None, 255, 190)
+        self.parser = M.MAVLink(None)
+        self.to: Any = None  # the output endpoint's address (its ephemeral port)
+        self.inbox: list[Any] = []  # everything received, in order (waits take from it)
+
+    def send(self, msg: Any) -> None:
+        self.sock.sendto(msg.pack(self.mav), self.to)
+
+    def wait(self, mtype: str, pred: Callable[[Any], bool] = lambda m: True) -> Any:
+        deadline = time.monotonic() + DEADLINE_S
+        while True:
+            for i, m in enumerate(self.inbox):
+                if m.get_type() == mtype and pred(m):
+                    return self.inbox.pop(i)
+            if time.monotonic() > deadline:
+                raise AssertionError(f"no {mtype} within {DEADLINE_S} s")
+            with contextlib.suppress(TimeoutError):
+                self.inbox += self.parser.parse_buffer(self.sock.recv(65535)) or []
+
+    def command(self, command: int, *params: float) -> Any:
+        p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
+        self.send(self.mav.command_long_encode(1, 1, command, 0, *p))
+        return self.wait("COMMAND_ACK", lambda m: m.command == command)
+
+    def set_param(self, name: str, value: float, ptype: int) -> Any:
+        self.send(self.mav.param_set_encode(1, 1, name.encode(), value, ptype))
+        return self.wait("PARAM_VALUE", lambda m: m.param_id == name)
+
+
+@dataclass
+class Bench:
+    out: MavlinkOutput
+    peer: Peer
+    clock: Clock
+    sent: list[Packet]  # every broadcast packet (the output's tap)
+    sample: CompassSample
+
+    def frame(self, dt: float = 0.01) -> set[int]:
+        """One sample ``dt`` after the last; the per-sample message ids it sent."""
+        self.clock.t += dt
+        before = len(self.sent)
+        self.out.publish(replace(self.sample, t=self.clock.t))
+        return {p.msgid for p in self.sent[before:] if p.msgid in SAMPLE_IDS + FEEDS}
+
+
+FEEDS = (T.VISION_POSITION_ESTIMATE,)
+
+
+@pytest.fixture
+def bench(tmp_path: Path) -> Iterator[Callable[..., Bench]]:
+    made: list[tuple[MavlinkOutput, Peer]] = []
+
+    def make(**mavlink: Any) -> Bench:
+        peer = Peer()
+        cfg = config_from_mapping(
+            {
+                "device": {"port": "sim"},
+                "storage": {"dir": str(tmp_path)},
+                "zenoh": {"enabled": False},
+                "mavlink": {"endpoints": [f"udpout:127.0.0.1:{peer.port}"], **mavlink},
+            },
+            env={},
+            hostname="fastpath",
+        )
+        daemon = Daemon(cfg)  # never started: the services the output uses
+        clock = Clock(100.0)
+        out = MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: daemon, clock=clock)
+        sent: list[Packet] = []
+        out.add_tap(sent.append)
+        out.start()
+        made.append((out, peer))
+        # The ground station answers where our HEARTBEAT came from (the clock stands still
+        # here, so the telemetry thread's first one may have gone before the socket was open).
+        deadline = time.monotonic() + DEADLINE_S
+        while not out.endpoints[0].links and time.monotonic() < deadline:
+            time.sleep(0.01)
+        out.broadcast(T.heartbeat(out.identity, M.MAV_STATE_ACTIVE))
+        while peer.to is None and time.monotonic() < deadline:
+            with contextlib.suppress(TimeoutError):
+                _data, peer.to = peer.sock.recvfrom(65535)
+        assert peer.to is not None
+        del sent[:]
+        return Bench(out, peer, clock, sent, make_sample(t=clock.t))
+
+    yield make
+    for out, peer in made:
+        out.close(2.0)
+        peer.sock.close()
+
+
+ALL_OFF = {
+    "rate_attitude_hz": 0.0,
+    "rate_attitude_quaternion_hz": 0.0,
+    "rate_vfr_hud_hz": 0.0,
+    "rate_scaled_imu_hz": 0.0,
+    "rate_raw_imu_hz": 0.0,
+    "rate_highres_imu_hz": 0.0,
+}
+
+
+def test_half_the_frames_do_no_mavlink_work(bench: Callable[..., Bench]) -> None:
+    b = bench(**{**ALL_OFF, "rate_attitude_hz": 50.0})
+    calls = 0
+    due_samples = b.out.schedule.due_samples
+
+    def counting(now: float) -> list[int]:
+        nonlocal calls
+        calls += 1
+        return due_samples(now)
+
+    b.out.schedule.due_samples = counting  # type: ignore[method-assign]
+    sent = [b.frame() for _ in range(200)]
+    assert sum(T.ATTITUDE in s for s in sent) == 100  # 50 Hz of 100 Hz frames, exactly
+    assert calls == 100  # the other 100 frames stopped at the comparison
+
+
+def test_the_average_rate_through_the_output(bench: Callable[..., Bench]) -> None:
+    b = bench(**{**ALL_OFF, "rate_attitude_hz": 30.0, "rate_vfr_hud_hz": 4.0})
+    rng = random.Random(3)
+    sent = [b.frame(0.01 + rng.uniform(-0.003, 0.003)) for _ in range(3000)]
+    first = b.sample.t + 0.01 + 0.0  # frame() stepped the clock before the first sample
+    seconds = b.clock.t - first
+    assert sum(T.ATTITUDE in s for s in sent) == expected_count(30.0, seconds)
+    assert sum(T.VFR_HUD in s for s in sent) == expected_count(4.0, seconds)
+    # what reached the ground station is what the tap saw, framed by pymavlink's rules
+    assert b.peer.wait("ATTITUDE").get_srcSystem() == 1
+
+
+def test_message_interval_takes_effect_on_the_next_sample(bench: Callable[..., Bench]) -> None:
+    b = bench(**{**ALL_OFF, "rate_attitude_hz": 2.0})
+    assert T.ATTITUDE in b.frame()
+    assert T.ATTITUDE not in b.frame()  # 2 Hz: the next one in half a second
+    att = M.MAVLINK_MSG_ID_ATTITUDE
+    assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, 20_000).result == ACCEPTED
+    assert T.ATTITUDE in b.frame()  # 50 Hz now: the very next sample
+    assert T.ATTITUDE not in b.frame()
+    assert T.ATTITUDE in b.frame()
+    assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, -1).result == ACCEPTED
+    assert not any(T.ATTITUDE in b.frame() for _ in range(50))  # off
+    assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, 0).result == ACCEPTED
+    assert T.ATTITUDE in b.frame()  # back to the configured 2 Hz, at once
+    assert not any(T.ATTITUDE in b.frame() for _ in range(10))
+    # a stream that was never on, switched on by an override
+    hud = M.MAVLINK_MSG_ID_VFR_HUD
+    assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, hud, 100_000).result == ACCEPTED
+    assert T.VFR_HUD in b.frame()
+
+
+def test_a_rate_parameter_takes_effect_on_the_next_sample(bench: Callable[..., Bench]) -> None:
+    b = bench(**ALL_OFF)  # every sample stream off: the output never needs to look again
+    assert not any(b.frame() for _ in range(20))
+    assert b.peer.set_param("BRG_SR_ATT", 20.0, REAL32).param_value == 20.0
+    assert b.frame() == {T.ATTITUDE}
+    assert b.peer.set_param("BRG_SR_RIMU", 50.0, REAL32).param_value == 50.0
+    assert T.RAW_IMU in b.frame()
+    assert b.peer.set_param("BRG_SR_ATT", 0.0, REAL32).param_value == 0.0
+    assert b.peer.set_param("BRG_SR_RIMU", 0.0, REAL32).param_value == 0.0
+    assert not any(b.frame(0.05) for _ in range(10))
+    # PREFLIGHT_STORAGE 2: back to the defaults (ATTITUDE off here, VFR_HUD's 4 Hz default)
+    assert b.peer.set_param("BRG_SR_HUD", 0.0, REAL32).param_value == 0.0
+    assert b.peer.command(M.MAV_CMD_PREFLIGHT_STORAGE, 2).result == ACCEPTED
+    assert b.out.params.get("BRG_SR_HUD") == 0.0  # the configuration's default: off
+    b.out.schedule.set_base(T.HIGHRES_IMU, 1.0)  # the schedule's own API works directly too
+    assert b.frame() == {T.HIGHRES_IMU}
+
+
+def test_the_heading_feed_switches_on_the_next_sample(bench: Callable[..., Bench]) -> None:
+    b = bench(**ALL_OFF, rate_heading_feed_hz=10.0)
+    assert not any(b.frame() for _ in range(20))  # feed off
+    assert b.peer.set_param("BRG_HDG_FEED", 1.0, INT8).param_value == 1.0
+    assert b.frame() == {T.ODOMETRY}
+    assert b.peer.set_param("BRG_HDG_FEED", 2.0, INT8).param_value == 2.0
+    got = [b.frame() for _ in range(10)]  # the slot keeps its rhythm: within one period
+    assert {T.VISION_POSITION_ESTIMATE} in got and not any(T.ODOMETRY in s for s in got)
+    assert b.peer.set_param("COMPASS_USE", 0.0, INT8).param_value == 0.0
+    assert not any(b.frame() for _ in range(20))  # the autopilot gets nothing
+    assert b.peer.set_param("COMPASS_USE", 1.0, INT8).param_value == 1.0
+    assert any(b.frame() == {T.VISION_POSITION_ESTIMATE} for _ in range(10))
+    assert b.peer.set_param("BRG_HDG_FEED", 0.0, INT8).param_value == 0.0
+    assert not any(b.frame() for _ in range(20))
+    b.peer.wait("VISION_POSITION_ESTIMATE")  # it went out on the wire too
