@@ -2,8 +2,8 @@
 
 ::
 
-    Config --open_transport--> Transport --> CompassLink (reader thread, bounded queue)
-        --> pipeline thread, per frame:
+    Config --open_transport--> Transport --> CompassLink (reader thread)
+        --> the pipeline, in the reader thread (on_frame), per frame:
               $PGMRA  : AttitudeEngine.solve_counts (nominal transfer -> stored
                         calibration -> tilt-compensated heading, + declination)
               heading-only sentence (nmea / os5000): forwarded, + declination
@@ -17,8 +17,8 @@ either keeps the latest sample and does its I/O in its own thread
 non-blocking work (MAVLink encodes the streams that are due and hands the
 packets to non-blocking UDP sends or per-peer bounded queues).
 
-Threads: the link's reader and handshake threads, the pipeline thread, one
-per output. :meth:`Daemon.stop` stops them all within a bounded time.
+Threads: the link's reader thread (which runs the pipeline: one wake per
+frame) and handshake thread, the calibration worker, and the outputs' own. :meth:`Daemon.stop` stops them all within a bounded time.
 """
 
 from __future__ import annotations
@@ -105,8 +105,8 @@ class CompassSample:
 class Output(Protocol):
     """A consumer of samples (console, MAVLink, Zenoh ...).
 
-    ``publish`` is called from the pipeline thread for every sample and MUST
-    NOT block or raise: do the I/O elsewhere (see :class:`LatestSampleWorker`).
+    ``publish`` is called from the pipeline -- the link's reader thread -- for every
+    sample and MUST NOT block or raise: do the I/O elsewhere (see :class:`LatestSampleWorker`).
     """
 
     @property
@@ -460,7 +460,7 @@ class Daemon:
         self.samples = 0
         self.pipeline_errors = 0
         self._frame_started_at: float | None = None  # set while a frame is in the pipeline
-        self._disturbed = False  # disturbance state last reported as an event (pipeline thread)
+        self._disturbed = False  # disturbance state last reported as an event (pipeline)
         self._disturbed_at = -math.inf  # when it was reported
         self._disturbed_seen_while_calibrating = False  # muted disturbance (diagnostics, tests)
         self._link_lost = False  # link.lost emitted, link.restored not yet (reader thread)
@@ -569,7 +569,7 @@ class Daemon:
             self.events.emit(Event("link.restored", "Compass link restored", Severity.NOTICE))
 
     def _disturbance_changed(self, disturbed: bool, a: AttitudeSolution, t: float) -> None:
-        """Disturbance start / end as operator events (pipeline thread, on transitions only).
+        """Disturbance start / end as operator events (pipeline, on transitions only).
 
         At most one event per :data:`DISTURBANCE_EVENT_MIN_S`: a badly calibrated unit
         turning near the threshold would flap; a change inside the hold-off is reported

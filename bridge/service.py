@@ -8,7 +8,8 @@ the :class:`~bridge.daemon.Daemon` it adds:
   once a second (link state, frame rate, heading, calibration state),
   ``STOPPING=1`` on SIGTERM/SIGINT, ``RELOADING=1`` ... ``READY=1`` on SIGHUP.
 * **The watchdog**: ``WATCHDOG=1`` only while the serial reader (every return
-  from a port read is a beat), the pipeline thread and this main loop all make
+  from a port read is a beat), the pipeline (run by the reader: it is silent
+  while a frame is stuck in it) and this main loop all make
   progress; any of them silent for :data:`SILENCE_LIMIT_S` stops the pings and
   systemd restarts the service after ``WatchdogSec``.
 * **Reload on SIGHUP**: the configuration is read again. Invalid: refused with

@@ -179,7 +179,7 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
                 env={},
                 hostname="bench",
             )
-            daemon = Daemon(cfg)  # never started: process() is the pipeline thread's work
+            daemon = Daemon(cfg)  # never started: process() is the pipeline's per-frame work
             out = MavlinkOutput(MavlinkSettings(), lambda: daemon)
             framer = Framer(1, 1)
             for r in range(repeat):

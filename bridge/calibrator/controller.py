@@ -9,7 +9,7 @@ wire format. :meth:`CalibrationController.snapshot` serves status queries.
 
 Threads:
 
-* the daemon's **pipeline thread** calls :meth:`~CalibrationController.feed`
+* the daemon's **pipeline** (in the link's reader thread) calls :meth:`~CalibrationController.feed`
   for every frame -- O(1) when idle, a few tens of microseconds while
   collecting; it never waits for a fit or a device command;
 * one **worker thread** runs fits, persistence and device commands
@@ -438,7 +438,7 @@ class CalibrationController:
     # ------------------------------------------------------------------ the per-frame hook
 
     def feed(self, frame: object) -> None:
-        """Hand over one received frame (any type); called from the pipeline thread.
+        """Hand over one received frame (any type); called from the pipeline (the link's reader thread).
 
         ``$PGMRA`` frames feed the running session (and a short history kept for
         the fixed-yaw calibration); ``$PGMRC`` frames the device's MAGCAL

@@ -284,7 +284,7 @@ class AttitudeEngine:
     def update_limits(self, limits: QualityLimits) -> None:
         """Switch to new quality limits (e.g. MAVLink BRG_* parameters); the flags restart clear."""
         self._limits = limits
-        # A fresh monitor: a swap is one reference store, safe against the pipeline thread.
+        # A fresh monitor: a swap is one reference store, safe against the pipeline (reader thread).
         self._quality = QualityMonitor(limits)
         self._state = self._build()
 

@@ -2,7 +2,7 @@
 
 Threads, and why:
 
-* the pipeline thread calls :meth:`ZenohOutput.publish` for every sample: it
+* the pipeline (the link's reader thread) calls :meth:`ZenohOutput.publish` for every sample: it
   applies the rate caps (so a sample no stream wants never wakes the
   publisher), appends to a bounded deque and sets an event -- O(1), never
   blocks, never raises. If the publisher falls more than ``queue_len``
@@ -227,7 +227,7 @@ class ZenohOutput:
             # No session (yet, or it failed): a backlog would go out as a stale burst later.
             self.counters.unsent += 1
             return
-        # The caps are applied here, in the pipeline thread (the decimators are used by no
+        # The caps are applied here, in the pipeline (the decimators are used by no
         # other): a sample no stream wants costs no wake-up of the publisher thread.
         t = sample.t
         if t < self._opens_at:

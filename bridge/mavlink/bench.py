@@ -108,7 +108,7 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
             env={},
             hostname="bench",
         )
-        # Never started: process() is the pipeline thread's work. The unit's own calibration,
+        # Never started: process() is the pipeline's per-frame work. The unit's own calibration,
         # as after a good calibration: the field is the Earth's, so the heading feed goes too.
         daemon = Daemon(cfg, calibration=unit().true_calibration())
         out = MavlinkOutput(MavlinkSettings(), lambda: daemon)

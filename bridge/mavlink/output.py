@@ -3,7 +3,7 @@
 It is a daemon :class:`~bridge.daemon.Output`: ``publish`` keeps the latest
 sample (one reference store, never blocks); its threads do the rest:
 
-* ``publish`` (the pipeline thread) encodes the sample streams that are due
+* ``publish`` (the pipeline, in the link's reader thread) encodes the sample streams that are due
   (:class:`~bridge.mavlink.telemetry.StreamSchedule`) and queues them on the
   endpoints -- a few microseconds per due message, never blocking: at 100 Hz
   most frames carry no due message, and waking a thread per frame just to find
@@ -782,7 +782,7 @@ class MavlinkOutput:
             self.schedule.set_base(s.msgid, self.params.get(s.param))
         wanted = self._sample_streams()
         enc = self._ENCODERS
-        # Encoders first, then the schedule: publish() in the pipeline thread may see the
+        # Encoders first, then the schedule: publish() in the pipeline (reader thread) may see the
         # new encoders with the old streams (a feed just switched off: its slot encodes
         # nothing), never a due stream without an encoder.
         encoders: dict[int, Callable[[CompassSample], Packet | None]] = {
