@@ -18,7 +18,8 @@ non-blocking work (MAVLink encodes the streams that are due and hands the
 packets to non-blocking UDP sends or per-peer bounded queues).
 
 Threads: the link's reader thread (which runs the pipeline: one wake per
-frame) and handshake thread, the calibration worker, and the outputs' own. :meth:`Daemon.stop` stops them all within a bounded time.
+frame) and handshake thread, the calibration worker, and the outputs' own.
+:meth:`Daemon.stop` stops them all within a bounded time.
 """
 
 from __future__ import annotations

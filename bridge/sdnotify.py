@@ -307,12 +307,11 @@ class WatchedTransport:
 
     def read(self, max_bytes: int, timeout: float) -> bytes:
         """Read from the wrapped transport (a beat on return)."""
-        # Attribute peeks before the calls: this runs for every frame.
         if self._hang_armed:
             log.warning("test hook: the serial reader hangs now")
             self._released.wait()
             self._hang_armed = False
-        if self._pending is not None and self._swap():
+        if self._swap():
             self._liveness.beat(self._beat_name, self._clock())
             raise TransportError("port settings changed by a reload; reopening")
         try:

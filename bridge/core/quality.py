@@ -138,8 +138,8 @@ class QualityMonitor:
     ) -> tuple[bool, bool]:
         """One frame in; ``(disturbed, accelerating)`` out, both debounced.
 
-        The same judgement as :func:`accel_out_of_limits`, :func:`field_out_of_limits`
-        and :meth:`Debounce.update`, written out flat: this runs for every frame, and
+        The same judgement as :func:`accel_out_of_limits` and :func:`field_out_of_limits`
+        (then :meth:`Debounce.update` on each), written out flat: this runs for every frame, and
         at 100 Hz each Python call costs microseconds (tests/test_quality.py checks the
         two forms agree).
         """
@@ -160,19 +160,7 @@ class QualityMonitor:
                 and expected_dip_deg is not None
                 and not abs(dip_deg - expected_dip_deg) <= lim.dip_tolerance_deg
             )
-        # Debounce.update's common case (input agrees with the state) inline.
-        f, a = self._field, self._accel
-        if field_bad == f.state:
-            f._count = 0
-            disturbed = f.state
-        else:
-            disturbed = f.update(field_bad)
-        if accel_bad == a.state:
-            a._count = 0
-            accelerating = a.state
-        else:
-            accelerating = a.update(accel_bad)
-        return disturbed, accelerating
+        return self._field.update(field_bad), self._accel.update(accel_bad)
 
     @property
     def disturbed(self) -> bool:

@@ -251,7 +251,6 @@ class CompassLink:
 
         self._decoder: _Decoder = self._make_decoder()
         self._stop = threading.Event()
-        self._closing = False  # the same as _stop, as a plain flag the reader checks per read
         self._ended = threading.Event()
         self._reader: threading.Thread | None = None
         self._worker: threading.Thread | None = None
@@ -351,7 +350,6 @@ class CompassLink:
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop the threads (within about ``timeout`` s) and close the port."""
-        self._closing = True
         self._stop.set()
         for cond in (self._answer_cond, self._gen_cond, self._queue_cond, self._state_cond):
             with cond:
@@ -602,7 +600,7 @@ class CompassLink:
         opened_before = False
         is_open = False
         last_valid = 0.0
-        while not self._closing:
+        while not self._stop.is_set():
             if not is_open:
                 try:
                     self._open_port()

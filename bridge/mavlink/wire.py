@@ -94,17 +94,19 @@ class Codec:
             return trim(self._struct.pack(*[fields[name] for name in names]))
         values: list[Any] = []
         for name, n in self._layout:
-            v = fields[name]
-            if name in self._chars:
-                values.append(v.encode("utf-8") if isinstance(v, str) else bytes(v))
-            elif n:
-                seq = list(v)
-                if len(seq) != n:
-                    raise ValueError(f"{self.name}.{name} needs {n} values, got {len(seq)}")
-                values.extend(seq)
-            else:
-                values.append(v)
+            values.extend(self._wire_values(name, n, fields[name]))
         return trim(self._struct.pack(*values))
+
+    def _wire_values(self, name: str, n: int, v: Any) -> list[Any]:
+        """The struct values of one field: a char field as bytes, an array's ``n`` items."""
+        if name in self._chars:
+            return [v.encode("utf-8") if isinstance(v, str) else bytes(v)]
+        if n:
+            seq = list(v)
+            if len(seq) != n:
+                raise ValueError(f"{self.name}.{name} needs {n} values, got {len(seq)}")
+            return seq
+        return [v]
 
     def packet(self, **fields: Any) -> Packet:
         """Encode one message."""
@@ -136,16 +138,7 @@ class Codec:
         order: list[int] = []  # index into values + fixed, in wire order
         for name, n in self._layout:
             if name in constants:
-                v = constants[name]
-                if name in self._chars:
-                    v = v.encode("utf-8") if isinstance(v, str) else bytes(v)
-                if n and name not in self._chars:
-                    seq = list(v)
-                    if len(seq) != n:
-                        raise ValueError(f"{self.name}.{name} needs {n} values, got {len(seq)}")
-                else:
-                    seq = [v]
-                for item in seq:
+                for item in self._wire_values(name, n, constants[name]):
                     order.append(len(variable) + len(fixed))
                     fixed.append(item)
             elif n or name in self._chars:
