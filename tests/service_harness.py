@@ -14,6 +14,7 @@ Every wait here has a deadline: nothing can hang a test run.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -113,10 +114,37 @@ class FakeServiceManager:
         self.sock.close()
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port on 127.0.0.1 free right now (TCP by default)."""
+    with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 free right now."""
+    return free_port(socket.SOCK_DGRAM)
+
+
+def status_text(m: Message) -> str:
+    """The ``STATUS=`` of a notify message ("" when it has none)."""
+    return m.get("STATUS") or ""
+
+
+def streaming_rate(m: Message) -> float:
+    """The frame rate a "streaming ... at N Hz" STATUS reports, -1 for any other."""
+    found = re.search(r"streaming .* at ([0-9.]+) Hz", status_text(m))
+    return float(found.group(1)) if found else -1.0
+
+
+def wait_for(pred: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:
+    """Poll ``pred`` every 50 ms until true; AssertionError naming ``what`` after ``timeout``."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
 
 
 def toml_config(

@@ -5,7 +5,6 @@ flooding commands. The telemetry a healthy ground station receives keeps its rat
 
 from __future__ import annotations
 
-import re
 import socket
 import time
 from collections.abc import Iterator
@@ -18,36 +17,16 @@ from service_harness import (
     DaemonProcess,
     FakeServiceManager,
     GroundStation,
-    Message,
+    free_port,
+    streaming_rate,
     toml_config,
+    wait_for,
 )
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
 DEADLINE_S = 20.0
-
-
-def _free(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _status(m: Message) -> str:
-    return m.get("STATUS") or ""
-
-
-def _rate(m: Message) -> float:
-    found = re.search(r"streaming .* at ([0-9.]+) Hz", _status(m))
-    return float(found.group(1)) if found else -1.0
-
-
-@pytest.fixture
-def manager() -> Iterator[FakeServiceManager]:
-    m = FakeServiceManager()
-    yield m
-    m.close()
 
 
 @pytest.fixture
@@ -57,19 +36,10 @@ def gcs() -> Iterator[GroundStation]:
     g.close()
 
 
-def _wait(pred: object, what: str, timeout: float = DEADLINE_S) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():  # type: ignore[operator]
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_unreachable_endpoints_do_not_slow_the_others(
     tmp_path: Path, manager: FakeServiceManager, gcs: GroundStation
 ) -> None:
-    closed_udp, closed_tcp = _free(socket.SOCK_DGRAM), _free(socket.SOCK_STREAM)
+    closed_udp, closed_tcp = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     endpoints = [
         f"udpout:127.0.0.1:{closed_udp}",  # nobody listens: ICMP port unreachable
         f"tcp:127.0.0.1:{closed_tcp}",  # connection refused, retried
@@ -81,8 +51,8 @@ def test_unreachable_endpoints_do_not_slow_the_others(
         cfg.write_text(toml_config(str(sim.link_path), tmp_path / "state", mavlink=endpoints))
         d = DaemonProcess(cfg, manager, tmp_path / "daemon.log")
         try:
-            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
-            _wait(lambda: gcs.count("ATTITUDE", 0.0) > 5, "ATTITUDE at the ground station")
+            manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, proc=d)
+            wait_for(lambda: gcs.count("ATTITUDE", 0.0) > 5, "ATTITUDE at the ground station")
             t0 = time.monotonic()
             time.sleep(4.0)
             n = gcs.count("ATTITUDE", t0, t0 + 4.0)
@@ -104,7 +74,7 @@ def test_unreachable_endpoints_do_not_slow_the_others(
 def test_a_command_flood_does_not_starve_telemetry(
     tmp_path: Path, manager: FakeServiceManager, gcs: GroundStation
 ) -> None:
-    cmd_port = _free(socket.SOCK_DGRAM)
+    cmd_port = free_port(socket.SOCK_DGRAM)
     endpoints = [f"udpin:127.0.0.1:{cmd_port}", f"udpout:127.0.0.1:{gcs.port}"]
     with PtyCompass(make_firmware(22), tmp_path / "compass") as sim:
         cfg = tmp_path / "bridge.toml"
@@ -112,8 +82,8 @@ def test_a_command_flood_does_not_starve_telemetry(
         d = DaemonProcess(cfg, manager, tmp_path / "daemon.log")
         flooder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
-            _wait(lambda: gcs.count("ATTITUDE", 0.0) > 5, "ATTITUDE at the ground station")
+            manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, proc=d)
+            wait_for(lambda: gcs.count("ATTITUDE", 0.0) > 5, "ATTITUDE at the ground station")
             # A peer hammering COMMAND_LONGs addressed to us (a command we do not support,
             # so each costs the dispatcher a COMMAND_ACK), ~2000 a second for 4 s.
             mav = apm.MAVLink(None, srcSystem=255, srcComponent=190)
@@ -141,7 +111,7 @@ def test_a_command_flood_does_not_starve_telemetry(
                     break
             assert any(m.get_type() == "COMMAND_ACK" and m.command == 183 for m in got)
             mark = len(manager.messages)
-            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, after=mark, proc=d)
+            manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, after=mark, proc=d)
             assert not d.exited and "Traceback" not in d.log()
             assert d.stop() == 0
         finally:

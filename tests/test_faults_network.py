@@ -7,43 +7,24 @@ from __future__ import annotations
 
 import contextlib
 import json
-import re
-import socket
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
 import zenoh
-from service_harness import DaemonProcess, FakeServiceManager, Message, toml_config
+from service_harness import (
+    DaemonProcess,
+    FakeServiceManager,
+    free_port,
+    streaming_rate,
+    toml_config,
+    wait_for,
+)
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
 DEADLINE_S = 20.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _status(m: Message) -> str:
-    return m.get("STATUS") or ""
-
-
-def _rate(m: Message) -> float:
-    found = re.search(r"streaming .* at ([0-9.]+) Hz", _status(m))
-    return float(found.group(1)) if found else -1.0
-
-
-@pytest.fixture
-def manager() -> Iterator[FakeServiceManager]:
-    m = FakeServiceManager()
-    yield m
-    m.close()
 
 
 class Peer:
@@ -74,17 +55,8 @@ class Peer:
         self.session.close()
 
 
-def _wait(pred: object, what: str, timeout: float = DEADLINE_S) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():  # type: ignore[operator]
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_zenoh_peer_down_and_back(tmp_path: Path, manager: FakeServiceManager) -> None:
-    zport = _free_port()
+    zport = free_port()
     prefix = f"test/netfault{zport}"
     zsec = (
         f'[zenoh]\nenabled = true\nmode = "peer"\nconnect = ["tcp/127.0.0.1:{zport}"]\n'
@@ -97,8 +69,8 @@ def test_zenoh_peer_down_and_back(tmp_path: Path, manager: FakeServiceManager) -
         peer = Peer(zport, f"{prefix}/heading")
         d = DaemonProcess(cfg, manager, tmp_path / "daemon.log")
         try:
-            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
-            _wait(lambda: peer.count() >= 10, "headings at the peer")
+            manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, proc=d)
+            wait_for(lambda: peer.count() >= 10, "headings at the peer")
 
             peer.close()  # the peer goes away
             t_down = time.monotonic()
@@ -107,12 +79,12 @@ def test_zenoh_peer_down_and_back(tmp_path: Path, manager: FakeServiceManager) -
             manager.wait_for(lambda m: m.t - t_down > 3.0, after=mark, proc=d)
             down = manager.since(mark)
             assert sum(m.get("WATCHDOG") == "1" for m in down) >= 6
-            rates = [_rate(m) for m in down if "STATUS" in m]
+            rates = [streaming_rate(m) for m in down if "STATUS" in m]
             assert rates and min(rates) >= 8.0, rates
 
             peer = Peer(zport, f"{prefix}/heading")  # back, same endpoint
             t_back = time.monotonic()
-            _wait(lambda: peer.count() >= 5, "headings after the peer's return")
+            wait_for(lambda: peer.count() >= 5, "headings after the peer's return")
             first = peer.headings[0] - t_back
             assert first < 5.0  # re-joined by the daemon's own connect retry
             assert not d.exited and "Traceback" not in d.log()

@@ -12,34 +12,23 @@ import signal
 import threading
 import time
 import tty
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
-from service_harness import DaemonProcess, FakeServiceManager, GroundStation, Message, toml_config
+from service_harness import (
+    DaemonProcess,
+    FakeServiceManager,
+    GroundStation,
+    status_text,
+    streaming_rate,
+    toml_config,
+)
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
 WATCHDOG_USEC = 1_000_000
-
-
-@pytest.fixture
-def manager() -> Iterator[FakeServiceManager]:
-    m = FakeServiceManager()
-    yield m
-    m.close()
-
-
-def _status(m: Message) -> str:
-    return m.get("STATUS") or ""
-
-
-def _rate(m: Message) -> float:
-    found = re.search(r"streaming .* at ([0-9.]+) Hz", _status(m))
-    return float(found.group(1)) if found else -1.0
 
 
 def _pings_continue(manager: FakeServiceManager, d: DaemonProcess, n: int = 3) -> None:
@@ -61,17 +50,17 @@ def test_usb_unplug_and_return(tmp_path: Path, manager: FakeServiceManager) -> N
     with PtyCompass(make_firmware(5), tmp_path / "compass") as sim:
         d = _start(tmp_path, manager, sim.link_path)
         try:
-            i, _ = manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
+            i, _ = manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, proc=d)
             sim.unplug(2.5)  # the pty vanishes, the symlink too; a new one after 2.5 s
             j, _ = manager.wait_for(
-                lambda m: "waiting for" in _status(m) or "no valid frame" in _status(m),
+                lambda m: "waiting for" in status_text(m) or "no valid frame" in status_text(m),
                 after=i,
                 proc=d,
             )
             _pings_continue(manager, d)  # a reader retrying an absent port is alive
             assert sim.wait_plugged(10.0) is not None
-            _, back = manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, after=j, proc=d)
-            assert re.search(r"\b1 reconnects\b", _status(back)), _status(back)
+            _, back = manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, after=j, proc=d)
+            assert re.search(r"\b1 reconnects\b", status_text(back)), status_text(back)
             assert not d.exited
             assert d.stop() == 0
         finally:
@@ -82,7 +71,7 @@ def test_compass_reboots_mid_stream(tmp_path: Path, manager: FakeServiceManager)
     with PtyCompass(make_firmware(6), tmp_path / "compass") as sim:
         d = _start(tmp_path, manager, sim.link_path, rate_hz=20)
         try:
-            i, _ = manager.wait_for(lambda m: 17.0 <= _rate(m) <= 23.0, proc=d)
+            i, _ = manager.wait_for(lambda m: 17.0 <= streaming_rate(m) <= 23.0, proc=d)
             # A brown-out behind a self-powered adapter: the port stays, the device reboots
             # (output stops ~300 ms, $PGMRV, seq from 0, back at its 10 Hz power-up rate).
             with sim._lock:  # the serve thread owns the firmware; take its lock
@@ -90,10 +79,12 @@ def test_compass_reboots_mid_stream(tmp_path: Path, manager: FakeServiceManager)
             time.sleep(0.2)
             with sim._lock:
                 sim.firmware.power_on(time.monotonic())
-            k, _ = manager.wait_for(lambda m: "1 resets" in _status(m), after=i, proc=d)
+            k, _ = manager.wait_for(lambda m: "1 resets" in status_text(m), after=i, proc=d)
             # The daemon notices the reset and asks for its 20 Hz again (connect handshake).
             manager.wait_for(
-                lambda m: "1 resets" in _status(m) and 17.0 <= _rate(m) <= 23.0, after=k, proc=d
+                lambda m: "1 resets" in status_text(m) and 17.0 <= streaming_rate(m) <= 23.0,
+                after=k,
+                proc=d,
             )
             assert "device reset detected" in d.log()
             _pings_continue(manager, d)
@@ -106,15 +97,15 @@ def test_garbage_bursts_are_counted_not_fatal(tmp_path: Path, manager: FakeServi
     with PtyCompass(make_firmware(8), tmp_path / "compass") as sim:
         d = _start(tmp_path, manager, sim.link_path)
         try:
-            i, _ = manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
+            i, _ = manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, proc=d)
             for _ in range(8):
                 sim.garbage(3000)  # line noise in the middle of the frames
                 time.sleep(0.1)
             k, _ = manager.wait_for(
-                lambda m: re.search(r"\b\d+ bad\b", _status(m)) is not None, after=i, proc=d
+                lambda m: re.search(r"\b\d+ bad\b", status_text(m)) is not None, after=i, proc=d
             )
             # Still streaming at the device's rate, still pinging, nothing crashed.
-            manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, after=k + 1, proc=d)
+            manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, after=k + 1, proc=d)
             _pings_continue(manager, d)
             assert "Traceback" not in d.log()
             assert d.stop() == 0
@@ -200,9 +191,9 @@ def test_wrong_baud_rate_is_reported_not_fatal(tmp_path: Path, manager: FakeServ
     try:
         # READY comes after the bounded wait, and STATUS names the problem.
         _, ready = manager.wait_for(lambda m: "READY" in m, timeout=25.0, proc=d)
-        assert "without a streaming compass" in _status(ready)
-        _, st = manager.wait_for(lambda m: "NO VALID FRAMES" in _status(m), proc=d)
-        assert str(dev.link) in _status(st) and "wrong baud rate" in _status(st)
+        assert "without a streaming compass" in status_text(ready)
+        _, st = manager.wait_for(lambda m: "NO VALID FRAMES" in status_text(m), proc=d)
+        assert str(dev.link) in status_text(st) and "wrong baud rate" in status_text(st)
         # MAVLink says it too: SYS_STATUS has the compass present but not healthy, and
         # HEARTBEAT is not ACTIVE.
         end = time.monotonic() + 10.0

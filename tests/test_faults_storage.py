@@ -14,7 +14,6 @@ import ctypes
 import json
 import os
 import random
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -23,7 +22,13 @@ from typing import Any
 
 import pytest
 import zenoh
-from service_harness import DaemonProcess, FakeServiceManager, Message, toml_config
+from service_harness import (
+    DaemonProcess,
+    FakeServiceManager,
+    free_port,
+    status_text,
+    toml_config,
+)
 
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.sim.firmware import make_firmware
@@ -34,12 +39,6 @@ from bridge.storage import StateStore
 DEADLINE_S = 20.0
 PR_CAPBSET_DROP = 24
 CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH = 1, 2
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _no_dac_override() -> None:
@@ -59,7 +58,7 @@ class Bridge:
     """A daemon with remote calibration on a loopback zenoh listener, and a client session."""
 
     def __init__(self, tmp: Path, manager: FakeServiceManager, link: Path, state: Path) -> None:
-        self.port = _free_port()
+        self.port = free_port()
         self.prefix = f"test/storage{os.getpid()}x{self.port}"
         zenoh_section = (
             f'[zenoh]\nenabled = true\nlisten = ["tcp/127.0.0.1:{self.port}"]\n'
@@ -113,17 +112,6 @@ class Bridge:
 FIXED_YAW = {"what": "fixed_yaw", "yaw_deg": 0.0}
 
 
-def _status(m: Message) -> str:
-    return m.get("STATUS") or ""
-
-
-@pytest.fixture
-def manager() -> Iterator[FakeServiceManager]:
-    m = FakeServiceManager()
-    yield m
-    m.close()
-
-
 @pytest.fixture
 def still_compass(tmp_path: Path) -> Iterator[PtyCompass]:
     # Fixed-yaw calibration wants the unit still.
@@ -134,13 +122,13 @@ def still_compass(tmp_path: Path) -> Iterator[PtyCompass]:
 def _calibrate_and_expect_not_saved(bridge: Bridge, manager: FakeServiceManager) -> None:
     d = bridge.daemon
     assert d is not None
-    i, _ = manager.wait_for(lambda m: " Hz" in _status(m), proc=d)  # frames for the average
+    i, _ = manager.wait_for(lambda m: " Hz" in status_text(m), proc=d)  # frames for the average
     with bridge.client() as s:
         doc = bridge.command(s, "start", FIXED_YAW)
     assert doc.get("ok") is True, doc.get("message")
     # Applied in memory, not saved: STATUS and the log say so; the daemon carries on.
-    _, st = manager.wait_for(lambda m: "NOT SAVED" in _status(m), after=i, proc=d)
-    assert "streaming" in _status(st)
+    _, st = manager.wait_for(lambda m: "NOT SAVED" in status_text(m), after=i, proc=d)
+    assert "streaming" in status_text(st)
     assert "not saved" in d.log().lower()
     mark = len(manager.messages)
     manager.wait_for(
@@ -194,11 +182,11 @@ def test_kill_9_during_saves_never_loses_the_calibration(
     # A first calibration, saved normally.
     d = bridge.start()
     try:
-        manager.wait_for(lambda m: " Hz" in _status(m), proc=d)
+        manager.wait_for(lambda m: " Hz" in status_text(m), proc=d)
         with bridge.client() as s:
             assert bridge.command(s, "start", FIXED_YAW).get("ok") is True
         manager.wait_for(
-            lambda m: "calibration fixed" in _status(m) or "stored" in _status(m), proc=d
+            lambda m: "calibration fixed" in status_text(m) or "stored" in status_text(m), proc=d
         )
         assert StateStore(state).load("calibration").payload is not None
     finally:
@@ -211,7 +199,7 @@ def test_kill_9_during_saves_never_loses_the_calibration(
             mark = len(manager.messages)
             _, ready = manager.wait_for(lambda m: "READY" in m, after=mark, proc=d)
             # The restart found a valid calibration (the current copy or the last good one).
-            assert "calibration stored" in _status(ready), _status(ready)
+            assert "calibration stored" in status_text(ready), status_text(ready)
             stop = threading.Event()
             sent = [0]
 
@@ -258,7 +246,7 @@ def test_corrupt_calibration_at_start_falls_back_and_says_so(
     d = bridge.start()
     try:
         _, ready = manager.wait_for(lambda m: "READY" in m, proc=d)
-        assert "calibration stored (previous copy)" in _status(ready), _status(ready)
+        assert "calibration stored (previous copy)" in status_text(ready), status_text(ready)
         log = d.log()
         assert "calibration.json: truncated or not JSON" in log  # reported, with the reason
         assert d.stop() == 0

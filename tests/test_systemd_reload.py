@@ -7,14 +7,12 @@ SIGHUP handler does, and the parts are compared by identity afterwards.
 
 from __future__ import annotations
 
-import socket
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from service_harness import toml_config
+from service_harness import free_port, toml_config, wait_for
 
 from bridge.config import Config, load_config
 from bridge.daemon import Daemon, Output, build_outputs
@@ -26,26 +24,15 @@ from bridge.sim.pty import PtyCompass
 DEADLINE_S = 15.0
 
 
-def _free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _wait(pred: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+    wait_for(pred, what, timeout)  # this file's own, shorter deadline
 
 
 class Running:
     def __init__(self, tmp: Path, link: Path) -> None:
         self.cfg_path = tmp / "bridge.toml"
         self.tmp, self.link = tmp, link
-        self.zport = _free_tcp_port()
+        self.zport = free_port()
         self.write()
         cfg = load_config(self.cfg_path, env={})
 

@@ -26,13 +26,6 @@ WATCHDOG_USEC = 1_000_000  # pings due every 1/3 s
 
 
 @pytest.fixture
-def manager() -> Iterator[FakeServiceManager]:
-    m = FakeServiceManager()
-    yield m
-    m.close()
-
-
-@pytest.fixture
 def compass(tmp_path: Path) -> Iterator[PtyCompass]:
     with PtyCompass(make_firmware(7), tmp_path / "compass") as sim:
         yield sim

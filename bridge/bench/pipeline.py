@@ -136,15 +136,13 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
     """Frames per process-CPU second through the whole per-frame path (see the module doc)."""
     import zenoh
 
-    from bridge.config import config_from_mapping
     from bridge.daemon import CompassSample, Daemon
     from bridge.fleet import schema
     from bridge.link.serial_link import Received
-    from bridge.mavlink.bench import STREAMS, frame_lines
+    from bridge.mavlink.bench import STREAMS, bench_config, frame_lines
     from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
     from bridge.mavlink.wire import Framer
     from bridge.protocol.gmr import GmrDecoder
-    from bridge.sim.physics import DEFAULT_LOCATION
 
     data = frame_lines(n)
     port = _free_port(socket.SOCK_STREAM)
@@ -168,17 +166,7 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
         }
         time.sleep(0.5)  # let the two sessions meet before the clock starts
         with tempfile.TemporaryDirectory() as tmp:
-            lat, lon, alt = DEFAULT_LOCATION
-            cfg = config_from_mapping(
-                {
-                    "device": {"port": "sim"},
-                    "storage": {"dir": tmp},
-                    "location": {"latitude": lat, "longitude": lon, "altitude_m": alt},
-                    "zenoh": {"enabled": False},
-                },
-                env={},
-                hostname="bench",
-            )
+            cfg = bench_config(tmp)
             daemon = Daemon(cfg)  # never started: process() is the pipeline's per-frame work
             out = MavlinkOutput(MavlinkSettings(), lambda: daemon)
             framer = Framer(1, 1)

@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from bridge.config import config_from_mapping
+from bridge.config import Config, config_from_mapping
 from bridge.core.geometry import random_rotations
 from bridge.daemon import CompassSample, Daemon
 from bridge.link.serial_link import Received
@@ -93,21 +93,27 @@ def frame_lines(n: int, seed: int = 1) -> bytes:
     return bytes(out)
 
 
+def bench_config(state_dir: str) -> Config:
+    """The benches' daemon: the simulated compass at the default site, zenoh off, state in
+    ``state_dir`` (the daemon is never started: its per-frame work is called directly)."""
+    lat, lon, alt = DEFAULT_LOCATION
+    return config_from_mapping(
+        {
+            "device": {"port": "sim"},
+            "storage": {"dir": state_dir},
+            "location": {"latitude": lat, "longitude": lon, "altitude_m": alt},
+            "zenoh": {"enabled": False},
+        },
+        env={},
+        hostname="bench",
+    )
+
+
 def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult:
     """Push ``n`` frames through decode -> process -> every stream's encode -> framing."""
     data = frame_lines(n)
     with tempfile.TemporaryDirectory() as tmp:
-        lat, lon, alt = DEFAULT_LOCATION
-        cfg = config_from_mapping(
-            {
-                "device": {"port": "sim"},
-                "storage": {"dir": tmp},
-                "location": {"latitude": lat, "longitude": lon, "altitude_m": alt},
-                "zenoh": {"enabled": False},
-            },
-            env={},
-            hostname="bench",
-        )
+        cfg = bench_config(tmp)
         # Never started: process() is the pipeline's per-frame work. The unit's own calibration,
         # as after a good calibration: the field is the Earth's, so the heading feed goes too.
         daemon = Daemon(cfg, calibration=unit().true_calibration())
