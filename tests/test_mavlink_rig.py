@@ -390,6 +390,19 @@ def test_bytes_on_the_wire_are_mavlink2(tmp_path: Path, rigs: Callable[..., Rig]
     finally:
         sock.close()
     assert len(got) >= 20
+    # A datagram may carry several packets back to back (a frame's streams leave together):
+    # cut each into its packets by the header's length byte (unsigned: 12 + payload bytes),
+    # the cuts must fall exactly on the datagram's end; the checks below hold per packet.
+    packets: list[bytes] = []
+    for datagram in got:
+        at = 0
+        while at < len(datagram):
+            assert datagram[at] == 0xFD, datagram[at : at + 1].hex()
+            end = at + 12 + datagram[at + 1]
+            assert end <= len(datagram)
+            packets.append(datagram[at:end])
+            at = end
+    got = packets
     assert all(d[0] == 0xFD for d in got), [d[:1].hex() for d in got]
     # header: len, incompat, compat, seq, sysid, compid: our ids, unsigned, consecutive seq
     assert {(d[5], d[6]) for d in got} == {(1, 1)}

@@ -11,6 +11,10 @@ on non-blocking sockets (or a non-blocking tty). An endpoint has one or more
   the newest is worth most);
 * its own :class:`~bridge.mavlink.wire.Framer` (sequence number, signature),
   framing at the moment of writing;
+* :meth:`Link.send_many` for packets that belong together (one frame's
+  telemetry): a UDP peer gets them framed back to back in one datagram (at
+  most :data:`MAX_DATAGRAM_BYTES`, more datagrams otherwise), as ArduPilot
+  packs its UDP link; every MAVLink parser reads all the messages of a datagram;
 * its own pymavlink parser for what the peer sends; every message goes to the
   ``on_message(msg, link)`` callback, in this endpoint's thread (the callback
   must hand it on quickly).
@@ -42,12 +46,12 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
 from bridge.config import MavlinkEndpoint, parse_mavlink_endpoint
-from bridge.mavlink.dialect import mavlink
+from bridge.mavlink.dialect import IFLAG_SIGNED, MAGIC_V2, mavlink
 from bridge.mavlink.signing import Signing
 from bridge.mavlink.wire import Framer, Packet
 
@@ -71,6 +75,11 @@ _PENDING_LOW_WATER = 8192  # stream links: refill the byte buffer below this
 #: thread, so a sender's time per call stays bounded and bursts keep their old pacing.
 _DIRECT_BURST = 16
 _DIRECT_WINDOW_S = 0.01
+#: UDP: several packets sent together share a datagram up to this size. Below the
+#: Ethernet MTU (1500 - 28 bytes of IP and UDP headers) with room for a tunnel's
+#: overhead (VPN, WireGuard), so no datagram is ever fragmented; a MAVLink 2 packet is
+#: at most 280 bytes, so every datagram holds at least one whole packet.
+MAX_DATAGRAM_BYTES = 1400
 _monotonic = time.monotonic  # the direct-send window's clock (a test steps it)
 
 
@@ -157,6 +166,36 @@ class Link:
         q.append(packet)
         self.endpoint.wake()
 
+    def send_many(self, packets: Sequence[Packet]) -> None:
+        """Queue ``packets`` for this peer, in order, as :meth:`send` does each; never blocks.
+
+        A UDP endpoint with nothing queued sends them at once from the calling
+        thread, framed back to back in as few datagrams as fit
+        (:data:`MAX_DATAGRAM_BYTES`): one ``sendto`` for a frame's telemetry
+        instead of one per message. What it cannot send directly (the burst
+        window is used up) is queued behind, as :meth:`send` would queue it.
+        """
+        if self.closed:
+            self.endpoint.count_unsent(len(packets))
+            return
+        q = self.queue
+        done = self.endpoint.send_now_many(self, packets) if not q else 0
+        if done >= len(packets):
+            return
+        limit, dropped = self.limit, 0
+        for p in packets[done:]:
+            if len(q) >= limit:
+                try:
+                    q.popleft()
+                except IndexError:  # the endpoint thread emptied it meanwhile
+                    pass
+                else:
+                    dropped += 1
+            q.append(p)
+        if dropped:
+            self.endpoint.count_dropped(dropped)
+        self.endpoint.wake()
+
     def __repr__(self) -> str:
         return f"<Link {self.name}>"
 
@@ -211,6 +250,15 @@ class Endpoint:
         """
         return False
 
+    def send_now_many(self, link: Link, packets: Sequence[Packet]) -> int:
+        """Send a leading part of ``packets`` to ``link`` from the calling thread if that
+        cannot block; how many were taken (sent, left in ``link.pending`` for the
+        endpoint's thread, or lost to a socket error, as :meth:`send_now` counts them).
+
+        0 (the default) means "queue them all for the endpoint's thread".
+        """
+        return 0
+
     def make_framer(self) -> Framer:
         """A new framer for a link of this endpoint (our ids, signing, link id)."""
         return Framer(self.system_id, self.component_id, signing=self.signing, link_id=self.link_id)
@@ -233,6 +281,15 @@ class Endpoint:
             return
         for link in links:
             link.send(packet)
+
+    def broadcast_many(self, packets: Sequence[Packet]) -> None:
+        """Queue ``packets`` (in order, together: see :meth:`Link.send_many`) for every peer."""
+        links = self._links  # replaced, never changed in place: no copy needed
+        if not links:
+            self.count_unsent(len(packets))
+            return
+        for link in links:
+            link.send_many(packets)
 
     def start(self) -> Endpoint:
         """Start the endpoint's thread."""
@@ -426,6 +483,27 @@ class Endpoint:
         self._close_transport()
 
 
+def _whole_packets(buf: bytearray, limit: int) -> tuple[int, int]:
+    """(length, count) of the longest run of whole framed packets at the start of ``buf``
+    that fits in ``limit`` bytes -- at least one packet, however long.
+
+    ``buf`` holds packets our own :class:`~bridge.mavlink.wire.Framer` made
+    (MAVLink 2: 10-byte header, payload, 2-byte CRC, 13-byte signature when the
+    incompat flag says so). Bytes that are not such a packet (never expected)
+    are taken whole as one, so they still leave rather than wedge the link.
+    """
+    size, end, k = len(buf), 0, 0
+    while end < size:
+        if buf[end] == MAGIC_V2 and end + 3 <= size:
+            nxt = end + 12 + buf[end + 1] + (13 if buf[end + 2] & IFLAG_SIGNED else 0)
+        else:
+            nxt = size
+        if k and nxt > limit:
+            break
+        end, k = min(nxt, size), k + 1
+    return end, k
+
+
 def _resolve(host: str, port: int, kind: int) -> tuple[int, Any]:
     """(family, sockaddr) of the first address for host:port."""
     infos = socket.getaddrinfo(host, port, 0, kind)
@@ -494,6 +572,71 @@ class UdpEndpoint(Endpoint):
             return True
         finally:
             lock.release()
+
+    def send_now_many(self, link: Link, packets: Sequence[Packet]) -> int:
+        """Several packets in as few datagrams as :data:`MAX_DATAGRAM_BYTES` allows.
+
+        The same rules as :meth:`send_now`, per packet: nothing overtakes what
+        waits, the burst window counts packets, each packet is framed (its
+        sequence number spent) once, in order. A datagram that would block goes
+        to ``link.pending`` with every framed packet after it, for the endpoint's
+        thread (:meth:`_flush_locked` cuts them into datagrams again).
+        """
+        lock = self._send_lock
+        if not lock.acquire(blocking=False):
+            return 0  # the endpoint's thread is sending: queue behind it
+        try:
+            sock = self._sock
+            if sock is None or link.closed or link.queue or link.pending:
+                return 0
+            take = self._direct_budget(len(packets))
+            if not take:
+                return 0
+            frame = link.framer.frame
+            frames = [frame(p) for p in packets[:take]]
+            address, c = link.address, self._counters  # counters: under _send_lock
+            i = 0
+            while i < take:
+                size, j = len(frames[i]), i + 1
+                while j < take and size + len(frames[j]) <= MAX_DATAGRAM_BYTES:
+                    size += len(frames[j])
+                    j += 1
+                data = frames[i] if j == i + 1 else b"".join(frames[i:j])
+                try:
+                    n = sock.sendto(data, address)
+                except (BlockingIOError, InterruptedError):
+                    link.pending[:] = b"".join(frames[i:])  # framed: their seqs are spent
+                    self.wake()
+                    return take
+                except OSError as e:
+                    self._count("errors")  # this datagram is lost, as in _flush
+                    log.debug("mavlink %s: sendto %s: %s", self.name, address, e)
+                else:
+                    c.packets_sent += j - i
+                    c.bytes_sent += n
+                i = j
+            return take
+        finally:
+            lock.release()
+
+    def _direct_budget(self, n: int) -> int:
+        """How many of ``n`` packets the burst window lets go out directly now (counted as
+        gone); :meth:`send_now`'s per-packet check, for several packets at once.
+        Under ``_send_lock``."""
+        taken = 0
+        while taken < n:
+            count = self._direct_count
+            if count >= _DIRECT_BURST:
+                now = _monotonic()
+                if now - self._direct_window < _DIRECT_WINDOW_S:
+                    break
+                self._direct_window, count = now, 0
+            elif count == 0:
+                self._direct_window = _monotonic()
+            k = min(n - taken, _DIRECT_BURST - count)
+            self._direct_count = count + k
+            taken += k
+        return taken
 
     def _open(self) -> None:
         family, addr = _resolve(self.spec.host, self.spec.port, socket.SOCK_DGRAM)
@@ -576,19 +719,24 @@ class UdpEndpoint(Endpoint):
             return
         for link in list(self._links):
             q = link.queue
+            pending = link.pending
             while True:
-                if link.pending:
-                    data = bytes(link.pending)  # framed before: its seq is spent, resend it
+                if pending:
+                    # Framed before (their seqs are spent): resend them, whole packets,
+                    # a datagram at a time.
+                    end, k = _whole_packets(pending, MAX_DATAGRAM_BYTES)
+                    data = bytes(pending[:end])
                 else:
                     try:
                         p = q.popleft()
                     except IndexError:
                         break
-                    data = link.framer.frame(p)
+                    data, end, k = link.framer.frame(p), 0, 1
                 try:
                     n = sock.sendto(data, link.address)
                 except (BlockingIOError, InterruptedError):
-                    link.pending[:] = data
+                    if not pending:
+                        pending[:] = data
                     return
                 except OSError as e:
                     # Unreachable network/host, refused: the datagram is lost, the
@@ -596,10 +744,10 @@ class UdpEndpoint(Endpoint):
                     self._count("errors")
                     log.debug("mavlink %s: sendto %s: %s", self.name, link.address, e)
                     n = -1
-                link.pending.clear()
+                del pending[:end]
                 if n >= 0:
                     c = self._counters  # under _send_lock: see __init__
-                    c.packets_sent += 1
+                    c.packets_sent += k
                     c.bytes_sent += n
 
     def _housekeeping(self, now: float) -> None:

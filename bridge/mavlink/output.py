@@ -8,7 +8,8 @@ sample (one reference store, never blocks); its threads do the rest:
   endpoints -- a few microseconds per due message, never blocking: at 100 Hz
   most frames carry no due message, and waking a thread per frame just to find
   that out cost more than the encoding. A frame with none due costs one
-  comparison (``StreamSchedule.sample_due_at``);
+  comparison (``StreamSchedule.sample_due_at``); the messages due on one frame
+  leave together (one datagram, one ``sendto``, per UDP peer);
 * the **telemetry** thread wakes on the clock only: HEARTBEAT, SYS_STATUS,
   MAG_CAL_PROGRESS while a magnetometer calibration runs, command time-outs;
 * the **dispatcher** thread handles what ground stations send (parameters,
@@ -83,6 +84,10 @@ _FRESH_S = 2.0  # a sample older than this is not "fresh" (SYS_STATUS health, HE
 _PROGRESS_PERIOD_S = 0.5  # MAG_CAL_PROGRESS while a magnetometer calibration runs
 _REPORT_PERIOD_S = 2.0  # MAG_CAL_REPORT repeated while a result waits for accept
 _SAVE_DELAY_S = 0.2  # parameter saves are coalesced over this long
+# The dispatch thread's longest sleep with nothing to do. Its housekeeping (a new
+# calibration, a reloaded [location]) is also woken by every event, and a calibration
+# change comes with one, so this only bounds the rest -- and costs one wake-up a second.
+_HOUSEKEEPING_S = 1.0
 _POSITION_MIN_S = 10.0  # autopilot position: at most one WMM update per this long ...
 _POSITION_MOVE_DEG = 0.01  # ... unless the vehicle moved further than this
 _FINAL_ACK_TIMEOUT_S = 5.0
@@ -281,10 +286,24 @@ class MavlinkOutput:
             if now < self.schedule.sample_due_at:
                 return
             encoders = self._sample_encoders
-            for sid in self.schedule.due_samples(now):
-                p = encoders[sid](sample)
+            due = self.schedule.due_samples(now)
+            if len(due) == 1:  # the usual due frame: one message, no list
+                p = encoders[due[0]](sample)
                 if p is not None:
                     self._broadcast_one(p)
+                return
+            # Several due on this frame: they leave together (one datagram per UDP peer).
+            packets: list[Packet] = []
+            try:
+                for sid in due:
+                    p = encoders[sid](sample)
+                    if p is not None:
+                        packets.append(p)
+            finally:  # a stream that fails to encode does not hold back those before it
+                if len(packets) > 1:
+                    self._broadcast_many(packets)
+                elif packets:
+                    self._broadcast_one(packets[0])
         except Exception:
             self.counters.publish_errors += 1
             if self.counters.publish_errors == 1:
@@ -385,12 +404,15 @@ class MavlinkOutput:
         return self._svc
 
     def broadcast(self, packets: list[Packet] | Packet) -> None:
-        """Queue packets for every peer of every endpoint."""
+        """Queue packets for every peer of every endpoint; a list goes out together, in
+        order (one datagram per UDP peer while it fits: :meth:`Link.send_many
+        <bridge.mavlink.endpoints.Link.send_many>`)."""
         if isinstance(packets, Packet):
             self._broadcast_one(packets)
-        else:
-            for p in packets:
-                self._broadcast_one(p)
+        elif len(packets) == 1:
+            self._broadcast_one(packets[0])
+        elif packets:
+            self._broadcast_many(packets)
 
     def _broadcast_one(self, p: Packet) -> None:
         for ep in self.endpoints:
@@ -400,6 +422,20 @@ class MavlinkOutput:
                 tap(p)
             except Exception:  # a broken mirror must not stop the telemetry thread
                 self.counters.tap_errors += 1
+
+    def _broadcast_many(self, packets: list[Packet]) -> None:
+        """:meth:`_broadcast_one` for packets that leave together: each endpoint gets them
+        in one call, each tap gets each packet once, in order."""
+        for ep in self.endpoints:
+            ep.broadcast_many(packets)
+        taps = self._taps
+        if taps:
+            for p in packets:
+                for tap in taps:
+                    try:
+                        tap(p)
+                    except Exception:  # a broken mirror must not stop the sender
+                        self.counters.tap_errors += 1
 
     def add_tap(self, fn: Callable[[Packet], None]) -> Callable[[], None]:
         """Also hand every broadcast packet to ``fn`` (the Zenoh MAVLink mirror); returns the
@@ -566,7 +602,10 @@ class MavlinkOutput:
     # ------------------------------------------------------------------ events
 
     def _on_event(self, event: Event) -> None:
-        """EventBus subscriber (any thread): relay, and finish IN_PROGRESS commands."""
+        """EventBus subscriber (any thread): relay, finish IN_PROGRESS commands, and have the
+        dispatch thread look at once for what the event may have changed (a calibration)."""
+        with self._inbox_cond:
+            self._inbox_cond.notify()
         packets = self.relay.packets(event)
         if packets:
             self.counters.events_relayed += 1
@@ -616,7 +655,10 @@ class MavlinkOutput:
         while not self._stop.is_set():
             with self._inbox_cond:
                 if not self._inbox:
-                    self._inbox_cond.wait(0.1)
+                    wait = _HOUSEKEEPING_S
+                    if self._save_due is not None:
+                        wait = min(wait, max(0.0, self._save_due - self._clock()))
+                    self._inbox_cond.wait(wait)
                 item = self._inbox.popleft() if self._inbox else None
             if item is not None:
                 msg, link = item
