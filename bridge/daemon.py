@@ -664,6 +664,14 @@ def build_outputs(
     outputs: list[Output] = []
     if console:
         outputs.append(ConsoleOutput(status))
+    # MAVLink first: the pipeline calls publish() in this order, and the autopilot's
+    # ATTITUDE is the latency-critical output (zenoh puts its documents in publish too).
+    if cfg.mavlink.endpoints and daemon is not None:
+        # Imported here: bridge.mavlink builds on this module.
+        from bridge.mavlink import MavlinkOutput, MavlinkSettings
+
+        services = daemon  # the output resolves the daemon's services when it starts
+        outputs.append(MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: services))
     if cfg.zenoh.enabled and daemon is not None:
         # Imported here: zenoh (a native runtime) loads only when it is asked for.
         from bridge.fleet.output import ZenohOutput
@@ -673,12 +681,6 @@ def build_outputs(
         outputs.append(
             ZenohOutput(ZenohSettings.from_config(cfg.zenoh), daemon_services(lambda: daemon))
         )
-    if cfg.mavlink.endpoints and daemon is not None:
-        # Imported here: bridge.mavlink builds on this module.
-        from bridge.mavlink import MavlinkOutput, MavlinkSettings
-
-        services = daemon  # the output resolves the daemon's services when it starts
-        outputs.append(MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: services))
     return outputs
 
 

@@ -445,6 +445,18 @@ class CalibrationController:
         progress. Anything else is ignored. Never blocks on fits or commands,
         never raises.
         """
+        if type(frame) is AttitudeFrame:
+            s = self._session
+            if s is None or s.status not in _RUNNING:
+                # Nearly every frame: no session collects. Only the fixed-yaw history
+                # wants it, and that needs no lock: deque.append is atomic, and
+                # start_fixed_yaw copies the deque (list(), one step under the GIL)
+                # before it iterates. A session that starts meanwhile begins with the
+                # next frame, as if this one had come a moment earlier.
+                self._recent.append((self._clock(), frame))
+                if self._pending:
+                    self._flush()
+                return
         try:
             if isinstance(frame, AttitudeFrame):
                 self._feed_attitude(frame)
@@ -848,7 +860,8 @@ class CalibrationController:
             if denied:
                 return Outcome(Result.DENIED, denied)
             now = self._clock()
-            rows = [f for t, f in self._recent if t >= now - self.settings.fixed_yaw_window_s]
+            # list(): feed() appends without the lock (see there).
+            rows = [f for t, f in list(self._recent) if t >= now - self.settings.fixed_yaw_window_s]
         still = StillCollector(0.0, self.settings.still_tol_g, min_rows=2)
         for i, f in enumerate(rows):
             mag, acc, sat = counts_to_nominal(f.mx, f.my, f.mz, f.ax, f.ay, f.az)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
@@ -94,14 +94,46 @@ def _clean(v: Any) -> Any:
     return v
 
 
+def _make_encode() -> Callable[[Any], str]:
+    """The compact, strict encoder, made once.
+
+    json.dumps() with any option builds a JSONEncoder, and JSONEncoder.encode() a C
+    encoder, per call: three times per published sample. CPython's C encoder made once
+    (no circular-reference bookkeeping: the documents are trees) does the same work
+    without those; the pure-Python encoder where there is no C one.
+    """
+    c_make_encoder = getattr(json.encoder, "c_make_encoder", None)
+    if c_make_encoder is None:
+        return json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
+    iterencode = c_make_encoder(
+        None,  # markers: no circular check
+        json.JSONEncoder().default,  # raises TypeError for what JSON cannot carry
+        json.encoder.encode_basestring_ascii,
+        None,  # indent
+        ":",
+        ",",
+        False,  # sort_keys
+        False,  # skipkeys
+        False,  # allow_nan: NaN/inf raise ValueError
+    )
+
+    def encode(doc: Any) -> str:
+        return "".join(iterencode(doc, 0))
+
+    return encode
+
+
+_encode = _make_encode()
+
+
 def dumps(doc: Mapping[str, Any]) -> bytes:
     """Strict, compact UTF-8 JSON (NaN/inf become null)."""
     try:
         # The builders below already write None for non-finite numbers: the common case
-        # needs no second walk over the document (this runs for every frame).
-        text = json.dumps(doc, separators=(",", ":"), allow_nan=False)
+        # needs no second walk over the document (this runs for every published sample).
+        text = _encode(doc)
     except ValueError:
-        text = json.dumps(_clean(doc), separators=(",", ":"), allow_nan=False)
+        text = _encode(_clean(doc))
     return text.encode("utf-8")
 
 
