@@ -233,6 +233,30 @@ def test_decimator_zero_passes_everything_and_restarts_after_a_gap() -> None:
         Decimator(-1.0)
 
 
+_JSON = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(), inner, max_size=4),
+    max_leaves=20,
+)
+
+
+@given(_JSON)
+def test_dumps_writes_what_json_dumps_writes(doc: object) -> None:
+    """The encoder made once (CPython's C encoder, see schema._make_encode) is json.dumps
+    (non-finite numbers aside: test_non_finite_numbers_become_null)."""
+    expected = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    assert schema.dumps(doc) == expected  # type: ignore[arg-type]
+
+
+def test_dumps_refuses_what_json_cannot_carry() -> None:
+    with pytest.raises(TypeError):
+        schema.dumps({"a": object()})
+
+
 def test_rate_meter_follows_the_counter() -> None:
     m = RateMeter(window=2.0)
     assert m.rate() is None

@@ -545,16 +545,8 @@ class UdpEndpoint(Endpoint):
             sock = self._sock
             if sock is None or link.closed or link.queue or link.pending:
                 return False
-            # The burst window needs the clock only once its count could matter: a frame's
-            # few packets never read it, a parameter list does from its 16th packet on.
-            if self._direct_count >= _DIRECT_BURST:
-                now = _monotonic()
-                if now - self._direct_window < _DIRECT_WINDOW_S:
-                    return False
-                self._direct_window, self._direct_count = now, 0
-            elif self._direct_count == 0:
-                self._direct_window = _monotonic()
-            self._direct_count += 1
+            if not self._direct_budget(1):
+                return False  # the burst window is used up: queue it
             data = link.framer.frame(packet)
             try:
                 n = sock.sendto(data, link.address)
@@ -621,8 +613,11 @@ class UdpEndpoint(Endpoint):
 
     def _direct_budget(self, n: int) -> int:
         """How many of ``n`` packets the burst window lets go out directly now (counted as
-        gone); :meth:`send_now`'s per-packet check, for several packets at once.
-        Under ``_send_lock``."""
+        gone). Under ``_send_lock``.
+
+        The window needs the clock only once its count could matter: a frame's few
+        packets never read it, a parameter list does from its 16th packet on.
+        """
         taken = 0
         while taken < n:
             count = self._direct_count

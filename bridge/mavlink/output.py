@@ -300,10 +300,7 @@ class MavlinkOutput:
                     if p is not None:
                         packets.append(p)
             finally:  # a stream that fails to encode does not hold back those before it
-                if len(packets) > 1:
-                    self._broadcast_many(packets)
-                elif packets:
-                    self._broadcast_one(packets[0])
+                self.broadcast(packets)
         except Exception:
             self.counters.publish_errors += 1
             if self.counters.publish_errors == 1:
