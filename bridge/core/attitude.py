@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import numpy.typing as npt
 
+from bridge import speedups
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
 from bridge.core.geometry import FloatArray, dcm_to_euler
@@ -53,6 +54,8 @@ Quat = tuple[float, float, float, float]
 
 _TWO_PI = 2.0 * math.pi
 _DEG = 180.0 / math.pi
+# The compiled attitude arithmetic (None without bridge._speedups; see solve_counts).
+_c_solve = speedups.solve
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,6 +162,9 @@ class _State:
     publish_true: bool
     sin_degraded: float  # |sin(pitch)| above which the solution is degraded
     database: FieldDatabase | None
+    #: The same numbers flat for the compiled solve (mo, mm, ao, am, sin_degraded,
+    #: declination_deg, publish_true: bridge/_speedups.c), None when it is not in use.
+    consts: tuple[float | bool | None, ...] | None = None
 
 
 def _fold_360(a: float) -> float:
@@ -232,17 +238,24 @@ class AttitudeEngine:
             sensor.ACC_COUNTS_PER_G,
         )
         ref = self._reference
+        declination_deg = ref.declination_deg if ref else None
+        publish_true = self._heading_reference == "true"
+        sin_degraded = math.sin(math.radians(self._limits.degraded_pitch_deg))
+        consts = None
+        if _c_solve is not None and self._database is None:
+            consts = (*mo, *mm, *ao, *am, sin_degraded, declination_deg, publish_true)
         return _State(
             mo=mo,
             mm=mm,
             ao=ao,
             am=am,
-            declination_deg=ref.declination_deg if ref else None,
+            declination_deg=declination_deg,
             total_G=ref.total_G if ref else None,
             dip_deg=ref.dip_deg if ref else None,
-            publish_true=self._heading_reference == "true",
-            sin_degraded=math.sin(math.radians(self._limits.degraded_pitch_deg)),
+            publish_true=publish_true,
+            sin_degraded=sin_degraded,
             database=self._database,
+            consts=consts,
         )
 
     @property
@@ -332,6 +345,22 @@ class AttitudeEngine:
         Raises ``ValueError`` on non-finite input (the quality state is left untouched).
         """
         s = self._state  # one read: a concurrent update cannot mix two configurations
+        if s.consts is not None and _c_solve is not None:
+            # The compiled twin of the Python below (_finish and _assemble's arithmetic):
+            # bit-identical results, tests/test_speedups.py. The quality flags stay here.
+            r = _c_solve(s.consts, mx, my, mz, ax, ay, az)
+            if r is None:
+                raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
+            # r: AttitudeSolution's fields up to `degraded`, in order, then |g|.
+            bn, dip, gn = r[10], r[11], r[13]
+            disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
+            return AttitudeSolution(*r[:13], disturbed, accelerating)
+        return self._solve_python(s, mx, my, mz, ax, ay, az)
+
+    def _solve_python(
+        self, s: _State, mx: float, my: float, mz: float, ax: float, ay: float, az: float
+    ) -> AttitudeSolution:
+        """:meth:`solve_counts` in Python: the reference, and the path without bridge._speedups."""
         dx, dy, dz = mx - s.mo[0], my - s.mo[1], mz - s.mo[2]
         m = s.mm
         hx = m[0] * dx + m[1] * dy + m[2] * dz
@@ -395,7 +424,8 @@ class AttitudeEngine:
         # the datasheet's X, Y: the field de-rotated into the local horizontal plane
         xh = hx * cp + hy * sp * sr + hz * sp * cr
         yh = hy * cr - hz * sr
-        if bn == 0.0 or (xh * xh + yh * yh) < (0.02 * bn) ** 2:
+        horizontal_min = 0.02 * bn
+        if bn == 0.0 or (xh * xh + yh * yh) < horizontal_min * horizontal_min:
             degraded = True  # field (nearly) along the vertical: heading undefined
         # _fold_360 written out (per frame: a call costs more than the arithmetic). atan2
         # is in [-180, 180]: one wrap, then the rounding guard (-1e-15 + 360 == 360.0).

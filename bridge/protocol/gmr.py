@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from enum import IntFlag, StrEnum
 from typing import Literal, TypeAlias
 
+from bridge import speedups
 from bridge.protocol.framing import (
     INT_RE,
     MAX_BODY_BYTES,
@@ -803,6 +804,14 @@ def _decode_attitude_lines(data: bytes) -> list[GmrFrame] | None:
     return frames
 
 
+# The compiled twin of _decode_attitude_lines when bridge._speedups is built (same frames,
+# same None cases: tests/test_speedups.py), else the function above.
+_decode_fast: Callable[[bytes], list[GmrFrame] | None] = _decode_attitude_lines
+if speedups.bind_attitude_frame is not None and speedups.decode_attitude_lines is not None:
+    speedups.bind_attitude_frame(_AttitudeSlots, AttitudeFrame, _FLAGS_BY_VALUE, SEQ_MAX)
+    _decode_fast = speedups.decode_attitude_lines
+
+
 class GmrDecoder:
     """Sans-I/O decoder: ``feed(bytes) -> list[frame]``; drops are counted in ``counters``.
 
@@ -841,7 +850,7 @@ class GmrDecoder:
         # the chunk's lines are whole. In SKIP (after noise) the general path would resync
         # on the chunk's leading "$" exactly as from IDLE, so both states qualify.
         if self._fast and splitter._state != _LINE:
-            fast = _decode_attitude_lines(data)
+            fast = _decode_fast(data)
             if fast:  # None: not the fast case; []: empty chunk, nothing to shortcut
                 # What the general path leaves behind for whole, valid lines: the
                 # splitter between lines, no drops, bytes and frames counted.
