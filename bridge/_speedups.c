@@ -227,46 +227,21 @@ decode_attitude_lines(PyObject *self, PyObject *arg)
         return NULL;
     const char *p = view.buf;
     const char *end = p + view.len;
-    /* Parse every line first: a chunk that is not all fast-shape lines builds nothing. */
-    attitude_t one[4];
-    attitude_t *lines = one;
-    Py_ssize_t cap = 4, n = 0;
-    PyObject *result = NULL;
-    while (p < end) {
-        if (n == cap) {
-            attitude_t *grown = PyMem_Malloc(sizeof(attitude_t) * (size_t)cap * 2);
-            if (grown == NULL) {
-                PyErr_NoMemory();
-                goto done;
-            }
-            memcpy(grown, lines, sizeof(attitude_t) * (size_t)n);
-            if (lines != one)
-                PyMem_Free(lines);
-            lines = grown;
-            cap *= 2;
+    PyObject *frames = PyList_New(0);
+    attitude_t f;
+    while (frames != NULL && p < end) {
+        if (!parse_line(&p, end, &f)) {
+            /* Not the fast case: None, as the Python twin (the frames so far are dropped). */
+            Py_SETREF(frames, Py_NewRef(Py_None));
+            break;
         }
-        if (!parse_line(&p, end, &lines[n])) {
-            result = Py_NewRef(Py_None);
-            goto done;
-        }
-        n++;
+        PyObject *frame = make_frame(&f);
+        if (frame == NULL || PyList_Append(frames, frame) < 0)
+            Py_CLEAR(frames);
+        Py_XDECREF(frame);
     }
-    result = PyList_New(n);
-    if (result == NULL)
-        goto done;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *frame = make_frame(&lines[i]);
-        if (frame == NULL) {
-            Py_CLEAR(result);
-            goto done;
-        }
-        PyList_SET_ITEM(result, i, frame);
-    }
-done:
-    if (lines != one)
-        PyMem_Free(lines);
     PyBuffer_Release(&view);
-    return result;
+    return frames;
 }
 
 /* ------------------------------------------------------------------ attitude */

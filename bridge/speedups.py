@@ -1,4 +1,4 @@
-"""The optional compiled hot path, :mod:`bridge._speedups`, or ``None``.
+"""The optional compiled hot path, :mod:`bridge._speedups`: its functions, or ``None`` each.
 
 ``bridge/_speedups.c`` holds C twins of two pure-Python functions that run for every
 frame: the ``$PGMRA`` fast-path decode (:mod:`bridge.protocol.gmr`) and the attitude
@@ -14,6 +14,7 @@ when the module is built (to rule it out when chasing a problem).
 
 from __future__ import annotations
 
+import importlib
 import os
 from collections.abc import Callable
 from types import ModuleType
@@ -26,10 +27,10 @@ def _load() -> ModuleType | None:
     if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
         return None
     try:
-        from bridge import _speedups
+        # By name: the module has no stub; the typed names below are its interface.
+        return importlib.import_module("bridge._speedups")
     except ImportError:
         return None
-    return _speedups
 
 
 _module = _load()
@@ -37,7 +38,7 @@ _module = _load()
 #: ``"c"`` when the compiled hot path is in use, ``"python"`` otherwise (status, bench).
 IMPLEMENTATION = "c" if _module is not None else "python"
 
-# The C functions, each None without the module (signatures: bridge/_speedups.pyi).
+# The C functions, each None without the module (documented in bridge/_speedups.c).
 bind_attitude_frame: Callable[[type, type, tuple[Any, ...], int], None] | None = (
     _module.bind_attitude_frame if _module is not None else None
 )

@@ -31,15 +31,7 @@ from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.wire import Packet
 
-SAMPLE_IDS = (
-    T.ATTITUDE,
-    T.ATTITUDE_QUATERNION,
-    T.VFR_HUD,
-    T.SCALED_IMU,
-    T.RAW_IMU,
-    T.HIGHRES_IMU,
-    T.ODOMETRY,
-)
+SAMPLE_IDS = T.SAMPLE_STREAMS
 REAL32, INT8 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8
 ACCEPTED = M.MAV_RESULT_ACCEPTED
 

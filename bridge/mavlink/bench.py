@@ -42,15 +42,7 @@ from bridge.protocol.gmr import AttitudeFrame, Flags, GmrDecoder, encode
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
 
 TARGET_FPS = 5000.0
-STREAMS = (
-    T.ATTITUDE,
-    T.ATTITUDE_QUATERNION,
-    T.VFR_HUD,
-    T.SCALED_IMU,
-    T.RAW_IMU,
-    T.HIGHRES_IMU,
-    T.ODOMETRY,
-)
+STREAMS = T.SAMPLE_STREAMS
 
 
 @dataclass(frozen=True, slots=True)

@@ -91,6 +91,8 @@ STREAMS: tuple[StreamSpec, ...] = (
     StreamSpec(SYS_STATUS, "BRG_SR_SYS", "rate_sys_status_hz", 1.0, True),
     StreamSpec(ODOMETRY, "BRG_SR_FEED", "rate_heading_feed_hz", 10.0, False),
 )
+#: The streams sent when a sample arrives (the rest go on the clock), in STREAMS' order.
+SAMPLE_STREAMS: tuple[int, ...] = tuple(s.msgid for s in STREAMS if not s.clock)
 #: VISION_POSITION_ESTIMATE shares the feed's rate (only one of the two is ever on).
 FEED_MSGIDS = (ODOMETRY, VISION_POSITION_ESTIMATE)
 HEARTBEAT_HZ = 1.0
