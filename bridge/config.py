@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
 
-from bridge.storage import DEFAULT_STATE_DIR
-
 HOSTNAME_PLACEHOLDER = "<hostname>"
+#: The service's state directory (calibration, parameters) unless configured or given by systemd.
+DEFAULT_STATE_DIR = "/var/lib/compass-bridge"
 
 # The device's fixed set of output rates (datasheet, RATE command).
 DEVICE_RATES_HZ = (1, 2, 5, 10, 20, 50, 100)
@@ -377,6 +377,13 @@ class MavlinkConfig(Section):
         "standalone: the bridge is the vehicle (component 1, QGroundControl draws it); "
         "companion: beside an autopilot of the same system_id (component 200 = "
         "MAV_COMP_ID_IMU when component_id is left at 1), position taken from the autopilot",
+    )
+    autopilot: str = setting(
+        "generic",
+        one_of("generic", "px4", "ardupilot"),
+        "the autopilot a standalone bridge presents itself as (HEARTBEAT.autopilot), which "
+        "ground stations follow: px4 for MAVSDK and QGroundControl's PX4 pages, ardupilot for "
+        "QGroundControl's ArduPilot pages and MAVProxy; it also sets the parameter encoding",
     )
     heading_feed: str = setting(
         "off",

@@ -13,10 +13,9 @@ Pieces:
   ``$NOTIFY_SOCKET`` is unset (not under systemd), never blocks, never raises.
 * :class:`Liveness` -- progress marks ("beats") of the threads the watchdog
   vouches for. Pure: callers pass the time.
-* :class:`WatchedTransport` -- wraps the compass transport so every return
-  from ``open()``/``read()`` in the link's reader thread is a beat: a reader
-  stuck in a read (a wedged USB-serial driver) stops beating. It also carries
-  the test hook that makes the reader hang (off unless asked for).
+  The serial reader beats through
+  :class:`bridge.link.observed.ObservedTransport` (every return from a port
+  call), which the daemon wires to it.
 * :class:`ServiceNotifier` -- one thread: ``READY=1`` once the compass
   streams (or after a bounded wait, with a STATUS saying why not), ``STATUS=``
   about once a second, and ``WATCHDOG=1`` on the monotonic clock only while
@@ -32,8 +31,6 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
-
-from bridge.link.transport import TransportError
 
 log = logging.getLogger(__name__)
 
@@ -229,114 +226,6 @@ class Liveness:
         """The names being watched."""
         with self._lock:
             return tuple(self._limit)
-
-
-class WatchedTransport:
-    """A compass transport whose reader-side calls are liveness beats.
-
-    Every return (or exception) from ``open()`` and ``read()`` -- the calls
-    only the link's reader thread makes -- beats ``name`` in ``liveness``; a
-    read that never returns stops the beats. Everything else is passed through
-    (``baud`` and other attributes included).
-
-    **Test hook** (never on in service): :meth:`hang` makes the next ``read()``
-    block until :meth:`close` or :meth:`release`, as a wedged serial driver
-    would; the daemon arms it only when ``$COMPASS_BRIDGE_TEST_HOOKS`` says so.
-    """
-
-    def __init__(
-        self, inner: Any, liveness: Liveness, name: str, *, clock: Clock = time.monotonic
-    ) -> None:
-        self._inner = inner
-        self._liveness = liveness
-        self._beat_name = name
-        self._clock = clock
-        self._hang_armed = False  # test hook (a plain flag: read for every frame)
-        self._released = threading.Event()
-        self._swap_lock = threading.Lock()
-        self._pending: Any = None
-
-    def __getattr__(self, attr: str) -> Any:
-        # Only called for attributes not found here: baud, firmware, ended, ...
-        return getattr(self._inner, attr)
-
-    @property
-    def name(self) -> str:
-        """The wrapped transport's name."""
-        return str(self._inner.name)
-
-    @property
-    def interactive(self) -> bool:
-        """The wrapped transport's ``interactive``."""
-        return bool(self._inner.interactive)
-
-    def replace(self, inner: Any) -> None:
-        """Use ``inner`` from now on (a reload changed the port settings).
-
-        The swap happens in the reader thread, at its next ``read()`` (which
-        then fails as if the port went away, so the link reopens -- now the new
-        transport -- and redoes its connect handshake) or ``open()``. The old
-        transport is closed there too: never under a read in progress.
-        """
-        with self._swap_lock:
-            self._pending = inner
-
-    def _swap(self) -> bool:
-        if self._pending is None:
-            # Unlocked peek (one attribute read) on the per-read path: a reload's replace()
-            # racing it is seen at the next read, a few milliseconds later.
-            return False
-        with self._swap_lock:
-            new, self._pending = self._pending, None
-        if new is None:
-            return False
-        old, self._inner = self._inner, new
-        try:
-            old.close()
-        except OSError as e:
-            log.debug("closing the replaced transport: %s", e)
-        return True
-
-    def open(self) -> None:
-        """Open the wrapped transport (a beat either way)."""
-        try:
-            self._swap()
-            self._inner.open()
-        finally:
-            self._liveness.beat(self._beat_name, self._clock())
-
-    def read(self, max_bytes: int, timeout: float) -> bytes:
-        """Read from the wrapped transport (a beat on return)."""
-        if self._hang_armed:
-            log.warning("test hook: the serial reader hangs now")
-            self._released.wait()
-            self._hang_armed = False
-        if self._swap():
-            self._liveness.beat(self._beat_name, self._clock())
-            raise TransportError("port settings changed by a reload; reopening")
-        try:
-            data: bytes = self._inner.read(max_bytes, timeout)
-            return data
-        finally:
-            self._liveness.beat(self._beat_name, self._clock())
-
-    def write(self, data: bytes) -> None:
-        """Write to the wrapped transport (not a beat: command threads write too)."""
-        self._inner.write(data)
-
-    def close(self) -> None:
-        """Close the wrapped transport and release a hung read."""
-        self._released.set()
-        self._inner.close()
-
-    def hang(self) -> None:
-        """TEST HOOK: make the reader block in its next read until close/release."""
-        self._released.clear()
-        self._hang_armed = True
-
-    def release(self) -> None:
-        """TEST HOOK: let a hung read return."""
-        self._released.set()
 
 
 class ServiceNotifier:

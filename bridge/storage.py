@@ -26,33 +26,17 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bridge.config import DEFAULT_STATE_DIR
+from bridge.ports import LoadResult, StorageError
+
 log = logging.getLogger(__name__)
 
+__all__ = ["DEFAULT_STATE_DIR", "LoadResult", "StateStore", "StorageError", "resolve_state_dir"]
+
 SCHEMA_PREFIX = "compass-bridge/"
-DEFAULT_STATE_DIR = "/var/lib/compass-bridge"
-
-
-class StorageError(Exception):
-    """A document could not be saved (the in-memory value stays authoritative)."""
-
-
-@dataclass(frozen=True, slots=True)
-class LoadResult:
-    """What :meth:`StateStore.load` found.
-
-    ``source`` is ``"current"``, ``"previous"`` (the current copy was bad and
-    the last good copy was used) or ``"none"`` (nothing valid: use defaults).
-    ``problems`` lists what was wrong with the copies that were rejected.
-    """
-
-    payload: dict[str, Any] | None
-    source: str
-    problems: tuple[str, ...] = ()
-    saved_at: float | None = None
 
 
 def resolve_state_dir(configured: str) -> Path:

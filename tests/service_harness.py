@@ -177,7 +177,7 @@ class DaemonProcess:
         log_path: Path,
         *,
         watchdog_usec: int | None = 1_000_000,
-        hooks: str = "",
+        hanging_reader: bool = False,
         env: Mapping[str, str] | None = None,
         preexec_fn: Callable[[], None] | None = None,
         args: Sequence[str] = ("-v",),
@@ -189,12 +189,17 @@ class DaemonProcess:
             e["NOTIFY_SOCKET"] = manager.notify_socket
         if watchdog_usec is not None:
             e["WATCHDOG_USEC"] = str(watchdog_usec)
-        if hooks:
-            e["COMPASS_BRIDGE_TEST_HOOKS"] = hooks
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in wait()/kill()
+        # The hung-driver stand-in (tests/hanging_reader.py) is the real CLI with a port
+        # that wedges on SIGUSR2; the package itself has no such hook.
+        launcher = (
+            [str(Path(__file__).with_name("hanging_reader.py"))]
+            if hanging_reader
+            else ["-m", "bridge"]
+        )
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bridge", *args, "run", "--config", str(config)],
+            [sys.executable, *launcher, *args, "run", "--config", str(config)],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=self._log,

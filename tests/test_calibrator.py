@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import load_calibration
 from test_mavlink_rig import FastClock  # the shared simulated-compass harness
 
 from bridge.calibration.model import Calibration
@@ -45,7 +46,7 @@ from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
-from bridge.daemon import Daemon, load_calibration
+from bridge.daemon import Daemon
 from bridge.events import Event, Severity
 from bridge.link.serial_link import LinkState
 from bridge.link.transport import SimTransport
@@ -63,7 +64,6 @@ from bridge.sim.motion import (
 )
 from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.sim.pty import PtyCompass
-from bridge.storage import StateStore
 
 SPEED = 20.0  #: fast runs: simulated seconds per real second
 DEADLINE_S = 30.0  #: real seconds any single wait may take before the test fails
@@ -172,19 +172,8 @@ def rigs() -> Iterator[Callable[..., Rig]]:
             transport = SimTransport(fw, clock=fc, sleep=fc.sleep)
         else:
             transport = SimTransport(fw)
-        daemon = Daemon(cfg, transport=transport)
-        if fast:
-            # The same controller the daemon builds, on the simulator's clock.
-            daemon.calibrator = CalibrationController(
-                daemon.engine,
-                daemon.events,
-                link=daemon.link,
-                store=StateStore(cfg.storage.dir),
-                field=FIELD,
-                onboard=onboard,
-                settings=settings,
-                clock=clock,
-            )
+        # fast: the daemon's calibration controller on the simulator's clock.
+        daemon = Daemon(cfg, transport=transport, calibrator_settings=settings, clock=clock)
         log = EventLog()
         daemon.events.subscribe(log)
         started.append(daemon.start())
@@ -287,7 +276,7 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     assert not (tmp_path / "state" / "calibration.json").exists()
     # the uncalibrated tumble looked "disturbed" (the engine flagged it) but raised no
     # alarm while the calibration ran (before it started, the alarm is legitimate)
-    assert rig.daemon._disturbed_seen_while_calibrating
+    assert rig.daemon.bridge.pipeline.disturbed_while_calibrating
     t_start = rig.log.of("calibration.started")[0].t_monotonic
     t_done = done.t_monotonic
     during = [e for e in rig.log.of("disturbance.start") if t_start <= e.t_monotonic <= t_done]

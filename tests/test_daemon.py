@@ -20,20 +20,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_calibration
 
+from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
 from bridge.calibration.model import Calibration
 from bridge.config import Config, load_config
+from bridge.console import ConsoleOutput
 from bridge.core.geometry import angle_diff_deg, euler_to_dcm
 from bridge.core.wmm import earth_field
-from bridge.daemon import (
-    CompassSample,
-    ConsoleOutput,
-    Daemon,
-    DaemonStatus,
-    LatestSampleWorker,
-    load_calibration,
-    run_daemon,
-)
+from bridge.daemon import Daemon, run_daemon
 from bridge.link.record import RecordingWriter
 from bridge.link.serial_link import LinkCounters, LinkState
 from bridge.sim.physics import SensorModel, UnitErrors

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import load_calibration
 from test_mavlink_rig import (
     ALT,
     LAT,
@@ -33,7 +34,6 @@ from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field
-from bridge.daemon import load_calibration
 from bridge.protocol.gmr import ParamsFrame
 from bridge.sim.firmware import Firmware
 from bridge.sim.motion import (

@@ -31,12 +31,13 @@ from test_mavlink_telemetry import make_sample
 
 from bridge.config import config_from_mapping
 from bridge.daemon import Daemon
-from bridge.mavlink import endpoints as E  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.dialect import Message as Packet
+from bridge.mavlink.dialect import message
 from bridge.mavlink.endpoints import MAX_DATAGRAM_BYTES, open_endpoint
+from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.signing import Signing
-from bridge.mavlink.wire import Packet, codec
 
 #: Every per-sample stream on: all of them fall due on the first sample, in this order.
 ALL_STREAMS = ["ATTITUDE", "ATTITUDE_QUATERNION", "VFR_HUD", "SCALED_IMU", "RAW_IMU", "HIGHRES_IMU"]
@@ -63,8 +64,12 @@ def payload_of(msg: Any) -> bytes:
 
 def big(i: int) -> Packet:
     """A large numbered packet (FILE_TRANSFER_PROTOCOL, 254-byte payload, nothing trimmed)."""
-    return codec(M.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL).packet(
-        target_network=i, target_system=1, target_component=1, payload=[0x55] * 251
+    return message(
+        M.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL,
+        target_network=i,
+        target_system=1,
+        target_component=1,
+        payload=[0x55] * 251,
     )
 
 
@@ -106,9 +111,9 @@ def output(tmp_path: Path) -> Iterator[Callable[..., tuple[MavlinkOutput, Gcs, l
         )
         daemon = Daemon(cfg)  # never started: the services the output uses
         settings = replace(MavlinkSettings.from_config(cfg), signing_key=key)
-        out = MavlinkOutput(settings, lambda: daemon, clock=Clock(100.0))
+        out = MavlinkOutput(settings, daemon.services, clock=Clock(100.0))
         sent: list[Packet] = []
-        out.add_tap(sent.append)
+        daemon.bridge.mavlink_tap.subscribe(lambda m: sent.append(m.message))
         out.start()
         made.append((out, gcs))
         assert wait_until(lambda: bool(out.endpoints[0].links))
@@ -143,14 +148,16 @@ def test_streams_due_on_one_sample_arrive_in_one_datagram(
     assert consecutive([m.get_seq() for m in msgs])
     assert b"".join(bytes(m.get_msgbuf()) for m in msgs) == data  # nothing else in it
     # each packet handed to the tap once, in the same order, the same payloads
-    frame = [p for p in sent[tapped:] if p.msgid in SAMPLE_IDS]
-    assert [(p.msgid, p.payload) for p in frame] == [(m.get_msgId(), payload_of(m)) for m in msgs]
+    frame = [p for p in sent[tapped:] if p.get_msgId() in SAMPLE_IDS]
+    assert [(p.get_msgId(), bytes(p.get_payload())) for p in frame] == [
+        (m.get_msgId(), payload_of(m)) for m in msgs
+    ]
     after = ep.counters()
     assert after.packets_sent - before.packets_sent == 6  # packets, not datagrams
     assert after.bytes_sent - before.bytes_sent == len(data)
     assert out.counters.publish_errors == 0
     # A frame with only ATTITUDE due (50 Hz: 20 ms later) still sends it alone.
-    out._clock.t += 0.02  # type: ignore[attr-defined]
+    out.clock.t += 0.02  # type: ignore[attr-defined]
     out.publish(make_sample(t=100.02))
     (alone,) = parse_all(gcs.datagram_with("ATTITUDE"))
     assert alone.get_type() == "ATTITUDE" and alone.get_seq() == (msgs[-1].get_seq() + 1) % 256
@@ -238,7 +245,7 @@ def test_when_the_socket_would_block_the_rest_waits_for_the_endpoint_thread(
         assert len(link.pending) == 10 * 279 and not link.queue
         assert ep.counters().packets_sent == 0
         link.send(big(10))  # later packets wait behind what is pending
-        assert [p.payload for p in link.queue] == [big(10).payload]
+        assert [p.target_network for p in link.queue] == [10]
         ep._flush()  # still full: everything stays as it was
         assert len(link.pending) == 10 * 279 and len(link.queue) == 1
         for _ in range(filler):  # the ground station reads again ...
@@ -277,7 +284,7 @@ def test_the_burst_window_counts_the_packets_of_a_group(monkeypatch: pytest.Monk
         (link,) = ep.links
         link.send(ping(0))  # one direct packet counts against the window ...
         link.send_many([ping(i) for i in range(1, burst + 4)])  # ... so 15 more go, 4 wait
-        assert [p.payload for p in link.queue] == [ping(i).payload for i in range(burst, burst + 4)]
+        assert [p.time_boot_ms for p in link.queue] == list(range(burst, burst + 4))
         assert ep.counters().packets_sent == burst
         now[0] += E._DIRECT_WINDOW_S * 2  # a new window, but packets wait: behind them
         link.send_many([ping(burst + 4), ping(burst + 5)])

@@ -25,13 +25,15 @@ from hypothesis import strategies as st
 from test_mavlink_rig import DEADLINE_S, M
 from test_mavlink_telemetry import make_sample
 
+from bridge.app.sample import CompassSample
 from bridge.config import config_from_mapping
-from bridge.daemon import CompassSample, Daemon
+from bridge.daemon import Daemon
+from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-from bridge.mavlink.wire import Packet
 
-SAMPLE_IDS = T.SAMPLE_STREAMS
+SAMPLE_IDS = S.SAMPLE_STREAMS
 REAL32, INT8 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8
 ACCEPTED = M.MAV_RESULT_ACCEPTED
 
@@ -44,7 +46,7 @@ _rates = st.one_of(st.just(0.0), st.floats(0.1, 120.0), st.sampled_from([1.0, 10
 _ops = st.one_of(
     st.tuples(st.just("sample"), st.floats(0.0, 0.3)),  # a sample after dt seconds
     st.tuples(st.just("sample"), st.sampled_from([0.0, 0.01, 0.02, 0.1])),
-    st.tuples(st.just("base"), st.sampled_from((*SAMPLE_IDS, T.SYS_STATUS)), _rates),
+    st.tuples(st.just("base"), st.sampled_from((*SAMPLE_IDS, S.SYS_STATUS)), _rates),
     st.tuples(
         st.just("override"),
         st.sampled_from(SAMPLE_IDS),
@@ -52,7 +54,7 @@ _ops = st.one_of(
     ),
     st.tuples(
         st.just("streams"),
-        st.lists(st.sampled_from((*SAMPLE_IDS, T.SYS_STATUS)), unique=True),
+        st.lists(st.sampled_from((*SAMPLE_IDS, S.SYS_STATUS)), unique=True),
     ),
 )
 
@@ -65,7 +67,7 @@ _ops = st.one_of(
 def test_fast_path_gives_what_due_on_sample_gives(
     initial: dict[int, float], ops: list[tuple[Any, ...]]
 ) -> None:
-    general, fast = T.StreamSchedule(initial), T.StreamSchedule(initial)
+    general, fast = S.StreamSchedule(initial), S.StreamSchedule(initial)
     ids: list[int] = list(SAMPLE_IDS)
     fast.set_sample_streams(ids)
     now = 1000.0
@@ -86,24 +88,24 @@ def test_fast_path_gives_what_due_on_sample_gives(
         else:
             ids = list(op[1])
             fast.set_sample_streams(ids)
-    assert general.rate(T.ATTITUDE) == fast.rate(T.ATTITUDE)
+    assert general.rate(S.ATTITUDE) == fast.rate(S.ATTITUDE)
 
 
 def test_a_change_made_while_due_samples_runs_is_not_lost() -> None:
     # Another thread (the dispatcher) changes a rate between due_samples() reading the plan
     # and storing the next due time: the stored time must not hide the change.
-    sched = T.StreamSchedule({T.ATTITUDE: 1.0})
-    sched.set_sample_streams([T.ATTITUDE])
-    assert sched.due_samples(10.0) == [T.ATTITUDE]
+    sched = S.StreamSchedule({S.ATTITUDE: 1.0})
+    sched.set_sample_streams([S.ATTITUDE])
+    assert sched.due_samples(10.0) == [S.ATTITUDE]
     real_rate = sched.rate
 
     def rate_then_change(msgid: int) -> float:
         hz = real_rate(msgid)
-        sched.set_override(T.VFR_HUD, 5.0)  # any change, "meanwhile"
+        sched.set_override(S.VFR_HUD, 5.0)  # any change, "meanwhile"
         return hz
 
     sched.rate = rate_then_change  # type: ignore[method-assign]
-    sched.set_base(T.ATTITUDE, 1.0)  # a new plan is built on the next call
+    sched.set_base(S.ATTITUDE, 1.0)  # a new plan is built on the next call
     sched.due_samples(10.5)
     assert sched.sample_due_at == float("-inf")  # ask again next time, not in a second
     sched.rate = real_rate  # type: ignore[method-assign]
@@ -114,24 +116,24 @@ def test_a_change_made_while_due_samples_runs_is_not_lost() -> None:
 @pytest.mark.parametrize(("hz", "jitter"), [(50.0, 0.0), (30.0, 0.003), (7.0, 0.004), (100.0, 0.0)])
 def test_the_average_rate_stays_exact(hz: float, jitter: float) -> None:
     rng = random.Random(int(hz))
-    sched = T.StreamSchedule({T.ATTITUDE: hz, T.VFR_HUD: 4.0})
-    sched.set_sample_streams([T.ATTITUDE, T.VFR_HUD])
+    sched = S.StreamSchedule({S.ATTITUDE: hz, S.VFR_HUD: 4.0})
+    sched.set_sample_streams([S.ATTITUDE, S.VFR_HUD])
     times = [50.0 + i * 0.01 + rng.uniform(-jitter, jitter) for i in range(6000)]  # 60 s, 100 Hz
-    counts = {T.ATTITUDE: 0, T.VFR_HUD: 0}
+    counts = {S.ATTITUDE: 0, S.VFR_HUD: 0}
     for now in times:
         if now >= sched.sample_due_at:
             for m in sched.due_samples(now):
                 counts[m] += 1
     # The first goes with the first frame; the k-th falls due k periods later, a quarter
     # period early at most; a frame comes every 10 +- 3 ms, so none is late by a period.
-    assert counts[T.ATTITUDE] == expected_count(hz, times[-1] - times[0])
-    assert counts[T.VFR_HUD] == expected_count(4.0, times[-1] - times[0])
+    assert counts[S.ATTITUDE] == expected_count(hz, times[-1] - times[0])
+    assert counts[S.VFR_HUD] == expected_count(4.0, times[-1] - times[0])
 
 
 def expected_count(hz: float, seconds: float) -> int:
     """Messages of an exact ``hz`` stream in ``seconds`` of frames (the first one at 0)."""
     period = 1.0 / hz
-    return int((seconds + T.StreamSchedule.SLACK * period) / period) + 1
+    return int((seconds + S.StreamSchedule.SLACK * period) / period) + 1
 
 
 # =====================================================================================
@@ -199,10 +201,10 @@ class Bench:
         self.clock.t += dt
         before = len(self.sent)
         self.out.publish(replace(self.sample, t=self.clock.t))
-        return {p.msgid for p in self.sent[before:] if p.msgid in SAMPLE_IDS + FEEDS}
+        return {p.get_msgId() for p in self.sent[before:] if p.get_msgId() in SAMPLE_IDS + FEEDS}
 
 
-FEEDS = (T.VISION_POSITION_ESTIMATE,)
+FEEDS = (S.VISION_POSITION_ESTIMATE,)
 
 
 @pytest.fixture
@@ -223,9 +225,9 @@ def bench(tmp_path: Path) -> Iterator[Callable[..., Bench]]:
         )
         daemon = Daemon(cfg)  # never started: the services the output uses
         clock = Clock(100.0)
-        out = MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: daemon, clock=clock)
+        out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services, clock=clock)
         sent: list[Packet] = []
-        out.add_tap(sent.append)
+        daemon.bridge.mavlink_tap.subscribe(lambda m: sent.append(m.message))
         out.start()
         made.append((out, peer))
         # The ground station answers where our HEARTBEAT came from (the clock stands still
@@ -269,7 +271,7 @@ def test_half_the_frames_do_no_mavlink_work(bench: Callable[..., Bench]) -> None
 
     b.out.schedule.due_samples = counting  # type: ignore[method-assign]
     sent = [b.frame() for _ in range(200)]
-    assert sum(T.ATTITUDE in s for s in sent) == 100  # 50 Hz of 100 Hz frames, exactly
+    assert sum(S.ATTITUDE in s for s in sent) == 100  # 50 Hz of 100 Hz frames, exactly
     assert calls == 100  # the other 100 frames stopped at the comparison
 
 
@@ -279,62 +281,62 @@ def test_the_average_rate_through_the_output(bench: Callable[..., Bench]) -> Non
     sent = [b.frame(0.01 + rng.uniform(-0.003, 0.003)) for _ in range(3000)]
     first = b.sample.t + 0.01 + 0.0  # frame() stepped the clock before the first sample
     seconds = b.clock.t - first
-    assert sum(T.ATTITUDE in s for s in sent) == expected_count(30.0, seconds)
-    assert sum(T.VFR_HUD in s for s in sent) == expected_count(4.0, seconds)
+    assert sum(S.ATTITUDE in s for s in sent) == expected_count(30.0, seconds)
+    assert sum(S.VFR_HUD in s for s in sent) == expected_count(4.0, seconds)
     # what reached the ground station is what the tap saw, framed by pymavlink's rules
     assert b.peer.wait("ATTITUDE").get_srcSystem() == 1
 
 
 def test_message_interval_takes_effect_on_the_next_sample(bench: Callable[..., Bench]) -> None:
     b = bench(**{**ALL_OFF, "rate_attitude_hz": 2.0})
-    assert T.ATTITUDE in b.frame()
-    assert T.ATTITUDE not in b.frame()  # 2 Hz: the next one in half a second
+    assert S.ATTITUDE in b.frame()
+    assert S.ATTITUDE not in b.frame()  # 2 Hz: the next one in half a second
     att = M.MAVLINK_MSG_ID_ATTITUDE
     assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, 20_000).result == ACCEPTED
-    assert T.ATTITUDE in b.frame()  # 50 Hz now: the very next sample
-    assert T.ATTITUDE not in b.frame()
-    assert T.ATTITUDE in b.frame()
+    assert S.ATTITUDE in b.frame()  # 50 Hz now: the very next sample
+    assert S.ATTITUDE not in b.frame()
+    assert S.ATTITUDE in b.frame()
     assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, -1).result == ACCEPTED
-    assert not any(T.ATTITUDE in b.frame() for _ in range(50))  # off
+    assert not any(S.ATTITUDE in b.frame() for _ in range(50))  # off
     assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, 0).result == ACCEPTED
-    assert T.ATTITUDE in b.frame()  # back to the configured 2 Hz, at once
-    assert not any(T.ATTITUDE in b.frame() for _ in range(10))
+    assert S.ATTITUDE in b.frame()  # back to the configured 2 Hz, at once
+    assert not any(S.ATTITUDE in b.frame() for _ in range(10))
     # a stream that was never on, switched on by an override
     hud = M.MAVLINK_MSG_ID_VFR_HUD
     assert b.peer.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, hud, 100_000).result == ACCEPTED
-    assert T.VFR_HUD in b.frame()
+    assert S.VFR_HUD in b.frame()
 
 
 def test_a_rate_parameter_takes_effect_on_the_next_sample(bench: Callable[..., Bench]) -> None:
     b = bench(**ALL_OFF)  # every sample stream off: the output never needs to look again
     assert not any(b.frame() for _ in range(20))
     assert b.peer.set_param("BRG_SR_ATT", 20.0, REAL32).param_value == 20.0
-    assert b.frame() == {T.ATTITUDE}
+    assert b.frame() == {S.ATTITUDE}
     assert b.peer.set_param("BRG_SR_RIMU", 50.0, REAL32).param_value == 50.0
-    assert T.RAW_IMU in b.frame()
+    assert S.RAW_IMU in b.frame()
     assert b.peer.set_param("BRG_SR_ATT", 0.0, REAL32).param_value == 0.0
     assert b.peer.set_param("BRG_SR_RIMU", 0.0, REAL32).param_value == 0.0
     assert not any(b.frame(0.05) for _ in range(10))
     # PREFLIGHT_STORAGE 2: back to the defaults (ATTITUDE off here, VFR_HUD's 4 Hz default)
     assert b.peer.set_param("BRG_SR_HUD", 0.0, REAL32).param_value == 0.0
     assert b.peer.command(M.MAV_CMD_PREFLIGHT_STORAGE, 2).result == ACCEPTED
-    assert b.out.params.get("BRG_SR_HUD") == 0.0  # the configuration's default: off
-    b.out.schedule.set_base(T.HIGHRES_IMU, 1.0)  # the schedule's own API works directly too
-    assert b.frame() == {T.HIGHRES_IMU}
+    assert b.out.services.params.get("BRG_SR_HUD") == 0.0  # the configuration's default: off
+    b.out.schedule.set_base(S.HIGHRES_IMU, 1.0)  # the schedule's own API works directly too
+    assert b.frame() == {S.HIGHRES_IMU}
 
 
 def test_the_heading_feed_switches_on_the_next_sample(bench: Callable[..., Bench]) -> None:
     b = bench(**ALL_OFF, rate_heading_feed_hz=10.0)
     assert not any(b.frame() for _ in range(20))  # feed off
     assert b.peer.set_param("BRG_HDG_FEED", 1.0, INT8).param_value == 1.0
-    assert b.frame() == {T.ODOMETRY}
+    assert b.frame() == {S.ODOMETRY}
     assert b.peer.set_param("BRG_HDG_FEED", 2.0, INT8).param_value == 2.0
     got = [b.frame() for _ in range(10)]  # the slot keeps its rhythm: within one period
-    assert {T.VISION_POSITION_ESTIMATE} in got and not any(T.ODOMETRY in s for s in got)
+    assert {S.VISION_POSITION_ESTIMATE} in got and not any(S.ODOMETRY in s for s in got)
     assert b.peer.set_param("COMPASS_USE", 0.0, INT8).param_value == 0.0
     assert not any(b.frame() for _ in range(20))  # the autopilot gets nothing
     assert b.peer.set_param("COMPASS_USE", 1.0, INT8).param_value == 1.0
-    assert any(b.frame() == {T.VISION_POSITION_ESTIMATE} for _ in range(10))
+    assert any(b.frame() == {S.VISION_POSITION_ESTIMATE} for _ in range(10))
     assert b.peer.set_param("BRG_HDG_FEED", 0.0, INT8).param_value == 0.0
     assert not any(b.frame() for _ in range(20))
     b.peer.wait("VISION_POSITION_ESTIMATE")  # it went out on the wire too

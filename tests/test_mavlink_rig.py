@@ -30,9 +30,8 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect module
 from pymavlink import mavutil
 
-from bridge.calibrator import CalibrationController, CalibratorSettings
+from bridge.calibrator import CalibratorSettings
 from bridge.config import Config, config_from_mapping
-from bridge.core.wmm import earth_field
 from bridge.daemon import Daemon
 from bridge.link.serial_link import LinkState
 from bridge.link.transport import SimTransport
@@ -41,7 +40,6 @@ from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import Motion, YawTurns
 from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.sim.pty import PtyCompass
-from bridge.storage import StateStore
 
 mavutil.set_dialect("ardupilotmega")
 M: Any = mavutil.mavlink
@@ -306,22 +304,18 @@ def start_rig(
         transport = SimTransport(fw, clock=fc, sleep=fc.sleep)
     else:
         transport = SimTransport(fw)
-    holder: list[Daemon] = []
-    out = MavlinkOutput(MavlinkSettings.from_config(cfg), lambda: holder[0])
-    daemon = Daemon(cfg, [out], transport=transport)
-    holder.append(daemon)
     if fast:
-        # The controller the daemon builds, on the simulator's clock (as test_calibrator).
-        daemon.calibrator = CalibrationController(
-            daemon.engine,
-            daemon.events,
-            link=daemon.link,
-            store=StateStore(cfg.storage.dir),
-            field=earth_field(LAT, LON, ALT),
-            onboard=cfg.calibration.onboard,
-            settings=settings or CalibratorSettings(no_data_timeout_s=40.0),
+        # The calibration controller on the simulator's clock (as test_calibrator).
+        daemon = Daemon(
+            cfg,
+            transport=transport,
+            calibrator_settings=settings or CalibratorSettings(no_data_timeout_s=40.0),
             clock=fc,
         )
+    else:
+        daemon = Daemon(cfg, transport=transport)
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services)
+    daemon.set_outputs([out])
     daemon.start()
     rig = Rig(daemon, out, fw, cfg, udp, tcp, [], server, fc if fast else time.monotonic)
     try:

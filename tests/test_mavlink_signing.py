@@ -88,13 +88,13 @@ def test_unsigned_and_wrongly_signed_commands_are_refused(
         assert not any(
             m.get_type() == "PARAM_VALUE" and m.param_id == "BRG_SR_HUD" for m in g.inbox
         )
-        assert rig.out.params.get("BRG_SR_HUD") == 4.0  # nothing changed
+        assert rig.daemon.params.get("BRG_SR_HUD") == 4.0  # nothing changed
         assert rig.out.schedule.rate(ATT) == 10.0
         g.flush()
         assert any(m.get_type() == "ATTITUDE" for m in g.collect(0.5))  # still streaming
     c = rig.out.counters
     assert c.refused_unsigned == 3 and c.refused_bad_signature == 3
-    assert c.commands == 0
+    assert rig.out.dispatcher.commands == 0
 
 
 def test_replayed_and_stale_commands_are_refused(tmp_path: Path, rigs: Callable[..., Rig]) -> None:

@@ -9,21 +9,22 @@ from typing import Any
 import numpy as np
 import pytest
 
+from bridge.app.sample import CompassSample
 from bridge.core.attitude import AttitudeEngine, FieldReference
 from bridge.core.geometry import euler_to_dcm, euler_to_quaternion
 from bridge.core.sensor import STANDARD_GRAVITY, g_to_acc_counts, gauss_to_mag_counts
-from bridge.daemon import CompassSample
 from bridge.link.serial_link import LinkState
+from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module
-from bridge.mavlink.wire import Framer, Packet
 
 B_NED = np.array([0.21, 0.0, 0.42])  # gauss: north and down (dip 63 deg), as in Zurich
 DECL = 3.0  # deg east
 
 
-def decode(p: Packet) -> Any:
-    (msg,) = M.MAVLink(None).parse_buffer(Framer(1, 1).frame(p))
+def decode(p: Any) -> Any:
+    """The message as a ground station decodes it from the bytes pymavlink frames."""
+    (msg,) = M.MAVLink(None).parse_buffer(p.pack(M.MAVLink(None, 1, 1)))
     return msg
 
 
@@ -189,39 +190,58 @@ def test_sys_status_link_counters() -> None:
 
 def test_heartbeat_by_role_and_state() -> None:
     sa = decode(T.heartbeat(T.Identity(1, 1, "standalone"), T.system_status(health())))
-    assert (sa.type, sa.autopilot) == (M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_INVALID)
+    assert (sa.type, sa.autopilot) == (M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_GENERIC)
     assert sa.system_status == M.MAV_STATE_ACTIVE and sa.mavlink_version == 3
-    co = decode(T.heartbeat(T.Identity(1, 200, "companion"), 0))
-    assert co.type == M.MAV_TYPE_IMU
+    for flavour, autopilot in (
+        ("px4", M.MAV_AUTOPILOT_PX4),
+        ("ardupilot", M.MAV_AUTOPILOT_ARDUPILOTMEGA),
+    ):
+        hb = decode(T.heartbeat(T.Identity(1, 1, "standalone", flavour), 0))
+        assert hb.autopilot == autopilot
+    # beside an autopilot a component is no vehicle, whatever the flavour
+    co = decode(T.heartbeat(T.Identity(1, 200, "companion", "px4"), 0))
+    assert (co.type, co.autopilot) == (M.MAV_TYPE_IMU, M.MAV_AUTOPILOT_INVALID)
     assert T.system_status(health(calibrating=True)) == M.MAV_STATE_CALIBRATING
     assert T.system_status(health(link_state=LinkState.OPENING, fresh=False)) == M.MAV_STATE_BOOT
     assert T.system_status(health(link_state=LinkState.STALE)) == M.MAV_STATE_CRITICAL
     assert T.system_status(health(link_state=LinkState.ABSENT, fresh=False)) == M.MAV_STATE_CRITICAL
 
 
-def test_statustext_chunks_long_texts_without_splitting_characters() -> None:
+def test_statustext_chunks_long_texts_as_the_spec_says() -> None:
     short = T.statustext(6, "Compass link restored")
     assert len(short) == 1 and decode(short[0]).id == 0
     text = "Magnetic disturbance near the sensor: " + "é" * 40 + " -- move away from the iron"
     packets = T.statustext(4, text, chunk_id=77)
     assert len(packets) >= 2
-    chunks = [codec_text(p) for p in packets]
-    assert all(len(c) <= 50 for c in chunks)
-    assert b"".join(chunks).decode("utf-8") == text  # each chunk ends on a character boundary
+    chunks = [wire_text(p) for p in packets]
+    # Only the last chunk is shorter than 50 bytes (has a NUL): the spec's end marker, so no
+    # middle chunk may be cut short at a character boundary; the receiver joins the bytes.
+    assert all(len(c) == 50 for c in chunks[:-1]) and len(chunks[-1]) < 50
+    assert b"".join(chunks).decode("utf-8") == text
     msgs = [decode(p) for p in packets]
     assert {m.id for m in msgs} == {77} and [m.chunk_seq for m in msgs] == list(range(len(msgs)))
     assert all(m.severity == 4 for m in msgs)
 
 
-def codec_text(p: Packet) -> bytes:
-    # wire layout "<B50sHB": severity, text, id, chunk_seq
-    raw = p.payload + bytes(54 - len(p.payload))
-    return raw[1:51].rstrip(b"\0")
+@pytest.mark.parametrize("n", [51, 99, 100, 150])
+def test_a_chunked_text_always_ends_with_a_short_chunk(n: int) -> None:
+    text = "x" * n
+    chunks = [wire_text(p) for p in T.statustext(6, text, chunk_id=5)]
+    assert b"".join(chunks).decode() == text
+    assert len(chunks[-1]) < 50  # a text of exactly 50 k bytes gets an empty final chunk
+    assert len(chunks) == n // 50 + 1
+
+
+def wire_text(p: Any) -> bytes:
+    """The text bytes a STATUSTEXT carries on the wire (NULs stripped)."""
+    p.pack(M.MAVLink(None, 1, 1))
+    raw = p.get_payload() + bytes(54 - len(p.get_payload()))
+    return bytes(raw[1:51]).rstrip(b"\0")  # wire layout "<B50sHB": severity, text, id, seq
 
 
 def test_schedule_keeps_the_rate_on_jittery_samples() -> None:
     rng = random.Random(1)
-    sched = T.StreamSchedule({T.ATTITUDE: 10.0, T.VFR_HUD: 4.0, T.SCALED_IMU: 0.0})
+    sched = S.StreamSchedule({T.ATTITUDE: 10.0, T.VFR_HUD: 4.0, T.SCALED_IMU: 0.0})
     counts = {T.ATTITUDE: 0, T.VFR_HUD: 0, T.SCALED_IMU: 0}
     t = 0.0
     for _ in range(1000):  # 100 s of 10 Hz frames with +-20 % timing jitter
@@ -234,7 +254,7 @@ def test_schedule_keeps_the_rate_on_jittery_samples() -> None:
 
 
 def test_schedule_overrides_and_clock_streams() -> None:
-    sched = T.StreamSchedule({T.SYS_STATUS: 2.0, T.ATTITUDE: 10.0})
+    sched = S.StreamSchedule({T.SYS_STATUS: 2.0, T.ATTITUDE: 10.0})
     assert sched.rate(T.HEARTBEAT) == 1.0 and sched.interval_us(T.ATTITUDE) == 100_000
     sent = {T.HEARTBEAT: 0, T.SYS_STATUS: 0}
     t = 0.0
@@ -253,7 +273,7 @@ def test_schedule_overrides_and_clock_streams() -> None:
 
 
 def test_autopilot_version_and_capabilities() -> None:
-    m = decode(T.autopilot_version("0.1.0", "2.1.0", "GMR-000417", uid=42))
+    m = decode(T.autopilot_version("0.1.0", "2.1.0", "GMR-000417", uid=42))  # C-cast default
     assert m.flight_sw_version == (0 << 24 | 1 << 16 | 0 << 8 | 255)
     assert m.middleware_sw_version == (2 << 24 | 1 << 16 | 0 << 8 | 255)
     assert m.capabilities & M.MAV_PROTOCOL_CAPABILITY_MAVLINK2

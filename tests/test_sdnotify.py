@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
+from bridge.link.observed import ObservedTransport
 from bridge.sdnotify import (
     Liveness,
     Notifier,
     ServiceNotifier,
-    WatchedTransport,
     notify_address,
     watchdog_interval_s,
 )
@@ -286,11 +286,14 @@ class _FakePort:
 
     def __init__(self) -> None:
         self.closed = 0
+        self.block: threading.Event | None = None  # set: read() waits for it (a wedged driver)
 
     def open(self) -> None:
         pass
 
     def read(self, max_bytes: int, timeout: float) -> bytes:
+        if self.block is not None:
+            self.block.wait(DEADLINE_S)
         return b"x"
 
     def write(self, data: bytes) -> None:
@@ -300,19 +303,20 @@ class _FakePort:
         self.closed += 1
 
 
-def test_watched_transport_beats_hangs_and_swaps() -> None:
+def test_observed_transport_beats_and_swaps() -> None:
     clock, lv = ManualClock(), Liveness()
     lv.watch("reader", 2.0, clock.t)
     inner = _FakePort()
-    wt = WatchedTransport(inner, lv, "reader", clock=clock)
+    wt = ObservedTransport(inner, lambda: lv.beat("reader", clock.t))  # type: ignore[arg-type]
     assert wt.baud == 115200 and wt.name == "/dev/fake"
     clock.t += 1.5
     assert wt.read(10, 0.05) == b"x"
     clock.t += 1.5
     assert lv.silent(clock.t) == []  # the read 1.5 s ago was a beat
 
-    # The test hook: the next read blocks until the transport is closed.
-    wt.hang()
+    # A read that does not return (a wedged driver) is no beat: the reader goes silent.
+    hung = threading.Event()
+    inner.block = hung
     done = threading.Event()
 
     def reader() -> None:
@@ -324,8 +328,10 @@ def test_watched_transport_beats_hangs_and_swaps() -> None:
     assert not done.wait(0.3)
     clock.t += 3.0
     assert [n for n, _ in lv.silent(clock.t)] == ["reader"]
-    wt.close()
+    hung.set()
     assert done.wait(DEADLINE_S)
+    inner.block = None
+    assert lv.silent(clock.t) == []  # the read returned: a beat
 
     # A reload's new transport is taken on by the reader: its read fails once, the old closes.
     new = _FakePort()
@@ -333,5 +339,5 @@ def test_watched_transport_beats_hangs_and_swaps() -> None:
     wt.replace(new)
     with pytest.raises(OSError, match="reload"):
         wt.read(10, 0.05)
-    assert inner.closed == 2 and wt.name == "/dev/new"
+    assert inner.closed == 1 and wt.name == "/dev/new"
     assert wt.read(10, 0.05) == b"x"

@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 from service_harness import free_port, toml_config, wait_for
 
+from bridge.app.sample import Output
 from bridge.config import Config, load_config
-from bridge.daemon import Daemon, Output, build_outputs
+from bridge.daemon import Daemon, Service, build_outputs, plan_reload
 from bridge.link.serial_link import LinkState
-from bridge.service import Service, plan_reload
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
@@ -37,7 +37,7 @@ class Running:
         cfg = load_config(self.cfg_path, env={})
 
         def make_outputs(c: Config, daemon: Daemon) -> list[Output]:
-            return build_outputs(c, daemon.status, console=False, daemon=daemon)
+            return build_outputs(c, daemon, console=False)
 
         self.service = Service(
             cfg, make_outputs, reload_config=lambda: load_config(self.cfg_path, env={}), env={}

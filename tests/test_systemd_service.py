@@ -111,12 +111,12 @@ def test_hung_reader_stops_the_pings_and_sigterm_still_stops(
     cfg = tmp_path / "bridge.toml"
     cfg.write_text(toml_config(str(compass.link_path), tmp_path / "state"))
     d = DaemonProcess(
-        cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC, hooks="hang-reader"
+        cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC, hanging_reader=True
     )
     try:
         i, _ = manager.wait_for(lambda m: "READY" in m, proc=d)
         manager.wait_for(lambda m: m.get("WATCHDOG") == "1", after=i, proc=d)
-        d.signal(signal.SIGUSR2)  # TEST HOOK: the serial reader blocks in its next read
+        d.signal(signal.SIGUSR2)  # the stand-in's serial reader blocks in its next read
         d.wait_log("the serial reader hangs now")
         # Within the silence limit (4 s) the pings stop; STATUS says why.
         j, hung = manager.wait_for(

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_calibration
 
 from bridge.calibration.coverage import N_SECTIONS
 from bridge.cli import main
-from bridge.daemon import load_calibration
 from bridge.link.record import RecordingWriter
 from bridge.sim.firmware import make_firmware
 from bridge.sim.motion import Motion, Tumble, YawTurns

@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import load_calibration
 from test_mavlink_rig import ALT, LAT, LON, M, Rig, free_port, rig_factory
 
 from bridge.calibration.model import AffineCalibration
 from bridge.cli import main
 from bridge.core.sensor import gauss_to_mag_counts
 from bridge.core.wmm import earth_field
-from bridge.daemon import load_calibration
 from bridge.sim.motion import Tumble
 from bridge.tools.calibrate import (
     RawImuCollector,

@@ -21,11 +21,12 @@ import pytest
 import zenoh
 
 from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.calibrator.store import CALIBRATION_DOCUMENT
 from bridge.config import load_config
-from bridge.daemon import CALIBRATION_DOCUMENT, Daemon, build_outputs
+from bridge.daemon import Daemon, build_outputs
 from bridge.fleet import schema
 from bridge.fleet.output import ZenohOutput
-from bridge.fleet.services import daemon_services
+from bridge.fleet.services import fleet_services
 from bridge.fleet.session import ZenohSettings
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.dialect import mavlink
@@ -160,15 +161,16 @@ class Bridge:
             **settings,
         )
         self.prefix = self.settings.key_prefix
-        holder: list[Daemon] = []
-        self.output = ZenohOutput(self.settings, daemon_services(lambda: holder[0]))
+        self.daemon = Daemon(self.cfg)
+        self.output = ZenohOutput(self.settings, fleet_services(self.daemon.services))
         outputs: list[Any] = [self.output]
         self.mavlink: MavlinkOutput | None = None
         if mavlink_port:
-            self.mavlink = MavlinkOutput(MavlinkSettings.from_config(self.cfg), lambda: holder[0])
+            self.mavlink = MavlinkOutput(
+                MavlinkSettings.from_config(self.cfg), self.daemon.services
+            )
             outputs.insert(0, self.mavlink)
-        self.daemon = Daemon(self.cfg, outputs)
-        holder.append(self.daemon)
+        self.daemon.set_outputs(outputs)
 
     def key(self, *parts: str) -> str:
         return "/".join((self.prefix, *parts))
@@ -378,7 +380,7 @@ def test_queryables_answer_status_and_calibration(tmp_path: Path) -> None:
         assert reply.ok is not None
         params = schema.parse(reply.ok.payload.to_bytes(), schema.PARAMS)["params"]
         assert b.mavlink is not None
-        assert params == pytest.approx(b.mavlink.params.values())
+        assert params == pytest.approx(b.daemon.params.values())
         # ArduPilot adds COMPASS_OFS to the raw field (ours subtracts the offset): 0.01 G -> -10 mG.
         assert params["COMPASS_OFS_X"] == pytest.approx(-10.0, abs=0.01)
 
@@ -432,7 +434,7 @@ def test_publishing_resumes_within_2s_of_the_peer_returning(tmp_path: Path) -> N
         assert during >= 0.8 * 20 * 2.0, f"pipeline slowed while zenoh was down: {during}"
         # ATTITUDE streams at BRG_SR_ATT (default 10 Hz) whatever zenoh does.
         assert b.mavlink is not None
-        att_hz = b.mavlink.params.get("BRG_SR_ATT")
+        att_hz = b.daemon.params.get("BRG_SR_ATT")
         assert mav_during >= 0.8 * att_hz * 2.0, f"MAVLink slowed: {mav_during} ATTITUDE in 2 s"
         rx2 = Received()
         with peer(listen=[endpoint]) as s:
@@ -479,7 +481,7 @@ def test_a_stalled_subscriber_does_not_slow_the_daemon(tmp_path: Path) -> None:
                 rate = (n1 - n0) / (t1 - t0)
                 assert rate >= 90.0, f"the pipeline ran at {rate:.1f} Hz, the device at 100"
                 assert b.mavlink is not None
-                att_hz = b.mavlink.params.get("BRG_SR_ATT")
+                att_hz = b.daemon.params.get("BRG_SR_ATT")
                 mav_rate = (m1 - m0) / (t1 - t0)
                 assert mav_rate >= 0.9 * att_hz, f"MAVLink ATTITUDE at {mav_rate:.1f} Hz"
                 assert h1 - h0 >= 0.95 * (n1 - n0), "the healthy subscriber lost headings"
@@ -682,7 +684,7 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
     off = load_config(
         None, [*base, "zenoh.enabled=false", "mavlink.endpoints=[]"], env={}, hostname="w1"
     )
-    assert build_outputs(off, lambda: None, console=False, daemon=None) == []  # type: ignore[arg-type,return-value]
+    assert build_outputs(off, Daemon(off), console=False) == []
     rx = Received()
     with (
         PtyCompass(make_firmware(3), str(link)),
@@ -707,7 +709,7 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
         _s = s.declare_subscriber("wired/**", rx)
         _m = s.declare_subscriber("mavlink/**", rx)
         daemon = Daemon(cfg, ())
-        daemon.outputs = build_outputs(cfg, daemon.status, console=False, daemon=daemon)
+        daemon.set_outputs(build_outputs(cfg, daemon, console=False))
         assert sorted(o.name for o in daemon.outputs) == ["mavlink", "zenoh"]
         daemon.start()
         try:
@@ -762,7 +764,7 @@ def test_mavlink_mirror_republishes_what_the_bridge_sends(tmp_path: Path) -> Non
         assert hb["header"]["message_id"] == 0
         assert hb["message"]["type"] == "HEARTBEAT"
         assert hb["message"]["mavtype"] == {"type": "MAV_TYPE_GENERIC"}  # standalone role
-        assert hb["message"]["autopilot"] == {"type": "MAV_AUTOPILOT_INVALID"}
+        assert hb["message"]["autopilot"] == {"type": "MAV_AUTOPILOT_GENERIC"}
         att = rx.docs(f"{base}/ATTITUDE")[-1]["message"]
         assert att["type"] == "ATTITUDE"
         assert all(isinstance(att[f], float) for f in ("roll", "pitch", "yaw"))
@@ -775,10 +777,10 @@ def test_mavlink_mirror_republishes_what_the_bridge_sends(tmp_path: Path) -> Non
 
 
 def _service(cfg: Any, reload_to: Any) -> Any:
-    from bridge.service import Service
+    from bridge.daemon import Service
 
     def make_outputs(c: Any, d: Daemon) -> list[Any]:
-        return build_outputs(c, d.status, console=False, daemon=d)
+        return build_outputs(c, d, console=False)
 
     return Service(cfg, make_outputs, reload_config=lambda: reload_to, env={})
 

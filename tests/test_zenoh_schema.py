@@ -15,11 +15,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.calibration.model import Calibration
 from bridge.config import ConfigError, load_config
 from bridge.core.attitude import AttitudeEngine, FieldReference
 from bridge.core.geometry import euler_to_dcm, quaternion_to_dcm
-from bridge.daemon import CompassSample, DaemonStatus
 from bridge.events import Event, Severity
 from bridge.fleet import schema
 from bridge.fleet.mirror import MirrorMessage, mirror_key
@@ -407,10 +407,15 @@ def test_mirror_uses_the_mavlink_server_layout() -> None:
 
 
 def test_mirror_decodes_the_bridges_own_encoded_packets() -> None:
-    from bridge.mavlink.wire import codec
+    from bridge.mavlink.dialect import mavlink, message
+
+    def payload(msg: object) -> bytes:
+        msg.pack(mavlink.MAVLink(None, 1, 1))  # type: ignore[attr-defined]
+        return bytes(msg.get_payload())  # type: ignore[attr-defined]
 
     q = [0.5, 0.5, -0.5, 0.5]
-    p = codec(61).packet(  # ATTITUDE_QUATERNION_COV: an array of 4 and one of 9
+    p = message(
+        61,  # ATTITUDE_QUATERNION_COV: an array of 4 and one of 9
         time_usec=123456789,
         q=q,
         rollspeed=0.0,
@@ -418,14 +423,17 @@ def test_mirror_decodes_the_bridges_own_encoded_packets() -> None:
         yawspeed=0.0,
         covariance=[1.5, 2.5] + [0.0] * 7,  # ends in zeros: MAVLink 2 trims them
     )
-    assert len(p.payload) < 72  # trailing zeros were trimmed (MAVLink 2)
-    m = MirrorMessage.from_packet(p.msgid, p.payload, system_id=3, component_id=200, sequence=5)
+    data = payload(p)
+    assert len(data) < 72  # trailing zeros were trimmed (MAVLink 2)
+    m = MirrorMessage.from_packet(61, data, system_id=3, component_id=200, sequence=5)
     doc = json.loads(m.to_json())
     assert mirror_key(m) == "mavlink/3/200/ATTITUDE_QUATERNION_COV"
     assert doc["message"]["q"] == q and doc["message"]["time_usec"] == 123456789
     assert doc["message"]["covariance"] == [1.5, 2.5] + [0.0] * 7
-    t = codec(253).packet(severity=6, text="Calibration started: mag", id=0, chunk_seq=0)
-    s = json.loads(MirrorMessage.from_packet(253, t.payload, system_id=1, component_id=1).to_json())
+    t = message(253, severity=6, text=b"Calibration started: mag", id=0, chunk_seq=0)
+    s = json.loads(
+        MirrorMessage.from_packet(253, payload(t), system_id=1, component_id=1).to_json()
+    )
     assert s["message"]["text"] == "Calibration started: mag"
     assert s["message"]["severity"] == {"type": "MAV_SEVERITY_INFO"}
     with pytest.raises(ValueError):

@@ -141,12 +141,13 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
     """Frames per process-CPU second through the whole per-frame path (see the module doc)."""
     import zenoh
 
-    from bridge.daemon import CompassSample, Daemon
+    from bridge.app.sample import CompassSample
+    from bridge.bench.mavlink import STREAMS, bench_config, frame_lines
+    from bridge.daemon import Daemon
     from bridge.fleet import schema
-    from bridge.link.serial_link import Received
-    from bridge.mavlink.bench import STREAMS, bench_config, frame_lines
+    from bridge.mavlink.dialect import mavlink as mavlink_dialect
     from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-    from bridge.mavlink.wire import Framer
+    from bridge.ports import Received
     from bridge.protocol.gmr import GmrDecoder
 
     data = frame_lines(n)
@@ -173,8 +174,8 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
         with tempfile.TemporaryDirectory() as tmp:
             cfg = bench_config(tmp)
             daemon = Daemon(cfg)  # never started: process() is the pipeline's per-frame work
-            out = MavlinkOutput(MavlinkSettings(), lambda: daemon)
-            framer = Framer(1, 1)
+            out = MavlinkOutput(MavlinkSettings(), daemon.services)
+            framer = mavlink_dialect.MAVLink(None, 1, 1)
             for r in range(repeat):
                 decoder = GmrDecoder(direction="host")
                 frames = put = 0
@@ -185,9 +186,9 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
                         continue
                     frames += 1
                     for msgid in STREAMS:
-                        p = out._encode_sample(msgid, sample)
+                        p = out.encode_sample(msgid, sample)
                         if p is not None:
-                            framer.frame(p)
+                            p.pack(framer)
                     ts = pub_session.new_timestamp()
                     times = schema.SampleTimes(
                         t_monotonic=sample.t, t_unix=time.time(), zenoh_time=None

@@ -7,7 +7,6 @@ See :mod:`bridge.calibrator.controller` for the threads and routes.
 """
 
 from bridge.calibrator.controller import (
-    CALIBRATION_DOCUMENT,
     EVENT_KINDS,
     INSTRUCTION_LEVEL_TURN,
     INSTRUCTION_SIDE_TURN,
@@ -19,6 +18,11 @@ from bridge.calibrator.controller import (
     Result,
 )
 from bridge.calibrator.results import DeviceMagParams, device_params_for
+from bridge.calibrator.store import (
+    CALIBRATION_DOCUMENT,
+    CalibrationStore,
+    StoredCalibration,
+)
 
 __all__ = [
     "CALIBRATION_DOCUMENT",
@@ -26,11 +30,13 @@ __all__ = [
     "INSTRUCTION_LEVEL_TURN",
     "INSTRUCTION_SIDE_TURN",
     "CalibrationController",
+    "CalibrationStore",
     "CalibratorSettings",
     "CalibratorSnapshot",
     "DeviceMagParams",
     "Mode",
     "Outcome",
     "Result",
+    "StoredCalibration",
     "device_params_for",
 ]

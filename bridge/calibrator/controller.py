@@ -46,7 +46,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -77,14 +77,17 @@ from bridge.calibrator.results import (
     mag_report,
     orientation_confidence,
 )
-from bridge.core.attitude import AttitudeEngine
+from bridge.calibrator.store import CalibrationStore
+from bridge.core.mounting import Mounting
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Event, EventBus, Severity
-from bridge.link.serial_link import (
+from bridge.ports import (
     CommandError,
     CommandRejected,
     CommandTimeout,
-    CompassLink,
+    DevicePort,
+    DocumentStore,
+    StorageError,
 )
 from bridge.protocol.gmr import (
     AckFrame,
@@ -94,12 +97,9 @@ from bridge.protocol.gmr import (
     Flags,
     ParamsFrame,
 )
-from bridge.storage import StateStore, StorageError
 
 log = logging.getLogger(__name__)
 
-#: Name of the calibration document (``bridge.daemon`` loads the same one).
-CALIBRATION_DOCUMENT = "calibration"
 #: Every event kind this controller emits.
 EVENT_KINDS: tuple[str, ...] = (
     "calibration.started",
@@ -302,6 +302,25 @@ class _Session:
         return self.status in _RUNNING
 
 
+class CalibrationTarget(Protocol):
+    """Where an accepted calibration goes: the attitude engine, or the application's
+    :class:`~bridge.app.settings.EngineSettings` (its one writer, which tells the others)."""
+
+    @property
+    def calibration(self) -> Calibration:
+        """The calibration in use."""
+        ...
+
+    @property
+    def mounting(self) -> Mounting:
+        """The mounting in use."""
+        ...
+
+    def update_calibration(self, calibration: Calibration) -> None:
+        """Use ``calibration`` from now on."""
+        ...
+
+
 def _short(text: str) -> str:
     return text if len(text) <= STATUSTEXT_MAX else text[: STATUSTEXT_MAX - 1] + "~"
 
@@ -325,11 +344,11 @@ class CalibrationController:
 
     def __init__(
         self,
-        engine: AttitudeEngine,
+        engine: CalibrationTarget,
         bus: EventBus,
         *,
-        link: CompassLink | None = None,
-        store: StateStore | None = None,
+        link: DevicePort | None = None,
+        store: DocumentStore | None = None,
         field: EarthField | None = None,
         onboard: bool = False,
         settings: CalibratorSettings | None = None,
@@ -340,7 +359,7 @@ class CalibrationController:
         self._engine = engine
         self._bus = bus
         self._link = link
-        self._store = store
+        self._store = CalibrationStore(store) if store is not None else None
         self._field = field
         self.settings = settings if settings is not None else CalibratorSettings()
         self._onboard = bool(onboard)
@@ -360,13 +379,10 @@ class CalibrationController:
         self._calibration_source = calibration_source
         self._calibration_time: float | None = None
         self._calibration_saved = False
-        if store is not None:
-            try:
-                loaded = store.load(CALIBRATION_DOCUMENT)
-            except Exception:  # an unreadable state dir must not stop the bridge
-                loaded = None
-            if loaded is not None and loaded.payload is not None:
-                self._calibration_time = loaded.saved_at
+        if self._store is not None:
+            stored = self._store.load()  # never raises
+            if stored.stored:
+                self._calibration_time = stored.accepted_unix
                 self._calibration_saved = True
 
     # ------------------------------------------------------------------ lifecycle
@@ -907,15 +923,21 @@ class CalibrationController:
         source: str,
         report: dict[str, Any] | None = None,
         write_device: bool = True,
+        view: dict[str, float] | None = None,
     ) -> Outcome:
         """Use ``calibration`` from now on: engine, state file and (optionally) the device flash.
+
+        ``view`` is the parameter values a user set it with (stored with it, so they
+        read back as written).
 
         For front ends that set parameters directly (PARAM_SET COMPASS_OFS_X,
         PREFLIGHT_STORAGE reset ...). A failed save keeps the calibration in
         memory and emits ``calibration.storage_error``; the device write runs in
         the worker and reports ``calibration.device_updated`` / ``device_error``.
         """
-        return self._apply(calibration, source=source, report=report, write_device=write_device)
+        return self._apply(
+            calibration, source=source, report=report, write_device=write_device, view=view
+        )
 
     # ------------------------------------------------------------------ status
 
@@ -1554,30 +1576,17 @@ class CalibrationController:
         source: str,
         report: dict[str, Any] | None,
         write_device: bool,
+        view: dict[str, float] | None = None,
     ) -> Outcome:
         self._engine.update_calibration(cal)
         now = self._wall()
         saved = True
         error = ""
         if self._store is not None:
-            payload: dict[str, Any] = {
-                "calibration": cal.to_dict(),
-                "source": source,
-                "accepted_unix": now,
-            }
-            if report is not None:
-                payload["report"] = report
             try:
-                self._store.save(CALIBRATION_DOCUMENT, payload)
+                self._store.save(cal, source=source, accepted_unix=now, report=report, view=view)
             except StorageError as e:
                 saved, error = False, str(e)
-            except (TypeError, ValueError) as e:  # a report that is not JSON: save without it
-                payload.pop("report", None)
-                try:
-                    self._store.save(CALIBRATION_DOCUMENT, payload)
-                except StorageError as e2:
-                    saved, error = False, str(e2)
-                log.warning("calibration report not storable (%s); saved without it", e)
         else:
             saved, error = False, "no state directory configured"
         with self._lock:

@@ -14,7 +14,7 @@ in rust-mavlink's serde shape, the one mavlink2rest uses too::
 
 Fleet tools written for BlueOS therefore see the compass like any other
 MAVLink component. The message layout (names, enums) comes from the bridge's
-dialect (:mod:`bridge.mavlink.dialect`, ardupilotmega). PURE: no I/O.
+dialect (pymavlink's ardupilotmega, as :mod:`bridge.mavlink.dialect`). PURE: no I/O.
 """
 
 from __future__ import annotations
@@ -26,16 +26,6 @@ from dataclasses import dataclass
 from typing import Any
 
 MIRROR_ROOT = "mavlink"
-
-
-@dataclass(frozen=True, slots=True)
-class SentPacket:
-    """A message as the MAVLink side sent it: our ids and the encoded payload (decoded later)."""
-
-    system_id: int
-    component_id: int
-    message_id: int
-    payload: bytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,18 +131,22 @@ def mirror_key(m: MirrorMessage) -> str:
     return f"{MIRROR_ROOT}/{m.system_id}/{m.component_id}/{m.name}"
 
 
-def _message_class(message_id: int) -> Any:
-    from bridge.mavlink.dialect import message_class
+def _dialect() -> Any:
+    # pymavlink's ardupilotmega dialect, MAVLink 2: the one the MAVLink adapter sends with
+    # (taken from pymavlink, not from that adapter: adapters do not import each other).
+    from pymavlink.dialects.v20 import ardupilotmega
 
-    return message_class(message_id)
+    return ardupilotmega
+
+
+def _message_class(message_id: int) -> Any:
+    return _dialect().mavlink_map[message_id]
 
 
 def _enum_value(enum: str, value: int, *, bitmask: bool) -> Any:
     if bitmask:
         return {"bits": value}
-    from bridge.mavlink.dialect import mavlink
-
-    entry = mavlink.enums.get(enum, {}).get(value)
+    entry = _dialect().enums.get(enum, {}).get(value)
     # An entry name looks like MAV_TYPE_GENERIC; an unknown value stays a number.
     return {"type": str(entry.name)} if entry is not None else value
 

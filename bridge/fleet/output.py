@@ -40,15 +40,16 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
 
+from bridge.app.services import SentMessage
 from bridge.fleet import schema
-from bridge.fleet.mirror import MirrorMessage, SentPacket, mirror_key
+from bridge.fleet.mirror import MirrorMessage, mirror_key
 from bridge.fleet.pacing import Decimator, RateMeter
 from bridge.fleet.session import ZenohSettings, describe_error, endpoints_text, open_session
 
 if TYPE_CHECKING:
     import zenoh
 
-    from bridge.daemon import CompassSample, DaemonStatus
+    from bridge.app.sample import CompassSample, DaemonStatus
     from bridge.events import Event
 
 log = logging.getLogger(__name__)
@@ -100,9 +101,8 @@ class FleetServices:
     * ``params`` -- the parameter table (name -> value), or None without one.
     * ``run_command`` -- ``(name, args) -> CommandOutcome`` for remote calibration.
     * ``subscribe_events`` / ``subscribe_mavlink`` -- register a callback,
-      return the function that unregisters it.
-    * ``mavlink_source`` -- the object ``subscribe_mavlink`` attaches to (the
-      MAVLink output): when it changes (a reload), the mirror re-subscribes.
+      return the function that unregisters it (the MAVLink messages the bridge
+      sends, whichever MAVLink output sends them: a reload does not detach it).
     """
 
     status: Callable[[], DaemonStatus]
@@ -112,7 +112,6 @@ class FleetServices:
     run_command: Callable[[str, Mapping[str, Any]], CommandOutcome] | None = None
     subscribe_events: Callable[[Callable[[Event], None]], Callable[[], None]] | None = None
     subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
-    mavlink_source: Callable[[], object] | None = None
 
 
 @dataclass(slots=True)
@@ -169,7 +168,7 @@ class ZenohOutput:
         self._clock = clock
         self._wall = wall
         self._events: deque[Event] = deque(maxlen=100)
-        self._mirror: deque[MirrorMessage | SentPacket] = deque(maxlen=queue_len)
+        self._mirror: deque[MirrorMessage | SentMessage] = deque(maxlen=queue_len)
         self._mirror_seq = 0
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -183,7 +182,6 @@ class ZenohOutput:
         self._keep: list[Any] = []  # queryables, token: undeclared when dropped, so kept here
         self._unsubscribe: list[Callable[[], None]] = []
         self._mirror_detach: Callable[[], None] = _nothing
-        self._mirror_source: object = None
         self._decimators = {
             "heading": Decimator(settings.heading_rate_hz),
             "attitude": Decimator(settings.attitude_rate_hz),
@@ -268,16 +266,12 @@ class ZenohOutput:
             self._close_session()
 
     def _attach_mirror(self) -> None:
-        """(Re-)attach the MAVLink mirror to the current MAVLink output, if it changed."""
+        """Attach the MAVLink mirror (once; it follows the bridge's MAVLink output by itself)."""
         s = self.services
         if not self.settings.mavlink_mirror or s.subscribe_mavlink is None:
             return
-        source = s.mavlink_source() if s.mavlink_source is not None else None
-        if self._mirror_detach is not _nothing and source is self._mirror_source:
-            return
-        self._mirror_detach()
-        self._mirror_source = source
-        self._mirror_detach = s.subscribe_mavlink(self._on_mavlink)
+        if self._mirror_detach is _nothing:
+            self._mirror_detach = s.subscribe_mavlink(self._on_mavlink)
 
     # -- callbacks from other threads -----------------------------------------------
 
@@ -291,7 +285,7 @@ class ZenohOutput:
         # Called from the MAVLink side for every message it sends: keep it quick; decoding,
         # enum names and JSON happen later on our thread.
         try:
-            m = msg if isinstance(msg, MirrorMessage | SentPacket) else MirrorMessage.capture(msg)
+            m = msg if isinstance(msg, MirrorMessage | SentMessage) else MirrorMessage.capture(msg)
         except Exception:
             self.counters.mirror_dropped += 1
             return
@@ -372,11 +366,8 @@ class ZenohOutput:
                 if stream in ("status", "events")
                 else zenoh.Priority.DATA,
             )
-        self._keep.append(session.declare_queryable(st.key("status"), self._answer_status))
-        self._keep.append(
-            session.declare_queryable(st.key("calibration"), self._answer_calibration)
-        )
-        self._keep.append(session.declare_queryable(st.key("params"), self._answer_params))
+        # Commands first, status last of the queryables: whoever can query the status can
+        # already command (a peer that waits for the status must not find the commands absent).
         if st.remote_calibration:
             for cmd in CALIBRATION_COMMANDS:
                 key = st.key("cmd", "calibration", cmd)
@@ -388,6 +379,11 @@ class ZenohOutput:
                 "zenoh access control",
                 st.key_prefix,
             )
+        self._keep.append(
+            session.declare_queryable(st.key("calibration"), self._answer_calibration)
+        )
+        self._keep.append(session.declare_queryable(st.key("params"), self._answer_params))
+        self._keep.append(session.declare_queryable(st.key("status"), self._answer_status))
         # Declared last: fleet software seeing the token can query everything at once.
         self._keep.append(session.liveliness().declare_token(st.key_prefix))
 
@@ -457,11 +453,12 @@ class ZenohOutput:
             except IndexError:
                 return
             try:
-                if isinstance(m, SentPacket):
+                if isinstance(m, SentMessage):
                     # Each MAVLink link numbers its own packets; the mirror is one more "link".
-                    m = MirrorMessage.from_packet(
-                        m.message_id,
-                        m.payload,
+                    msg = m.message
+                    m = MirrorMessage.from_fields(
+                        msg.get_msgId(),
+                        {f: getattr(msg, f) for f in msg.get_fieldnames()},
                         system_id=m.system_id,
                         component_id=m.component_id,
                         sequence=self._mirror_seq,

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 if TYPE_CHECKING:  # types only: a consumer (monitor) must not pull in the daemon and numpy
-    from bridge.daemon import CompassSample, DaemonStatus
+    from bridge.app.sample import CompassSample, DaemonStatus
     from bridge.events import Event
-    from bridge.link.serial_link import LinkCounters
+    from bridge.ports import LinkCounters
 
 #: The family every schema name starts with.
 SCHEMA_FAMILY: Final = "compass-bridge"

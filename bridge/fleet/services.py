@@ -1,9 +1,8 @@
-"""What the Zenoh output needs from the running daemon, as :class:`FleetServices`.
+"""What the Zenoh output needs from the running bridge, as :class:`FleetServices`.
 
-The daemon is built after its outputs (``build_outputs`` runs first), so every
-service looks the daemon up when called, through ``get_daemon``. Parts the
-daemon does not have (no calibrator, no MAVLink parameter table) are simply
-absent: the matching queryable answers with an error, the status says less.
+Built from the application's :class:`~bridge.app.services.BridgeServices`, the
+same object the MAVLink adapter gets: status, the calibration controller, the
+calibration store, the parameter store, events and the MAVLink message tap.
 """
 
 from __future__ import annotations
@@ -13,13 +12,11 @@ import math
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from bridge.fleet.mirror import SentPacket
 from bridge.fleet.output import CommandOutcome, FleetServices
 
 if TYPE_CHECKING:
+    from bridge.app.services import BridgeServices, SentMessage
     from bridge.calibrator.controller import CalibrationController
-    from bridge.daemon import Daemon
-    from bridge.events import Event, EventBus
 
 log = logging.getLogger(__name__)
 
@@ -27,26 +24,9 @@ log = logging.getLogger(__name__)
 START_KINDS = ("mag", "accel", "level", "fixed_yaw")
 
 
-def _calibrator(d: Daemon) -> CalibrationController | None:
-    return getattr(d, "calibrator", None)
-
-
-def _bus(d: Daemon) -> EventBus | None:
-    return getattr(d, "events", None)
-
-
-def _mavlink_output(d: Daemon) -> Any:
-    """The daemon's MAVLink output (looked up each time: a reload replaces it), or None."""
-    return next((o for o in d.outputs if o.name == "mavlink"), None)
-
-
-def calibration_state(d: Daemon) -> dict[str, Any]:
+def calibration_state(svc: BridgeServices) -> dict[str, Any]:
     """The small calibration summary ``<prefix>/status`` carries."""
-    out: dict[str, Any] = {"source": d.calibration_source, "state": "idle"}
-    cal = _calibrator(d)
-    if cal is None:
-        return out
-    snap = cal.snapshot()
+    snap = svc.calibrator.snapshot()
     if snap.running:
         state = "running"
     elif snap.pending_accept:
@@ -57,55 +37,31 @@ def calibration_state(d: Daemon) -> dict[str, Any]:
         state = "idle"
     report = snap.last_report or {}
     fitness = report.get("fitness_mG", report.get("fitness"))
-    out.update(
-        {
-            "state": state,
-            "mode": snap.mode,
-            "status": snap.status.name,
-            "percent": round(snap.completion_pct, 1),
-            "onboard": snap.onboard,
-            "source": snap.calibration_source or d.calibration_source,
-            "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
-            "saved": snap.calibration_saved,
-            "fitness_mG": fitness if isinstance(fitness, int | float) else None,
-        }
-    )
-    return out
-
-
-def calibration_info(d: Daemon) -> dict[str, Any]:
-    """The ``<prefix>/calibration`` answer: the parameters in use and their quality report."""
-    cal = _calibrator(d)
-    snap = cal.snapshot() if cal is not None else None
-    report: Mapping[str, Any] | None = None
-    source = d.calibration_source
-    if snap is not None:
-        source = snap.calibration_source or source
-        if snap.last_report is not None:
-            report = snap.last_report
-    if report is None:
-        report = _stored_report(d)
     return {
-        "calibration": d.engine.calibration.to_dict(),
-        "source": source,
-        "report": report,
-        "state": snap.to_dict() if snap is not None else None,
+        "state": state,
+        "mode": snap.mode,
+        "status": snap.status.name,
+        "percent": round(snap.completion_pct, 1),
+        "onboard": snap.onboard,
+        "source": snap.calibration_source or svc.status().calibration_source,
+        "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
+        "saved": snap.calibration_saved,
+        "fitness_mG": fitness if isinstance(fitness, int | float) else None,
     }
 
 
-def _stored_report(d: Daemon) -> Mapping[str, Any] | None:
-    """The report saved with the calibration in use (read on demand: queries are rare)."""
-    from bridge.daemon import CALIBRATION_DOCUMENT
-    from bridge.storage import StateStore
-
-    try:
-        loaded = StateStore(d.cfg.storage.dir).load(CALIBRATION_DOCUMENT)
-    except Exception:
-        return None
-    payload = loaded.payload
-    if isinstance(payload, dict) and isinstance(payload.get("report"), dict):
-        return dict(payload["report"])
-    return None
+def calibration_info(svc: BridgeServices) -> dict[str, Any]:
+    """The ``<prefix>/calibration`` answer: the parameters in use and their quality report."""
+    snap = svc.calibrator.snapshot()
+    report: Mapping[str, Any] | None = snap.last_report
+    if report is None:
+        report = svc.calibrations.load().report  # queries are rare: read on demand
+    return {
+        "calibration": svc.settings.calibration.to_dict(),
+        "source": snap.calibration_source or svc.status().calibration_source,
+        "report": dict(report) if report is not None else None,
+        "state": snap.to_dict(),
+    }
 
 
 def _flag(args: Mapping[str, Any], name: str, default: bool | None = None) -> bool | None:
@@ -172,51 +128,21 @@ def run_calibration_command(
     return CommandOutcome(outcome.ok, outcome.message, detail)
 
 
-def daemon_services(get_daemon: Callable[[], Daemon]) -> FleetServices:
-    """:class:`FleetServices` backed by the daemon ``get_daemon`` returns (when called)."""
+def fleet_services(svc: BridgeServices) -> FleetServices:
+    """:class:`FleetServices` backed by the bridge's services."""
 
     def run_command(command: str, args: Mapping[str, Any]) -> CommandOutcome:
-        cal = _calibrator(get_daemon())
-        if cal is None:
-            return CommandOutcome(False, "calibration is not available on this bridge")
-        return run_calibration_command(cal, command, args)
+        return run_calibration_command(svc.calibrator, command, args)
 
-    def subscribe_events(fn: Callable[[Event], None]) -> Callable[[], None]:
-        bus = _bus(get_daemon())
-        if bus is None:
-            return lambda: None
-        return bus.subscribe(fn)
-
-    def params() -> Mapping[str, float]:
-        table = getattr(_mavlink_output(get_daemon()), "params", None)
-        if table is None:
-            raise LookupError("this bridge has no parameter table (MAVLink output off)")
-        return dict(table.values())
-
-    def subscribe_mavlink(fn: Callable[[Any], None]) -> Callable[[], None]:
-        out = _mavlink_output(get_daemon())
-        add_tap = getattr(out, "add_tap", None)
-        if out is None or add_tap is None:
-            log.info("zenoh: mavlink_mirror is on but there is no MAVLink output to mirror")
-            return lambda: None
-        sysid, compid = out.identity.system_id, out.identity.component_id
-
-        def tap(packet: Any) -> None:
-            try:  # runs in the MAVLink sender's thread: never raise into it
-                fn(SentPacket(sysid, compid, packet.msgid, packet.payload))
-            except Exception:
-                log.debug("zenoh: mirror tap failed", exc_info=True)
-
-        unsubscribe: Callable[[], None] = add_tap(tap)
-        return unsubscribe
+    def subscribe_mavlink(fn: Callable[[SentMessage], None]) -> Callable[[], None]:
+        return svc.mavlink_tap.subscribe(fn)
 
     return FleetServices(
-        status=lambda: get_daemon().status(),
-        calibration_state=lambda: calibration_state(get_daemon()),
-        calibration=lambda: calibration_info(get_daemon()),
-        params=params,
+        status=svc.status,
+        calibration_state=lambda: calibration_state(svc),
+        calibration=lambda: calibration_info(svc),
+        params=lambda: svc.params.values(),
         run_command=run_command,
-        subscribe_events=subscribe_events,
+        subscribe_events=svc.events.subscribe,
         subscribe_mavlink=subscribe_mavlink,
-        mavlink_source=lambda: _mavlink_output(get_daemon()),
     )

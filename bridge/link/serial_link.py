@@ -33,16 +33,25 @@ The device answers commands in order, so slots are consumed oldest first.
 from __future__ import annotations
 
 import contextlib
-import enum
 import logging
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Literal, NamedTuple, Protocol, TypeAlias
+from dataclasses import dataclass
+from typing import Literal, Protocol, TypeAlias
 
 from bridge.link.transport import EndOfRecording, Transport
+from bridge.ports import (
+    CommandError,
+    CommandNotSupported,
+    CommandRejected,
+    CommandTimeout,
+    LinkCounters,
+    LinkDown,
+    LinkState,
+    Received,
+)
 from bridge.protocol.framing import MAX_LINE_BYTES
 from bridge.protocol.gmr import (
     AckFrame,
@@ -75,82 +84,11 @@ _READ_TIMEOUT_S = 0.05  # bounds how late the reader notices close() and stalene
 _READ_CHUNK = 4096
 
 
-class LinkState(enum.Enum):
-    """Where the link stands (see the module docstring)."""
-
-    ABSENT = "absent"
-    OPENING = "opening"
-    STREAMING = "streaming"
-    STALE = "stale"
-
-
 _LIVE = (LinkState.OPENING, LinkState.STREAMING)
-
-
-class CommandError(Exception):
-    """A command could not be completed."""
-
-
-class CommandTimeout(CommandError):  # noqa: N818 - named by the link interface
-    """No answer after all attempts."""
-
-
-class CommandRejected(CommandError):  # noqa: N818 - named by the link interface
-    """The device answered ``$PGMRK,<command>,ERR,<reason>``."""
-
-    def __init__(self, command: str, reason: str, answer: AckFrame) -> None:
-        super().__init__(f"{command} rejected by the device: {reason}")
-        self.command = command
-        self.reason = reason
-        self.answer = answer
-
-
-class CommandNotSupported(CommandError):  # noqa: N818 - named by the link interface
-    """The link's protocol has no commands (heading-only compasses)."""
-
-
-class LinkDown(CommandError):  # noqa: N818 - named by the link interface
-    """The port is not open, or the link is closed."""
-
-
-class Received(NamedTuple):
-    """A decoded frame and the monotonic time its last byte was read."""
-
-    frame: Frame
-    t: float
 
 
 class _Decoder(Protocol):
     def feed(self, data: bytes) -> Sequence[Frame]: ...
-
-
-@dataclass(frozen=True, slots=True)
-class LinkCounters:
-    """A snapshot of the link's counters (all cumulative since the link was made)."""
-
-    bytes_read: int = 0
-    frames: int = 0  #: valid sentences decoded, of any type
-    attitude_frames: int = 0
-    bad_lines: Mapping[str, int] = field(default_factory=dict)  #: decoder drops by reason
-    lost_frames: int = 0  #: from $PGMRA seq gaps (mod 65536)
-    seq_discontinuities: int = 0  #: seq jumps too large (or backwards) to be loss
-    reconnects: int = 0  #: successful opens after the first
-    open_failures: int = 0
-    stale_events: int = 0
-    device_resets: int = 0  #: unasked $PGMRV, or seq restarting at 0
-    consumer_drops: int = 0  #: oldest frames dropped because the consumer lagged
-    callback_errors: int = 0
-    commands_sent: int = 0  #: attempts written, retries included
-    command_retries: int = 0
-    command_timeouts: int = 0
-    command_rejections: int = 0
-    late_answers: int = 0  #: answers to timed-out attempts, absorbed
-    unsolicited_answers: int = 0  #: acks nobody was waiting for
-
-    @property
-    def bad_lines_total(self) -> int:
-        """All decoder drops."""
-        return sum(self.bad_lines.values())
 
 
 @dataclass(slots=True, eq=False)  # compared by identity: each is one attempt

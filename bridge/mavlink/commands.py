@@ -40,6 +40,7 @@ from typing import Any, Literal
 from bridge.calibration.sanity import MagCalStatus
 from bridge.calibrator import Outcome, Result
 from bridge.events import Event
+from bridge.mavlink.dialect import Message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.mavlink.telemetry import (
     STATUSTEXT_LEN,
@@ -47,7 +48,6 @@ from bridge.mavlink.telemetry import (
     mag_cal_report,
     statustext,
 )
-from bridge.mavlink.wire import Packet
 
 Flow = Literal["ardupilot", "px4"]
 
@@ -236,7 +236,8 @@ class CalibrationRelay:
     the controller's threads.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, compass_id: int = 0) -> None:
+        self.compass_id = compass_id  #: the compass id of our MAG_CAL_REPORT
         self._lock = threading.Lock()
         self._flow: Flow | None = None
         self._last_pct: int | None = None
@@ -254,7 +255,7 @@ class CalibrationRelay:
             self._flow = flow
             self._last_pct = None
 
-    def packets(self, event: Event) -> list[Packet]:
+    def packets(self, event: Event) -> list[Message]:
         """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
         if not event.kind.startswith("calibration."):
             return statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
@@ -274,7 +275,7 @@ class CalibrationRelay:
                 if ipct is not None and ipct == self._last_pct:
                     return []  # QGroundControl needs changes only
                 self._last_pct = ipct
-        out: list[Packet] = []
+        out: list[Message] = []
         data = event.data
         mode = str(data.get("mode", ""))
         if event.kind in ("calibration.done", "calibration.failed") and mode in _MAG_MODES:
@@ -282,7 +283,7 @@ class CalibrationRelay:
             if isinstance(report, dict):
                 r = report_from_dict(report)
                 self.last_report = r
-                out.append(mag_cal_report(r))
+                out.append(mag_cal_report(r, self.compass_id))
         # The controller cuts texts to one STATUSTEXT; a failure's whole reason is worth
         # a second (chunked) message: "MAGCAL,END: too little rotation (RANGE)".
         text = event.text

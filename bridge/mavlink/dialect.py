@@ -30,6 +30,16 @@ IFLAG_SIGNED = 0x01  #: incompat_flags bit: a 13-byte signature follows the CRC
 SIGNATURE_LEN = 13  #: link id (1) + timestamp (6) + signature (6)
 
 
+#: A pymavlink message object (the generated classes are untyped).
+Message = Any
+
+
+def message(msgid: int, **fields: Any) -> Message:
+    """A message to send: the dialect's class for ``msgid`` with ``fields`` (char fields as
+    bytes, arrays as sequences). pymavlink frames it, per link, when it is sent."""
+    return mavlink.mavlink_map[msgid](**fields)
+
+
 def message_class(msgid: int) -> Any:
     """The pymavlink message class for ``msgid`` (``KeyError`` if the dialect lacks it)."""
     return mavlink.mavlink_map[msgid]

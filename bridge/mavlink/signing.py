@@ -5,19 +5,23 @@ The signature (MAVLink 2 spec, "Message Signing") is 13 bytes after the CRC::
     link_id (1) | timestamp (6, little endian, 10 us units since 2015-01-01 UTC) | sig (6)
     sig = SHA-256(secret_key + header + payload + CRC + link_id + timestamp)[:6]
 
-pymavlink can sign and check (``MAVLink.signing``), but its checker records
-a stream's timestamp *before* it verifies the signature (so one forged packet
-with a far-future timestamp locks the real sender out), keeps its replay
-table per parser instance (one per connection here, so a packet captured on
-one link could be replayed on another), and is not thread-safe. The bridge
-therefore parses without a key and checks signatures in one place,
-:class:`Signing`, shared by every endpoint:
+Outgoing packets are signed by pymavlink (each link's ``MAVLink`` object, set
+up by :func:`sign_outgoing`); the bridge only keeps its timestamp at
+``max(last + 1, wall clock)`` (:meth:`Signing.floor`) before each packet:
+pymavlink counts up from where it started, so after a day of uptime at 40
+packets a second its timestamp would be hours behind real time, and a peer
+that restarts refuses a "new stream" more than a minute older than its own
+clock.
 
-* **sign**: :meth:`Signing.sign` appends the 13 bytes to a framed packet. The
-  timestamp is ``max(last + 1, wall clock)``: strictly increasing per the
-  spec, and close to real time so that a peer that restarts accepts our
-  "new stream" (a receiver refuses a new stream more than a minute older
-  than its own clock).
+Incoming signatures are *not* checked by pymavlink: its checker records a
+stream's timestamp *before* it verifies the signature (so one forged packet
+with a far-future timestamp locks the real sender out; shown by
+``tests/test_mavlink_signing.py``), keeps its replay table per parser
+instance (one per connection here, so a packet captured on one link could be
+replayed on another), and is not thread-safe. The bridge therefore parses
+without a key and checks signatures in one place, :class:`Signing`, shared by
+every endpoint:
+
 * **verify**: :meth:`Signing.verify` checks the signature *first*, then the
   replay rules: per stream ``(link_id, system, component)`` the timestamp
   must increase; a stream seen for the first time must not be more than
@@ -34,6 +38,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from enum import Enum
+from typing import Any
 
 from bridge.mavlink.dialect import IFLAG_SIGNED, MAGIC_V2, SIGNATURE_LEN
 
@@ -80,23 +85,21 @@ class Signing:
         self.rejected: dict[Verdict, int] = {v: 0 for v in Verdict if v is not Verdict.OK}
 
     @property
+    def key(self) -> bytes:
+        """The secret key."""
+        return self._key
+
+    @property
     def timestamp(self) -> int:
         """The last timestamp used or seen (10 us ticks since 2015)."""
         with self._lock:
             return self._timestamp
 
-    def _next_timestamp(self) -> int:
-        ts = max(self._timestamp + 1, unix_to_ticks(self._clock()))
-        self._timestamp = ts
-        return ts
-
-    def sign(self, packet: bytes, link_id: int) -> bytes:
-        """``packet`` (framed with the signed flag set, CRC included) plus its signature."""
+    def floor(self) -> int:
+        """The lowest timestamp our next signed packet may carry: strictly increasing per
+        the spec, and never behind the wall clock or the newest valid one we saw."""
         with self._lock:
-            ts = self._next_timestamp()
-        tail = bytes((link_id & 0xFF,)) + ts.to_bytes(6, "little")
-        sig = hashlib.sha256(self._key + packet + tail).digest()[:6]
-        return packet + tail + sig
+            return max(self._timestamp + 1, unix_to_ticks(self._clock()))
 
     def verify(self, packet: bytes | bytearray, src_system: int, src_component: int) -> Verdict:
         """Check one received packet (the full bytes, signature included)."""
@@ -133,3 +136,11 @@ class Signing:
         with self._lock:
             self.rejected[verdict] += 1
         return verdict
+
+
+def sign_outgoing(mav: Any, signing: Signing, link_id: int) -> None:
+    """Make pymavlink's ``mav`` sign what it packs with ``signing``'s key as ``link_id``."""
+    mav.signing.secret_key = signing.key
+    mav.signing.link_id = link_id & 0xFF
+    mav.signing.sign_outgoing = True
+    mav.signing.timestamp = signing.floor()

@@ -251,13 +251,12 @@ def ask_accept(question: str, stdin: TextIO, out: TextIO) -> bool:
 
 
 def save_offline(state_dir: str, res: CalibrationResult, report: dict[str, Any]) -> None:
-    """Write the calibration where the daemon loads it (``calibration.json``, with its report)."""
-    from bridge.daemon import CALIBRATION_DOCUMENT
+    """Write the calibration where the daemon loads it (the calibration store, with its report)."""
+    from bridge.calibrator.store import CalibrationStore
     from bridge.storage import StateStore
 
-    StateStore(state_dir).save(
-        CALIBRATION_DOCUMENT,
-        {"calibration": res.calibration.to_dict(), "report": report, "source": "calibrate"},
+    CalibrationStore(StateStore(state_dir)).save(
+        res.calibration, source="calibrate", accepted_unix=time.time(), report=report
     )
 
 

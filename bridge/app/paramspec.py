@@ -1,10 +1,10 @@
-"""The bridge's MAVLink parameters: table, validation, and the calibration they describe (pure).
+"""The bridge's parameters: names, types, ranges, and the calibration they describe (pure).
 
 Names follow ArduPilot where ArduPilot has one, so MAVProxy / QGroundControl /
 Mission Planner users find what they know; the bridge's own live under
-``BRG_``. Types are ArduPilot's; integer values travel C-cast in
-``param_value`` (a 1 is sent as 1.0), which AUTOPILOT_VERSION advertises
-(MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST).
+``BRG_``. Types are ArduPilot's storage types (INT8, INT32, REAL32); how they
+travel on MAVLink depends on the ground station's flavour and is the MAVLink
+adapter's business (:mod:`bridge.mavlink.paramproto`).
 
 The calibration group (COMPASS_OFS_*, COMPASS_DIA_*, COMPASS_ODI_*,
 COMPASS_SCALE, COMPASS_ORIENT, BRG_ALIGN_*) *is* the magnetometer
@@ -18,14 +18,12 @@ calibration, written the ArduPilot way (see
 rotation vector in radians: the magnetometer-to-accelerometer alignment the
 best fit finds). A fitted rotation of more than 45 deg is split into the
 nearest ArduPilot rotation (COMPASS_ORIENT) and a residual, as ArduPilot's
-own calibrator reports a new orientation. The values a user sets are kept as
-set (so every PARAM_VALUE echo equals the SET), and the calibration is
-rebuilt from them; a new calibration (a fit) rewrites the group.
+own calibrator reports a new orientation.
 
-A SET is refused -- the echo then carries the unchanged value -- when the
-name is unknown or read-only, the type is not the parameter's, the value is
-NaN/inf, out of range, or not a whole number for an integer type, or when
-the calibration it would give is singular.
+A value is refused when the name is unknown or read-only, the value is
+NaN/inf, out of range, or not a whole number for an integer type (judged by
+the parameter's own type, as ArduPilot does), or when the calibration it
+would give is singular.
 """
 
 from __future__ import annotations
@@ -42,13 +40,13 @@ from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibrati
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation, rotation_matrix
 from bridge.core.quality import QualityLimits
-from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
-from bridge.mavlink.telemetry import HEADING_FEEDS, STREAMS
 
-INT8 = int(M.MAV_PARAM_TYPE_INT8)
-INT16 = int(M.MAV_PARAM_TYPE_INT16)
-INT32 = int(M.MAV_PARAM_TYPE_INT32)
-REAL32 = int(M.MAV_PARAM_TYPE_REAL32)
+# ArduPilot's storage types, numbered as MAVLink's MAV_PARAM_TYPE (which the MAVLink
+# adapter puts on the wire, encoded as the ground station's flavour expects).
+INT8 = 2
+INT16 = 4
+INT32 = 6
+REAL32 = 9
 _INT_TYPES = {INT8: (-128, 127), INT16: (-32768, 32767), INT32: (-(2**31), 2**31 - 1)}
 _TYPE_NAMES = {INT8: "INT8", INT16: "INT16", INT32: "INT32", REAL32: "REAL32"}
 
@@ -87,23 +85,41 @@ def _f32(v: float) -> float:
     return float(struct.unpack("<f", struct.pack("<f", v))[0])
 
 
+#: The autopilot heading feeds, by BRG_HDG_FEED value (``[mavlink] heading_feed``).
+HEADING_FEEDS: tuple[str, ...] = ("off", "px4_odometry", "ardupilot_vision")
+
+
+@dataclass(frozen=True, slots=True)
+class StreamRate:
+    """A MAVLink stream's rate parameter: its name, what it sends, the configuration key
+    giving its default, and that default (Hz, 0 = off)."""
+
+    param: str
+    message: str
+    config_key: str
+    default_hz: float
+
+
+#: The configurable MAVLink streams' rates (the MAVLink adapter maps them to messages).
+STREAM_RATES: tuple[StreamRate, ...] = (
+    StreamRate("BRG_SR_ATT", "ATTITUDE", "rate_attitude_hz", 10.0),
+    StreamRate("BRG_SR_QUAT", "ATTITUDE_QUATERNION", "rate_attitude_quaternion_hz", 10.0),
+    StreamRate("BRG_SR_HUD", "VFR_HUD", "rate_vfr_hud_hz", 4.0),
+    StreamRate("BRG_SR_SIMU", "SCALED_IMU", "rate_scaled_imu_hz", 2.0),
+    StreamRate("BRG_SR_RIMU", "RAW_IMU", "rate_raw_imu_hz", 2.0),
+    StreamRate("BRG_SR_HIMU", "HIGHRES_IMU", "rate_highres_imu_hz", 2.0),
+    StreamRate("BRG_SR_SYS", "SYS_STATUS", "rate_sys_status_hz", 1.0),
+    StreamRate("BRG_SR_FEED", "heading feed", "rate_heading_feed_hz", 10.0),
+)
+
+
 def _stream_specs() -> list[ParamSpec]:
-    out = []
-    for s in STREAMS:
-        what = "heading feed" if s.param == "BRG_SR_FEED" else M.mavlink_map[s.msgid].msgname
-        out.append(
-            ParamSpec(
-                s.param,
-                REAL32,
-                s.default_hz,
-                0.0,
-                50.0,
-                f"{what} rate (0 = off)",
-                "Hz",
-                "rates",
-            )
+    return [
+        ParamSpec(
+            r.param, REAL32, r.default_hz, 0.0, 50.0, f"{r.message} rate (0 = off)", "Hz", "rates"
         )
-    return out
+        for r in STREAM_RATES
+    ]
 
 
 #: Every parameter, in index order (PARAM_VALUE.param_index).
@@ -218,6 +234,17 @@ SPECS: tuple[ParamSpec, ...] = (
         "declination, east positive (set by the WMM when COMPASS_AUTODEC = 1)",
         "rad",
         "dec",
+    ),
+    # -- the published heading
+    ParamSpec(
+        "BRG_HDG_REF",
+        INT8,
+        0,
+        0,
+        1,
+        "published heading: 0 magnetic north, 1 true north (needs a declination)",
+        "",
+        "heading",
     ),
     # -- mounting
     ParamSpec(
@@ -342,7 +369,7 @@ class ParamTable:
             spec = self.spec(name)
             if spec is None:
                 raise KeyError(f"unknown parameter {name!r}")
-            reason = self.check(spec, v, spec.ptype)
+            reason = self.check(spec, v)
             if reason:
                 raise ValueError(f"{name}: {reason}")
             self.defaults[name] = self._normal(spec, v)
@@ -380,13 +407,14 @@ class ParamTable:
         return float(int(v)) if spec.ptype in _INT_TYPES else _f32(float(v))
 
     @staticmethod
-    def check(spec: ParamSpec, value: Any, ptype: int) -> str:
-        """Why ``value`` (of MAV_PARAM_TYPE ``ptype``) may not be set; "" if it may."""
+    def check(spec: ParamSpec, value: Any) -> str:
+        """Why ``value`` may not be set; "" if it may.
+
+        The value is judged by the parameter's own type, as ArduPilot does (it ignores
+        the type a PARAM_SET names): a whole number in range for an integer parameter.
+        """
         if spec.read_only:
             return "read-only"
-        if ptype != spec.ptype:
-            want = _TYPE_NAMES.get(spec.ptype, str(spec.ptype))
-            return f"wrong type {_TYPE_NAMES.get(ptype, str(ptype))}, the parameter is {want}"
         if isinstance(value, bool) or not isinstance(value, int | float):
             return f"not a number: {value!r}"
         v = float(value)
@@ -408,13 +436,13 @@ class ParamTable:
             return f"{int(v)} is not one of the allowed values"
         return ""
 
-    def set(self, name: str, value: Any, ptype: int) -> SetOutcome:
+    def set(self, name: str, value: Any) -> SetOutcome:
         """Validate and store; on refusal nothing changes and the outcome carries the reason."""
         spec = self.spec(name)
         if spec is None:
             return SetOutcome(False, None, -1, math.nan, "unknown parameter")
         i = self._index[name]
-        reason = self.check(spec, value, ptype)
+        reason = self.check(spec, value)
         if reason:
             return SetOutcome(False, spec, i, self._values[name], reason)
         self._values[name] = self._normal(spec, float(value))

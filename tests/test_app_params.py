@@ -10,11 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.calibration.model import AffineCalibration, Calibration
-from bridge.core.geometry import euler_to_dcm, rotvec_to_dcm
-from bridge.core.mounting import Rotation, rotation_matrix
-from bridge.core.quality import QualityLimits
-from bridge.mavlink.params import (
+from bridge.app.paramspec import (
     CAL_PARAMS,
     INT8,
     INT32,
@@ -24,11 +20,15 @@ from bridge.mavlink.params import (
     calibration_from_values,
     limits_from_values,
     mag_from_values,
-    param_name,
     same_calibration,
     split_rotation,
     view_values,
 )
+from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.core.geometry import euler_to_dcm, rotvec_to_dcm
+from bridge.core.mounting import Rotation, rotation_matrix
+from bridge.core.quality import QualityLimits
+from bridge.mavlink.paramproto import param_name
 
 
 def f32(v: float) -> float:
@@ -51,11 +51,10 @@ def test_names_fit_param_id_and_are_unique() -> None:
 
 def test_set_validates_type_value_range_and_read_only() -> None:
     t = ParamTable()
-    ok = t.set("COMPASS_OFS_X", 123.25, REAL32)
+    ok = t.set("COMPASS_OFS_X", 123.25)
     assert ok.accepted and t.get("COMPASS_OFS_X") == 123.25 and ok.index == t.index("COMPASS_OFS_X")
     before = t.values()
     refusals = [
-        ("COMPASS_OFS_X", 1.0, INT8, "wrong type"),
         ("COMPASS_OFS_X", math.nan, REAL32, "not finite"),
         ("COMPASS_OFS_X", math.inf, REAL32, "not finite"),
         ("COMPASS_OFS_X", 1e9, REAL32, "outside"),
@@ -65,22 +64,22 @@ def test_set_validates_type_value_range_and_read_only() -> None:
         ("COMPASS_DEV_ID", 5, INT32, "read-only"),
         ("AHRS_ORIENTATION", 300, INT8, "does not fit"),
     ]
-    for name, value, ptype, why in refusals:
-        out = t.set(name, value, ptype)
+    for name, value, _ptype, why in refusals:
+        out = t.set(name, value)
         assert not out.accepted and why in out.reason, (name, out)
         assert out.value == before[name]  # the echo carries the unchanged value
     assert t.values() == before
-    unknown = t.set("NO_SUCH_PARAM", 1.0, REAL32)
+    unknown = t.set("NO_SUCH_PARAM", 1.0)
     assert not unknown.accepted and unknown.spec is None
 
 
 def test_values_are_what_the_wire_carries() -> None:
     t = ParamTable()
-    out = t.set("COMPASS_OFS_Y", 0.1, REAL32)
+    out = t.set("COMPASS_OFS_Y", 0.1)
     assert out.value == f32(0.1) != 0.1  # stored as the float32 the echo will carry
     # pi as REAL32 is slightly above pi: still accepted as the range's end
-    assert t.set("COMPASS_DEC", f32(math.pi), REAL32).accepted
-    assert t.set("AHRS_ORIENTATION", 2.0, INT8).value == 2.0
+    assert t.set("COMPASS_DEC", f32(math.pi)).accepted
+    assert t.set("AHRS_ORIENTATION", 2.0).value == 2.0
 
 
 def test_overrides_replace_defaults_and_are_validated() -> None:
@@ -157,8 +156,8 @@ def test_singular_calibration_is_refused() -> None:
 def test_limits_from_values() -> None:
     t = ParamTable()
     assert limits_from_values(t.values()) == QualityLimits()  # defaults are the engine's
-    t.set("BRG_FIELD_TOL", 0.3, REAL32)
-    t.set("BRG_DEGR_PITCH", 80.0, REAL32)
+    t.set("BRG_FIELD_TOL", 0.3)
+    t.set("BRG_DEGR_PITCH", 80.0)
     lim = limits_from_values(t.values(), QualityLimits(raise_after=7))
     assert lim.field_tolerance == pytest.approx(0.3) and lim.degraded_pitch_deg == 80.0
     assert lim.raise_after == 7  # not a parameter: kept from the base

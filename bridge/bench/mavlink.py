@@ -1,4 +1,4 @@
-"""Throughput of the per-frame path with MAVLink: ``python -m bridge.mavlink.bench``.
+"""Throughput of the per-frame path with MAVLink: ``python -m bridge.bench.mavlink``.
 
 Every frame goes the daemon's whole way and then into every MAVLink stream:
 ``$PGMRA`` bytes -> :class:`~bridge.protocol.gmr.GmrDecoder` ->
@@ -30,19 +30,20 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from bridge.app.sample import CompassSample
 from bridge.config import Config, config_from_mapping
 from bridge.core.geometry import random_rotations
-from bridge.daemon import CompassSample, Daemon
-from bridge.link.serial_link import Received
-from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.daemon import Daemon
+from bridge.mavlink import schedule as S  # noqa: N812 - short
+from bridge.mavlink.dialect import mavlink as mavlink_dialect
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-from bridge.mavlink.signing import Signing
-from bridge.mavlink.wire import Framer
+from bridge.mavlink.signing import Signing, sign_outgoing
+from bridge.ports import Received
 from bridge.protocol.gmr import AttitudeFrame, Flags, GmrDecoder, encode
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
 
 TARGET_FPS = 5000.0
-STREAMS = T.SAMPLE_STREAMS
+STREAMS = S.SAMPLE_STREAMS
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,9 +110,11 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
         # Never started: process() is the pipeline's per-frame work. The unit's own calibration,
         # as after a good calibration: the field is the Earth's, so the heading feed goes too.
         daemon = Daemon(cfg, calibration=unit().true_calibration())
-        out = MavlinkOutput(MavlinkSettings(), lambda: daemon)
+        out = MavlinkOutput(MavlinkSettings(), daemon.services)
         signing = Signing(bytes(range(32))) if signed else None
-        framer = Framer(1, 1, signing=signing)
+        framer = mavlink_dialect.MAVLink(None, 1, 1)
+        if signing is not None:
+            sign_outgoing(framer, signing, 0)
         best_cpu = best_wall = math.inf
         packets = nbytes = frames = 0
         for _ in range(repeat):
@@ -124,9 +127,9 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
                     continue
                 frames += 1
                 for msgid in STREAMS:
-                    p = out._encode_sample(msgid, sample)
+                    p = out.encode_sample(msgid, sample)
                     if p is not None:
-                        nbytes += len(framer.frame(p))
+                        nbytes += len(p.pack(framer))
                         packets += 1
             best_cpu = min(best_cpu, time.thread_time() - c0)
             best_wall = min(best_wall, time.perf_counter() - w0)
@@ -142,7 +145,7 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
 
 def main(argv: list[str] | None = None) -> int:
     """Print the figures (or JSON); exit status 1 below the target."""
-    ap = argparse.ArgumentParser(prog="python -m bridge.mavlink.bench", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m bridge.bench.mavlink", description=__doc__)
     ap.add_argument("--frames", type=int, default=20000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--signed", action="store_true", help="sign every packet (MAVLink 2 signing)")

@@ -1,0 +1,231 @@
+"""The application: the running bridge's state and the one owner of each part of it.
+
+:class:`Bridge` builds and holds the attitude engine and its settings' writer,
+the event bus, the calibration store and controller, the parameter store and
+the per-frame pipeline, and gives every adapter the same
+:class:`~bridge.app.services.BridgeServices`. It does no I/O of its own: the
+compass link and the state directory come in as ports
+(:class:`~bridge.ports.DevicePort` -- made by a factory, since the link calls
+the pipeline back -- and :class:`~bridge.ports.DocumentStore`), and
+:mod:`bridge.daemon` wires it to the adapters.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+from bridge.app.params import PARAMETERS, ParamChange, ParamStore
+from bridge.app.paramspec import HEADING_FEEDS, STREAM_RATES
+from bridge.app.pipeline import Pipeline
+from bridge.app.sample import DaemonStatus, HeadingReference, Output
+from bridge.app.services import BridgeServices, MessageTap
+from bridge.app.settings import EngineSettings, SettingsChange
+from bridge.calibration.model import Calibration
+from bridge.calibrator.controller import CalibrationController, CalibratorSettings
+from bridge.calibrator.store import CalibrationStore
+from bridge.config import Config
+from bridge.core.attitude import AttitudeEngine
+from bridge.core.wmm import EarthField, earth_field
+from bridge.events import Event, EventBus, Severity
+from bridge.ports import DevicePort, DocumentStore, LinkState, Received
+
+log = logging.getLogger(__name__)
+
+#: Makes the compass link, given the pipeline's frame and state callbacks.
+DeviceFactory = Callable[
+    [Callable[[Received], None], Callable[[LinkState, LinkState], None]], DevicePort
+]
+
+
+@dataclass(frozen=True, slots=True)
+class BridgeOptions:
+    """What the application takes from the configuration."""
+
+    location: tuple[float, float, float] | None = None  #: latitude, longitude (deg), altitude (m)
+    onboard: bool = False  #: BRG_CAL_ONBOARD's default
+    calibration_timeout_s: float = 180.0
+    heading_reference: HeadingReference = "magnetic"
+    #: Parameter defaults the configuration sets (stream rates, heading feed, ...).
+    param_defaults: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> BridgeOptions:
+        """From a loaded configuration."""
+        m, loc = cfg.mavlink, cfg.location
+        heading: HeadingReference = "true" if _heading_reference(cfg) == "true" else "magnetic"
+        defaults: dict[str, float] = {
+            "BRG_CAL_ONBOARD": 1.0 if cfg.calibration.onboard else 0.0,
+            "BRG_HDG_FEED": float(HEADING_FEEDS.index(m.heading_feed)),
+            "BRG_YAW_SIGMA": m.heading_feed_sigma_deg,
+            "BRG_HDG_REF": 1.0 if heading == "true" else 0.0,
+        }
+        for r in STREAM_RATES:
+            defaults[r.param] = float(getattr(m, r.config_key))
+        return cls(
+            location=(loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None,
+            onboard=cfg.calibration.onboard,
+            calibration_timeout_s=cfg.calibration.timeout_s,
+            heading_reference=heading,
+            param_defaults=defaults,
+        )
+
+
+def _heading_reference(cfg: Config) -> str:
+    """The configured published heading (``[heading] reference``; magnetic by default)."""
+    section = getattr(cfg, "heading", None)
+    return str(getattr(section, "reference", "magnetic"))
+
+
+def location_field(location: tuple[float, float, float] | None) -> EarthField | None:
+    """The World Magnetic Model's field at ``location`` (None without one)."""
+    if location is None:
+        return None
+    lat, lon, alt = location
+    f = earth_field(lat, lon, alt)
+    log.info(
+        "location %.4f, %.4f, %.0f m: declination %+.2f deg, field %.0f nT, dip %+.1f deg (WMM)",
+        lat,
+        lon,
+        alt,
+        f.declination_deg,
+        f.total_G * 1e5,
+        f.inclination_deg,
+    )
+    return f
+
+
+class Bridge:
+    """The running bridge's state (see the module docstring).
+
+    ``calibration`` overrides the stored calibration (tests, replays);
+    ``calibrator_settings`` and ``clock`` tune the calibration controller
+    (tests run it on a simulated clock).
+    """
+
+    def __init__(
+        self,
+        options: BridgeOptions,
+        device: DeviceFactory,
+        *,
+        documents: DocumentStore | None = None,
+        calibration: Calibration | None = None,
+        calibrator_settings: CalibratorSettings | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.options = options
+        self.events = EventBus()
+        self.calibrations = CalibrationStore(documents)
+        stored = self.calibrations.load()
+        if calibration is None:
+            calibration = stored.calibration
+            self.calibration_source = stored.description
+        else:
+            self.calibration_source = "given"
+        self.engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
+        field = location_field(options.location)
+        self.settings = EngineSettings(self.engine, field=field)
+        self.pipeline = Pipeline(
+            self.engine,
+            self.events,
+            feed=lambda frame: self.calibrator.feed(frame),
+            calibrating=lambda: self.calibrator.calibrating,
+        )
+        self.device = device(self.pipeline.on_frame, self.pipeline.on_link_state)
+        self.calibrator = CalibrationController(
+            self.settings,
+            self.events,
+            link=self.device,
+            store=documents,
+            field=field,
+            onboard=options.onboard,
+            settings=calibrator_settings
+            or CalibratorSettings(timeout_s=options.calibration_timeout_s),
+            calibration_source=self.calibration_source,
+            clock=clock,
+        )
+        self.params = ParamStore(
+            self.settings,
+            documents,
+            defaults=options.param_defaults,
+            apply_calibration=self._calibration_from_params,
+            stored_view=stored.view if stored.calibration == calibration else None,
+        )
+        self.mavlink_tap = MessageTap()
+        self.services = BridgeServices(
+            status=self.status,
+            settings=self.settings,
+            params=self.params,
+            calibrator=self.calibrator,
+            calibrations=self.calibrations,
+            events=self.events,
+            device=self.device,
+            mavlink_tap=self.mavlink_tap,
+        )
+        self.settings.subscribe(self._on_settings)
+        self.params.subscribe(self._on_params)
+        self.params.start()
+        self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
+
+    # -- lifecycle -----------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the application's own thread (the calibration worker)."""
+        self.calibrator.start()
+
+    def stop(self, timeout: float) -> None:
+        """Stop it (a device calibration still running is aborted)."""
+        self.calibrator.close(timeout=timeout)
+
+    def set_outputs(self, outputs: Sequence[Output]) -> None:
+        """The outputs every sample goes to, in order."""
+        self.pipeline.set_outputs(outputs)
+
+    @property
+    def outputs(self) -> tuple[Output, ...]:
+        """The outputs every sample goes to."""
+        return self.pipeline.outputs
+
+    # -- status --------------------------------------------------------------------
+
+    def status(self) -> DaemonStatus:
+        """A snapshot of link state and counters."""
+        d = self.device
+        return DaemonStatus(
+            port=d.name,
+            state=d.state,
+            counters=d.counters,
+            samples=self.pipeline.samples,
+            pipeline_errors=self.pipeline.errors,
+            # After an accept the calibrator knows better than the start-up value.
+            calibration_source=self.calibrator.snapshot().calibration_source
+            or self.calibration_source,
+        )
+
+    # -- wiring between the owners -----------------------------------------------------
+
+    def _calibration_from_params(self, cal: Calibration, view: Mapping[str, float]) -> str:
+        out = self.calibrator.apply_calibration(
+            cal, source=PARAMETERS, write_device=False, view=dict(view)
+        )
+        return "" if out.ok else out.message
+
+    def _on_settings(self, change: SettingsChange) -> None:
+        if change.aspect == "reference":
+            # A new position (reload, autopilot): fits are scaled to the field there.
+            self.calibrator.set_field(self.settings.field)
+
+    def _on_params(self, change: ParamChange) -> None:
+        if "BRG_CAL_ONBOARD" in change.names:
+            self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
+        if self.calibrations.documents is not None and self.params.last_error:
+            self.events.emit(
+                Event(
+                    "params.storage_error",
+                    "Parameters NOT saved",
+                    Severity.ERROR,
+                    {"error": self.params.last_error},
+                )
+            )

@@ -1,0 +1,351 @@
+"""The parameter store: the bridge's one table of parameters, its persistence and effects.
+
+Every front end reads and sets parameters here (MAVLink's parameter protocol,
+Zenoh's ``params`` query, the status tools). A value set is validated by the
+parameter's own type and range (:mod:`bridge.app.paramspec`), applied (the
+calibration group becomes a calibration, COMPASS_DEC / COMPASS_AUTODEC the
+declination, AHRS_ORIENTATION the mounting, BRG_*_TOL the quality limits,
+BRG_HDG_REF the published heading), saved, and announced to subscribers --
+or refused with a reason, changing nothing.
+
+Persistence: ``<storage.dir>/params.json`` holds only the values set by a user
+(``{"set": {name: value}}``), so the configuration file's defaults stay in
+charge of everything else. The calibration group is not stored there: it is a
+view of the calibration, which lives in the calibration store (with the
+values as a user set them, so they read back as written).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from bridge.app.paramspec import (
+    CAL_PARAMS,
+    ParamSpec,
+    ParamTable,
+    SetOutcome,
+    calibration_from_values,
+    limits_from_values,
+    mounting_from_values,
+    same_calibration,
+    view_values,
+)
+from bridge.app.settings import EngineSettings, SettingsChange
+from bridge.calibration.model import Calibration
+from bridge.ports import DocumentStore, StorageError
+
+log = logging.getLogger(__name__)
+
+#: Name of the parameter document in the state directory (``<storage.dir>/params.json``).
+PARAMS_DOCUMENT = "params"
+#: ``source`` of a calibration made from the calibration group's parameters.
+PARAMETERS = "parameters"
+
+#: Applies a calibration made from parameters: (calibration, the values as set) -> a
+#: problem text ("" when applied; it is then saved by the calibration store).
+ApplyCalibration = Callable[[Calibration, Mapping[str, float]], str]
+
+
+@dataclass(frozen=True, slots=True)
+class ParamChange:
+    """Parameters whose values changed, and who changed them."""
+
+    names: tuple[str, ...]
+    source: str
+
+
+Listener = Callable[[ParamChange], None]
+
+
+class ParamStore:
+    """The bridge's parameters (thread-safe; see the module docstring).
+
+    ``defaults`` are the configuration's values for parameters it sets;
+    ``apply_calibration`` applies a calibration built from the calibration
+    group (the calibration controller's ``apply_calibration``: engine,
+    calibration store, events); ``stored_view`` the calibration group as last
+    set by a user, when it still describes the calibration in use.
+    """
+
+    def __init__(
+        self,
+        settings: EngineSettings,
+        documents: DocumentStore | None,
+        *,
+        defaults: Mapping[str, float] | None = None,
+        apply_calibration: ApplyCalibration | None = None,
+        stored_view: Mapping[str, float] | None = None,
+    ) -> None:
+        self._settings = settings
+        self._documents = documents
+        self._defaults = dict(defaults or {})
+        self._apply_calibration = apply_calibration
+        self._lock = threading.RLock()
+        self._listeners: list[Listener] = []
+        self._table = ParamTable(overrides=self._defaults)
+        self._user_set: set[str] = set()
+        self._own_calibration: Calibration | None = None  # the last one made from parameters
+        self.saved = documents is not None  #: the stored values match the values in use
+        self.last_error = ""  #: why the last save failed ("" after a good one)
+        self._load(stored_view)
+        settings.subscribe(self._on_settings)
+
+    # -- reading -------------------------------------------------------------------
+
+    @property
+    def specs(self) -> tuple[ParamSpec, ...]:
+        """Every parameter, in index order."""
+        return self._table.specs
+
+    def __len__(self) -> int:
+        return len(self._table)
+
+    def spec(self, name: str) -> ParamSpec | None:
+        """The spec of ``name`` (None if unknown)."""
+        return self._table.spec(name)
+
+    def index(self, name: str) -> int:
+        """The index of ``name`` (``KeyError`` if unknown)."""
+        return self._table.index(name)
+
+    def get(self, name: str) -> float:
+        """The value of ``name`` (``KeyError`` if unknown)."""
+        with self._lock:
+            return self._table.get(name)
+
+    def values(self) -> dict[str, float]:
+        """All values by name (a copy)."""
+        with self._lock:
+            return self._table.values()
+
+    def by_index(self, index: int) -> tuple[ParamSpec, float]:
+        """(spec, value) at ``index`` (``IndexError`` if out of range)."""
+        with self._lock:
+            return self._table.by_index(index)
+
+    def subscribe(self, fn: Listener) -> Callable[[], None]:
+        """Call ``fn(change)`` after values change (in the changing thread); returns the
+        unsubscribe function. ``fn`` must be quick and must not raise."""
+        with self._lock:
+            self._listeners = [*self._listeners, fn]
+
+        def unsubscribe() -> None:
+            with self._lock:
+                self._listeners = [f for f in self._listeners if f is not fn]
+
+        return unsubscribe
+
+    # -- setting -------------------------------------------------------------------
+
+    def set(self, name: str, value: float, source: str = "PARAM_SET") -> SetOutcome:
+        """Validate, apply and save one value; on refusal nothing changes.
+
+        The outcome's ``reason`` says why a value was refused; a value that was
+        applied but could not be saved is accepted (it is in force) and the
+        problem is in :attr:`last_error` (an event tells the operator).
+        """
+        with self._lock:
+            old = self._table.get(name) if self._table.spec(name) is not None else math.nan
+            outcome = self._table.set(name, value)
+            if not outcome.accepted or outcome.value == old:
+                return outcome
+            reason = self._apply(name)
+            if reason:
+                self._table.restore(name, old)
+                assert outcome.spec is not None
+                return SetOutcome(False, outcome.spec, outcome.index, old, reason)
+            if name not in CAL_PARAMS:
+                self._user_set.add(name)
+            self.save()
+        self._notify((name,), source)
+        return outcome
+
+    def reset(self, source: str = "reset") -> None:
+        """Every parameter but the calibration group and the declination back to its default."""
+        with self._lock:
+            changed = []
+            for spec in self._table.specs:
+                if spec.group == "cal" or spec.read_only or spec.name == "COMPASS_DEC":
+                    continue
+                default = self._table.defaults[spec.name]
+                if self._table.get(spec.name) != default:
+                    self._table.restore(spec.name, default)
+                    changed.append(spec.name)
+            self._user_set.clear()
+            self._apply_all(source)
+            self.save()
+        if changed:
+            self._notify(tuple(changed), source)
+
+    def reload(self, source: str = "reload") -> None:
+        """Back to the stored values (what PREFLIGHT_STORAGE "read" means)."""
+        with self._lock:
+            before = self._table.values()
+            self._table = ParamTable(overrides=self._defaults)
+            self._user_set.clear()
+            self._load(None)
+            self._apply_all(source)
+            after = self._table.values()
+        changed = tuple(n for n in after if after[n] != before[n])
+        if changed:
+            self._notify(changed, source)
+
+    def save(self) -> bool:
+        """Write the values set by users now; False (and :attr:`last_error`) if it failed."""
+        with self._lock:
+            if self._documents is None:
+                self.saved, self.last_error = False, "no state directory configured"
+                return False
+            values = self._table.values()
+            payload: dict[str, Any] = {
+                "set": {n: values[n] for n in sorted(self._user_set) if n not in CAL_PARAMS}
+            }
+            try:
+                self._documents.save(PARAMS_DOCUMENT, payload)
+            except StorageError as e:
+                self.saved, self.last_error = False, str(e)
+                log.error("parameters not saved: %s", e)
+                return False
+            self.saved, self.last_error = True, ""
+            return True
+
+    # -- effects -------------------------------------------------------------------
+
+    def _apply(self, name: str) -> str:
+        """The effect of a changed value; a non-empty reason undoes the change."""
+        spec = self._table.spec(name)
+        assert spec is not None
+        values = self._table.values()
+        settings = self._settings
+        group = spec.group
+        if group == "cal":
+            try:
+                cal = calibration_from_values(values, settings.calibration.accel)
+            except ValueError as e:
+                return f"the calibration it gives is unusable ({e})"
+            if self._apply_calibration is None:
+                return "no calibration controller to apply it"
+            view = {n: values[n] for n in CAL_PARAMS}
+            self._own_calibration = cal  # the values stay as the user set them
+            problem = self._apply_calibration(cal, view)
+            if problem:
+                self._own_calibration = None
+                return problem
+        elif group == "dec":
+            self._apply_declination(PARAMETERS)
+        elif group == "mount":
+            settings.set_mounting(mounting_from_values(values), PARAMETERS)
+        elif group == "limits":
+            try:
+                limits = limits_from_values(values, settings.limits)
+            except ValueError as e:
+                return str(e)
+            settings.set_limits(limits, PARAMETERS)
+        elif group == "heading":
+            settings.set_heading_reference(
+                "true" if values["BRG_HDG_REF"] else "magnetic", PARAMETERS
+            )
+        return ""
+
+    def _apply_declination(self, source: str) -> None:
+        """COMPASS_AUTODEC=1: the model's declination (shown in COMPASS_DEC); 0: COMPASS_DEC."""
+        if self._table.get("COMPASS_AUTODEC") != 0:
+            self._settings.set_declination(None, source)
+            self._show_wmm_declination()
+        else:
+            self._settings.set_declination(math.degrees(self._table.get("COMPASS_DEC")), source)
+
+    def _show_wmm_declination(self) -> bool:
+        wmm = self._settings.wmm_declination_deg
+        if wmm is None or self._table.get("COMPASS_AUTODEC") == 0:
+            return False
+        before = self._table.get("COMPASS_DEC")
+        self._table.put("COMPASS_DEC", math.radians(wmm))
+        return self._table.get("COMPASS_DEC") != before
+
+    def _apply_all(self, source: str) -> None:
+        """Bring the engine in line with every parameter (at start, after a reset or reload)."""
+        values = self._table.values()
+        s = self._settings
+        s.set_mounting(mounting_from_values(values), source)
+        s.set_limits(limits_from_values(values, s.limits), source)
+        s.set_heading_reference("true" if values["BRG_HDG_REF"] else "magnetic", source)
+        self._apply_declination(source)
+
+    def _on_settings(self, change: SettingsChange) -> None:
+        """A change made elsewhere (a fit, a position): show it in the parameters."""
+        changed: list[str] = []
+        with self._lock:
+            if change.aspect == "calibration":
+                cal = self._settings.calibration
+                if self._own_calibration is not None and cal is self._own_calibration:
+                    return  # made from our own values: they stay as set
+                self._own_calibration = None
+                before = {n: self._table.get(n) for n in CAL_PARAMS}
+                for n, v in view_values(cal.mag).items():
+                    self._table.put(n, v)
+                changed = [n for n in CAL_PARAMS if self._table.get(n) != before[n]]
+            elif change.aspect == "reference" and self._show_wmm_declination():
+                changed = ["COMPASS_DEC"]
+        if changed:
+            self._notify(tuple(changed), change.source)
+
+    def _notify(self, names: tuple[str, ...], source: str) -> None:
+        change = ParamChange(names, source)
+        for fn in self._listeners:
+            try:
+                fn(change)
+            except Exception:
+                log.exception("parameter listener failed on %s", names)
+
+    # -- loading -------------------------------------------------------------------
+
+    def _load(self, stored_view: Mapping[str, float] | None) -> None:
+        """Restore persisted values (refusing, with a warning, what no longer validates)."""
+        cal = self._settings.calibration
+        for name, v in view_values(cal.mag).items():
+            self._table.put(name, v)
+        if stored_view is not None and set(CAL_PARAMS) <= set(stored_view):
+            try:
+                same = same_calibration(
+                    calibration_from_values(stored_view, cal.accel), cal, tol=1e-5
+                )
+            except ValueError:
+                same = False
+            if same:  # the values as the user set them (the calibration is in its own file)
+                for n in CAL_PARAMS:
+                    self._table.put(n, float(stored_view[n]))
+                self._own_calibration = cal
+        if self._documents is None:
+            return
+        try:
+            loaded = self._documents.load(PARAMS_DOCUMENT)
+        except Exception as e:  # an unreadable state dir must not stop the bridge
+            log.warning("cannot read stored parameters: %s", e)
+            return
+        for p in loaded.problems:
+            log.warning("stored parameters: %s", p)
+        doc = loaded.payload
+        stored = doc.get("set") if isinstance(doc, dict) else None
+        if not isinstance(stored, dict):
+            return
+        for name, v in stored.items():
+            spec = self._table.spec(str(name))
+            if spec is None or spec.group == "cal":
+                log.warning("stored parameter %r unknown, ignored", name)
+                continue
+            out = self._table.set(spec.name, v)
+            if out.accepted:
+                self._user_set.add(spec.name)
+            else:
+                log.warning("stored %s = %r refused (%s)", name, v, out.reason)
+
+    def start(self, source: str = "start") -> None:
+        """Apply every parameter to the engine (once, when the bridge starts)."""
+        with self._lock:
+            self._apply_all(source)

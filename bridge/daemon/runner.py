@@ -1,0 +1,388 @@
+"""The run loop: the daemon under a service manager, with SIGHUP reload.
+
+:class:`Service` is what ``compass-bridge run`` runs in its main thread. Around
+the :class:`~bridge.daemon.wiring.Daemon` it adds:
+
+* **sd_notify** (:mod:`bridge.sdnotify`): ``READY=1`` once the compass streams
+  (or after :data:`READY_TIMEOUT_S`, STATUS saying why not), ``STATUS=`` about
+  once a second (link state, frame rate, heading, calibration state:
+  :class:`bridge.service.StatusText`), ``STOPPING=1`` on SIGTERM/SIGINT,
+  ``RELOADING=1`` ... ``READY=1`` on SIGHUP.
+* **The watchdog**: ``WATCHDOG=1`` only while the serial reader (every return
+  from a port call is a beat: :class:`bridge.link.observed.ObservedTransport`),
+  the pipeline (silent while a frame is stuck in it) and this main loop all make
+  progress; any of them silent for :data:`SILENCE_LIMIT_S` stops the pings and
+  systemd restarts the service after ``WatchdogSec``.
+* **Reload on SIGHUP**: the configuration is read again. Invalid: refused with
+  a log line, the running configuration kept. Valid: only the parts whose
+  settings changed restart (see :func:`plan_reload`):
+
+  ============================  =================================================
+  changed                       what happens
+  ============================  =================================================
+  ``[device]`` / ``[sim]``      the serial port is reopened with the new settings
+                                (a new ``protocol`` restarts the whole bridge)
+  ``[location]``                new WMM declination / expected field, in place
+  ``[mavlink]``, ``[zenoh]``    that output restarts; the others keep running
+  anything else                 the whole bridge restarts in-process
+  ============================  =================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from types import FrameType
+from typing import Any
+
+from bridge.app.bridge import location_field
+from bridge.app.sample import CompassSample, Output
+from bridge.config import Config
+from bridge.daemon.wiring import Daemon, build_outputs, make_transport
+from bridge.link.observed import ObservedTransport
+from bridge.ports import LinkState
+from bridge.sdnotify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
+from bridge.service import StatusText
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+#: A watched part silent this long is taken as hung. Above the link's longest pause between
+#: two port calls (its reopen backoff, at most 2 s) with margin for a loaded board.
+SILENCE_LIMIT_S = 4.0
+#: READY=1 is sent after this long even without a streaming compass (STATUS says why).
+READY_TIMEOUT_S = 10.0
+#: How often the main loop looks at stop/reload requests (and beats).
+MAIN_TICK_S = 0.2
+
+READER = "serial reader"
+PIPELINE = "pipeline"
+MAIN = "main loop"
+
+#: Config section -> name of the output it configures (restarted alone on reload).
+OUTPUT_SECTIONS: Mapping[str, str] = {"mavlink": "mavlink", "zenoh": "zenoh"}
+#: Sections whose change reopens the serial port (the link object keeps running).
+LINK_SECTIONS = ("device", "sim")
+
+MakeOutputs = Callable[[Config, Daemon], list[Output]]
+
+
+# ---------------------------------------------------------------------------
+# Reload planning (pure)
+# ---------------------------------------------------------------------------
+
+
+def changed_sections(old: Config, new: Config) -> list[str]:
+    """Names of the sections whose values differ between ``old`` and ``new``."""
+    return [
+        f.name for f in dataclasses.fields(Config) if getattr(old, f.name) != getattr(new, f.name)
+    ]
+
+
+@dataclass(frozen=True, slots=True)
+class ReloadPlan:
+    """What a reload from one configuration to another has to do."""
+
+    changed: tuple[str, ...]
+    reopen_link: bool = False
+    location: bool = False
+    outputs: tuple[str, ...] = ()  #: output names to restart
+    rebuild: tuple[str, ...] = ()  #: sections that force a restart of the whole bridge
+
+    @property
+    def unchanged(self) -> bool:
+        """Nothing differs."""
+        return not self.changed
+
+
+def plan_reload(old: Config, new: Config) -> ReloadPlan:
+    """Which parts restart when ``old`` becomes ``new`` (see the module docstring)."""
+    changed = changed_sections(old, new)
+    rebuild = [s for s in changed if s not in (*LINK_SECTIONS, "location", *OUTPUT_SECTIONS)]
+    if old.device.protocol != new.device.protocol:
+        # The link's decoder is chosen at construction: a new protocol is a new bridge.
+        rebuild.insert(0, "device")
+    reopen = any(s in changed for s in LINK_SECTIONS)
+    if "location" in changed and new.device.port == "sim":
+        reopen = True  # the simulated unit sits at [location]: it has to be rebuilt too
+    return ReloadPlan(
+        changed=tuple(changed),
+        reopen_link=reopen,
+        location="location" in changed,
+        outputs=tuple(OUTPUT_SECTIONS[s] for s in changed if s in OUTPUT_SECTIONS),
+        rebuild=tuple(rebuild),
+    )
+
+
+# ---------------------------------------------------------------------------
+# The service
+# ---------------------------------------------------------------------------
+
+
+class SampleTap:
+    """An output that only remembers the latest sample (for STATUS)."""
+
+    name = "status"
+
+    def __init__(self) -> None:
+        self.latest: CompassSample | None = None
+
+    def start(self) -> None:
+        """Nothing to start."""
+
+    def publish(self, sample: CompassSample) -> None:
+        """Keep ``sample``."""
+        self.latest = sample
+
+    def close(self, timeout: float) -> None:
+        """Nothing to stop."""
+
+
+class Service:
+    """The daemon plus its service-manager side (see the module docstring).
+
+    ``make_outputs(cfg, daemon)`` builds the outputs for a configuration (called
+    again on reload for outputs whose section changed). ``reload_config()``
+    reads the configuration again (the same file and overrides as at start);
+    None makes SIGHUP a no-op that says so.
+    """
+
+    def __init__(
+        self,
+        cfg: Config,
+        make_outputs: MakeOutputs,
+        *,
+        reload_config: Callable[[], Config] | None = None,
+        env: Mapping[str, str] | None = None,
+        notifier: Notifier | None = None,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        self.env = os.environ if env is None else env
+        self.cfg = cfg
+        self._make_outputs = make_outputs
+        self._reload_config = reload_config
+        self._clock = clock
+        self.liveness = Liveness()
+        self.tap = SampleTap()
+        self.status_text = StatusText()
+        self.reload_requested = threading.Event()
+        self.reloads = 0
+        self.reloads_refused = 0
+        self.notify = ServiceNotifier(
+            notifier if notifier is not None else Notifier.from_env(self.env),
+            self.liveness,
+            status=self.status_line,
+            streaming=self._streaming,
+            watchdog_s=watchdog_interval_s(self.env),
+            ready_timeout_s=READY_TIMEOUT_S,
+            clock=clock,
+        )
+        self.daemon, self.transport = self._build(cfg)
+
+    # -- building ------------------------------------------------------------------
+
+    def _build(self, cfg: Config) -> tuple[Daemon, ObservedTransport]:
+        # Every return from a port call in the reader thread is the reader's beat.
+        def beat() -> None:
+            self.liveness.beat(READER, self._clock())
+
+        transport = ObservedTransport(make_transport(cfg), beat)
+        daemon = Daemon(cfg, (), transport=transport)
+        daemon.set_outputs([*self._make_outputs(cfg, daemon), self.tap])
+        return daemon, transport
+
+    def _watch(self) -> None:
+        now = self._clock()
+        for name in (READER, PIPELINE, MAIN):
+            self.liveness.watch(name, SILENCE_LIMIT_S, now)
+
+    # -- status --------------------------------------------------------------------
+
+    def _streaming(self) -> bool:
+        return self.daemon.link.state is LinkState.STREAMING
+
+    def calibration_state(self) -> str:
+        """Calibration in words: where it came from, running, saved or not."""
+        try:
+            snap = self.daemon.calibrator.snapshot()
+        except Exception:  # the status line must never fail for this
+            return self.daemon.bridge.calibration_source
+        if snap.running:
+            return f"running ({snap.mode}, {snap.completion_pct:.0f}%)"
+        text = snap.calibration_source
+        if not snap.calibration_saved and not text.startswith("none"):
+            text += ", NOT SAVED (storage error)"
+        return text
+
+    def status_line(self) -> str:
+        """The current STATUS text."""
+        d = self.daemon
+        now = self._clock()
+        text = self.status_text.render(d.status(), self.tap.latest, self.calibration_state(), now)
+        silent = self.liveness.silent(now)
+        if silent:
+            # The link state is kept by the reader: when that hangs, the state is stale too.
+            hung = ", ".join(f"{name} silent {s:.0f} s" for name, s in silent)
+            text = f"NOT RESPONDING ({hung}; watchdog pings withheld); {text}"
+        return text
+
+    # -- signals -------------------------------------------------------------------
+
+    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
+        self.reload_requested.set()
+
+    def _install_signals(self) -> dict[int, Any]:
+        if threading.current_thread() is not threading.main_thread():
+            return {}  # embedded in a test thread: the caller drives reloads
+        return {signal.SIGHUP: signal.signal(signal.SIGHUP, self._on_hup)}
+
+    # -- running -------------------------------------------------------------------
+
+    def run(self, stop: threading.Event) -> int:
+        """Run until ``stop`` is set or a replay ends; returns the exit code (0)."""
+        old_handlers = self._install_signals()
+        self._watch()
+        self.daemon.start()
+        self.notify.start()
+        try:
+            while not stop.wait(MAIN_TICK_S):
+                self._beat()
+                if self.reload_requested.is_set():
+                    self.reload_requested.clear()
+                    self.reload()
+                    self._beat()
+                if self.daemon.ended:
+                    log.info("replay finished")
+                    stop.wait(0.5)  # let the pipeline drain the last frames
+                    break
+        finally:
+            self.notify.stopping("stopping")
+            try:
+                self.daemon.stop()
+                log.info("bridge stopped")
+            finally:
+                self.notify.close()
+                for signum, handler in old_handlers.items():
+                    signal.signal(signum, handler)
+        return 0
+
+    def _beat(self) -> None:
+        now = self._clock()
+        self.liveness.beat(MAIN, now)
+        # The pipeline marks its own progress; a wedged pipeline stops moving this.
+        self.liveness.beat(PIPELINE, self.daemon.pipeline_alive_at)
+
+    # -- reload --------------------------------------------------------------------
+
+    def reload(self) -> bool:
+        """Re-read and apply the configuration; False if it was refused (old one kept)."""
+        self.notify.reloading()
+        note = "reload refused"
+        ok = False
+        try:
+            if self._reload_config is None:
+                log.warning("reload: no configuration file to re-read; nothing changed")
+                note = "reload: nothing to re-read"
+                return False
+            try:
+                new = self._reload_config()
+            except Exception as e:  # ConfigError, an unreadable file, ...
+                self.reloads_refused += 1
+                log.error("reload refused, keeping the running configuration: %s", e)
+                note = f"reload refused ({e})"
+                return False
+            try:
+                note = self._apply(new)
+            except Exception as e:
+                self.reloads_refused += 1
+                log.exception("reload refused, keeping the running configuration: %s", e)
+                note = f"reload refused ({e})"
+                return False
+            self.reloads += 1
+            ok = True
+            return True
+        finally:
+            self.notify.reloaded(note)
+            if not ok:
+                log.info("still running with the previous configuration")
+
+    def _apply(self, new: Config) -> str:
+        plan = plan_reload(self.cfg, new)
+        if plan.unchanged:
+            log.info("reload: configuration unchanged")
+            return "reloaded (unchanged)"
+        if plan.rebuild:
+            return self._rebuild(new, plan)
+        d = self.daemon
+        # Prepare everything that can fail first; only then touch the running parts.
+        transport = make_transport(new) if plan.reopen_link else None
+        loc = new.location
+        location = (loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None
+        field = location_field(location) if plan.location else None
+        fresh: list[Output] = self._make_outputs(new, d) if plan.outputs else []
+        keep_new = [o for o in fresh if o.name in plan.outputs]
+        for o in fresh:
+            if o not in keep_new:
+                o.close(0.1)  # built but never started
+        if plan.location:
+            d.settings.set_field(field, "reload")
+        if transport is not None:
+            log.info("reload: reopening the compass port with the new settings")
+            d.link.rate_hz = new.device.rate_hz if new.device.protocol == "gmr" else None
+            d.link.stale_after = new.device.stale_after
+            self.transport.replace(transport)
+        if plan.outputs:
+            self._swap_outputs(plan.outputs, keep_new)
+        d.cfg = new
+        self.cfg = new
+        what = ", ".join(f"[{s}]" for s in plan.changed)
+        log.info("reload: applied %s; other parts kept running", what)
+        return f"reloaded {what}"
+
+    def _swap_outputs(self, names: Sequence[str], fresh: Sequence[Output]) -> None:
+        d = self.daemon
+        old = [o for o in d.outputs if o.name in names]
+        kept = [o for o in d.outputs if o.name not in names]
+        for o in old:
+            o.close(1.0)
+        for o in fresh:
+            o.start()
+        # One reference store: the pipeline reads the list once per sample.
+        d.set_outputs([*kept, *fresh])
+        log.info("reload: restarted output(s) %s", ", ".join(names))
+
+    def _rebuild(self, new: Config, plan: ReloadPlan) -> str:
+        what = ", ".join(f"[{s}]" for s in plan.rebuild)
+        log.warning("reload: %s changed: restarting the whole bridge", what)
+        fresh, transport = self._build(new)  # may raise: the running bridge is untouched then
+        self.daemon.stop()
+        self.daemon, self.transport = fresh, transport
+        now = self._clock()
+        self.liveness.watch(READER, SILENCE_LIMIT_S, now)
+        self.liveness.watch(PIPELINE, SILENCE_LIMIT_S, now)
+        fresh.start()
+        self.cfg = new
+        return f"reloaded (restarted: {what} changed)"
+
+
+def run_daemon(
+    cfg: Config,
+    stop: threading.Event,
+    *,
+    console: bool = False,
+    reload_config: Callable[[], Config] | None = None,
+) -> int:
+    """Run until ``stop`` is set (SIGINT/SIGTERM) or a replay ends; returns the exit code."""
+
+    def make_outputs(c: Config, daemon: Daemon) -> list[Output]:
+        # Called at start and again on reload for an output whose section changed.
+        return build_outputs(c, daemon, console=console)
+
+    return Service(cfg, make_outputs, reload_config=reload_config).run(stop)

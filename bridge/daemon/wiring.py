@@ -1,0 +1,254 @@
+"""The ONE place that wires the parts into the running daemon.
+
+::
+
+    Config --make_transport--> Transport --> CompassLink (serial adapter, reader thread)
+        --> Bridge.pipeline.on_frame, in the reader thread (bridge.app.pipeline)
+        --> CompassSample --> every Output.publish(sample): MAVLink, Zenoh, console
+
+:class:`~bridge.app.bridge.Bridge` (the application layer) owns the state --
+engine settings, parameters, calibration store and controller, the pipeline;
+the adapters (:mod:`bridge.link`, :mod:`bridge.mavlink`, :mod:`bridge.fleet`,
+:mod:`bridge.console`, :mod:`bridge.service`) get its
+:class:`~bridge.app.services.BridgeServices` and never each other.
+:class:`Daemon` builds them in that order and starts and stops them; the
+service-manager side (sd_notify, watchdog, reload) is
+:class:`bridge.service.Service`, which runs a :class:`Daemon`.
+
+Threads: the link's reader thread (which runs the pipeline: one wake per
+frame) and handshake thread, the calibration worker, and the outputs' own.
+:meth:`Daemon.stop` stops them all within a bounded time.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+
+from bridge.app.bridge import Bridge, BridgeOptions
+from bridge.app.params import ParamStore
+from bridge.app.sample import CompassSample, DaemonStatus, Output
+from bridge.app.services import BridgeServices
+from bridge.app.settings import EngineSettings
+from bridge.calibration.model import Calibration
+from bridge.calibrator import CalibrationController, CalibratorSettings
+from bridge.config import Config
+from bridge.console import ConsoleOutput
+from bridge.core.attitude import AttitudeEngine
+from bridge.events import EventBus
+from bridge.link.serial_link import CompassLink
+from bridge.link.transport import Transport, open_transport
+from bridge.ports import LinkState, Received
+from bridge.storage import StateStore
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Daemon", "build_outputs", "make_transport"]
+
+
+def make_transport(cfg: Config) -> Transport:
+    """The transport ``cfg.device`` names; ``"sim"`` is built from ``[sim]`` and ``[location]``."""
+    if cfg.device.port != "sim":
+        return open_transport(cfg.device.port, cfg.device.baud, realtime=cfg.device.replay_realtime)
+    from bridge.sim.pty import MOTIONS  # only the simulated port needs the simulator
+
+    sim = cfg.sim
+    loc = cfg.location
+    return open_transport(
+        "sim",
+        cfg.device.baud,
+        seed=sim.seed,
+        motion=MOTIONS[sim.motion](sim.seed),
+        ideal=sim.ideal,
+        flash_path=sim.flash_file or None,
+        # The simulated unit sits where the configuration says the vehicle is, so
+        # the expected field (WMM) and the simulated one agree.
+        location=(loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None,
+    )
+
+
+class Daemon:
+    """The running bridge: the application, the compass link, the outputs.
+
+    ``transport`` defaults to :func:`make_transport` on ``cfg.device``;
+    ``calibration`` to the stored one. ``outputs`` are outputs built before the
+    daemon (tests' collectors); those that need the bridge's services are
+    built from :attr:`services` and added with :meth:`set_outputs`.
+    ``calibrator_settings`` and ``clock`` tune the calibration controller.
+    """
+
+    def __init__(
+        self,
+        cfg: Config,
+        outputs: Sequence[Output] = (),
+        *,
+        transport: Transport | None = None,
+        calibration: Calibration | None = None,
+        calibrator_settings: CalibratorSettings | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.cfg = cfg
+        if transport is None:
+            transport = make_transport(cfg)
+
+        def make_link(
+            on_frame: Callable[[Received], None],
+            on_state: Callable[[LinkState, LinkState], None],
+        ) -> CompassLink:
+            return CompassLink(
+                transport,
+                protocol=cfg.device.protocol,  # type: ignore[arg-type]  # validated by config
+                rate_hz=cfg.device.rate_hz if cfg.device.protocol == "gmr" else None,
+                stale_after=cfg.device.stale_after,
+                on_state=on_state,
+                # The pipeline runs in the link's reader thread: no queue, no second thread
+                # to wake for every frame (see bridge.app.pipeline).
+                queue_size=0,
+                on_frame=on_frame,
+            )
+
+        self.bridge = Bridge(
+            BridgeOptions.from_config(cfg),
+            make_link,
+            documents=StateStore(cfg.storage.dir),
+            calibration=calibration,
+            calibrator_settings=calibrator_settings,
+            clock=clock,
+        )
+        log.info("calibration: %s (state directory %s)", self.calibration_source, cfg.storage.dir)
+        link = self.bridge.device
+        assert isinstance(link, CompassLink)
+        self.link: CompassLink = link
+        self.bridge.set_outputs(outputs)
+
+    # -- the parts, by name --------------------------------------------------------
+
+    @property
+    def services(self) -> BridgeServices:
+        """What adapters are built with (:class:`~bridge.app.services.BridgeServices`)."""
+        return self.bridge.services
+
+    @property
+    def engine(self) -> AttitudeEngine:
+        """The attitude engine (read it; change it through :attr:`settings`)."""
+        return self.bridge.engine
+
+    @property
+    def settings(self) -> EngineSettings:
+        """The engine settings' one writer."""
+        return self.bridge.settings
+
+    @property
+    def params(self) -> ParamStore:
+        """The parameter store."""
+        return self.bridge.params
+
+    @property
+    def events(self) -> EventBus:
+        """The operator event bus."""
+        return self.bridge.events
+
+    @property
+    def calibrator(self) -> CalibrationController:
+        """The calibration controller."""
+        return self.bridge.calibrator
+
+    @property
+    def calibration_source(self) -> str:
+        """Where the calibration the daemon started with came from."""
+        return self.bridge.calibration_source
+
+    @property
+    def outputs(self) -> tuple[Output, ...]:
+        """The outputs, in publish order."""
+        return self.bridge.outputs
+
+    def set_outputs(self, outputs: Sequence[Output]) -> None:
+        """Replace the outputs (one reference store; the pipeline reads it once per sample)."""
+        self.bridge.set_outputs(outputs)
+
+    @property
+    def samples(self) -> int:
+        """Samples the pipeline has produced."""
+        return self.bridge.pipeline.samples
+
+    @property
+    def pipeline_errors(self) -> int:
+        """Frames or publishes that failed in the pipeline."""
+        return self.bridge.pipeline.errors
+
+    @property
+    def pipeline_alive_at(self) -> float:
+        """Monotonic time up to which the pipeline is known not to be stuck (the watchdog's)."""
+        return self.bridge.pipeline.alive_at
+
+    def process(self, item: Received) -> CompassSample | None:
+        """One received frame to a sample, without publishing it (benchmarks)."""
+        return self.bridge.pipeline.process(item.frame, item.t)
+
+    def status(self) -> DaemonStatus:
+        """A snapshot of link state and counters."""
+        return self.bridge.status()
+
+    @property
+    def ended(self) -> bool:
+        """A replayed recording has been played to its end."""
+        return self.link.ended
+
+    # -- lifecycle ---------------------------------------------------------------
+
+    def start(self) -> Daemon:
+        """Start outputs, the calibrator and the link (whose reader runs the pipeline)."""
+        for out in self.outputs:
+            out.start()
+        self.bridge.start()
+        self.link.start()
+        log.info(
+            "bridge started: %s (%s), calibration %s, outputs %s",
+            self.link.name,
+            self.cfg.device.protocol,
+            self.bridge.calibration_source,
+            ", ".join(o.name for o in self.outputs) or "none",
+        )
+        return self
+
+    def stop(self, timeout: float = 3.0) -> None:
+        """Stop everything within about ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        # Before the link: a device calibration still running is aborted over it.
+        self.bridge.stop(timeout=max(0.1, 0.25 * timeout))
+        # Joins the reader, and so the pipeline: no frame reaches an output after this.
+        self.link.close(timeout=max(0.1, 0.5 * timeout))
+        for out in self.outputs:
+            out.close(max(0.1, deadline - time.monotonic()))
+
+
+def build_outputs(
+    cfg: Config,
+    daemon: Daemon,
+    *,
+    console: bool,
+) -> list[Output]:
+    """The outputs the configuration asks for, built on the daemon's services.
+
+    MAVLink comes first: the pipeline calls ``publish`` in this order, and the
+    autopilot's ATTITUDE is the latency-critical output (Zenoh puts its
+    documents in ``publish`` too).
+    """
+    services = daemon.bridge.services
+    outputs: list[Output] = []
+    if console:
+        outputs.append(ConsoleOutput(daemon.status))
+    if cfg.mavlink.endpoints:
+        from bridge.mavlink import MavlinkOutput, MavlinkSettings
+
+        outputs.append(MavlinkOutput(MavlinkSettings.from_config(cfg), services))
+    if cfg.zenoh.enabled:
+        # Imported here: zenoh (a native runtime) loads only when it is asked for.
+        from bridge.fleet.output import ZenohOutput
+        from bridge.fleet.services import fleet_services
+        from bridge.fleet.session import ZenohSettings
+
+        outputs.append(ZenohOutput(ZenohSettings.from_config(cfg.zenoh), fleet_services(services)))
+    return outputs

@@ -1,0 +1,173 @@
+"""The vocabulary the layers share: what the application asks of the outside world.
+
+The application layer (:mod:`bridge.app`, with the calibration controller in
+:mod:`bridge.calibrator`) talks to the compass and to the state directory
+through the two protocols here, never through the adapters' classes, so the
+dependencies point inwards: :class:`bridge.link.serial_link.CompassLink` is a
+:class:`DevicePort`, :class:`bridge.storage.StateStore` a
+:class:`DocumentStore`, and :mod:`bridge.daemon` hands them in.
+
+The types every layer names live here too: the link's state and counters (in
+every status) and the errors a device command or a save can end with.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple, Protocol
+
+from bridge.protocol.gmr import AckFrame, ParamsFrame, VersionFrame
+
+# ---------------------------------------------------------------------------
+# The compass link
+# ---------------------------------------------------------------------------
+
+
+class LinkState(enum.Enum):
+    """Where the compass link stands: ``absent`` (no port), ``opening`` (port open, no
+    valid frame yet), ``streaming``, ``stale`` (no valid frame for ``stale_after``)."""
+
+    ABSENT = "absent"
+    OPENING = "opening"
+    STREAMING = "streaming"
+    STALE = "stale"
+
+
+@dataclass(frozen=True, slots=True)
+class LinkCounters:
+    """A snapshot of the link's counters (all cumulative since the link was made)."""
+
+    bytes_read: int = 0
+    frames: int = 0  #: valid sentences decoded, of any type
+    attitude_frames: int = 0
+    bad_lines: Mapping[str, int] = field(default_factory=dict)  #: decoder drops by reason
+    lost_frames: int = 0  #: from $PGMRA seq gaps (mod 65536)
+    seq_discontinuities: int = 0  #: seq jumps too large (or backwards) to be loss
+    reconnects: int = 0  #: successful opens after the first
+    open_failures: int = 0
+    stale_events: int = 0
+    device_resets: int = 0  #: unasked $PGMRV, or seq restarting at 0
+    consumer_drops: int = 0  #: oldest frames dropped because the consumer lagged
+    callback_errors: int = 0
+    commands_sent: int = 0  #: attempts written, retries included
+    command_retries: int = 0
+    command_timeouts: int = 0
+    command_rejections: int = 0
+    late_answers: int = 0  #: answers to timed-out attempts, absorbed
+    unsolicited_answers: int = 0  #: acks nobody was waiting for
+
+    @property
+    def bad_lines_total(self) -> int:
+        """All decoder drops."""
+        return sum(self.bad_lines.values())
+
+
+class Received(NamedTuple):
+    """A decoded frame and the monotonic time its last byte was read (the link's output)."""
+
+    frame: Any
+    t: float
+
+
+class CommandError(Exception):
+    """A device command could not be completed."""
+
+
+class CommandTimeout(CommandError):  # noqa: N818 - named by the link interface
+    """No answer after all attempts."""
+
+
+class CommandRejected(CommandError):  # noqa: N818 - named by the link interface
+    """The device answered ``$PGMRK,<command>,ERR,<reason>``."""
+
+    def __init__(self, command: str, reason: str, answer: AckFrame) -> None:
+        super().__init__(f"{command} rejected by the device: {reason}")
+        self.command = command
+        self.reason = reason
+        self.answer = answer
+
+
+class CommandNotSupported(CommandError):  # noqa: N818 - named by the link interface
+    """The link's protocol has no commands (heading-only compasses)."""
+
+
+class LinkDown(CommandError):  # noqa: N818 - named by the link interface
+    """The port is not open, or the link is closed."""
+
+
+class DevicePort(Protocol):
+    """What the application uses of the compass link (device commands and its state)."""
+
+    @property
+    def name(self) -> str:
+        """The port's name."""
+        ...
+
+    @property
+    def protocol(self) -> str:
+        """``"gmr"`` (raw vectors, commands) or a heading-only protocol."""
+        ...
+
+    @property
+    def state(self) -> LinkState:
+        """The link's state now."""
+        ...
+
+    @property
+    def counters(self) -> LinkCounters:
+        """The link's counters now."""
+        ...
+
+    @property
+    def version(self) -> VersionFrame | None:
+        """The last ``$PGMRV`` seen."""
+        ...
+
+    @property
+    def params(self) -> ParamsFrame | None:
+        """The last ``$PGMRP`` seen."""
+        ...
+
+    def command(
+        self, name: str, *args: object, timeout: float | None = None, retries: int = 2
+    ) -> Any:
+        """One command transaction; the answer frame, or a :class:`CommandError`."""
+        ...
+
+
+# ---------------------------------------------------------------------------
+# The state directory
+# ---------------------------------------------------------------------------
+
+
+class StorageError(Exception):
+    """A document could not be saved (the in-memory value stays authoritative)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LoadResult:
+    """What :meth:`DocumentStore.load` found.
+
+    ``source`` is ``"current"``, ``"previous"`` (the current copy was bad and
+    the last good copy was used) or ``"none"`` (nothing valid: use defaults).
+    ``problems`` lists what was wrong with the copies that were rejected.
+    """
+
+    payload: dict[str, Any] | None
+    source: str
+    problems: tuple[str, ...] = ()
+    saved_at: float | None = None
+
+
+class DocumentStore(Protocol):
+    """Named JSON documents that survive a crash (the state directory)."""
+
+    def save(self, name: str, payload: dict[str, Any], version: int = 1) -> None:
+        """Replace document ``name``; :class:`StorageError` when it cannot be written."""
+        ...
+
+    def load(self, name: str) -> LoadResult:
+        """Document ``name`` (its last good copy); never raises for a bad file."""
+        ...
