@@ -7,9 +7,8 @@ finished by the event that reports its outcome (:class:`PendingAcks`).
 
 Command parameters arrive as floats. A NaN in a parameter means "not given"
 (MAVSDK fills unused parameters with NaN for non-ArduPilot autopilots), and
-integer parameters are read the way the autopilot whose command it is reads
-them (:func:`ardupilot_int` for ArduPilot's DO_*_MAG_CAL, :func:`px4_int` for
-PX4's PREFLIGHT_CALIBRATION).
+integer parameters are read as ArduPilot and PX4 read them: truncated
+(:func:`int_param`); yes/no parameters as ArduPilot reads them (:func:`flag_param`).
 """
 
 from __future__ import annotations
@@ -53,11 +52,12 @@ def given(v: float) -> bool:
     return not math.isnan(v)
 
 
-def ardupilot_int(v: float, default: int = 0) -> int | None:
-    """An integer parameter as ArduPilot reads it: C-cast (truncated toward zero).
+def int_param(v: float, default: int = 0) -> int | None:
+    """An integer command parameter as ArduPilot and PX4 read it: C-cast, truncated toward
+    zero (``(uint8_t)packet.param1``, ``(int)cmd.param1``).
 
-    NaN is "not given" (``default``); infinities and values outside 32 bits are
-    refused (None), where C would be undefined.
+    NaN is "not given" (``default``), where C would be undefined; infinities and
+    values outside 32 bits are refused (None).
     """
     if math.isnan(v):
         return default
@@ -66,21 +66,14 @@ def ardupilot_int(v: float, default: int = 0) -> int | None:
     return int(v)
 
 
-def px4_int(v: float, default: int = 0) -> int | None:
-    """An integer parameter as PX4's commander reads it: rounded to the nearest.
-
-    NaN is "not given" (``default``); infinities and values outside 32 bits are refused.
-    """
-    if math.isnan(v):
-        return default
-    if not math.isfinite(v) or abs(v) >= 2**31:
-        return None
-    return int(math.copysign(math.floor(abs(v) + 0.5), v))  # roundf: halves away from zero
+def flag_param(v: float) -> bool:
+    """A yes/no command parameter as ArduPilot reads it (``!is_zero(param)``); NaN is no."""
+    return not math.isnan(v) and v != 0.0
 
 
 def _mask(v: float) -> int | None:
     """A compass mask (ArduPilot's uint8 C-cast), None when it cannot be one."""
-    m = ardupilot_int(v)
+    m = int_param(v)
     return m if m is not None and 0 <= m <= 255 else None
 
 
@@ -206,6 +199,10 @@ class Sender(Protocol):
         """Progress at once."""
         ...
 
+    def report_answered(self) -> None:
+        """Stop repeating MAG_CAL_REPORT."""
+        ...
+
     def heartbeat(self, now: float) -> Message:
         """Our HEARTBEAT."""
         ...
@@ -266,6 +263,15 @@ class CommandDispatcher:
             C.RESULT_NAMES.get(result, "answered") if result is not None else "answered",
         )
 
+    def _for_our_compass(self, mask: int) -> bool:
+        """A compass mask that names ours (0: every compass)."""
+        return mask == 0 or bool(mask & (1 << self.out.compass_id))
+
+    def _device_mask(self, mask: int) -> int:
+        """The calibrator's mask for a MAVLink one: its compass is always compass 0 (our
+        MAVLink compass id differs beside an autopilot); a mask without ours names none."""
+        return 0 if self._for_our_compass(mask) else 0xFE
+
     def _start_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
         mask = _mask(cmd.p(1))
         if mask is None:
@@ -273,9 +279,9 @@ class CommandDispatcher:
         delay = cmd.p(4) if given(cmd.p(4)) and math.isfinite(cmd.p(4)) else 0.0
         self.out.relay.begin("ardupilot")
         result = self.svc.calibrator.start_mag(
-            mask=mask,
-            retry=ardupilot_int(cmd.p(2)) not in (0, None),
-            autosave=ardupilot_int(cmd.p(3)) not in (0, None),
+            mask=self._device_mask(mask),
+            retry=flag_param(cmd.p(2)),
+            autosave=flag_param(cmd.p(3)),
             delay_s=max(0.0, delay),
         )
         if not result.ok:
@@ -288,10 +294,12 @@ class CommandDispatcher:
         mask = _mask(cmd.p(1))
         if mask is None:
             return C.DENIED
+        if self._for_our_compass(mask):
+            self.out.report_answered()
         outcome: list[Outcome] = []
 
         def accept() -> bool:
-            outcome.append(self.svc.calibrator.accept(mask))
+            outcome.append(self.svc.calibrator.accept(self._device_mask(mask)))
             # The device's MAGCAL,END: its answer (RANGE failure included) comes as an event.
             return outcome[0].result is Result.IN_PROGRESS
 
@@ -303,7 +311,9 @@ class CommandDispatcher:
 
     def _cancel_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
         mask = _mask(cmd.p(1))
-        out = self.svc.calibrator.cancel(mask if mask is not None else 0)
+        if mask is None or self._for_our_compass(mask):
+            self.out.report_answered()
+        out = self.svc.calibrator.cancel(self._device_mask(mask) if mask is not None else 0)
         # ArduPilot answers ACCEPTED whatever the state; QGroundControl probes with it.
         return C.ACCEPTED if out.ok else C.result_code(out)
 
@@ -317,7 +327,7 @@ class CommandDispatcher:
         self.out.relay.begin("ardupilot")
         out = self.svc.calibrator.fixed_yaw(
             yaw,
-            mask=mask,
+            mask=self._device_mask(mask),
             latitude_deg=lat if have_position else None,
             longitude_deg=lon if have_position else None,
         )
@@ -327,8 +337,8 @@ class CommandDispatcher:
         return C.result_code(out)
 
     def _preflight_calibration(self, cmd: C.Command, link: Link) -> int | None:
-        # PX4's commander: parameters rounded to the nearest integer; NaN is "not given".
-        p = [px4_int(cmd.p(i)) for i in range(1, 8)]
+        # PX4's commander: (int) of each parameter; NaN is "not given" (MAVSDK sends it).
+        p = [int_param(cmd.p(i)) for i in range(1, 8)]
         if any(v is None for v in p):
             return C.DENIED
         cal = self.svc.calibrator
@@ -357,7 +367,7 @@ class CommandDispatcher:
         return C.result_code(out)
 
     def _preflight_storage(self, cmd: C.Command, link: Link) -> int | None:
-        action = px4_int(cmd.p(1))
+        action = int_param(cmd.p(1))
         svc = self.svc
         params = svc.params
         if action == 0:  # read: back to the stored values
@@ -403,7 +413,7 @@ class CommandDispatcher:
         return C.DENIED
 
     def _set_message_interval(self, cmd: C.Command, link: Link) -> int | None:
-        msgid = ardupilot_int(cmd.p(1), default=-1)
+        msgid = int_param(cmd.p(1), default=-1)
         interval = cmd.p(2)
         if msgid is None or msgid not in S.STREAMABLE or not math.isfinite(interval):
             return C.DENIED
@@ -420,7 +430,7 @@ class CommandDispatcher:
         return C.ACCEPTED
 
     def _get_message_interval(self, cmd: C.Command, link: Link) -> int | None:
-        msgid = ardupilot_int(cmd.p(1), default=-1)
+        msgid = int_param(cmd.p(1), default=-1)
         if msgid is None or not 0 <= msgid <= 0xFFFF:
             return C.DENIED
         interval = 0
@@ -431,7 +441,7 @@ class CommandDispatcher:
         return None
 
     def _request_message(self, cmd: C.Command, link: Link) -> int | None:
-        msgid = ardupilot_int(cmd.p(1), default=-1)
+        msgid = int_param(cmd.p(1), default=-1)
         if msgid is None or msgid < 0:
             return C.DENIED
         packet = self.requested(msgid)
@@ -443,7 +453,7 @@ class CommandDispatcher:
             )
             return C.FAILED if known else C.DENIED
         self.ack(cmd, link, C.ACCEPTED)
-        if ardupilot_int(cmd.p(7)) == 2:
+        if int_param(cmd.p(7)) == 2:
             self.out.broadcast(packet)
         else:
             link.send(packet)

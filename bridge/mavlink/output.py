@@ -54,6 +54,7 @@ from bridge.app.settings import SettingsChange
 from bridge.config import Config
 from bridge.events import Event
 from bridge.mavlink import commands as C  # noqa: N812 - short
+from bridge.mavlink import ftp
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message
@@ -77,7 +78,11 @@ REPORT_PERIOD_S = 1.0  #: MAG_CAL_REPORT repeated while a result waits for accep
 _SIGNED_TYPES = frozenset(
     {"COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "GLOBAL_POSITION_INT", "GPS_RAW_INT"}
 )
-_INBOX_TYPES = _SIGNED_TYPES | {"PARAM_REQUEST_LIST", "PARAM_REQUEST_READ"}
+_INBOX_TYPES = _SIGNED_TYPES | {
+    "PARAM_REQUEST_LIST",
+    "PARAM_REQUEST_READ",
+    "FILE_TRANSFER_PROTOCOL",
+}
 #: The parameter change source of this output's own SETs (their echo is sent by the SET).
 _OWN_SET = "mavlink PARAM_SET"
 
@@ -193,6 +198,7 @@ class MavlinkOutput:
         self._sample_encoders: dict[int, Callable[[CompassSample], Message | None]] = {}
         self._last_progress = -math.inf
         self._last_report = -math.inf
+        self._report: Message | None = None  # the MAG_CAL_REPORT repeated until answered
         self._refusal_logged: dict[str, float] = {}
         self._stream_encoders: dict[int, Callable[[CompassSample], Message | None]] = {
             S.ATTITUDE: lambda s: T.attitude(s, self.time_boot_ms(s.t)),
@@ -515,25 +521,37 @@ class MavlinkOutput:
         snap = self.services.calibrator.snapshot()
         if snap.running and snap.mode in ("mag", "onboard_mag"):
             return [self.progress_message(snap)]
-        if (
-            snap.pending_accept
-            and snap.last_report is not None
-            and now - self._last_report >= REPORT_PERIOD_S
-        ):
+        report = self._report
+        if report is not None and now - self._last_report >= REPORT_PERIOD_S:
             self._last_report = now
-            return [T.mag_cal_report(C.report_from_dict(snap.last_report), self.compass_id)]
+            return [report]
         return []
+
+    def report_answered(self) -> None:
+        """DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL for our compass: stop repeating the report."""
+        self._report = None
 
     # ------------------------------------------------------------------ notifications
 
     def _on_event(self, event: Event) -> None:
-        """EventBus subscriber (any thread): relay, finish IN_PROGRESS commands."""
+        """EventBus subscriber (any thread): relay, finish IN_PROGRESS commands.
+
+        A magnetometer result's MAG_CAL_REPORT is repeated about once a second, as
+        ArduPilot does, until a DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL answers it or
+        another calibration starts: one lost datagram must not leave a ground station
+        waiting (QGroundControl waits for the report and never accepts, MAVProxy accepts
+        on every report). The PX4 flow has no report to wait for.
+        """
+        flow = self.relay.flow
         packets = self.relay.packets(event)
+        if event.kind in ("calibration.started", "calibration.cancelled"):
+            self._report = None
         if packets:
             self.counters.events_relayed += 1
             self.broadcast(packets)
-            if event.kind in ("calibration.done", "calibration.failed"):
-                self._last_report = self.clock()  # the first report just went out
+            report = next((p for p in packets if p.get_msgId() == T.MAG_CAL_REPORT), None)
+            if report is not None and flow != "px4":
+                self._report, self._last_report = report, self.clock()
         self.dispatcher.pending.on_event(event)
 
     def _on_params(self, change: ParamChange) -> None:
@@ -635,6 +653,10 @@ class MavlinkOutput:
                 link.send(answer)
         elif kind == "PARAM_SET":
             self._param_set(msg)
+        elif kind == "FILE_TRANSFER_PROTOCOL":
+            answer = ftp.reply(msg, int(msg.target_network))
+            if answer is not None:
+                link.send(answer)
 
     def _param_set(self, msg: Any) -> None:
         name, reason, echo = self.params.set(msg, source=_OWN_SET)

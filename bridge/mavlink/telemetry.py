@@ -45,6 +45,7 @@ HEADING_FEEDS: tuple[str, ...] = ("off", "px4_odometry", "ardupilot_vision")
 STATUSTEXT_LEN = 50
 _INT16 = 32767
 _UINT16 = 65535
+_UINT32 = 0xFFFFFFFF
 
 # The message ids, by name, for readability below.
 HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT
@@ -158,7 +159,11 @@ def sys_status(h: Health) -> Message:
     """
     mag, acc = M.MAV_SYS_STATUS_SENSOR_3D_MAG, M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
     ok = h.fresh and h.link_state is LinkState.STREAMING and not h.saturated
-    health = (mag if ok and not h.disturbed else 0) | (acc if ok else 0)
+    # Every sensor we do not have counts as healthy, as ArduPilot reports them: ground
+    # stations read a clear health bit as a fault (MAVProxy says "fence breach" when the
+    # GEOFENCE bit is clear, whether or not a fence is present).
+    absent = _UINT32 & ~(mag | acc)
+    health = absent | (mag if ok and not h.disturbed else 0) | (acc if ok else 0)
     total = h.bad_lines + h.good_lines
     drop = round(10000 * h.bad_lines / total) if total else 0
     return message(
