@@ -65,6 +65,7 @@ MAIN_TICK_S = 0.2
 READER = "serial reader"
 PIPELINE = "pipeline"
 MAIN = "main loop"
+WORKERS = "worker threads"  #: beats while no thread of the daemon has died of an exception
 
 #: Config section -> name of the output it configures (restarted alone on reload).
 OUTPUT_SECTIONS: Mapping[str, str] = {"mavlink": "mavlink", "zenoh": "zenoh"}
@@ -173,6 +174,8 @@ class Service:
         self.tap = SampleTap()
         self.status_text = StatusText()
         self.reload_requested = threading.Event()
+        self._dead: dict[str, int] = {}  # thread name -> deaths (see _on_thread_exception)
+        self._dead_lock = threading.Lock()
         self.reloads = 0
         self.reloads_refused = 0
         self.notify = ServiceNotifier(
@@ -200,7 +203,7 @@ class Service:
 
     def _watch(self) -> None:
         now = self._clock()
-        for name in (READER, PIPELINE, MAIN):
+        for name in (READER, PIPELINE, MAIN, WORKERS):
             self.liveness.watch(name, SILENCE_LIMIT_S, now)
 
     # -- status --------------------------------------------------------------------
@@ -230,8 +233,39 @@ class Service:
         if silent:
             # The link state is kept by the reader: when that hangs, the state is stale too.
             hung = ", ".join(f"{name} silent {s:.0f} s" for name, s in silent)
+            dead = self.dead_threads()
+            if dead:
+                hung += f"; thread {', '.join(dead)} died"
             text = f"NOT RESPONDING ({hung}; watchdog pings withheld); {text}"
         return text
+
+    def dead_threads(self) -> list[str]:
+        """Threads of the daemon that ended with an exception (names)."""
+        with self._dead_lock:
+            return sorted(self._dead)
+
+    def _on_thread_exception(self, args: threading.ExceptHookArgs) -> None:
+        """``threading.excepthook`` while the service runs: a worker thread died.
+
+        No thread may die silently: the exception is logged once per thread, counted,
+        and the watchdog's "worker threads" part stops beating, so the service manager
+        restarts a bridge that may no longer answer commands (a MAVLink dispatcher that
+        is gone still lets ATTITUDE flow: only this notices it).
+        """
+        if args.exc_type is SystemExit:
+            return
+        name = args.thread.name if args.thread is not None else "?"
+        with self._dead_lock:
+            first = name not in self._dead
+            self._dead[name] = self._dead.get(name, 0) + 1
+        if first:
+            log.error(
+                "thread %s died: %s: %s; the watchdog stops pinging",
+                name,
+                args.exc_type.__name__,
+                args.exc_value,
+                exc_info=args.exc_value,
+            )
 
     # -- signals -------------------------------------------------------------------
 
@@ -248,6 +282,7 @@ class Service:
     def run(self, stop: threading.Event) -> int:
         """Run until ``stop`` is set or a replay ends; returns the exit code (0)."""
         old_handlers = self._install_signals()
+        old_hook, threading.excepthook = threading.excepthook, self._on_thread_exception
         self._watch()
         self.daemon.start()
         self.notify.start()
@@ -271,11 +306,14 @@ class Service:
                 self.notify.close()
                 for signum, handler in old_handlers.items():
                     signal.signal(signum, handler)
+                threading.excepthook = old_hook
         return 0
 
     def _beat(self) -> None:
         now = self._clock()
         self.liveness.beat(MAIN, now)
+        if not self._dead:
+            self.liveness.beat(WORKERS, now)
         # The pipeline marks its own progress; a wedged pipeline stops moving this.
         self.liveness.beat(PIPELINE, self.daemon.pipeline_alive_at)
 
