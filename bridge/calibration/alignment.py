@@ -51,7 +51,7 @@ from bridge.calibration.ellipsoid import (
 from bridge.calibration.handheld import fit_handheld
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
 from bridge.calibration.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
-from bridge.calibration.sanity import SanityLimits, check_mag_calibration
+from bridge.calibration.sanity import MagCalStatus, SanityLimits, check_mag_calibration
 from bridge.calibration.scalar import failed_result, gravity_spread_mg
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.sensor import GAUSS_TO_MGAUSS
@@ -316,6 +316,14 @@ def fit_ellipsoid_aligned(
     return CalibrationResult(Calibration(mag=mag, accel=acc_cal), report)
 
 
+def motion_failure_reason(heading_error_deg: float, limit_deg: float | None = None) -> str:
+    """Why a hand-held fit is not good enough, in the operator's terms (a STATUSTEXT's worth)."""
+    if not math.isfinite(heading_error_deg):
+        return "gravity not determined: turn slower / steadier"
+    limit = f" > {limit_deg:g}" if limit_deg is not None else ""
+    return f"heading error ~{heading_error_deg:.2f} deg{limit}: turn slower / steadier"
+
+
 def horizontal_field_G(reference: ReferenceField, radius_G: float, dip_deg: float) -> float:
     """Horizontal intensity for turning a heading error into milligauss.
 
@@ -405,8 +413,10 @@ def fit_ellipsoid_aligned_series(
         )
     mag = sym.then_rotate(hh.rotation)
     h_G = horizontal_field_G(reference_field_G, fit.radius_G * ell.report.scale_factor, hh.dip_deg)
-    error_mG = 1000.0 * h_G * math.tan(math.radians(hh.heading_sigma_deg))
-    fitness = math.hypot(fit.fitness_mG, error_mG) if math.isfinite(error_mG) else fit.fitness_mG
+    # The calibration's own predicted error seen as a residual (an unknown one: 89 deg).
+    sigma = hh.heading_sigma_deg if math.isfinite(hh.heading_sigma_deg) else 89.0
+    error_mG = 1000.0 * h_G * math.tan(math.radians(min(89.0, sigma)))
+    fitness = math.hypot(fit.fitness_mG, error_mG)
     sanity = check_mag_calibration(
         mag,
         radius_G=fit.radius_G,
@@ -418,6 +428,9 @@ def fit_ellipsoid_aligned_series(
         limits=limits,
     )
     notes = list(ell.report.notes)
+    if sanity.status is MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH and fitness > fit.fitness_mG:
+        # The magnetometer fits; what is off is the gravity the hand disturbed: say so first.
+        notes.insert(0, motion_failure_reason(hh.heading_sigma_deg))
     notes.extend(r for r in sanity.reasons if r not in notes)
     notes.extend(hh.notes)
     notes.append(

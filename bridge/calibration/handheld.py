@@ -49,7 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.model import AffineCalibration
-from bridge.calibration.scalar import _lower_factor
+from bridge.calibration.scalar import _lower_factor, fit_scalar_accel
 from bridge.calibration.series import (
     MOTION_WINDOW_S,
     frame_period_s,
@@ -382,14 +382,20 @@ def spread(base: Candidate, replicates: Sequence[Candidate], field_dir_ned: Floa
     return Spread(float(np.sqrt(np.mean(var_h))), math.degrees(float(np.sqrt(np.mean(var_u)))))
 
 
-def _tilt_change_deg(a: AffineCalibration, b: AffineCalibration, base: Candidate) -> float:
-    """RMS angle between the gravity directions ``a`` and ``b`` give at the evaluation attitudes."""
-    accel0 = base[0]
+def change(a: Candidate, b: Candidate, base: Candidate, field_dir_ned: FloatArray) -> Spread:
+    """RMS heading and tilt differences between calibrations ``a`` and ``b`` (same attitudes as :func:`spread`)."""
+    accel0, Q0, _ = base
     g_b = _EVAL_R[:, 2, :]
+    m_b = np.einsum("nji,j->ni", _EVAL_R, field_dir_ned)
     x = np.linalg.solve(accel0.matrix_array, g_b.T).T + accel0.offset_array
-    ua, ub = _unit_rows(a.apply(x)), _unit_rows(b.apply(x))
+    m_sym = m_b @ Q0
+    ha, ua = _headings(a[0], a[1], x, m_sym)
+    hb, ub = _headings(b[0], b[1], x, m_sym)
+    dh = (ha - hb + 180.0) % 360.0 - 180.0
     cos = np.clip(np.sum(ua * ub, axis=1), -1.0, 1.0)
-    return math.degrees(float(np.sqrt(np.mean(np.arccos(cos) ** 2))))
+    return Spread(
+        float(np.sqrt(np.mean(dh * dh))), math.degrees(float(np.sqrt(np.mean(np.arccos(cos) ** 2))))
+    )
 
 
 # -- the fit ------------------------------------------------------------------------------
@@ -534,18 +540,26 @@ def fit_handheld(
         tr = _best(feats, spans, period, windows_s, joint, lambda c: c, fdir, blocks)
         fitted = tr is not None
         if tr is not None:
-            identity = AffineCalibration()
-            change = _tilt_change_deg(tr.full[0], identity, tr.full)
-            if not change > SIGNIFICANCE * tr.spread.tilt_deg:
+            nominal = rotation_only(AffineCalibration())
+            diff = None if nominal is None else change(tr.full, nominal.full, tr.full, fdir)
+            if (
+                nominal is not None
+                and diff is not None
+                and not diff.tilt_deg > SIGNIFICANCE * tr.spread.tilt_deg
+            ):
                 notes.append(
-                    f"accelerometer fit ({change:.3f} deg from nominal, +-{tr.spread.tilt_deg:.3f})"
-                    " not significant: nominal kept"
+                    f"accelerometer fit ({diff.tilt_deg:.3f} deg from nominal, "
+                    f"+-{tr.spread.tilt_deg:.3f}) not significant: nominal kept"
                 )
-                alt = rotation_only(identity)
-                if alt is not None:
-                    tr, fitted = alt, False
+                # The nominal transfer may be off by as much as the fit says: count it.
+                err = Spread(
+                    math.hypot(nominal.spread.heading_deg, diff.heading_deg),
+                    math.hypot(nominal.spread.tilt_deg, diff.tilt_deg),
+                )
+                tr = _Trial(nominal.window_s, nominal.n_rows, nominal.full, err)
+                fitted = False
         if tr is None:
-            tr = rotation_only(AffineCalibration())
+            tr = _undetermined_accel(rotation_only(AffineCalibration()), x[ok], fdir)
             fitted = False
             notes.append("accelerometer not determined by these frames: nominal kept")
     if tr is None:
@@ -568,6 +582,27 @@ def fit_handheld(
         motion_g=motion,
         notes=tuple(notes),
     )
+
+
+def _undetermined_accel(nominal: _Trial | None, acc: FloatArray, fdir: FloatArray) -> _Trial | None:
+    """The nominal-accelerometer fit when the frames cannot tell the accelerometer's calibration.
+
+    Its predicted error must count how far off the nominal transfer may be:
+    as far as a plain ``|g| = 1`` fit of the same frames puts it (shake and
+    all); infinitely far when even that fails.
+    """
+    if nominal is None:
+        return None
+    rough = fit_scalar_accel(acc)
+    if not rough.report.ok:
+        return _Trial(nominal.window_s, nominal.n_rows, nominal.full, Spread(math.inf, math.inf))
+    guess: Candidate = (rough.calibration.accel, nominal.full[1], nominal.full[2])
+    d = change(guess, nominal.full, nominal.full, fdir)
+    err = Spread(
+        math.hypot(nominal.spread.heading_deg, d.heading_deg),
+        math.hypot(nominal.spread.tilt_deg, d.tilt_deg),
+    )
+    return _Trial(nominal.window_s, nominal.n_rows, nominal.full, err)
 
 
 def _motion(x: FloatArray, spans: list[tuple[int, int]], period_s: float) -> float:

@@ -201,7 +201,7 @@ class CalibratorSettings:
     fixed_yaw_window_s: float = 1.0  #: fixed yaw: recent frames averaged
     onboard_min_turn_deg: float = 330.0  #: a device turn counts from this much rotation
     onboard_settle_reports: int = 2  #: $PGMRC reports without span growth that end a turn
-    motion_limit_g: float = 0.075  #: linear acceleration (g RMS per axis) the operator is told of
+    motion_limit_g: float = 0.09  #: linear acceleration (g RMS per axis) the operator is told of
     motion_interval_s: float = 5.0  #: at most one "calibration.motion" warning per interval
     max_heading_error_deg: float = 0.25  #: a fit predicting a larger heading error fails
 

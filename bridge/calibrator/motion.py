@@ -34,7 +34,7 @@ SERIES_CAPACITY = 36_000
 #: The operator's warning (one STATUSTEXT: at most 50 characters).
 MOTION_TEXT = "Too much motion: turn slower / steadier"
 MOTION_INSTRUCTION = "turn slower / steadier"
-DEFAULT_MOTION_LIMIT_G = 0.075
+DEFAULT_MOTION_LIMIT_G = 0.09
 
 
 class FrameSeries:

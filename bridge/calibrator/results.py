@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from bridge.calibration.alignment import motion_failure_reason
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
@@ -151,9 +152,9 @@ def judge_accuracy(result: CalibrationResult, max_heading_error_deg: float) -> C
     """
     rep = result.report
     err = rep.heading_error_deg
-    if not (rep.ok and math.isfinite(err) and err > max_heading_error_deg):
+    if not (rep.ok and not math.isnan(err) and err > max_heading_error_deg):
         return result
-    reason = f"heading error ~{err:.2f} deg > {max_heading_error_deg:g}: turn slower / steadier"
+    reason = motion_failure_reason(err, max_heading_error_deg)
     failed = replace(
         rep, status=MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH.name, notes=(reason, *rep.notes)
     )
