@@ -22,7 +22,7 @@ and ``m``. The shake enters only as ``-a . B`` (the acceleration along the
 field, in the world frame: it does not depend on how the unit is turned), so
 the products are averaged over Hann windows (:mod:`bridge.calibration.series`):
 the model stays exact for any turn within a window while the shake averages
-out. The window (none, 1, 2 or 4 s) is the one whose result is most
+out. The window (none, or 1 to 6 s) is the one whose result is most
 certain; the overall scale comes from ``|g| = 1`` (a common scale does not
 tilt anything, so the magnitude's shake terms do no harm there).
 
@@ -66,7 +66,7 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 #: Averaging windows tried, seconds (0: single frames).
-DEFAULT_WINDOWS_S: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0)
+DEFAULT_WINDOWS_S: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
 JACKKNIFE_BLOCKS = 10
 #: Fewest window means a fit is tried on (12 unknowns, and ten jackknife blocks).
 MIN_ROWS = 60
@@ -186,10 +186,11 @@ def _magnitude_moment(mu: FloatArray, S: FloatArray, o: FloatArray) -> FloatArra
 def _linear_joint(rows: FloatArray) -> Candidate | None:
     """Closed-form start: (P, q) from the dot constraint, the scale from ``|g| = 1``."""
     D = np.concatenate([rows[:, :9], -rows[:, 9:12]], axis=1)
-    sv = np.linalg.svd(D, compute_uv=False)
-    if not sv[-1] > 1e-9 * sv[0]:
+    DTD = D.T @ D
+    ev = np.linalg.eigvalsh(DTD)
+    if not ev[0] > 1e-18 * ev[-1]:  # (singular values 1e-9 apart): turned about one axis only
         return None
-    v, *_ = np.linalg.lstsq(D, np.ones(D.shape[0]), rcond=None)
+    v = np.linalg.solve(DTD, D.sum(axis=0))
     P = v[:9].reshape(3, 3)
     if not np.linalg.det(P) > 0.0:
         return None
@@ -225,15 +226,18 @@ def _joint_residuals(
     mu, S = _second_moments(rows)
     P = Q.T @ L
     Gp = G - mbar[:, :, None] * o[None, None, :]  # G - m o^T
-    rd = np.einsum("ij,kij->k", P, Gp) - s
+    # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
+    # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
+    dot = np.einsum("ij,kij->k", P, Gp)
+    rd = dot / s - 1.0
     Jd = np.zeros((n, 13))
-    Jd[:, :3] = -mbar @ P
+    Jd[:, :3] = -mbar @ P / s
     QG = np.einsum("ij,kjl->kil", Q, Gp)
     for c, (a, b) in enumerate(_TRI):
-        Jd[:, 3 + c] = QG[:, a, b]
+        Jd[:, 3 + c] = QG[:, a, b] / s
     K = np.einsum("kij,lj->kil", QG, L)  # Q G' L^T
-    Jd[:, 9:12] = -_vee(K - np.swapaxes(K, 1, 2))
-    Jd[:, 12] = -1.0
+    Jd[:, 9:12] = -_vee(K - np.swapaxes(K, 1, 2)) / s
+    Jd[:, 12] = -dot / (s * s)
     A = L.T @ L
     M = _magnitude_moment(mu, S, o)
     rm = np.einsum("ij,kij->k", A, M) - 1.0
@@ -540,18 +544,18 @@ def fit_handheld(
         tr = _best(feats, spans, period, windows_s, joint, lambda c: c, fdir, blocks)
         fitted = tr is not None
         if tr is not None:
-            nominal = rotation_only(AffineCalibration())
-            diff = None if nominal is None else change(tr.full, nominal.full, tr.full, fdir)
-            if (
-                nominal is not None
-                and diff is not None
-                and not diff.tilt_deg > SIGNIFICANCE * tr.spread.tilt_deg
-            ):
+            nominal_accel: Candidate = (AffineCalibration(), tr.full[1], tr.full[2])
+            tilt = change(tr.full, nominal_accel, tr.full, fdir).tilt_deg
+            nominal = None
+            if not tilt > SIGNIFICANCE * tr.spread.tilt_deg:
+                nominal = rotation_only(AffineCalibration())
+            if nominal is not None:
                 notes.append(
-                    f"accelerometer fit ({diff.tilt_deg:.3f} deg from nominal, "
+                    f"accelerometer fit ({tilt:.3f} deg from nominal, "
                     f"+-{tr.spread.tilt_deg:.3f}) not significant: nominal kept"
                 )
                 # The nominal transfer may be off by as much as the fit says: count it.
+                diff = change(tr.full, nominal.full, tr.full, fdir)
                 err = Spread(
                     math.hypot(nominal.spread.heading_deg, diff.heading_deg),
                     math.hypot(nominal.spread.tilt_deg, diff.tilt_deg),

@@ -279,6 +279,35 @@ class RawImuCollector:
         )
 
 
+class StatusTextChunks:
+    """Joins MAVLink 2 STATUSTEXT chunks (same ``id``, in ``chunk_seq`` order) into whole texts.
+
+    A text of more than 50 characters comes as chunks sharing a non-zero
+    ``id``; the last is shorter than 50 characters. ``id`` 0 is a text on its
+    own. PURE (takes any object with ``text``, ``id``, ``chunk_seq``).
+    """
+
+    def __init__(self) -> None:
+        self._parts: dict[int, dict[int, str]] = {}
+
+    def add(self, msg: Any) -> str | None:
+        """One STATUSTEXT; the whole text once it is complete, else None."""
+        text = str(msg.text)
+        key = int(getattr(msg, "id", 0) or 0)
+        if key == 0:
+            return text
+        parts = self._parts.setdefault(key, {})
+        parts[int(getattr(msg, "chunk_seq", 0) or 0)] = text
+        if len(text) >= STATUSTEXT_CHARS:
+            return None
+        del self._parts[key]
+        return "".join(parts[k] for k in sorted(parts))
+
+
+#: Characters of one STATUSTEXT.
+STATUSTEXT_CHARS = 50
+
+
 def report_mag_calibration(report: dict[str, Any]) -> AffineCalibration:
     """The magnetometer calibration a MAG_CAL_REPORT describes (COMPASS_OFS/DIA/ODI/SCALE).
 
@@ -390,6 +419,7 @@ def run_mavlink(
     M: Any = mavutil.mavlink
     samples = RawImuCollector()
     texts: list[str] = []
+    chunks = StatusTextChunks()
 
     def ours(m: Any) -> bool:
         return bool(m.get_srcSystem() == target_system and m.get_srcComponent() == target_component)
@@ -450,9 +480,11 @@ def run_mavlink(
             if kind == "RAW_IMU":
                 samples.add(m.xmag, m.ymag, m.zmag, m.xacc, m.yacc, m.zacc)
             elif kind == "STATUSTEXT":
-                texts.append(str(m.text))
-                if on_text is not None:
-                    on_text(str(m.text))
+                text = chunks.add(m)
+                if text is not None:
+                    texts.append(text)
+                    if on_text is not None:
+                        on_text(text)
             elif kind == "MAG_CAL_PROGRESS":
                 missing = frozenset(range(N_SECTIONS)) - mask_sections(bytes(m.completion_mask))
                 on_progress(float(m.completion_pct), missing)
@@ -462,6 +494,13 @@ def run_mavlink(
             return LiveOutcome(None, False, f"no MAG_CAL_REPORT within {timeout_s:g} s", samples)
         report["cal_status"] = _mag_cal_status_name(M, int(report.get("cal_status", -1)))
         if report["cal_status"] != "MAG_CAL_SUCCESS":
+            # The bridge sends the reason as a STATUSTEXT right after the report.
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end and not any("fail" in t.lower() for t in texts):
+                m = conn.recv_match(type="STATUSTEXT", blocking=True, timeout=0.2)
+                text = chunks.add(m) if m is not None and ours(m) else None
+                if text is not None:
+                    texts.append(text)
             why = next((t for t in reversed(texts) if "fail" in t.lower()), "")
             return LiveOutcome(
                 report,
@@ -646,6 +685,7 @@ __all__ = [
     "LiveOutcome",
     "RawImuCollector",
     "RecordedVectors",
+    "StatusTextChunks",
     "add_live_figures",
     "cmd_calibrate",
     "coverage_map",
