@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.bench.scoring import HeldScore, score_held, tilted_attitudes
+from bridge.bench.scoring import HeldScore, score_held
+from bridge.calibration.handheld import tilted_attitudes
 from bridge.calibration.model import Calibration
 from bridge.calibrator.collect import MagCollector, sphere_step
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss

@@ -240,3 +240,23 @@ def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
     # and the calibration failed instead of succeeding worse, saying why
     assert "calibration failed: MAG_CAL_FAILED" in cap.out and "slower / steadier" in cap.out
     assert rig.daemon.engine.calibration == before
+
+
+def test_the_tool_keeps_the_bridge_listening_through_a_long_tumble(
+    tmp_path: Path,
+    rigs: Callable[..., Rig],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The bridge's udpin endpoint forgets a peer silent for UDP_PEER_TIMEOUT_S (60 s); a
+    # person's tumble can take longer than that. Shrunk here so that a few seconds of the
+    # fast rig are "long": the tool must say it is there (HEARTBEAT) while it waits.
+    import bridge.mavlink.endpoints as endpoints
+
+    monkeypatch.setattr(endpoints, "UDP_PEER_TIMEOUT_S", 2.0)
+    slow = Tumble(3, rate_dps=30.0, reference_ned=FIELD.ned_G)  # ~5 s of the fast rig
+    rig = rigs(tmp_path, fast=True, motion=slow)
+    code = calibrate_live(rig, "--yes", "--no-progress")
+    cap = capsys.readouterr()
+    assert code == 0, cap.out
+    assert "MAG_CAL_SUCCESS" in cap.out and cap.out.rstrip().endswith("accepted")

@@ -62,9 +62,10 @@ from bridge.bench.handheld import (
     format_handheld,
     run_handheld,
 )
-from bridge.bench.scoring import heading_errors, magnetic_heading_deg, still_means, tilted_attitudes
+from bridge.bench.scoring import heading_errors, magnetic_heading_deg, still_means
 from bridge.calibration.accel_faces import Face, detect_face
 from bridge.calibration.alignment import fit_ellipsoid_aligned
+from bridge.calibration.handheld import tilted_attitudes
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import Calibration
 from bridge.calibration.scalar import field_spread_nT

@@ -33,8 +33,15 @@ from typing import Any
 
 import numpy as np
 
-from bridge.bench.handheld import ESTIMATE_FACTOR, MAX_MARGIN_DEG, RATIO_LIMIT, TARGET_SHAKE_G
-from bridge.bench.scoring import score_held, tilted_attitudes
+from bridge.bench.handheld import TARGET_SHAKE_G
+from bridge.bench.scoring import (
+    bar_targets,
+    estimate_target,
+    ratio_apart,
+    score_held,
+    target,
+)
+from bridge.calibration.handheld import tilted_attitudes
 from bridge.sim.physics import DEFAULT_LOCATION
 
 FLOOR = "floor"
@@ -186,46 +193,16 @@ def check_e2e_targets(result: dict[str, Any]) -> list[dict[str, Any]]:
     """PASS/FAIL of the daemon's calibrations (as :func:`bridge.bench.handheld.check_handheld_targets`)."""
     out: list[dict[str, Any]] = []
     for c in result["conditions"]:
-        shake = c["shake_g"]
+        label = f"e2e {c['shake_g']:g} g"
         held = c.get("held")
-        if held is None:
-            out.append(
-                {
-                    "name": f"e2e {shake:g} g: calibration accepted and saved",
-                    "value": 0.0,
-                    "limit": 1.0,
-                    "pass": shake > TARGET_SHAKE_G,  # failing beyond the target is allowed
-                }
-            )
+        if held is None:  # failing beyond the bar's shake is allowed (and said)
+            ok = c["shake_g"] > TARGET_SHAKE_G
+            out.append(target(f"{label}: calibration accepted and saved", 0.0, 1.0, ok))
             continue
-        floor, bridge = held[FLOOR], held[BRIDGE]
-        if shake <= TARGET_SHAKE_G + 1e-9:
-            out.append(
-                {
-                    "name": f"e2e {shake:g} g: heading RMS <= {RATIO_LIMIT}x floor",
-                    "value": bridge["rms_deg"],
-                    "limit": RATIO_LIMIT * floor["rms_deg"],
-                    "pass": bool(bridge["rms_deg"] <= RATIO_LIMIT * floor["rms_deg"]),
-                }
-            )
-            out.append(
-                {
-                    "name": f"e2e {shake:g} g: heading max <= floor + {MAX_MARGIN_DEG} deg",
-                    "value": bridge["max_deg"],
-                    "limit": floor["max_deg"] + MAX_MARGIN_DEG,
-                    "pass": bool(bridge["max_deg"] <= floor["max_deg"] + MAX_MARGIN_DEG),
-                }
-            )
-        ann, meas = c["announced_deg"], bridge["frame_rms_deg"]
-        ratio = max(ann, meas) / min(ann, meas) if ann > 0 and meas > 0 else math.inf
+        if c["shake_g"] <= TARGET_SHAKE_G + 1e-9:
+            out += bar_targets(label, held[FLOOR], held[BRIDGE])
         out.append(
-            {
-                "name": f"e2e {shake:g} g: announced heading error within {ESTIMATE_FACTOR:g}x "
-                "of the measured (ratio)",
-                "value": ratio,
-                "limit": ESTIMATE_FACTOR,
-                "pass": bool(ratio <= ESTIMATE_FACTOR),
-            }
+            estimate_target(label, ratio_apart(c["announced_deg"], held[BRIDGE]["frame_rms_deg"]))
         )
     return out
 

@@ -30,7 +30,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.bench.scoring import score_held, tilted_attitudes
+from bridge.bench.scoring import (
+    bar_targets,
+    estimate_target,
+    ratio_apart,
+    score_held,
+)
+from bridge.calibration.handheld import tilted_attitudes
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import CalibrationResult
 from bridge.calibrator import CalibratorSettings
@@ -45,10 +51,7 @@ FloatArray = npt.NDArray[np.float64]
 
 FLOOR = "floor"
 METHODS = ("samples", "series")
-RATIO_LIMIT = 1.3
-MAX_MARGIN_DEG = 0.15
-TARGET_SHAKE_G = 0.05  #: the hand-held targets hold up to this shake
-ESTIMATE_FACTOR = 2.0  #: the announced heading error is within this factor of the measured one
+TARGET_SHAKE_G = 0.05  #: the accuracy bar holds up to this shake
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,39 +221,14 @@ def check_handheld_targets(result: dict[str, Any]) -> list[dict[str, Any]]:
     """PASS/FAIL: the live (series) fit at the floor up to 0.05 g; its announced error honest."""
     out: list[dict[str, Any]] = []
     for c in result["conditions"]:
-        shake = c["shake_g"]
-        if shake <= TARGET_SHAKE_G + 1e-9:
-            floor, series = c["pooled"][FLOOR], c["pooled"]["series"]
-            out.append(
-                {
-                    "name": f"hand-held {shake:g} g: heading RMS <= {RATIO_LIMIT}x floor",
-                    "value": series["rms_deg"],
-                    "limit": RATIO_LIMIT * floor["rms_deg"],
-                    "pass": bool(series["rms_deg"] <= RATIO_LIMIT * floor["rms_deg"]),
-                }
-            )
-            out.append(
-                {
-                    "name": f"hand-held {shake:g} g: heading max <= floor + {MAX_MARGIN_DEG} deg",
-                    "value": series["max_deg"],
-                    "limit": floor["max_deg"] + MAX_MARGIN_DEG,
-                    "pass": bool(series["max_deg"] <= floor["max_deg"] + MAX_MARGIN_DEG),
-                }
-            )
+        label = f"hand-held {c['shake_g']:g} g"
+        if c["shake_g"] <= TARGET_SHAKE_G + 1e-9:
+            out += bar_targets(label, c["pooled"][FLOOR], c["pooled"]["series"])
         worst = max(
-            max(u["announced_deg"]["series"], u["held"]["series"]["frame_rms_deg"])
-            / min(u["announced_deg"]["series"], u["held"]["series"]["frame_rms_deg"])
+            ratio_apart(u["announced_deg"]["series"], u["held"]["series"]["frame_rms_deg"])
             for u in c["units"]
         )
-        out.append(
-            {
-                "name": f"hand-held {shake:g} g: announced heading error within "
-                f"{ESTIMATE_FACTOR:g}x of the measured (worst unit, ratio)",
-                "value": worst,
-                "limit": ESTIMATE_FACTOR,
-                "pass": bool(worst <= ESTIMATE_FACTOR),
-            }
-        )
+        out.append(estimate_target(label, worst, "worst unit"))
     return out
 
 

@@ -7,7 +7,8 @@ frame was sampled at. Every calibration scored in one call sees the very same
 frames, so the *floor* -- the unit's true parameters, what noise and
 quantisation alone leave -- is comparable with each method.
 
-* :func:`tilted_attitudes` -- random heading, tilt uniform over a cap;
+* the attitudes: ``bridge.calibration.handheld.tilted_attitudes`` (random heading,
+  tilt uniform over a cap; the hand-held fit predicts its errors over the same);
 * :func:`heading_errors` -- single frames;
 * :func:`score_held` -- the unit held still at each attitude for a number of
   frames: the error of the averaged reading (what a person checks against a
@@ -25,26 +26,11 @@ import numpy.typing as npt
 
 from bridge.calibration.model import Calibration
 from bridge.core.attitude import tilt_compensated_heading
-from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.sim.physics import SensorModel
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
-
-
-def tilted_attitudes(rng: np.random.Generator, n: int, max_tilt_deg: float) -> FloatArray:
-    """Random heading; tilt uniform over the spherical cap ``tilt <= max_tilt_deg``."""
-    yaw = rng.uniform(0.0, 2.0 * math.pi, n)
-    az = rng.uniform(0.0, 2.0 * math.pi, n)
-    cos_t = rng.uniform(math.cos(math.radians(max_tilt_deg)), 1.0, n)
-    tilt = np.arccos(np.clip(cos_t, -1.0, 1.0))
-    out = np.empty((n, 3, 3))
-    for i in range(n):
-        # tilt about a horizontal axis after the heading: body z leaves the vertical by tilt[i]
-        axis = (math.cos(az[i]), math.sin(az[i]), 0.0)
-        out[i] = axis_angle_to_dcm(axis, float(tilt[i])) @ euler_to_dcm(0.0, 0.0, float(yaw[i]))
-    return out
 
 
 def magnetic_heading_deg(R: FloatArray, declination_deg: float) -> FloatArray:
@@ -151,3 +137,44 @@ def score_held(
             n=int(e.size),
         )
     return out
+
+
+#: The accuracy bar: heading RMS within this factor of the floor on the same frames ...
+RATIO_LIMIT = 1.3
+#: ... and the worst heading within this many degrees of the floor's worst.
+MAX_MARGIN_DEG = 0.15
+#: A reported heading error is within this factor of the measured one.
+ESTIMATE_FACTOR = 2.0
+
+
+def target(name: str, value: float, limit: float, passed: bool) -> dict[str, Any]:
+    """One PASS/FAIL line of a benchmark's targets."""
+    return {"name": name, "value": value, "limit": limit, "pass": bool(passed)}
+
+
+def bar_targets(label: str, floor: dict[str, Any], got: dict[str, Any]) -> list[dict[str, Any]]:
+    """Heading RMS within 1.3x and max within +0.15 deg of the floor (held-score dicts)."""
+    rms_limit = RATIO_LIMIT * floor["rms_deg"]
+    max_limit = floor["max_deg"] + MAX_MARGIN_DEG
+    return [
+        target(f"{label}: heading RMS <= {RATIO_LIMIT}x floor", got["rms_deg"], rms_limit,
+               got["rms_deg"] <= rms_limit),
+        target(f"{label}: heading max <= floor + {MAX_MARGIN_DEG} deg", got["max_deg"], max_limit,
+               got["max_deg"] <= max_limit),
+    ]  # fmt: skip
+
+
+def ratio_apart(a: float, b: float) -> float:
+    """How many times apart two positive figures are (>= 1; inf if either is not positive)."""
+    return max(a, b) / min(a, b) if a > 0.0 and b > 0.0 else math.inf
+
+
+def estimate_target(label: str, ratio: float, of: str = "") -> dict[str, Any]:
+    """A reported heading error within 2x of the measured one (``of``: e.g. "worst unit")."""
+    what = f"{of}, ratio" if of else "ratio"
+    return target(
+        f"{label}: announced heading error within {ESTIMATE_FACTOR:g}x of the measured ({what})",
+        ratio,
+        ESTIMATE_FACTOR,
+        ratio <= ESTIMATE_FACTOR,
+    )

@@ -46,13 +46,14 @@ from bridge.calibration.ellipsoid import (
     ReferenceField,
     ellipsoid_result,
     fit_ellipsoid_geometry,
+    no_ellipsoid,
     reference_total_G,
 )
 from bridge.calibration.handheld import fit_handheld
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
 from bridge.calibration.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
 from bridge.calibration.sanity import MagCalStatus, SanityLimits, check_mag_calibration
-from bridge.calibration.scalar import failed_result, gravity_spread_mg
+from bridge.calibration.scalar import gravity_spread_mg
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.sensor import GAUSS_TO_MGAUSS
 from bridge.core.wmm import EarthField
@@ -256,13 +257,7 @@ def fit_ellipsoid_aligned(
         x, saturated=saturated, outlier_k=outlier_k, max_iterations=max_iterations
     )
     if fit is None:
-        n_ok = int(np.count_nonzero(usable_mask(x, saturated)))
-        return failed_result(
-            method,
-            "samples do not define an ellipsoid",
-            n_samples=n_ok,
-            n_rejected=x.shape[0] - n_ok,
-        )
+        return no_ellipsoid(method, x, saturated)
     ell = ellipsoid_result(fit, x, ref, limits=limits, accel=acc_cal, method=method)
     notes = list(ell.report.notes)
     if accel_calibration is None:
@@ -378,13 +373,7 @@ def fit_ellipsoid_aligned_series(
         x, saturated=saturated, outlier_k=outlier_k, max_iterations=max_iterations
     )
     if fit is None:
-        n_ok = int(np.count_nonzero(usable_mask(x, saturated)))
-        return failed_result(
-            method,
-            "samples do not define an ellipsoid",
-            n_samples=n_ok,
-            n_rejected=x.shape[0] - n_ok,
-        )
+        return no_ellipsoid(method, x, saturated)
     ell = ellipsoid_result(fit, x, ref, limits=limits, method=method)
     if ell.report.status == "MAG_CAL_FAILED" and ell.calibration == Calibration():
         return ell  # not even a matrix to align

@@ -84,19 +84,21 @@ SHAKEN_MAGNITUDE_WEIGHT = 0.01
 EVAL_TILT_DEG = 60.0
 
 
-def _cap_attitudes(n: int, max_tilt_deg: float, seed: int = 0x7417) -> FloatArray:
-    rng = np.random.default_rng(seed)
+def tilted_attitudes(rng: np.random.Generator, n: int, max_tilt_deg: float) -> FloatArray:
+    """Random heading; tilt uniform over the spherical cap ``tilt <= max_tilt_deg`` (N, 3, 3)."""
+    yaw = rng.uniform(0.0, 2.0 * math.pi, n)
+    az = rng.uniform(0.0, 2.0 * math.pi, n)
+    cos_t = rng.uniform(math.cos(math.radians(max_tilt_deg)), 1.0, n)
+    tilt = np.arccos(np.clip(cos_t, -1.0, 1.0))
     out = np.empty((n, 3, 3))
-    cos_lo = math.cos(math.radians(max_tilt_deg))
     for i in range(n):
-        yaw, az = rng.uniform(0.0, 2.0 * math.pi, 2)
-        tilt = math.acos(rng.uniform(cos_lo, 1.0))
-        axis = (math.cos(az), math.sin(az), 0.0)
-        out[i] = axis_angle_to_dcm(axis, tilt) @ euler_to_dcm(0.0, 0.0, float(yaw))
+        # tilt about a horizontal axis after the heading: body z leaves the vertical by tilt[i]
+        axis = (math.cos(az[i]), math.sin(az[i]), 0.0)
+        out[i] = axis_angle_to_dcm(axis, float(tilt[i])) @ euler_to_dcm(0.0, 0.0, float(yaw[i]))
     return out
 
 
-_EVAL_R = _cap_attitudes(120, EVAL_TILT_DEG)
+_EVAL_R = tilted_attitudes(np.random.default_rng(0x7417), 120, EVAL_TILT_DEG)
 
 
 @dataclass(frozen=True, slots=True)

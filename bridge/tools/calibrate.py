@@ -400,7 +400,8 @@ def run_mavlink(
 ) -> LiveOutcome:
     """The ArduPilot magcal flow against a bridge at ``url`` (a pymavlink connection string).
 
-    HEARTBEAT from the target first (so a udpin link knows where to send);
+    HEARTBEAT from the target first (so a udpin link knows where to send), and
+    ours every second while the calibration runs (so it does not forget us);
     RAW_IMU raised to ``raw_imu_hz``; ``DO_START_MAG_CAL`` (all compasses, no
     retry, no autosave: the person decides); ``MAG_CAL_PROGRESS`` ->
     ``on_progress(completion_pct, missing sections)``, STATUSTEXT ->
@@ -472,7 +473,13 @@ def run_mavlink(
         end = time.monotonic() + timeout_s
         report: dict[str, Any] | None = None
         kinds = ["MAG_CAL_PROGRESS", "MAG_CAL_REPORT", "RAW_IMU", "STATUSTEXT"]
+        next_beat = time.monotonic() + 1.0
         while report is None and time.monotonic() < end:
+            if time.monotonic() >= next_beat:
+                # A ground station says it is there once a second: a bridge's udpin
+                # endpoint forgets a peer that stays silent (the tumble can take minutes).
+                conn.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                next_beat = time.monotonic() + 1.0
             m = conn.recv_match(type=kinds, blocking=True, timeout=0.2)
             if m is None or not ours(m):
                 continue
