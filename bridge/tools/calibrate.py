@@ -53,8 +53,10 @@ from bridge.calibration.model import (
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.tools.calreport import (
     MOTION_NOTE_S,
+    StatusTextChunks,
     coverage_map,
     coverage_text,
+    frame_times,
     heading_error_estimate_deg,
     horizontal_field_G,
     is_motion_warning,
@@ -82,29 +84,6 @@ class RecordedVectors:
     saturated: npt.NDArray[np.bool_]
     dropped_lines: int
     t_s: FloatArray | None = None
-
-
-def frame_times(seq: npt.ArrayLike, arrival_s: npt.ArrayLike) -> FloatArray:
-    """Even frame times (s) from the device's frame counter, scaled by the arrival times.
-
-    The device samples on a fixed tick and numbers its frames (``seq`` mod
-    65536); lines arrive in bursts, so the counter spaces the frames and the
-    arrival times only give the period. A counter that stands still or jumps
-    back (a reset) leaves a gap of ten periods: the hand-held fit never
-    averages across it. PURE.
-    """
-    q = np.asarray(seq, dtype=np.int64).reshape(-1)
-    a = np.asarray(arrival_s, dtype=np.float64).reshape(-1)
-    if q.size == 0:
-        return np.empty(0)
-    d = np.diff(q) % 65536
-    broken = (d == 0) | (d >= 32768)
-    steps = np.where(broken, 10, d).astype(np.float64)
-    ticks = np.concatenate([[0.0], np.cumsum(steps)])
-    counted = float(np.sum(d[~broken]))
-    span = float(a[-1] - a[0]) if a.size > 1 else 0.0
-    period = span / counted if counted > 0 and span > 0 else 0.1
-    return np.asarray(ticks * period, dtype=np.float64)
 
 
 def read_recording(path: str, progress: Callable[[float], None] | None = None) -> RecordedVectors:
@@ -277,35 +256,6 @@ class RawImuCollector:
             np.zeros(a.shape[0], dtype=bool),
             self.invalid,
         )
-
-
-class StatusTextChunks:
-    """Joins MAVLink 2 STATUSTEXT chunks (same ``id``, in ``chunk_seq`` order) into whole texts.
-
-    A text of more than 50 characters comes as chunks sharing a non-zero
-    ``id``; the last is shorter than 50 characters. ``id`` 0 is a text on its
-    own. PURE (takes any object with ``text``, ``id``, ``chunk_seq``).
-    """
-
-    def __init__(self) -> None:
-        self._parts: dict[int, dict[int, str]] = {}
-
-    def add(self, msg: Any) -> str | None:
-        """One STATUSTEXT; the whole text once it is complete, else None."""
-        text = str(msg.text)
-        key = int(getattr(msg, "id", 0) or 0)
-        if key == 0:
-            return text
-        parts = self._parts.setdefault(key, {})
-        parts[int(getattr(msg, "chunk_seq", 0) or 0)] = text
-        if len(text) >= STATUSTEXT_CHARS:
-            return None
-        del self._parts[key]
-        return "".join(parts[k] for k in sorted(parts))
-
-
-#: Characters of one STATUSTEXT.
-STATUSTEXT_CHARS = 50
 
 
 def report_mag_calibration(report: dict[str, Any]) -> AffineCalibration:

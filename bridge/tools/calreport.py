@@ -5,7 +5,9 @@
 * :func:`heading_error_estimate_deg` -- the fitness seen as a heading error;
 * :func:`report_lines` -- the calibration report for a person;
 * :func:`progress_note` / :func:`is_motion_warning` -- the live bar's note,
-  with the bridge's "slower / steadier" warning while it is fresh.
+  with the bridge's "slower / steadier" warning while it is fresh;
+* :class:`StatusTextChunks` -- a long STATUSTEXT (a failure's reason) put back together;
+* :func:`frame_times` -- a recording's frames evenly in time (the device counter).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.coverage import N_SECTIONS, sections
+
+FloatArray = npt.NDArray[np.float64]
 
 #: Rows x columns of the terminal coverage map (latitude bands x longitude sectors).
 MAP_ROWS, MAP_COLS = 9, 36
@@ -135,3 +139,55 @@ def progress_note(missing: int, warning: str | None = None) -> str:
     """The note after the live bar: sections still missing, and a recent motion warning. PURE."""
     note = f"{missing} section{'' if missing == 1 else 's'} missing"
     return f"{note}  {warning}" if warning else note
+
+
+def frame_times(seq: npt.ArrayLike, arrival_s: npt.ArrayLike) -> FloatArray:
+    """Even frame times (s) from the device's frame counter, scaled by the arrival times.
+
+    The device samples on a fixed tick and numbers its frames (``seq`` mod
+    65536); lines arrive in bursts, so the counter spaces the frames and the
+    arrival times only give the period. A counter that stands still or jumps
+    back (a reset) leaves a gap of ten periods: the hand-held fit never
+    averages across it. PURE.
+    """
+    q = np.asarray(seq, dtype=np.int64).reshape(-1)
+    a = np.asarray(arrival_s, dtype=np.float64).reshape(-1)
+    if q.size == 0:
+        return np.empty(0)
+    d = np.diff(q) % 65536
+    broken = (d == 0) | (d >= 32768)
+    steps = np.where(broken, 10, d).astype(np.float64)
+    ticks = np.concatenate([[0.0], np.cumsum(steps)])
+    counted = float(np.sum(d[~broken]))
+    span = float(a[-1] - a[0]) if a.size > 1 else 0.0
+    period = span / counted if counted > 0 and span > 0 else 0.1
+    return np.asarray(ticks * period, dtype=np.float64)
+
+
+#: Characters of one STATUSTEXT.
+STATUSTEXT_CHARS = 50
+
+
+class StatusTextChunks:
+    """Joins MAVLink 2 STATUSTEXT chunks (same ``id``, in ``chunk_seq`` order) into whole texts.
+
+    A text of more than 50 characters comes as chunks sharing a non-zero
+    ``id``; the last is shorter than 50 characters. ``id`` 0 is a text on its
+    own. PURE (takes any object with ``text``, ``id``, ``chunk_seq``).
+    """
+
+    def __init__(self) -> None:
+        self._parts: dict[int, dict[int, str]] = {}
+
+    def add(self, msg: Any) -> str | None:
+        """One STATUSTEXT; the whole text once it is complete, else None."""
+        text = str(msg.text)
+        key = int(getattr(msg, "id", 0) or 0)
+        if key == 0:
+            return text
+        parts = self._parts.setdefault(key, {})
+        parts[int(getattr(msg, "chunk_seq", 0) or 0)] = text
+        if len(text) >= STATUSTEXT_CHARS:
+            return None
+        del self._parts[key]
+        return "".join(parts[k] for k in sorted(parts))
