@@ -5,7 +5,7 @@ Subcommands::
     compass-bridge run --config FILE [--set SECTION.KEY=VALUE ...] [--console]
     compass-bridge run --simulate                  # built-in simulated compass, live console line
     compass-bridge config [--config FILE] [--set ...]   # validate, print the effective config
-    compass-bridge simulate --link PATH [--seed N] # serve a simulated compass on a pty
+    compass-bridge simulate --link PATH [--seed N] [--shake G]  # serve a simulated compass on a pty
     compass-bridge record --port DEV --out FILE [--duration S]  # raw byte stream, live line
     compass-bridge calibrate --recording FILE [--method NAME] [--plot FILE.png]
                              [--state-dir DIR] [--yes|--no]   # offline fit of a recording
@@ -136,6 +136,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--motion", choices=SIM_MOTIONS, default="turns", help="motion script (default turns)"
     )
     sim.add_argument("--ideal", action="store_true", help="a perfect, noise-free unit")
+    sim.add_argument(
+        "--shake",
+        type=float,
+        default=0.0,
+        metavar="G",
+        help="a hand shaking the unit: linear acceleration, g RMS per axis (default 0)",
+    )
     sim.add_argument("--flash", metavar="FILE", help="keep the unit's flash in FILE across runs")
     sim.add_argument(
         "--location",
@@ -392,6 +399,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         motion=args.motion,
         flash_path=args.flash,
         ideal=args.ideal,
+        shake_g=args.shake,
         unplug_s=args.unplug_s,
         garbage_bytes=args.garbage_bytes,
     )

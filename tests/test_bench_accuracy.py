@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge.bench.accuracy import BenchConfig, main, run
+from bridge.bench.accuracy import BenchConfig, format_report, main, run
 
 SMALL = BenchConfig(
     units=2, seed=5, samples=500, eval_samples=400, spread_stops=60, timing_samples=0
@@ -101,3 +101,45 @@ def test_command_line_prints_targets_and_writes_json(
     with pytest.raises(SystemExit) as exc:  # argparse refuses a zero unit count
         main(["--units", "0"])
     assert exc.value.code == 2
+
+
+def test_hand_held_conditions_put_the_live_fit_beside_the_floor() -> None:
+    cfg = BenchConfig(
+        units=1,
+        seed=4,
+        samples=300,
+        eval_samples=100,
+        spread_stops=20,
+        timing_samples=0,
+        shakes_g=(0.05,),
+        holds=200,
+    )
+    res = run(cfg)
+    (cond,) = res["handheld"]["conditions"]
+    (unit,) = cond["units"]
+    assert unit["complete"] and 40.0 < unit["seconds"] < 150.0  # ArduPilot's two steps
+    pooled = cond["pooled"]
+    floor, series, samples = pooled["floor"], pooled["series"], pooled["samples"]
+    # the live fit is at the floor on the same frames; the kept samples alone are not
+    assert series["rms_deg"] <= 1.3 * floor["rms_deg"]
+    assert samples["rms_deg"] > 3.0 * floor["rms_deg"]
+    assert unit["reports"]["series"]["heading_error_deg"] > 0.0
+    names = [t["name"] for t in res["targets"]]
+    assert "hand-held 0.05 g: heading RMS <= 1.3x floor" in names
+    assert any(n.startswith("hand-held 0.05 g: announced heading error") for n in names)
+    text = format_report(res)
+    assert "hand-held tumble" in text and " series " in text and " samples " in text
+
+
+def test_end_to_end_config_runs_the_simulated_daemon_with_its_shake(tmp_path: Path) -> None:
+    from bridge.bench.e2e import E2eConfig, _config_text
+    from bridge.config import load_config
+
+    text = _config_text(tmp_path / "state", 14600, 0.05, E2eConfig(rate_hz=50.0, seed=4))
+    conf = tmp_path / "b.toml"
+    conf.write_text(text)
+    cfg = load_config(conf, env={}, hostname="h")
+    assert (cfg.device.port, cfg.device.rate_hz) == ("sim", 50)
+    assert (cfg.sim.motion, cfg.sim.shake_g, cfg.sim.seed) == ("tumble", 0.05, 4)
+    assert cfg.mavlink.endpoints == ("udpin:127.0.0.1:14600",)
+    assert not cfg.zenoh.enabled and cfg.location is not None

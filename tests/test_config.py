@@ -168,6 +168,8 @@ def test_override_errors_name_the_key(tmp_path: Path) -> None:
             "",
         ),
         ("[sim]\nseed = -1\n", "sim.seed", "got -1"),
+        ("[sim]\nshake_g = 0.6\n", "sim.shake_g", "must be in [0, 0.5], got 0.6"),
+        ("[sim]\nshake_g = -0.01\n", "sim.shake_g", "got -0.01"),
         # location is all-or-nothing
         ("[location]\nlatitude = 10\n", "location.longitude", "required when [location]"),
         ("[location]\naltitude_m = 10\n", "location.latitude", "required when [location]"),

@@ -33,11 +33,13 @@ from bridge.sim.firmware import Firmware
 from bridge.sim.flash import Flash
 from bridge.sim.motion import (
     AttitudeList,
+    HandShake,
     Motion,
     OnboardCalRotation,
     Sequence,
     Shaken,
     Still,
+    Tumble,
     YawTurns,
 )
 from bridge.sim.physics import SensorModel, UnitErrors
@@ -867,3 +869,40 @@ def test_fail_next_write_hook() -> None:
     flash.write(page)
     flash.power_cycle()  # FLASHERR is RAM state; the in-memory page survives
     assert not flash.flasherr and flash.page.magok
+
+
+def test_a_shaking_hand_reaches_the_accelerometer_frames() -> None:
+    # an ideal, noise-free unit lying level, held by a hand shaking 0.1 g RMS per axis:
+    # its frames carry the gravity vector minus the shake, to the ADC's count
+    hand = HandShake(Still(), 0.1, seed=6)
+    h = Host(firmware(hand), step=0.002)
+    h.command(CommandFrame.rate(50))
+    h.run(10.0)
+    frames = [(t, f) for t, f in h.frames() if t > 1.0]
+    acc = np.array([[f.ax, f.ay, f.az] for _, f in frames], dtype=float)
+    t = np.array([t for t, _ in frames]) - h.fw.motion_epoch  # type: ignore[operator]
+    want = 2458.0 + 491.5 * (np.array([0.0, 0.0, 1.0]) - hand.shake_g(t))
+    # a frame is sampled at its tick, up to one polling step before it is read
+    slew = hand.peak_bound_g * 2.0 * math.pi * 2.5  # g/s, no faster than the top tone
+    assert float(np.abs(acc - want).max()) < 491.5 * slew * h.step + 1.0
+    assert np.std(acc, axis=0) == pytest.approx([491.5 * 0.1] * 3, rel=0.35)
+
+
+def test_the_simulated_port_shakes_as_configured(tmp_path: Path) -> None:
+    from bridge.config import config_from_mapping
+    from bridge.daemon import make_transport
+    from bridge.sim.pty import make_motion
+
+    raw = {"device": {"port": "sim"}, "sim": {"motion": "tumble", "seed": 3, "shake_g": 0.05}}
+    transport = make_transport(config_from_mapping(raw, env={}, hostname="t"))
+    motion = transport.firmware.motion  # type: ignore[attr-defined]
+    assert isinstance(motion, HandShake) and motion.rms_g == 0.05
+    assert isinstance(motion.base, Tumble)
+    np.testing.assert_array_equal(
+        motion.shake_g([1.0, 2.0]),
+        make_motion("tumble", 3, 0.05).shake_g([1.0, 2.0]),  # type: ignore[attr-defined]
+    )
+    steady = make_transport(config_from_mapping({"device": {"port": "sim"}}, env={}, hostname="t"))
+    assert not isinstance(steady.firmware.motion, HandShake)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="motion must be one of"):
+        make_motion("spin", 1)

@@ -12,6 +12,7 @@ from bridge.core.geometry import dcm_to_rotvec, euler_to_dcm
 from bridge.sim.motion import (
     SIX_FACES,
     AttitudeList,
+    HandShake,
     Motion,
     OnboardCalRotation,
     Sequence,
@@ -21,6 +22,7 @@ from bridge.sim.motion import (
     Tumble,
     YawTurns,
     linear_acc_of,
+    with_shake,
 )
 from bridge.sim.physics import default_field_ned_G
 
@@ -271,3 +273,49 @@ def test_tumble_for_another_field_covers_it_too() -> None:
         Tumble(rate_dps=0.0)
     with pytest.raises(ValueError):
         Tumble(reference_ned=[0.0, 0.0, 0.0])
+
+
+# ---------------------------------------------------------------- a hand's shake
+
+
+def test_hand_shake_is_smooth_band_limited_and_seeded() -> None:
+    base = Tumble(2, 45.0)
+    m = HandShake(base, 0.05, seed=4)
+    fs = 50.0
+    t = np.arange(0.0, 600.0, 1.0 / fs)
+    a = m.shake_g(t)
+    # RMS per axis as asked, peaks about 2.4x of it and never beyond the bound
+    np.testing.assert_allclose(np.sqrt(np.mean(a * a, axis=0)), 0.05, rtol=0.03)
+    peak = float(np.abs(a).max())
+    assert 2.0 * 0.05 < peak <= m.peak_bound_g == pytest.approx(0.05 * math.sqrt(6.0))
+    # every axis has its power inside 0.4-2.5 Hz, none at the slow rates of a turn
+    spec = np.abs(np.fft.rfft(a, axis=0)) ** 2
+    f = np.fft.rfftfreq(t.size, 1.0 / fs)
+    inside = spec[(f >= 0.39) & (f <= 2.51)].sum(axis=0)
+    assert np.all(inside > 0.99 * spec.sum(axis=0))
+    # smooth: the step between frames is the derivative's, no jumps
+    assert float(np.abs(np.diff(a, axis=0)).max()) < 2.0 * math.pi * 2.5 * peak / fs
+    # a pure function of t and the seed; the attitude is the base script's
+    assert np.array_equal(HandShake(base, 0.05, seed=4).shake_g(t[:50]), a[:50])
+    assert not np.array_equal(HandShake(base, 0.05, seed=5).shake_g(t[:50]), a[:50])
+    np.testing.assert_array_equal(m.attitude(12.3), base.attitude(12.3))
+    np.testing.assert_allclose(linear_acc_of(m, 7.25), m.shake_g([7.25])[0])
+    assert m.duration == base.duration
+
+
+def test_with_shake_and_bad_shakes() -> None:
+    still = Still()
+    assert with_shake(still, 0.0) is still
+    shaken = with_shake(still, 0.1, seed=3)
+    assert isinstance(shaken, HandShake) and shaken.rms_g == 0.1
+    # a shaken sequence part keeps its shake
+    s = Sequence([AttitudeList([(0.0, 0.0, 0.0)], dwell_s=2.0), shaken])
+    assert np.abs(linear_acc_of(s, 1.0)).max() == 0.0
+    assert np.abs(np.array([linear_acc_of(s, 2.0 + k / 20) for k in range(40)])).max() > 0.05
+    for kw in ({"rms_g": -0.1}, {"rms_g": math.nan}):
+        with pytest.raises(ValueError, match="rms_g"):
+            HandShake(still, **kw)
+    with pytest.raises(ValueError, match="band_hz"):
+        HandShake(still, 0.05, band_hz=(2.5, 0.4))
+    with pytest.raises(ValueError, match="tones"):
+        HandShake(still, 0.05, tones=0)

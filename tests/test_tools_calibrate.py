@@ -16,7 +16,15 @@ from bridge.cli import main
 from bridge.link.record import RecordingWriter
 from bridge.sim.firmware import make_firmware
 from bridge.sim.motion import Motion, Tumble, YawTurns
-from bridge.tools.calibrate import coverage_map, heading_error_estimate_deg
+from bridge.tools.calibrate import (
+    StatusTextChunks,
+    coverage_map,
+    frame_times,
+    heading_error_estimate_deg,
+    is_motion_warning,
+    progress_note,
+    report_lines,
+)
 
 LOCATION = "47.397742,8.545594,488"
 
@@ -120,3 +128,63 @@ def test_heading_error_estimate() -> None:
     # 2 mG RMS residual across a 0.2 G horizontal field: atan(0.01) = 0.573 deg.
     assert heading_error_estimate_deg(2.0, 0.2) == pytest.approx(0.5729, abs=1e-3)
     assert np.isnan(heading_error_estimate_deg(float("nan"), 0.2))
+
+
+def test_recorded_frames_get_even_times_from_the_device_counter() -> None:
+    # lines arrive in bursts (two frames per read); the counter wraps, then the device resets
+    seq = [65533, 65534, 65535, 0, 1, 2, 0, 1]
+    arrival = [0.0, 0.0, 0.2, 0.2, 0.4, 0.4, 0.6, 0.6]
+    t = frame_times(seq, arrival)
+    period = 0.6 / 6  # six counted steps span the arrival times
+    np.testing.assert_allclose(np.diff(t), [period] * 5 + [10 * period, period])
+    assert frame_times([], []).size == 0
+
+
+def test_the_live_note_keeps_the_bridge_motion_warning() -> None:
+    warning = "Too much motion: turn slower / steadier"
+    assert is_motion_warning(warning) and is_motion_warning("[cal] go STEADIER")
+    assert not is_motion_warning("Calibration started: mag")
+    assert progress_note(1) == "1 section missing"
+    assert progress_note(12, warning) == f"12 sections missing  {warning}"
+
+
+def test_chunked_statustext_is_joined() -> None:
+    class Msg:
+        def __init__(self, text: str, id: int = 0, chunk_seq: int = 0) -> None:
+            self.text, self.id, self.chunk_seq = text, id, chunk_seq
+
+    j = StatusTextChunks()
+    assert j.add(Msg("short")) == "short"
+    first = "Calibration failed: gravity not determined: turn s"
+    assert len(first) == 50 and j.add(Msg(first, id=7, chunk_seq=0)) is None
+    assert j.add(Msg("lower / steadier", id=7, chunk_seq=1)) == first + "lower / steadier"
+
+
+def test_report_lines_say_what_the_calibration_itself_leaves() -> None:
+    report = {
+        "cal_status": "MAG_CAL_SUCCESS",
+        "fitness": 0.55,
+        "heading_error_deg": 0.031,
+        "tilt_error_deg": 0.012,
+        "motion_g": 0.043,
+    }
+    lines = report_lines(report, 0.15)
+    assert "heading error ~0.15 deg RMS (estimated from the fitness)" in lines
+    assert any("~0.031 deg from the calibration itself" in ln and "0.043 g" in ln for ln in lines)
+    assert not any("itself" in ln for ln in report_lines({"fitness": 0.5}, 0.14))
+
+
+def test_a_recording_is_fitted_as_a_frame_series(tumble: Path) -> None:
+    from bridge.tools.calibrate import fit_recording, read_recording
+
+    vectors = read_recording(str(tumble))
+    assert vectors.t_s is not None and np.all(np.diff(vectors.t_s) > 0.0)
+    assert np.median(np.diff(vectors.t_s)) == pytest.approx(0.1, rel=0.02)  # 10 Hz frames
+    res, herr = fit_recording(vectors, "best", (47.397742, 8.545594, 488.0))
+    assert res.report.ok
+    # the series fit predicts its own heading error, and the fitness counts it
+    assert 0.0 < res.report.heading_error_deg < 0.25
+    assert res.report.fitness_mG >= res.report.residual_mG
+    assert herr == pytest.approx(
+        heading_error_estimate_deg(res.report.fitness_mG, 0.2152), rel=0.05
+    )

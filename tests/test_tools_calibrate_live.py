@@ -25,7 +25,7 @@ from bridge.calibration.model import AffineCalibration
 from bridge.cli import main
 from bridge.core.sensor import gauss_to_mag_counts
 from bridge.core.wmm import earth_field
-from bridge.sim.motion import Tumble
+from bridge.sim.motion import HandShake, Tumble
 from bridge.tools.calibrate import (
     RawImuCollector,
     RecordedVectors,
@@ -222,3 +222,41 @@ def test_a_report_without_parameters_gives_no_figures_not_a_crash() -> None:
     assert "field_spread_before_nT" not in rep
     with pytest.raises(ValueError, match="without its parameters"):
         report_mag_calibration(rep)
+
+
+def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
+    tmp_path: Path, rigs: Callable[..., Rig], capsys: pytest.CaptureFixture[str]
+) -> None:
+    # a hand far too rough for a calibration: 0.3 g RMS per axis on a 90 deg/s tumble
+    motion = HandShake(Tumble(4, rate_dps=90.0, reference_ned=FIELD.ned_G), 0.3, seed=4)
+    rig = rigs(tmp_path, fast=True, motion=motion, seed=4)
+    before = rig.daemon.engine.calibration
+    code = calibrate_live(rig, "--yes", "--progress")
+    cap = capsys.readouterr()
+    assert code == 1, cap.out
+    # said while it happened: the bridge's STATUSTEXT on the live bar
+    bar = re.compile(r"calibrating \[[#.]+\][^\n\r]*Too much motion: turn slower / steadier")
+    assert bar.search(cap.err), cap.err[-2000:]
+    # and the calibration failed instead of succeeding worse, saying why
+    assert "calibration failed: MAG_CAL_FAILED" in cap.out and "slower / steadier" in cap.out
+    assert rig.daemon.engine.calibration == before
+
+
+def test_the_tool_keeps_the_bridge_listening_through_a_long_tumble(
+    tmp_path: Path,
+    rigs: Callable[..., Rig],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The bridge's udpin endpoint forgets a peer silent for UDP_PEER_TIMEOUT_S (60 s); a
+    # person's tumble can take longer than that. Shrunk here so that a few seconds of the
+    # fast rig are "long": the tool must say it is there (HEARTBEAT) while it waits.
+    import bridge.mavlink.endpoints.base as endpoints
+
+    monkeypatch.setattr(endpoints, "UDP_PEER_TIMEOUT_S", 2.0)
+    slow = Tumble(3, rate_dps=30.0, reference_ned=FIELD.ned_G)  # ~5 s of the fast rig
+    rig = rigs(tmp_path, fast=True, motion=slow)
+    code = calibrate_live(rig, "--yes", "--no-progress")
+    cap = capsys.readouterr()
+    assert code == 0, cap.out
+    assert "MAG_CAL_SUCCESS" in cap.out and cap.out.rstrip().endswith("accepted")

@@ -22,6 +22,13 @@ tumble determines ``R`` (and the dip) completely:
    ``d/d delta [a . exp(delta^) R m] = (R m x a) . delta``) and ``s``;
 3. samples with a residual beyond ``k`` robust sigmas are dropped, then 2 again.
 
+That is :func:`fit_ellipsoid_aligned`, for a bag of samples (unit vectors, so
+a sample taken while the unit accelerates is skipped). A *series* of
+consecutive frames -- what a live calibration records -- goes through
+:func:`fit_ellipsoid_aligned_series` instead: the same ellipsoid, then
+:mod:`bridge.calibration.handheld`, which keeps every frame of a shaken,
+hand-held tumble and averages the shake away.
+
 A level-only turn leaves the rotation about the vertical undetermined; that is
 detected from the normal matrix and reported (``observable=False``, identity).
 """
@@ -39,14 +46,17 @@ from bridge.calibration.ellipsoid import (
     ReferenceField,
     ellipsoid_result,
     fit_ellipsoid_geometry,
+    no_ellipsoid,
     reference_total_G,
 )
+from bridge.calibration.handheld import fit_handheld
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
 from bridge.calibration.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
-from bridge.calibration.sanity import SanityLimits, check_mag_calibration
-from bridge.calibration.scalar import failed_result, gravity_spread_mg
+from bridge.calibration.sanity import MagCalStatus, SanityLimits, check_mag_calibration
+from bridge.calibration.scalar import gravity_spread_mg
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.sensor import GAUSS_TO_MGAUSS
+from bridge.core.wmm import EarthField
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -247,13 +257,7 @@ def fit_ellipsoid_aligned(
         x, saturated=saturated, outlier_k=outlier_k, max_iterations=max_iterations
     )
     if fit is None:
-        n_ok = int(np.count_nonzero(usable_mask(x, saturated)))
-        return failed_result(
-            method,
-            "samples do not define an ellipsoid",
-            n_samples=n_ok,
-            n_rejected=x.shape[0] - n_ok,
-        )
+        return no_ellipsoid(method, x, saturated)
     ell = ellipsoid_result(fit, x, ref, limits=limits, accel=acc_cal, method=method)
     notes = list(ell.report.notes)
     if accel_calibration is None:
@@ -305,3 +309,138 @@ def fit_ellipsoid_aligned(
         notes=tuple(notes),
     )
     return CalibrationResult(Calibration(mag=mag, accel=acc_cal), report)
+
+
+def motion_failure_reason(heading_error_deg: float, limit_deg: float | None = None) -> str:
+    """Why a hand-held fit is not good enough, in the operator's terms (a STATUSTEXT's worth)."""
+    if not math.isfinite(heading_error_deg):
+        return "gravity not determined: turn slower / steadier"
+    limit = f" > {limit_deg:g}" if limit_deg is not None else ""
+    return f"heading error ~{heading_error_deg:.2f} deg{limit}: turn slower / steadier"
+
+
+def horizontal_field_G(reference: ReferenceField, radius_G: float, dip_deg: float) -> float:
+    """Horizontal intensity for turning a heading error into milligauss.
+
+    From the reference when it has a direction (an :class:`EarthField` or an
+    NED vector); else its total (or the fitted radius) with the fitted dip.
+    """
+    if isinstance(reference, EarthField):
+        return float(reference.horizontal_G)
+    if reference is not None:
+        a = np.asarray(reference, dtype=np.float64)
+        if a.shape == (3,):
+            return float(np.hypot(a[0], a[1]))
+    total = reference_total_G(reference) or radius_G
+    return float(total * math.cos(math.radians(dip_deg)))
+
+
+def fit_ellipsoid_aligned_series(
+    mag_G: npt.ArrayLike,
+    acc_g: npt.ArrayLike,
+    t_s: npt.ArrayLike,
+    accel_calibration: AffineCalibration | None = None,
+    reference_field_G: ReferenceField = None,
+    *,
+    saturated: npt.ArrayLike | None = None,
+    outlier_k: float | None = DEFAULT_OUTLIER_K,
+    max_iterations: int = DEFAULT_MAX_ITERATIONS,
+    limits: SanityLimits | None = None,
+) -> CalibrationResult:
+    """The best fit from a frame *series* (a hand-held tumble), with its predicted heading error.
+
+    ``mag_G``/``acc_g`` (N, 3) are the raw vectors of consecutive frames and
+    ``t_s`` (N,) their times in seconds. The ellipsoid is fitted to every
+    usable frame (a shake does not reach the magnetometer); the accelerometer
+    calibration -- unless ``accel_calibration`` is given -- and the
+    magnetometer-to-accelerometer rotation come from
+    :func:`bridge.calibration.handheld.fit_handheld`, which averages the shake
+    away. The report carries ``heading_error_deg`` and a ``fitness_mG`` that
+    includes it (see :class:`CalibrationReport`). Falls back to
+    :func:`fit_ellipsoid_aligned` on the same frames when the series does not
+    determine the hand-held fit (too few frames, or turns about one axis).
+    """
+    x = np.asarray(mag_G, dtype=np.float64)
+    g = np.asarray(acc_g, dtype=np.float64)
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    if x.ndim != 2 or x.shape[1] != 3 or x.shape != g.shape or t.shape != (x.shape[0],):
+        raise ValueError(
+            f"mag_G, acc_g and t_s must be (N, 3), (N, 3), (N,); got {x.shape}, {g.shape}, {t.shape}"
+        )
+    method = "ellipsoid_aligned"
+    ref = reference_total_G(reference_field_G)
+    fit = fit_ellipsoid_geometry(
+        x, saturated=saturated, outlier_k=outlier_k, max_iterations=max_iterations
+    )
+    if fit is None:
+        return no_ellipsoid(method, x, saturated)
+    ell = ellipsoid_result(fit, x, ref, limits=limits, method=method)
+    if ell.report.status == "MAG_CAL_FAILED" and ell.calibration == Calibration():
+        return ell  # not even a matrix to align
+    sym = ell.calibration.mag
+    use = fit.inliers & usable_mask(g)
+    ned = None
+    if isinstance(reference_field_G, EarthField):
+        ned = reference_field_G.ned_G
+    elif reference_field_G is not None and np.asarray(reference_field_G).shape == (3,):
+        ned = np.asarray(reference_field_G, dtype=np.float64)
+    hh = fit_handheld(sym.apply(x), g, t, use, accel=accel_calibration, field_ned_G=ned)
+    if hh is None:
+        res = fit_ellipsoid_aligned(
+            x,
+            g,
+            accel_calibration,
+            reference_field_G,
+            saturated=saturated,
+            outlier_k=outlier_k,
+            max_iterations=max_iterations,
+            limits=limits,
+        )
+        note = "frame series too short or too uniform for the hand-held fit: single samples used"
+        return CalibrationResult(
+            res.calibration, replace(res.report, notes=(*res.report.notes, note))
+        )
+    mag = sym.then_rotate(hh.rotation)
+    h_G = horizontal_field_G(reference_field_G, fit.radius_G * ell.report.scale_factor, hh.dip_deg)
+    # The calibration's own predicted error seen as a residual (an unknown one: 89 deg).
+    sigma = hh.heading_sigma_deg if math.isfinite(hh.heading_sigma_deg) else 89.0
+    error_mG = 1000.0 * h_G * math.tan(math.radians(min(89.0, sigma)))
+    fitness = math.hypot(fit.fitness_mG, error_mG)
+    sanity = check_mag_calibration(
+        mag,
+        radius_G=fit.radius_G,
+        fitness_mG=fitness,
+        scale_factor=ell.report.scale_factor if ref is not None else None,
+        offset_sd_mG=1000.0 * fit.offset_sd_G,
+        matrix_sd=fit.matrix_sd,
+        check_rotation=True,
+        limits=limits,
+    )
+    notes = list(ell.report.notes)
+    if sanity.status is MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH and fitness > fit.fitness_mG:
+        # The magnetometer fits; what is off is the gravity the hand disturbed: say so first.
+        notes.insert(0, motion_failure_reason(hh.heading_sigma_deg))
+    notes.extend(r for r in sanity.reasons if r not in notes)
+    notes.extend(hh.notes)
+    notes.append(
+        f"mag-to-accel rotation {hh.rotation_deg:.2f} deg, dip {hh.dip_deg:.2f} deg, "
+        f"linear acceleration {hh.motion_g:.3f} g RMS"
+    )
+    g_before = gravity_spread_mg(g[use])
+    g_after = gravity_spread_mg(hh.accel.apply(g[use]))
+    report = replace(
+        ell.report,
+        status=sanity.status.name,
+        fitness_mG=fitness,
+        residual_mG=fit.fitness_mG,
+        heading_error_deg=hh.heading_sigma_deg,
+        tilt_error_deg=hh.tilt_sigma_deg,
+        motion_g=hh.motion_g,
+        window_s=hh.window_s,
+        gravity_spread_before_mg=g_before[0],
+        gravity_spread_after_mg=g_after[0],
+        gravity_rms_before_mg=g_before[1],
+        gravity_rms_after_mg=g_after[1],
+        notes=tuple(notes),
+    )
+    return CalibrationResult(Calibration(mag=mag, accel=hh.accel), report)

@@ -346,14 +346,17 @@ def fit_ellipsoid(
         x, saturated=saturated, outlier_k=outlier_k, max_iterations=max_iterations
     )
     if fit is None:
-        n_ok = int(np.count_nonzero(usable_mask(x, saturated)))
-        return failed_result(
-            "ellipsoid",
-            "samples do not define an ellipsoid (too few or planar)",
-            n_samples=n_ok,
-            n_rejected=x.shape[0] - n_ok,
-        )
+        return no_ellipsoid("ellipsoid", x, saturated, "(too few or planar)")
     return ellipsoid_result(fit, x, ref, limits=limits, accel=accel)
+
+
+def no_ellipsoid(
+    method: str, mag_G: FloatArray, saturated: npt.ArrayLike | None, detail: str = ""
+) -> CalibrationResult:
+    """The failed result of samples that define no ellipsoid (counted, identity parameters)."""
+    n_ok = int(np.count_nonzero(usable_mask(mag_G, saturated)))
+    reason = "samples do not define an ellipsoid" + (f" {detail}" if detail else "")
+    return failed_result(method, reason, n_samples=n_ok, n_rejected=mag_G.shape[0] - n_ok)
 
 
 def ellipsoid_result(

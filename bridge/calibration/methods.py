@@ -18,6 +18,13 @@ only as good as the gravity vector): the six-face fit when ``face_means``
 are given, else ``accel_calibration`` (e.g. the stored one), else a scalar
 fit of the tumble's accelerometer samples, else the nominal transfer. The
 result always carries the accelerometer calibration it was computed with.
+
+When the data is a *series* of consecutive frames (``t_s``, what a live
+calibration records), ``ellipsoid_aligned`` fits it as a hand-held tumble
+(:func:`~bridge.calibration.alignment.fit_ellipsoid_aligned_series`): the
+accelerometer (when neither six faces nor a calibration are given) and the
+alignment come from window means that average a person's shake away, and the
+report predicts the heading error the calibration leaves.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.accel_faces import Face, fit_six_face
-from bridge.calibration.alignment import fit_ellipsoid_aligned
+from bridge.calibration.alignment import fit_ellipsoid_aligned, fit_ellipsoid_aligned_series
 from bridge.calibration.ellipsoid import ReferenceField, fit_ellipsoid, reference_total_G
 from bridge.calibration.minmax import fit_minmax
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
@@ -63,7 +70,9 @@ class CalibrationData:
     ``face_means`` the mean raw accelerometer reading on each of the six faces;
     ``reference`` the local field -- an :class:`EarthField`, an NED vector in
     gauss, or just the total in gauss; ``accel_calibration`` a known
-    accelerometer calibration (e.g. the stored one).
+    accelerometer calibration (e.g. the stored one); ``t_s`` (N,) the frame
+    times in seconds when the rows are consecutive frames (a recording, a
+    live calibration) rather than a bag of samples.
     """
 
     mag_G: FloatArray
@@ -73,11 +82,18 @@ class CalibrationData:
     face_means: Mapping[Face, npt.ArrayLike] | None = None
     reference: ReferenceField = None
     accel_calibration: AffineCalibration | None = None
+    t_s: FloatArray | None = None
 
     def __post_init__(self) -> None:
         mag = _frozen(self.mag_G, (3,), "mag_G", None)
         n = mag.shape[0]
         object.__setattr__(self, "mag_G", mag)
+        if self.t_s is not None:
+            t = np.array(self.t_s, dtype=np.float64).reshape(-1)
+            if t.shape != (n,):
+                raise ValueError(f"t_s must have {n} times like mag_G, got {t.shape[0]}")
+            t.flags.writeable = False
+            object.__setattr__(self, "t_s", t)
         if self.acc_g is not None:
             object.__setattr__(self, "acc_g", _frozen(self.acc_g, (3,), "acc_g", n))
         if self.attitudes is not None:
@@ -200,8 +216,32 @@ def _ellipsoid(data: CalibrationData) -> CalibrationResult:
 
 def _ellipsoid_aligned(data: CalibrationData) -> CalibrationResult:
     acc = _need_acc(data, "ellipsoid_aligned")
+    if data.t_s is not None:
+        return _ellipsoid_aligned_series(data, acc)
     accel, source = accel_calibration_for(data)
     res = fit_ellipsoid_aligned(data.mag_G, acc, accel, data.reference, saturated=data.saturated)
+    return CalibrationResult(
+        res.calibration,
+        replace(res.report, notes=(*res.report.notes, f"accelerometer: {source}")),
+    )
+
+
+def _ellipsoid_aligned_series(data: CalibrationData, acc: FloatArray) -> CalibrationResult:
+    assert data.t_s is not None
+    known: AffineCalibration | None = None
+    source = ""
+    if data.face_means is not None:
+        six = fit_six_face(data.face_means)
+        if six.report.ok:
+            known, source = six.calibration.accel, "six-face"
+    if known is None and data.accel_calibration is not None:
+        known, source = data.accel_calibration, "given"
+    res = fit_ellipsoid_aligned_series(
+        data.mag_G, acc, data.t_s, known, data.reference, saturated=data.saturated
+    )
+    if not source:
+        fitted = res.calibration.accel != AffineCalibration()
+        source = "fit of the tumble (hand-held)" if fitted else "nominal"
     return CalibrationResult(
         res.calibration,
         replace(res.report, notes=(*res.report.notes, f"accelerometer: {source}")),

@@ -184,6 +184,16 @@ class CalibrationReport:
     radius) in milligauss. Field spreads are peak-to-peak / 2 of |B| in nT
     (the seed paper's "+-700 nT -> +-100 nT"). ``status`` is a MAG_CAL_STATUS
     name ("MAG_CAL_SUCCESS", "MAG_CAL_BAD_RADIUS", ...).
+
+    Fits of a frame series (a hand-held tumble, :mod:`bridge.calibration.handheld`)
+    also say how good the result is for the heading: ``heading_error_deg`` /
+    ``tilt_error_deg`` the predicted RMS error the calibration itself leaves
+    (any heading, tilt up to 60 deg), ``motion_g`` the linear acceleration seen
+    (RMS per axis), ``window_s`` the averaging window used. Their
+    ``fitness_mG`` then counts that error too -- ``sqrt(residual^2 + (H tan
+    heading_error)^2)`` with ``H`` the horizontal field -- so a fit the shake
+    spoiled cannot show a perfect fitness; ``residual_mG`` keeps the
+    magnetometer's own residual.
     """
 
     method: str
@@ -205,6 +215,11 @@ class CalibrationReport:
     field_rms_after_nT: float = math.nan
     gravity_rms_before_mg: float = math.nan
     gravity_rms_after_mg: float = math.nan
+    residual_mG: float = math.nan
+    heading_error_deg: float = math.nan
+    tilt_error_deg: float = math.nan
+    motion_g: float = math.nan
+    window_s: float = math.nan
 
     @property
     def ok(self) -> bool:

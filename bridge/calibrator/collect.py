@@ -35,6 +35,7 @@ from bridge.calibration.coverage import (
 )
 from bridge.calibration.ellipsoid import fit_sphere
 from bridge.calibration.samples import COMPASS_CAL_NUM_SAMPLES, SampleAcceptor
+from bridge.calibrator.motion import FrameSeries, MotionJudge, MotionWarning
 from bridge.core import sensor
 from bridge.protocol.gmr import CalProgressFrame, ParamsFrame
 
@@ -85,10 +86,24 @@ class MagCollector:
     step one hands the sphere to :meth:`begin_step_two`. The accelerometer
     vector of each kept frame travels with its magnetometer vector (the
     aligned fit needs both).
+
+    Frames offered with their time (``now``) are also kept in order in
+    :attr:`series` -- all of them, not only the kept samples -- and judged by
+    ``judge`` (a :class:`MotionJudge`, if given): :meth:`pop_motion_warning`
+    returns what it found worth telling the operator.
     """
 
-    def __init__(self, capacity: int = COMPASS_CAL_NUM_SAMPLES, seed: int = 0) -> None:
+    def __init__(
+        self,
+        capacity: int = COMPASS_CAL_NUM_SAMPLES,
+        seed: int = 0,
+        *,
+        judge: MotionJudge | None = None,
+    ) -> None:
         self.acceptor = SampleAcceptor(capacity)
+        self.series = FrameSeries()
+        self.judge = judge
+        self._warning: MotionWarning | None = None
         self.capacity = capacity
         self.step = 1
         self._acc: dict[Vec3, Vec3] = {}
@@ -113,10 +128,20 @@ class MagCollector:
     def __len__(self) -> int:
         return len(self.acceptor)
 
-    def offer(self, mag_G: Vec3, acc_g: Vec3, saturated: bool) -> bool:
-        """Offer one frame (raw nominal gauss / g); True when kept. Saturated frames never are."""
+    def offer(self, mag_G: Vec3, acc_g: Vec3, saturated: bool, now: float | None = None) -> bool:
+        """Offer one frame (raw nominal gauss / g); True when kept. Saturated frames never are.
+
+        ``now`` (seconds, any monotonic scale) adds the frame to :attr:`series`
+        and to the motion judge.
+        """
         self.offered += 1
         self.last_mag = mag_G
+        if now is not None:
+            self.series.add(now, mag_G, acc_g, saturated)
+            if self.judge is not None:
+                w = self.judge.feed(now, acc_g, saturated)
+                if w is not None:
+                    self._warning = w
         if not self.acceptor.offer(mag_G, saturated=saturated):
             return False
         self._acc[mag_G] = acc_g
@@ -159,6 +184,11 @@ class MagCollector:
         self.step = 2
         self._update_coverage()
         return removed
+
+    def pop_motion_warning(self) -> MotionWarning | None:
+        """The motion judge's latest warning, once (None: nothing to say)."""
+        w, self._warning = self._warning, None
+        return w
 
     def data(self) -> tuple[FloatArray, FloatArray]:
         """The kept (N, 3) magnetometer samples and the (N, 3) accelerometer ones of the same frames."""

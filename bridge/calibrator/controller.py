@@ -67,6 +67,7 @@ from bridge.calibrator.collect import (
     counts_to_nominal,
     sphere_step,
 )
+from bridge.calibrator.motion import MotionJudge
 from bridge.calibrator.results import (
     CAL_MASK,
     COMPASS_ID,
@@ -74,6 +75,7 @@ from bridge.calibrator.results import (
     device_calibration_view,
     device_params_for,
     fixed_yaw_calibration,
+    judge_accuracy,
     mag_report,
     orientation_confidence,
 )
@@ -114,6 +116,7 @@ EVENT_KINDS: tuple[str, ...] = (
     "calibration.storage_error",
     "calibration.device_updated",
     "calibration.device_error",
+    "calibration.motion",
 )
 STATUSTEXT_MAX = 50  #: MAVLink STATUSTEXT carries 50 characters
 
@@ -198,6 +201,9 @@ class CalibratorSettings:
     fixed_yaw_window_s: float = 1.0  #: fixed yaw: recent frames averaged
     onboard_min_turn_deg: float = 330.0  #: a device turn counts from this much rotation
     onboard_settle_reports: int = 2  #: $PGMRC reports without span growth that end a turn
+    motion_limit_g: float = 0.09  #: linear acceleration (g RMS per axis) the operator is told of
+    motion_interval_s: float = 5.0  #: at most one "calibration.motion" warning per interval
+    max_heading_error_deg: float = 0.25  #: a fit predicting a larger heading error fails
 
     def __post_init__(self) -> None:
         if self.capacity < 20:
@@ -213,6 +219,9 @@ class CalibratorSettings:
             "level_collect_s",
             "fixed_yaw_window_s",
             "onboard_min_turn_deg",
+            "motion_limit_g",
+            "motion_interval_s",
+            "max_heading_error_deg",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -543,7 +552,11 @@ class CalibrationController:
     ) -> None:
         col = s.mag
         assert col is not None
-        col.offer(mag, acc, sat)
+        col.offer(mag, acc, sat, now)
+        warning = col.pop_motion_warning()
+        if warning is not None:
+            data = warning.data()
+            self._event("calibration.motion", warning.text, Severity.WARNING, mode="mag", **data)
         if col.full and not s.busy:
             s.busy = True
             self._submit_for(s, self._job_sphere if col.step == 1 else self._job_mag_fit)
@@ -671,7 +684,7 @@ class CalibrationController:
                 params = self._link.params if self._link is not None else None
                 s.onboard = self._new_tracker(params)
             else:
-                s.mag = MagCollector(self.settings.capacity, seed=s.gen)
+                s.mag = self._new_mag_collector(s.gen)
             self._event(
                 "calibration.started",
                 f"Calibration started: {'on-board ' if use_onboard else ''}mag",
@@ -1038,6 +1051,12 @@ class CalibrationController:
         self._jobs.put(None)  # wake the worker: it only ticks while a session runs
         return s
 
+    def _new_mag_collector(self, seed: int) -> MagCollector:
+        st = self.settings
+        return MagCollector(
+            st.capacity, seed=seed, judge=MotionJudge(st.motion_limit_g, st.motion_interval_s)
+        )
+
     def _new_tracker(self, params: ParamsFrame | None) -> OnboardMagTracker:
         st = self.settings
         return OnboardMagTracker(
@@ -1150,7 +1169,7 @@ class CalibrationController:
         if s.mode is Mode.MAG and s.retry and retry_ok:
             # ArduPilot's retry: a fresh attempt at once (no start delay after the first).
             s.attempt += 1
-            s.mag = MagCollector(self.settings.capacity, seed=1000 * s.gen + s.attempt)
+            s.mag = self._new_mag_collector(1000 * s.gen + s.attempt)
             s.busy = False
             now = self._clock()
             self._event(
@@ -1303,13 +1322,18 @@ class CalibrationController:
             if s is None or s.mag is None:
                 return
             mag, acc = s.mag.data()
+            t, mag_all, acc_all, sat_all = s.mag.series.arrays()
             ef = self._field
             autosave = s.autosave
         current_accel = self._engine.calibration.accel
         # The current accelerometer calibration sets the tilt, hence the heading at high
         # dip; an uncalibrated (identity) one is better replaced by a fit of the tumble.
         accel = None if _is_identity(current_accel) else current_accel
-        res = calibrate(BEST, CalibrationData(mag, acc, reference=ef, accel_calibration=accel))
+        # Every frame of the collection, in order: the hand-held fit averages a shake away.
+        data = CalibrationData(
+            mag_all, acc_all, sat_all, reference=ef, accel_calibration=accel, t_s=t
+        )
+        res = judge_accuracy(calibrate(BEST, data), self.settings.max_heading_error_deg)
         status = MagCalStatus.parse(res.report.status)
         conf = math.nan
         if status is MagCalStatus.MAG_CAL_SUCCESS:

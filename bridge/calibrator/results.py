@@ -5,6 +5,7 @@ these from its worker thread and turns the outcome into events.
 
 * :func:`mag_report` -- a fit as the fields of MAVLink MAG_CAL_REPORT
   (ArduPilot's COMPASS_OFS/DIA/ODI/SCALE view), JSON-ready;
+* :func:`judge_accuracy` -- fails a fit whose predicted heading error is too large;
 * :func:`orientation_confidence` -- ArduPilot's ``calculate_orientation`` figure
   of merit: how much better the fitted orientation explains the samples than
   the runner-up among the ArduPilot rotations;
@@ -17,16 +18,18 @@ these from its worker thread and turns the outcome into events.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from bridge.calibration.alignment import motion_failure_reason
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
+    CalibrationResult,
 )
 from bridge.calibration.sanity import MagCalStatus
 from bridge.core import sensor
@@ -127,9 +130,35 @@ def mag_report(
         "coverage_pct": _finite_or_none(report.coverage_pct),
         "field_spread_before_nT": _finite_or_none(report.field_spread_before_nT),
         "field_spread_after_nT": _finite_or_none(report.field_spread_after_nT),
+        # A frame series' fit (a live calibration) predicts the heading error it leaves;
+        # "fitness" then includes it, "residual_mG" is the magnetometer's own residual.
+        "residual_mG": _finite_or_none(report.residual_mG),
+        "heading_error_deg": _finite_or_none(report.heading_error_deg),
+        "tilt_error_deg": _finite_or_none(report.tilt_error_deg),
+        "motion_g": _finite_or_none(report.motion_g),
+        "window_s": _finite_or_none(report.window_s),
         "notes": list(report.notes),
     }
     return out
+
+
+def judge_accuracy(result: CalibrationResult, max_heading_error_deg: float) -> CalibrationResult:
+    """``result``, failed (MAG_CAL_FAILED_RESIDUALS_HIGH) if it is not accurate enough.
+
+    A successful fit whose predicted heading error (``heading_error_deg``,
+    known for a frame series) exceeds ``max_heading_error_deg`` fails rather
+    than succeeding quietly worse; the reason, first in the notes, tells the
+    operator what to change.
+    """
+    rep = result.report
+    err = rep.heading_error_deg
+    if not (rep.ok and not math.isnan(err) and err > max_heading_error_deg):
+        return result
+    reason = motion_failure_reason(err, max_heading_error_deg)
+    failed = replace(
+        rep, status=MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH.name, notes=(reason, *rep.notes)
+    )
+    return CalibrationResult(result.calibration, failed)
 
 
 @dataclass(frozen=True, slots=True)

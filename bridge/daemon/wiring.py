@@ -51,7 +51,7 @@ def make_transport(cfg: Config) -> Transport:
     """The transport ``cfg.device`` names; ``"sim"`` is built from ``[sim]`` and ``[location]``."""
     if cfg.device.port != "sim":
         return open_transport(cfg.device.port, cfg.device.baud, realtime=cfg.device.replay_realtime)
-    from bridge.sim.pty import MOTIONS  # only the simulated port needs the simulator
+    from bridge.sim.pty import make_motion  # only the simulated port needs the simulator
 
     sim = cfg.sim
     loc = cfg.location
@@ -59,7 +59,7 @@ def make_transport(cfg: Config) -> Transport:
         "sim",
         cfg.device.baud,
         seed=sim.seed,
-        motion=MOTIONS[sim.motion](sim.seed),
+        motion=make_motion(sim.motion, sim.seed, sim.shake_g),
         ideal=sim.ideal,
         flash_path=sim.flash_file or None,
         # The simulated unit sits where the configuration says the vehicle is, so

@@ -37,7 +37,7 @@ from types import FrameType, TracebackType
 from typing import Any
 
 from bridge.sim.firmware import Firmware, make_firmware
-from bridge.sim.motion import Motion, Still, Tumble, YawTurns
+from bridge.sim.motion import Motion, Still, Tumble, YawTurns, with_shake
 
 Clock = Callable[[], float]
 
@@ -323,6 +323,17 @@ MOTIONS: dict[str, Callable[[int], Motion]] = {
 }
 
 
+def make_motion(name: str, seed: int, shake_g: float = 0.0) -> Motion:
+    """The motion script ``name`` (one of :data:`MOTIONS`), held by a hand shaking ``shake_g``.
+
+    ``shake_g`` is the linear acceleration, g RMS per axis (smooth, 0.4-2.5 Hz,
+    seeded like the unit; :class:`~bridge.sim.motion.HandShake`); 0 = steady.
+    """
+    if name not in MOTIONS:
+        raise ValueError(f"motion must be one of {sorted(MOTIONS)}, got {name!r}")
+    return with_shake(MOTIONS[name](seed), shake_g, seed)
+
+
 def run_simulator(
     link_path: str,
     seed: int = 1,
@@ -331,6 +342,7 @@ def run_simulator(
     motion: Motion | str = "turns",
     flash_path: str | None = None,
     ideal: bool = False,
+    shake_g: float = 0.0,
     stop: threading.Event | None = None,
     on_ready: Callable[[PtyCompass], None] | None = None,
     unplug_s: float = 1.0,
@@ -340,16 +352,15 @@ def run_simulator(
 
     ``seed`` draws the unit's errors; ``location`` is ``(lat_deg, lon_deg, alt_m)``
     (default: PX4 SITL's Zurich); ``motion`` a script or one of :data:`MOTIONS`;
-    ``flash_path`` keeps the unit's calibration across runs. Returns 0.
+    ``flash_path`` keeps the unit's calibration across runs; ``shake_g`` shakes a
+    named motion like a hand (g RMS per axis). Returns 0.
 
     Fault injection from outside, for integrators and the daemon's fault tests:
     SIGUSR1 pulls the cable (the pty goes away; a new one appears at
     ``link_path`` after ``unplug_s``), SIGUSR2 sends ``garbage_bytes`` of line noise.
     """
     if isinstance(motion, str):
-        if motion not in MOTIONS:
-            raise ValueError(f"motion must be one of {sorted(MOTIONS)}, got {motion!r}")
-        motion = MOTIONS[motion](seed)
+        motion = make_motion(motion, seed, shake_g)
     fw = make_firmware(seed, location=location, motion=motion, flash_path=flash_path, ideal=ideal)
     stop_event = stop if stop is not None else threading.Event()
 

@@ -22,9 +22,11 @@ Two ways:
   samples show; see :func:`heading_error_estimate_deg`). Ctrl-C, a timeout or
   a failed fit cancel the calibration on the bridge.
 
-The report pieces (:func:`report_lines`, :func:`coverage_map`,
-:func:`heading_error_estimate_deg`, :func:`report_mag_calibration`,
-:class:`RawImuCollector`) are pure.
+The report pieces (:mod:`bridge.tools.calreport`: ``report_lines``,
+``coverage_map``, ``heading_error_estimate_deg``, ``progress_note``; and
+here :func:`report_mag_calibration`, :class:`RawImuCollector`) are pure.
+While the unit is moved too hard the bridge says "slower / steadier"
+(``calibration.motion``, a STATUSTEXT): the progress line shows it.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TextIO
 
@@ -49,89 +51,20 @@ from bridge.calibration.model import (
     CalibrationResult,
 )
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
+from bridge.tools.calreport import (
+    MOTION_NOTE_S,
+    StatusTextChunks,
+    coverage_map,
+    coverage_text,
+    frame_times,
+    heading_error_estimate_deg,
+    horizontal_field_G,
+    is_motion_warning,
+    progress_note,
+    report_lines,
+)
 
 FloatArray = npt.NDArray[np.float64]
-
-#: Rows x columns of the terminal coverage map (latitude bands x longitude sectors).
-MAP_ROWS, MAP_COLS = 9, 36
-
-
-# ---------------------------------------------------------------------------
-# Pure helpers
-# ---------------------------------------------------------------------------
-
-
-def _grid_sections(rows: int = MAP_ROWS, cols: int = MAP_COLS) -> npt.NDArray[np.int64]:
-    lat = np.radians(90.0 - (np.arange(rows) + 0.5) * 180.0 / rows)
-    lon = np.radians((np.arange(cols) + 0.5) * 360.0 / cols)
-    la, lo = np.meshgrid(lat, lon, indexing="ij")
-    v = np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), -np.sin(la)], axis=-1)
-    return sections(v.reshape(-1, 3)).reshape(rows, cols)
-
-
-_GRID = _grid_sections()
-
-
-def coverage_map(missing: Iterable[int]) -> str:
-    """The sphere as a latitude/longitude map: ``#`` sections covered, ``.`` still missing.
-
-    Rows go from straight up (field pointing to -z in the sensor frame, top)
-    to straight down; columns go round the horizon. PURE.
-    """
-    miss = set(missing)
-    lines = ["".join("." if int(s) in miss else "#" for s in row) for row in _GRID]
-    return "\n".join(f"  |{line}|" for line in lines)
-
-
-def horizontal_field_G(total_G: float, dip_deg: float) -> float:
-    """Horizontal intensity of a field of ``total_G`` and inclination ``dip_deg``."""
-    return total_G * math.cos(math.radians(dip_deg))
-
-
-def heading_error_estimate_deg(fitness_mG: float, horizontal_G: float) -> float:
-    """Expected RMS heading error of a fit: the RMS residual seen as a sideways error.
-
-    A residual of ``fitness`` milligauss across the horizontal field ``H``
-    turns the heading by ``atan(fitness / H)``. The fit's residual is radial
-    (|B| error), the heading error is tangential; for a fit without a
-    systematic shape error the two are of the same size, which is what makes
-    this a fair *estimate*, not a measurement. NaN when either is unknown.
-    """
-    if not (math.isfinite(fitness_mG) and math.isfinite(horizontal_G) and horizontal_G > 0):
-        return math.nan
-    return math.degrees(math.atan2(fitness_mG / 1000.0, horizontal_G))
-
-
-def _fmt(v: Any, spec: str = ".2f") -> str:
-    if isinstance(v, int | float) and math.isfinite(v):
-        return format(v, spec)
-    return "n/a"
-
-
-def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
-    """The calibration report for a person (``report`` is a MAG_CAL_REPORT-shaped dict)."""
-    out = [
-        f"status        {report.get('cal_status', '?')}"
-        + (f"  (method {report['method']})" if report.get("method") else ""),
-        f"fitness       {_fmt(report.get('fitness'))} mG RMS"
-        + (f", {report['n_samples']} samples" if report.get("n_samples") else ""),
-        "offsets       COMPASS_OFS_X/Y/Z  "
-        + "  ".join(_fmt(report.get(f"ofs_{a}"), "+.1f") for a in "xyz")
-        + " mG",
-        "diagonal      COMPASS_DIA_X/Y/Z  "
-        + "  ".join(_fmt(report.get(f"diag_{a}"), ".4f") for a in "xyz"),
-        "off-diagonal  COMPASS_ODI_X/Y/Z  "
-        + "  ".join(_fmt(report.get(f"offdiag_{a}"), "+.4f") for a in "xyz"),
-        f"scale         COMPASS_SCALE  {_fmt(report.get('scale_factor'), '.4f')}",
-    ]
-    b, a = report.get("field_spread_before_nT"), report.get("field_spread_after_nT")
-    if isinstance(b, int | float) or isinstance(a, int | float):
-        out.append(f"field spread  ±{_fmt(b, '.0f')} nT before  ->  ±{_fmt(a, '.0f')} nT after")
-    else:
-        out.append("field spread  not reported over this path (see the fitness)")
-    out.append(f"heading error ~{_fmt(heading_error_deg)} deg RMS (estimated from the fitness)")
-    return out
-
 
 # ---------------------------------------------------------------------------
 # Offline: a recording
@@ -140,12 +73,17 @@ def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
 
 @dataclass(frozen=True)
 class RecordedVectors:
-    """Raw vectors of every ``$PGMRA`` frame of a recording (counts -> nominal units)."""
+    """Raw vectors of every ``$PGMRA`` frame of a recording (counts -> nominal units).
+
+    ``t_s``: frame times (seconds) when the frames are consecutive (a recording),
+    so the best method can fit them as a hand-held tumble; None for a sample bag.
+    """
 
     mag_G: FloatArray
     acc_g: FloatArray
     saturated: npt.NDArray[np.bool_]
     dropped_lines: int
+    t_s: FloatArray | None = None
 
 
 def read_recording(path: str, progress: Callable[[float], None] | None = None) -> RecordedVectors:
@@ -160,6 +98,8 @@ def read_recording(path: str, progress: Callable[[float], None] | None = None) -
     mag: list[tuple[int, int, int]] = []
     acc: list[tuple[int, int, int]] = []
     sat: list[bool] = []
+    seq: list[int] = []
+    arrival: list[float] = []
     done = 0
     with RecordingReader(path) as rec:
         for chunk in rec.chunks():
@@ -169,6 +109,8 @@ def read_recording(path: str, progress: Callable[[float], None] | None = None) -
                     mag.append((f.mx, f.my, f.mz))
                     acc.append((f.ax, f.ay, f.az))
                     sat.append(bool(f.flags & Flags.SAT))
+                    seq.append(f.seq)
+                    arrival.append(chunk.t)
             if progress is not None:
                 progress(min(1.0, done / size))
     dropped = sum(dec.counters.dropped.values())
@@ -179,6 +121,7 @@ def read_recording(path: str, progress: Callable[[float], None] | None = None) -
         acc_counts_to_g(np.asarray(acc, dtype=np.float64)),
         np.asarray(sat, dtype=bool),
         dropped,
+        frame_times(seq, arrival),
     )
 
 
@@ -190,7 +133,11 @@ def fit_recording(
 
     field = earth_field(*location) if location is not None else None
     data = CalibrationData(
-        mag_G=vectors.mag_G, acc_g=vectors.acc_g, saturated=vectors.saturated, reference=field
+        mag_G=vectors.mag_G,
+        acc_g=vectors.acc_g,
+        saturated=vectors.saturated,
+        reference=field,
+        t_s=vectors.t_s,
     )
     res = calibrate(method, data)
     if field is not None:
@@ -402,7 +349,8 @@ def run_mavlink(
 ) -> LiveOutcome:
     """The ArduPilot magcal flow against a bridge at ``url`` (a pymavlink connection string).
 
-    HEARTBEAT from the target first (so a udpin link knows where to send);
+    HEARTBEAT from the target first (so a udpin link knows where to send), and
+    ours every second while the calibration runs (so it does not forget us);
     RAW_IMU raised to ``raw_imu_hz``; ``DO_START_MAG_CAL`` (all compasses, no
     retry, no autosave: the person decides); ``MAG_CAL_PROGRESS`` ->
     ``on_progress(completion_pct, missing sections)``, STATUSTEXT ->
@@ -421,6 +369,7 @@ def run_mavlink(
     M: Any = mavutil.mavlink
     samples = RawImuCollector()
     texts: list[str] = []
+    chunks = StatusTextChunks()
 
     def ours(m: Any) -> bool:
         return bool(m.get_srcSystem() == target_system and m.get_srcComponent() == target_component)
@@ -473,7 +422,13 @@ def run_mavlink(
         end = time.monotonic() + timeout_s
         report: dict[str, Any] | None = None
         kinds = ["MAG_CAL_PROGRESS", "MAG_CAL_REPORT", "RAW_IMU", "STATUSTEXT"]
+        next_beat = time.monotonic() + 1.0
         while report is None and time.monotonic() < end:
+            if time.monotonic() >= next_beat:
+                # A ground station says it is there once a second: a bridge's udpin
+                # endpoint forgets a peer that stays silent (the tumble can take minutes).
+                conn.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                next_beat = time.monotonic() + 1.0
             m = conn.recv_match(type=kinds, blocking=True, timeout=0.2)
             if m is None or not ours(m):
                 continue
@@ -481,9 +436,11 @@ def run_mavlink(
             if kind == "RAW_IMU":
                 samples.add(m.xmag, m.ymag, m.zmag, m.xacc, m.yacc, m.zacc)
             elif kind == "STATUSTEXT":
-                texts.append(str(m.text))
-                if on_text is not None:
-                    on_text(str(m.text))
+                text = chunks.add(m)
+                if text is not None:
+                    texts.append(text)
+                    if on_text is not None:
+                        on_text(text)
             elif kind == "MAG_CAL_PROGRESS":
                 missing = frozenset(range(N_SECTIONS)) - mask_sections(bytes(m.completion_mask))
                 on_progress(float(m.completion_pct), missing)
@@ -493,6 +450,13 @@ def run_mavlink(
             return LiveOutcome(None, False, f"no MAG_CAL_REPORT within {timeout_s:g} s", samples)
         report["cal_status"] = _mag_cal_status_name(M, int(report.get("cal_status", -1)))
         if report["cal_status"] != "MAG_CAL_SUCCESS":
+            # The bridge sends the reason as a STATUSTEXT right after the report.
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end and not any("fail" in t.lower() for t in texts):
+                m = conn.recv_match(type="STATUSTEXT", blocking=True, timeout=0.2)
+                text = chunks.add(m) if m is not None and ours(m) else None
+                if text is not None:
+                    texts.append(text)
             why = next((t for t in reversed(texts) if "fail" in t.lower()), "")
             return LiveOutcome(
                 report,
@@ -530,14 +494,6 @@ def _mag_cal_status_name(M: Any, code: int) -> str:
 def write_coverage(out: TextIO, missing: frozenset[int]) -> None:
     """The coverage map with its legend."""
     out.write(coverage_text(missing) + "\n")
-
-
-def coverage_text(missing: frozenset[int]) -> str:
-    """Legend line and map of the sections still ``missing``. PURE."""
-    return (
-        f"sphere coverage: {N_SECTIONS - len(missing)}/{N_SECTIONS} sections "
-        "(# covered, . still missing)\n" + coverage_map(missing)
-    )
 
 
 def _plot(out: TextIO, path: str, raw_G: FloatArray, cal_G: FloatArray, title: str) -> None:
@@ -615,15 +571,25 @@ def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]
     )
     out.flush()
 
+    warning: list[tuple[float, str]] = []  # the last motion warning and when it came
+
+    def recent_warning() -> str | None:
+        if warning and time.monotonic() - warning[0][0] < MOTION_NOTE_S:
+            return warning[0][1]
+        return None
+
     def on_progress(pct: float, missing: frozenset[int]) -> None:
         last_missing[:] = [missing]
-        n = len(missing)
-        bar.update(
-            pct, note=f"{n} section{'' if n == 1 else 's'} missing", detail=coverage_text(missing)
-        )
+        note = progress_note(len(missing), recent_warning())
+        bar.update(pct, note=note, detail=coverage_text(missing))
 
     def on_text(text: str) -> None:
-        bar.update(note=text[:60])
+        if is_motion_warning(text):
+            warning[:] = [(time.monotonic(), text)]
+            n = len(last_missing[0]) if last_missing else N_SECTIONS
+            bar.update(note=progress_note(n, text))
+        else:
+            bar.update(note=text[:60])
 
     def show(report: dict[str, Any], samples: RawImuCollector) -> None:
         bar.close()
@@ -668,3 +634,26 @@ def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]
         show(outcome.report, outcome.samples)  # a failed fit: its figures say why
     out.write(outcome.message + "\n")
     return 0 if outcome.accepted else 1
+
+
+__all__ = [
+    "MOTION_NOTE_S",
+    "LiveOutcome",
+    "RawImuCollector",
+    "RecordedVectors",
+    "StatusTextChunks",
+    "add_live_figures",
+    "cmd_calibrate",
+    "coverage_map",
+    "coverage_text",
+    "fit_recording",
+    "frame_times",
+    "heading_error_estimate_deg",
+    "horizontal_field_G",
+    "is_motion_warning",
+    "progress_note",
+    "read_recording",
+    "report_lines",
+    "report_mag_calibration",
+    "run_mavlink",
+]
