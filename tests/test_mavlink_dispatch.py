@@ -61,9 +61,20 @@ def test_flag_param_is_not_zero_and_nan_is_no(value: float, expected: bool) -> N
 
 @pytest.mark.parametrize(
     "value,expected",
-    [(0.0, 0), (NAN, 0), (1.0, 1), (255.9, 255), (128.0, 128), (256.0, None), (-1.0, None)],
+    [
+        (0.0, 0),
+        (NAN, 0),
+        (1.0, 1),
+        (1.9, 1),
+        (254.5, 254),
+        (255.0, 255),
+        (255.5, None),  # ArduPilot: param1 > 255 is FAILED, before any cast
+        (-0.5, None),  # param1 < 0 likewise
+        (256.0, None),
+        (math.inf, None),
+    ],
 )
-def test_a_compass_mask_is_an_uint8_cast(value: float, expected: int | None) -> None:
+def test_a_compass_mask_is_checked_then_uint8_cast(value: float, expected: int | None) -> None:
     assert _mask(value) == expected
 
 
@@ -99,6 +110,10 @@ def test_mavsdk_style_commands_with_nan_parameters(
     assert progress.compass_id == 0 and progress.cal_mask == 1
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, NAN).result == ACCEPTED  # NaN mask: all
     assert wait_until(lambda: not rig.daemon.calibrator.snapshot().running)
-    # a mask that cannot be an uint8 is refused, not truncated into some other compass
-    assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 256.0).result == M.MAV_RESULT_DENIED
+    # a mask that cannot be an uint8 fails, as in ArduPilot, rather than naming another compass
+    assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 256.0).result == M.MAV_RESULT_FAILED
     assert not rig.daemon.calibrator.snapshot().running
+    assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0).result == ACCEPTED
+    assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, -1.0).result == M.MAV_RESULT_FAILED
+    assert rig.daemon.calibrator.snapshot().running  # and nothing was cancelled
+    assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
