@@ -8,7 +8,9 @@ finished by the event that reports its outcome (:class:`PendingAcks`).
 Command parameters arrive as floats. A NaN in a parameter means "not given"
 (MAVSDK fills unused parameters with NaN for non-ArduPilot autopilots), and
 integer parameters are read as ArduPilot and PX4 read them: truncated
-(:func:`int_param`); yes/no parameters as ArduPilot reads them (:func:`flag_param`).
+(:func:`int_param`); yes/no parameters as ArduPilot reads them (:func:`flag_param`);
+compass masks as ArduPilot checks them (:func:`_mask`: outside 0..255 is FAILED).
+docs/mavlink.md has the rules and their sources.
 """
 
 from __future__ import annotations
