@@ -382,8 +382,8 @@ class MavlinkConfig(Section):
         "generic",
         one_of("generic", "px4", "ardupilot"),
         "the autopilot a standalone bridge presents itself as (HEARTBEAT.autopilot), which "
-        "ground stations follow: px4 for MAVSDK and QGroundControl's PX4 pages, ardupilot for "
-        "QGroundControl's ArduPilot pages and MAVProxy; it also sets the parameter encoding",
+        "ground stations follow: px4 for MAVSDK and QGroundControl's calibration pages, "
+        "ardupilot for Mission Planner, generic otherwise (docs/mavlink.md)",
     )
     heading_feed: str = setting(
         "off",

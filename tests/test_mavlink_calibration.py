@@ -34,6 +34,7 @@ from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field
+from bridge.mavlink.output import REPORT_PERIOD_S
 from bridge.protocol.gmr import ParamsFrame
 from bridge.sim.firmware import Firmware
 from bridge.sim.motion import (
@@ -207,6 +208,51 @@ def test_cancel_and_fixed_yaw(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     true_hdg = [s.heading_true_deg for s in samples]
     assert all(h is not None and abs((h - yaw + 180) % 360 - 180) < 1.0 for h in true_hdg)
     assert g.command(M.MAV_CMD_FIXED_MAG_CAL_YAW, math.nan).result == M.MAV_RESULT_FAILED
+
+
+def test_a_lost_report_is_repeated_until_accepted_cancelled_or_restarted(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    """ArduPilot sends MAG_CAL_REPORT as long as a result waits (send_mag_cal_report while
+    the calibrator's status is SUCCESS or FAILED); a ground station that missed the first
+    one -- here one that only starts listening after it -- still gets it, about once a
+    second, until DO_ACCEPT_MAG_CAL, DO_CANCEL_MAG_CAL or a new start answers it."""
+    rig = rigs(tmp_path, motion=Still.from_deg(3.0, -5.0, 40.0))
+    first = rig.gcs("udp")
+    # a repetition is due within a period and the telemetry thread's half-second tick
+    silent = 1.7 * REPORT_PERIOD_S
+
+    def a_repeated_report(yaw: float, g: Gcs) -> Any:
+        first.flush()
+        assert first.command(M.MAV_CMD_FIXED_MAG_CAL_YAW, yaw, 0, 0, 0).result == ACCEPTED
+        rep = first.wait("MAG_CAL_REPORT")
+        g.flush()
+        again = g.wait("MAG_CAL_REPORT", timeout=silent)
+        assert again.cal_status == M.MAG_CAL_SUCCESS
+        assert (again.ofs_x, again.ofs_y, again.ofs_z) == (rep.ofs_x, rep.ofs_y, rep.ofs_z)
+        return again
+
+    # the first report goes out before this ground station listens: it is lost to it
+    assert first.command(M.MAV_CMD_FIXED_MAG_CAL_YAW, 40.0, 0, 0, 0).result == ACCEPTED
+    assert first.wait("MAG_CAL_REPORT").cal_status == M.MAG_CAL_SUCCESS
+    late = rig.gcs("tcp")
+    again = late.wait("MAG_CAL_REPORT", timeout=2 * silent)
+    assert again.cal_status == M.MAG_CAL_SUCCESS
+    assert late.command(M.MAV_CMD_DO_ACCEPT_MAG_CAL, 0).result == ACCEPTED
+    late.flush()
+    late.nothing("MAG_CAL_REPORT", None, silent)
+
+    a_repeated_report(41.0, late)
+    assert late.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
+    late.flush()
+    late.nothing("MAG_CAL_REPORT", None, silent)
+
+    a_repeated_report(40.0, late)
+    assert late.command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0).result == ACCEPTED
+    late.wait("MAG_CAL_PROGRESS")  # the new calibration runs (the unit lies still)
+    late.flush()
+    late.nothing("MAG_CAL_REPORT", None, silent)
+    assert late.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
 
 
 # =====================================================================================

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, wait_until
 
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.endpoints import Endpoint, Link, open_endpoint
@@ -351,3 +351,89 @@ def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
     finally:
         ep.close(1.0)
         peer.close()
+
+
+# ------------------------------------------------------ what pymavlink's own links would do
+# Why the endpoints are the bridge's own (docs/mavlink.md, "What pymavlink does and what the
+# bridge does instead"). These pin pymavlink's behaviour: if one fails, pymavlink changed.
+
+
+def test_pymavlink_udpin_sends_every_packet_to_every_address_it_ever_heard(
+    endpoints: Callable[..., Endpoint],
+) -> None:
+    """mavutil's ``udpin`` keeps every source address that ever sent a datagram (forever
+    unless told a time-out, and without a bound) and sends every packet -- an answer meant
+    for one ground station too -- to all of them. Ours answers the asker only
+    (test_udpin_learns_peers_and_answers_each_on_its_own), forgets a silent peer, and keeps
+    at most MAX_UDP_PEERS."""
+    n = E.MAX_UDP_PEERS + 4
+    port = free_port()
+    srv = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
+    peers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    try:
+        for s in peers:
+            s.sendto(heartbeat_bytes(), ("127.0.0.1", port))
+
+        def heard_all() -> bool:
+            while srv.recv_match(blocking=False) is not None:
+                pass
+            return len(srv.clients) == n
+
+        assert wait_until(heard_all)
+        # an answer to the first ground station's command ...
+        srv.mav.command_ack_send(M.MAV_CMD_REQUEST_MESSAGE, 0)
+        # ... reaches every one of them
+        assert all(len(recv_udp(s, 1, timeout=2.0)) == 1 for s in peers)
+        for s in peers[1:]:
+            s.close()
+        srv.mav.heartbeat_send(6, 8, 0, 0, 0)
+        assert len(srv.clients) == n  # the gone ones are still sent to
+    finally:
+        for s in peers:
+            s.close()
+        srv.close()
+    # ours, heard by as many: bounded
+    ours = endpoints(f"udpin:127.0.0.1:{port}")
+    peers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    try:
+        assert wait_until(lambda: ours.local_address is not None)  # type: ignore[attr-defined]
+        for s in peers:
+            s.sendto(heartbeat_bytes(), ("127.0.0.1", port))
+        assert wait_until(lambda: ours.counters().packets_received == n)
+        assert len(ours.links) == E.MAX_UDP_PEERS
+    finally:
+        for s in peers:
+            s.close()
+
+
+def test_pymavlink_tcp_loses_silently_what_a_slow_peer_cannot_take() -> None:
+    """mavutil's ``tcp`` link never blocks (its socket is non-blocking), but every packet
+    that does not fit the socket's buffers is dropped without an error or a count -- a
+    ground station that stalls for a moment loses a stretch of the stream and nobody can
+    tell. Ours queues per peer, drops the oldest when the queue is full and counts them
+    (test_a_stuck_tcp_client_costs_only_its_own_queue)."""
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    conn = mavutil.mavlink_connection(
+        f"tcp:127.0.0.1:{server.getsockname()[1]}", source_system=1, source_component=1
+    )
+    peer, _ = server.accept()
+    try:
+        conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        n = 3000
+        for i in range(n):  # the peer reads nothing meanwhile
+            conn.write(ping(i).pack(conn.mav))  # never raises, never waits
+        peer.settimeout(0.5)
+        data = b""
+        with contextlib.suppress(TimeoutError):
+            while chunk := peer.recv(65536):
+                data += chunk
+        got = [m.time_boot_ms for m in parse_all(data)]
+        assert got == sorted(got) and len(got) < n // 2  # most of the stream is gone ...
+        assert got[-1] - got[0] + 1 > len(got)  # ... in silent gaps
+    finally:
+        peer.close()
+        conn.close()
+        server.close()

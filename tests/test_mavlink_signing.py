@@ -18,7 +18,13 @@ from test_mavlink_rig import (
     rig_factory,
 )
 
-from bridge.mavlink.signing import NEW_STREAM_WINDOW_S, TICKS_PER_SECOND, unix_to_ticks
+from bridge.mavlink.signing import (
+    NEW_STREAM_WINDOW_S,
+    TICKS_PER_SECOND,
+    Signing,
+    Verdict,
+    unix_to_ticks,
+)
 
 
 @pytest.fixture
@@ -143,3 +149,48 @@ def test_a_bad_key_file_refuses_the_start(tmp_path: Path) -> None:
     bad.write_text("not hex")
     with pytest.raises(ConfigError, match="signing_key_file"):
         make_config(tmp_path, mavlink={"signing_key_file": str(bad)})
+
+
+def test_one_forged_far_future_packet_locks_pymavlinks_checker_out_but_not_ours() -> None:
+    """Why the bridge checks signatures itself (bridge/mavlink/signing.py): pymavlink's
+    MAVLink.check_signature records a stream's timestamp *before* it checks the signature,
+    so one packet with the real sender's stream ids, a far-future timestamp and a garbage
+    signature makes every genuine packet after it "old". If this test fails at the marked
+    assert, pymavlink has fixed that and its checker could be reconsidered."""
+    now = unix_to_ticks(time.time())
+    sender = M.MAVLink(None, GCS_SYSID, GCS_COMPID)
+    sender.signing.secret_key = KEY
+    sender.signing.sign_outgoing = True
+    sender.signing.link_id = 3
+    sender.signing.timestamp = now
+
+    def genuine() -> bytes:
+        msg = sender.command_long_encode(1, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, ATT, 0, 0, 0, 0, 0, 0)
+        return bytes(msg.pack(sender))
+
+    forger = M.MAVLink(None, GCS_SYSID, GCS_COMPID)
+    forger.signing.secret_key = WRONG_KEY
+    forger.signing.sign_outgoing = True
+    forger.signing.link_id = 3  # the real sender's stream: (link id, system, component)
+    forger.signing.timestamp = now + 3600 * TICKS_PER_SECOND  # an hour ahead
+    forged = bytes(forger.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(forger))
+
+    # pymavlink, as a receiver with the key
+    receiver = M.MAVLink(None, 1, 1)
+    receiver.signing.secret_key = KEY
+    receiver.signing.timestamp = now
+    ours = Signing(KEY)
+
+    def pymavlink_accepts(packet: bytes) -> bool:
+        return bool(receiver.check_signature(bytearray(packet), GCS_SYSID, GCS_COMPID))
+
+    first = genuine()
+    assert pymavlink_accepts(first)
+    assert ours.verify(first, GCS_SYSID, GCS_COMPID) is Verdict.OK
+    assert not pymavlink_accepts(forged)  # the forgery itself is refused ...
+    assert ours.verify(forged, GCS_SYSID, GCS_COMPID) is Verdict.BAD_SIGNATURE
+    later = [genuine() for _ in range(3)]
+    # ... but it moved the stream an hour ahead: the real sender is locked out
+    assert not any(pymavlink_accepts(p) for p in later)  # <- pymavlink's lock-out
+    # the bridge's checker looked at the signature first: the sender goes on
+    assert [ours.verify(p, GCS_SYSID, GCS_COMPID) for p in later] == [Verdict.OK] * 3

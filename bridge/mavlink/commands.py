@@ -196,7 +196,7 @@ def px4_text(event: Event) -> str | None:
         return cal_line(f"calibration failed: {d.get('reason', 'unknown')}")
     if k == "calibration.cancelled":
         return "[cal] calibration cancelled"
-    if k == "calibration.instruction":
+    if k in ("calibration.instruction", "calibration.motion"):
         return cal_line(event.text)
     return None
 

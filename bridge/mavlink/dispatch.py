@@ -8,7 +8,9 @@ finished by the event that reports its outcome (:class:`PendingAcks`).
 Command parameters arrive as floats. A NaN in a parameter means "not given"
 (MAVSDK fills unused parameters with NaN for non-ArduPilot autopilots), and
 integer parameters are read as ArduPilot and PX4 read them: truncated
-(:func:`int_param`); yes/no parameters as ArduPilot reads them (:func:`flag_param`).
+(:func:`int_param`); yes/no parameters as ArduPilot reads them (:func:`flag_param`);
+compass masks as ArduPilot checks them (:func:`_mask`: outside 0..255 is FAILED).
+docs/mavlink.md has the rules and their sources.
 """
 
 from __future__ import annotations
@@ -72,9 +74,13 @@ def flag_param(v: float) -> bool:
 
 
 def _mask(v: float) -> int | None:
-    """A compass mask (ArduPilot's uint8 C-cast), None when it cannot be one."""
-    m = int_param(v)
-    return m if m is not None and 0 <= m <= 255 else None
+    """A compass mask as ArduPilot reads it: None (answered FAILED) unless 0 <= v <= 255,
+    then the uint8 C-cast (``handle_mag_cal_command``); NaN is "not given", all compasses."""
+    if math.isnan(v):
+        return 0
+    if not 0.0 <= v <= 255.0:
+        return None
+    return int(v)
 
 
 @dataclass(slots=True)
@@ -275,7 +281,7 @@ class CommandDispatcher:
     def _start_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
         mask = _mask(cmd.p(1))
         if mask is None:
-            return C.DENIED
+            return C.FAILED
         delay = cmd.p(4) if given(cmd.p(4)) and math.isfinite(cmd.p(4)) else 0.0
         self.out.relay.begin("ardupilot")
         result = self.svc.calibrator.start_mag(
@@ -293,7 +299,7 @@ class CommandDispatcher:
     def _accept_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
         mask = _mask(cmd.p(1))
         if mask is None:
-            return C.DENIED
+            return C.FAILED
         if self._for_our_compass(mask):
             self.out.report_answered()
         outcome: list[Outcome] = []
@@ -311,9 +317,11 @@ class CommandDispatcher:
 
     def _cancel_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
         mask = _mask(cmd.p(1))
-        if mask is None or self._for_our_compass(mask):
+        if mask is None:
+            return C.FAILED  # ArduPilot cancels nothing then
+        if self._for_our_compass(mask):
             self.out.report_answered()
-        out = self.svc.calibrator.cancel(self._device_mask(mask) if mask is not None else 0)
+        out = self.svc.calibrator.cancel(self._device_mask(mask))
         # ArduPilot answers ACCEPTED whatever the state; QGroundControl probes with it.
         return C.ACCEPTED if out.ok else C.result_code(out)
 
@@ -321,7 +329,7 @@ class CommandDispatcher:
         mask = _mask(cmd.p(2))
         yaw = cmd.p(1)
         if mask is None:
-            return C.DENIED
+            return C.FAILED
         lat, lon = cmd.p(3), cmd.p(4)
         have_position = given(lat) and given(lon) and (lat != 0.0 or lon != 0.0)
         self.out.relay.begin("ardupilot")

@@ -93,7 +93,8 @@ class MavlinkSettings:
 
     ``component_id`` None means "by role": 1 standalone, 200 (MAV_COMP_ID_IMU)
     companion. ``autopilot`` is the standalone HEARTBEAT's flavour, which also
-    decides how parameters are encoded (:mod:`bridge.mavlink.paramproto`).
+    decides how a standalone bridge's parameters are encoded
+    (:mod:`bridge.mavlink.paramproto`); a companion's always travel as REAL32.
     """
 
     endpoints: tuple[str, ...] = ("udpout:127.0.0.1:14550",)
@@ -178,7 +179,10 @@ class MavlinkOutput:
         self.signing = Signing(settings.signing_key) if settings.signing_key else None
         self.counters = OutputCounters()
         self.endpoints: list[Endpoint] = []
-        self.params = ParamProtocol(services.params, ParamEncoding(settings.autopilot))
+        self.params = ParamProtocol(
+            services.params,
+            ParamEncoding(settings.autopilot, companion=settings.role == "companion"),
+        )
         self.schedule = S.StreamSchedule({})
         self.relay = C.CalibrationRelay(self.compass_id)
         self.dispatcher = CommandDispatcher(self)

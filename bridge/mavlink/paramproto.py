@@ -1,27 +1,44 @@
-"""The MAVLink parameter protocol, encoded as the ground station's autopilot flavour expects.
+"""The MAVLink parameter protocol, encoded as the ground stations of a flavour decode it.
 
 The values live in the application's parameter store
 (:class:`~bridge.app.params.ParamStore`); this module only puts them on the
 wire and takes them off it. How an integer parameter travels in
-``PARAM_VALUE.param_value`` (a float field) depends on the autopilot the
-ground station believes it talks to, and the ground stations disagree:
+``PARAM_VALUE.param_value`` (a float field) is where the ground stations
+disagree (docs/mavlink.md, "Parameters"):
+
+* QGroundControl reads the float's *bytes* as the announced type
+  (``ParameterManager::_mavlinkParamUnionToVariant``) unless its ArduPilot
+  firmware plugin translates (C-cast) -- and that plugin is loaded only for an
+  ArduPilot *copter, plane, rover or sub* (``APMFirmwarePluginFactory``), never
+  for the bridge's ``MAV_TYPE_GENERIC``, nor for a component whose own
+  HEARTBEAT is not ArduPilot's (the companion role);
+* MAVProxy reads it bytewise when the system's autopilot is PX4, C-cast otherwise;
+* Mission Planner C-cast when the component's HEARTBEAT says ArduPilot,
+  bytewise otherwise; MAVSDK C-cast for ArduPilot, bytewise otherwise.
+
+A REAL32 value is the same number under every reading, so:
 
 ==============  ====================  ===================================================
 flavour         types on the wire     integer values
 ==============  ====================  ===================================================
-``ardupilot``   ArduPilot's (INT8,    C-cast (1 -> 1.0), as ArduPilot; a SET is read by
-                INT32, REAL32)        the parameter's own type whatever type it names
-                                      (ArduPilot's GCS_Param::handle_param_set)
-``px4``         INT32 and REAL32      bytewise (the int32's bytes in the float), as PX4;
-                                      QGroundControl and MAVSDK decode PX4 so
-``generic``     REAL32 for every      the value itself: every client reads a REAL32 the
-                parameter             same way (QGroundControl's generic plugin decodes
-                                      bytewise, MAVProxy C-casts: for a REAL32 both are
-                                      the float)
+``px4``         INT32 and REAL32      bytewise (the int32's bytes in the float), as PX4:
+                                      every client decodes a PX4 vehicle so (and MAVSDK's
+                                      Param plugin needs INT32 for ``get_param_int``)
+``ardupilot``   REAL32 for every      the value itself: ArduPilot's INT8/INT32 types
+                parameter             C-cast would read wrong in QGroundControl, which
+                                      shows the bridge with its generic plugin
+``generic``     REAL32 for every      the value itself
+                parameter
 ==============  ====================  ===================================================
 
-On a SET the value is decoded by the type the SET names (MAVProxy names REAL32
-for every non-PX4 vehicle), then judged by the parameter's own type.
+The companion role announces REAL32 whatever the flavour (the autopilot beside
+decides how MAVProxy decodes the whole system; QGroundControl decodes our
+component bytewise).
+
+A SET is decoded by the type it names when that type is an integer and the
+encoding is bytewise (PX4 reads it so); otherwise the float is the value, read
+by the parameter's own type, as ArduPilot's GCS_Param::handle_param_set does
+(MAVProxy names REAL32 for every non-PX4 vehicle).
 
 Bulk replies are rate-limited per peer (see :class:`ListLimiter`): a
 PARAM_REQUEST_LIST of 14 bytes brings back every parameter (~1.3 KB), which on
@@ -70,17 +87,22 @@ def param_name(raw: bytes | str) -> str:
 
 
 class ParamEncoding:
-    """Parameter values to and from ``param_value`` for one flavour (see the module docstring)."""
+    """Parameter values to and from ``param_value`` for one flavour (see the module docstring).
 
-    def __init__(self, flavour: Flavour) -> None:
+    ``companion``: the bridge is a component beside an autopilot, whose own flavour
+    decides how ground stations decode the system: every value travels as REAL32.
+    """
+
+    def __init__(self, flavour: Flavour, *, companion: bool = False) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour must be one of {FLAVOURS}, got {flavour!r}")
         self.flavour = flavour
+        self.companion = companion
 
     @property
     def bytewise(self) -> bool:
-        """Integers travel as their bytes (PX4), not C-cast."""
-        return self.flavour == "px4"
+        """Integers travel as their bytes (PX4), not as their value."""
+        return self.flavour == "px4" and not self.companion
 
     @property
     def capability(self) -> int:
@@ -91,13 +113,11 @@ class ParamEncoding:
 
     def wire_type(self, spec: ParamSpec) -> int:
         """The MAV_PARAM_TYPE a parameter is announced with."""
-        if self.flavour == "generic" or spec.ptype == REAL32:
-            return REAL32
-        return INT32 if self.flavour == "px4" else spec.ptype
+        return INT32 if self.bytewise and spec.ptype != REAL32 else REAL32
 
     def encode(self, spec: ParamSpec, value: float) -> float:
         """``value`` as it goes in ``param_value``."""
-        if self.bytewise and self.wire_type(spec) != REAL32:
+        if self.wire_type(spec) != REAL32:
             return float(_F32.unpack(_I32.pack(int(value)))[0])
         return float(value)
 

@@ -1,0 +1,119 @@
+"""Command parameters as ArduPilot and PX4 read them: NaN is "not given", integers truncate.
+
+ArduPilot C-casts (``uint8_t mag_mask = packet.param1``, ``!is_zero(packet.param2)``
+for a flag: AP_Compass_Calibration.cpp); PX4's commander C-casts too
+(``(int)cmd.param2 == 1``). MAVSDK fills every parameter a command does not set
+with NaN for a non-ArduPilot autopilot (``MavlinkCommandSender::maybe_reserved``),
+so a PX4-flavoured bridge receives PREFLIGHT_CALIBRATION with param6 = param7 = NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from test_mavlink_rig import M, Rig, rig_factory, wait_until
+
+from bridge.mavlink.dispatch import _mask, flag_param, given, int_param
+from bridge.sim.motion import Still
+
+NAN = math.nan
+ACCEPTED = M.MAV_RESULT_ACCEPTED
+
+
+@pytest.fixture
+def rigs() -> Iterator[Callable[..., Rig]]:
+    yield from rig_factory()
+
+
+@pytest.mark.parametrize(
+    "value,expected",
+    [
+        (1.0, 1),
+        (1.9999, 1),  # truncated, not rounded: (int)1.9999f is 1
+        (-1.9999, -1),  # toward zero
+        (0.4, 0),
+        (-0.0, 0),
+        (2.0**31 - 128, 2**31 - 128),  # the largest float below 2^31
+        (-(2.0**31) + 128, -(2**31) + 128),
+    ],
+)
+def test_int_param_truncates_toward_zero(value: float, expected: int) -> None:
+    assert int_param(value) == expected
+
+
+def test_int_param_nan_is_not_given_and_the_unrepresentable_is_refused() -> None:
+    assert int_param(NAN) == 0 and int_param(NAN, default=-1) == -1
+    for bad in (math.inf, -math.inf, 2.0**31, -(2.0**31), 1e20):
+        assert int_param(bad) is None, bad
+    assert not given(NAN) and given(0.0) and given(math.inf)
+
+
+@pytest.mark.parametrize(
+    "value,expected",
+    [(NAN, False), (0.0, False), (-0.0, False), (1.0, True), (0.5, True), (-1.0, True)],
+)
+def test_flag_param_is_not_zero_and_nan_is_no(value: float, expected: bool) -> None:
+    assert flag_param(value) is expected
+
+
+@pytest.mark.parametrize(
+    "value,expected",
+    [
+        (0.0, 0),
+        (NAN, 0),
+        (1.0, 1),
+        (1.9, 1),
+        (254.5, 254),
+        (255.0, 255),
+        (255.5, None),  # ArduPilot: param1 > 255 is FAILED, before any cast
+        (-0.5, None),  # param1 < 0 likewise
+        (256.0, None),
+        (math.inf, None),
+    ],
+)
+def test_a_compass_mask_is_checked_then_uint8_cast(value: float, expected: int | None) -> None:
+    assert _mask(value) == expected
+
+
+def test_mavsdk_style_commands_with_nan_parameters(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    """The PX4 calibration as MAVSDK sends it (params 6 and 7 NaN), PX4's cancel (params 1-6
+    zero, 7 NaN), and ArduPilot's start with NaN flags and a mask that needs truncating."""
+    rig = rigs(tmp_path, motion=Still.from_deg(0.0, 0.0, 30.0), mavlink={"autopilot": "px4"})
+    g = rig.gcs("udp")
+    ack = g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, NAN, NAN)
+    assert ack.result == ACCEPTED
+    g.wait("STATUSTEXT", lambda m: m.text == "[cal] calibration started: 2 mag")
+    assert rig.daemon.calibrator.snapshot().running
+    # PX4's cancel: params 1-6 all zero, whatever param 7 holds
+    assert g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 0, 0, 0, 0, NAN).result == ACCEPTED
+    g.wait("STATUSTEXT", lambda m: m.text == "[cal] calibration cancelled")
+    assert wait_until(lambda: not rig.daemon.calibrator.snapshot().running)
+    # every parameter NaN: nothing given, read as zeros: the cancel again (nothing runs)
+    g.flush()
+    ack = g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, NAN, NAN, NAN, NAN, NAN, NAN, NAN)
+    assert ack.result == ACCEPTED
+    assert not rig.daemon.calibrator.snapshot().running
+    # level as MAVSDK asks for it: param5 = 2, the rest 0 or NaN
+    ack = g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 0, 0, 2, NAN, NAN)
+    assert ack.result == ACCEPTED
+    g.wait("STATUSTEXT", lambda m: m.text == "[cal] calibration started: 2 level")
+    g.wait("STATUSTEXT", lambda m: m.text.startswith("[cal] calibration done"), timeout=20.0)
+    # ArduPilot's start: mask 1.9 is compass 0 ((uint8_t)1.9f), NaN flags are "no"
+    ack = g.command(M.MAV_CMD_DO_START_MAG_CAL, 1.9, NAN, NAN, NAN, NAN, NAN, NAN)
+    assert ack.result == ACCEPTED
+    progress = g.wait("MAG_CAL_PROGRESS")
+    assert progress.compass_id == 0 and progress.cal_mask == 1
+    assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, NAN).result == ACCEPTED  # NaN mask: all
+    assert wait_until(lambda: not rig.daemon.calibrator.snapshot().running)
+    # a mask that cannot be an uint8 fails, as in ArduPilot, rather than naming another compass
+    assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 256.0).result == M.MAV_RESULT_FAILED
+    assert not rig.daemon.calibrator.snapshot().running
+    assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0).result == ACCEPTED
+    assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, -1.0).result == M.MAV_RESULT_FAILED
+    assert rig.daemon.calibrator.snapshot().running  # and nothing was cancelled
+    assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
