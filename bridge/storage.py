@@ -25,6 +25,7 @@ import hashlib
 import json
 import logging
 import os
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,8 +37,87 @@ SCHEMA_PREFIX = "compass-bridge/"
 DEFAULT_STATE_DIR = "/var/lib/compass-bridge"
 
 
+#: Upper bound of a stored document (calibration, parameters: a few kB in practice).
+MAX_DOCUMENT_BYTES = 1 << 20
+
+
 class StorageError(Exception):
     """A document could not be saved (the in-memory value stays authoritative)."""
+
+
+class DocumentError(StorageError, ValueError):
+    """A document refused before anything was written (NaN, not JSON-able, bad name)."""
+
+
+class FileRefused(Exception):  # noqa: N818 - reads as "the file was refused"
+    """:func:`read_regular_file` refused a path: the message says why (one line)."""
+
+
+class FileMissing(FileRefused):
+    """:func:`read_regular_file`: there is no file at the path."""
+
+
+_FILE_KINDS = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a named pipe (FIFO)"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _kind(mode: int) -> str:
+    for test, name in _FILE_KINDS:
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def read_regular_file(path: str | os.PathLike[str], max_bytes: int) -> bytes:
+    """The content of a small regular file; :class:`FileRefused` for anything else.
+
+    Every file the daemon reads because a configuration names it goes through here,
+    so that a typo naming ``/dev/urandom``, a FIFO, a directory or a huge file is
+    one clear error instead of a hang or unbounded memory. Never blocks: the path
+    is checked with ``stat`` before it is opened (opening a device can have side
+    effects: a serial port raises DTR), opened ``O_NONBLOCK`` (a FIFO swapped in
+    meanwhile does not wait for a writer), checked again with ``fstat`` on the
+    open descriptor, and read to at most ``max_bytes`` (a file that grows while it
+    is read is refused too).
+    """
+    p = os.fspath(path)
+    if "\0" in p:
+        raise FileRefused("the path contains a NUL byte")
+    try:
+        st = os.stat(p)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileRefused(f"{_kind(st.st_mode)}, not a regular file")
+        flags = os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
+        fd = os.open(p, flags)
+    except FileNotFoundError:
+        raise FileMissing("does not exist") from None
+    except OSError as e:
+        raise FileRefused(f"cannot read: {e.strerror or e}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileRefused(f"{_kind(st.st_mode)}, not a regular file")
+        if st.st_size > max_bytes:
+            raise FileRefused(f"{st.st_size} bytes, over the {max_bytes}-byte limit")
+        chunks: list[bytes] = []
+        total = 0
+        while True:
+            chunk = os.read(fd, min(1 << 16, max_bytes + 1 - total))
+            if not chunk:
+                return b"".join(chunks)
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > max_bytes:
+                raise FileRefused(f"over the {max_bytes}-byte limit (it grew while read)")
+    except OSError as e:
+        raise FileRefused(f"cannot read: {e.strerror or e}") from None
+    finally:
+        os.close(fd)
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,18 +169,38 @@ class StateStore:
 
     def _path(self, name: str) -> Path:
         if not name.isidentifier():
-            raise ValueError(f"bad document name {name!r}")
+            raise DocumentError(f"bad document name {name!r}")
         return self.directory / f"{name}.json"
 
     def save(self, name: str, payload: dict[str, Any], version: int = 1) -> None:
         """Atomically replace document ``name``, keeping the previous good copy.
 
-        Raises :class:`StorageError` on any OS error (read-only, full, missing dir);
-        the files on disk are then unchanged or still loadable.
+        Raises :class:`StorageError` for every failure, so a caller that catches
+        it cannot be killed by another exception type: an OS error (read-only,
+        full, missing dir) or a path the OS refuses (a NUL byte in the directory);
+        :class:`DocumentError` (also a ValueError) for a payload that cannot be
+        stored (NaN, not JSON-able) before anything is written. The files on disk
+        are then unchanged or still loadable.
         """
         path = self._path(name)
-        # Canonical text so the digest does not depend on dict order.
-        payload_text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        try:
+            # Canonical text so the digest does not depend on dict order.
+            payload_text = json.dumps(
+                payload, sort_keys=True, separators=(",", ":"), allow_nan=False
+            )
+        except (TypeError, ValueError, RecursionError) as exc:
+            raise DocumentError(f"cannot save {name}: {exc}") from exc
+        try:
+            self._write(name, path, payload_text, version)
+        except OSError as exc:
+            raise StorageError(
+                f"cannot save {name} in {self.directory}: {exc.strerror or exc}"
+            ) from exc
+        except Exception as exc:  # e.g. ValueError("embedded null byte") from the OS layer
+            where = repr(str(self.directory))  # repr: the path may hold the NUL at fault
+            raise StorageError(f"cannot save {name} in {where}: {exc}") from exc
+
+    def _write(self, name: str, path: Path, payload_text: str, version: int) -> None:
         envelope = {
             "schema": SCHEMA_PREFIX + name,
             "version": version,
@@ -132,22 +232,21 @@ class StateStore:
                 os.replace(prev_tmp, prev)
             os.replace(tmp, path)
             _fsync_dir(self.directory)
-        except OSError as exc:
-            with contextlib.suppress(OSError):
+        except BaseException:
+            with contextlib.suppress(OSError, ValueError):
                 tmp.unlink()
-            raise StorageError(
-                f"cannot save {name} in {self.directory}: {exc.strerror or exc}"
-            ) from exc
+            raise
 
     def _verify_file(
         self, path: Path, name: str
     ) -> tuple[dict[str, Any] | None, str, float | None]:
         try:
-            raw = path.read_bytes()
-        except FileNotFoundError:
+            # Bounded, never blocks: a FIFO or device planted here must not hang the start.
+            raw = read_regular_file(path, MAX_DOCUMENT_BYTES)
+        except FileMissing:
             return None, f"{path.name}: missing", None
-        except OSError as exc:
-            return None, f"{path.name}: unreadable ({exc.strerror})", None
+        except FileRefused as exc:
+            return None, f"{path.name}: unreadable ({exc})", None
         try:
             env = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError):
