@@ -5,6 +5,7 @@ Subcommands::
     compass-bridge run --config FILE [--set SECTION.KEY=VALUE ...] [--console]
     compass-bridge run --simulate                  # built-in simulated compass, live console line
     compass-bridge config [--config FILE] [--set ...]   # validate, print the effective config
+    compass-bridge config --docs                   # the configuration reference (Markdown)
     compass-bridge simulate --link PATH [--seed N] # serve a simulated compass on a pty
     compass-bridge record --port DEV --out FILE [--duration S]  # raw byte stream, live line
     compass-bridge calibrate --recording FILE [--method NAME] [--plot FILE.png]
@@ -125,6 +126,11 @@ def build_parser() -> argparse.ArgumentParser:
         "config", parents=[common], help="validate a configuration and print the effective one"
     )
     _config_options(cfg)
+    cfg.add_argument(
+        "--docs",
+        action="store_true",
+        help="print the configuration reference (docs/configuration.md) instead, as Markdown",
+    )
     cfg.set_defaults(func=cmd_config)
 
     sim = sub.add_parser(
@@ -374,7 +380,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """``config``: validate and print the effective configuration as TOML."""
+    """``config``: validate and print the effective configuration as TOML (or the reference)."""
+    if args.docs:
+        from bridge.config import reference_markdown
+
+        sys.stdout.write(reference_markdown())
+        return EXIT_OK
     cfg = load_config(args.config, args.overrides)
     sys.stdout.write(to_toml(cfg))
     return EXIT_OK
