@@ -66,6 +66,13 @@ SEQ_MODULUS = 65536
 #: A forward seq gap this large cannot be frame loss on a link that would have gone stale
 #: long before (at 100 Hz it is 5.5 minutes): count it as a discontinuity instead.
 _MAX_PLAUSIBLE_GAP = SEQ_MODULUS // 2
+#: ``seq`` 0 after a frame at most this many frames before the wrap is frame loss across
+#: the wrap (65534, [65535 lost], 0), not a reboot. A reboot restarts at 0 "from far
+#: away"; one in the last 64 frames of a 65536-frame cycle (0.1 % of them) whose
+#: ``$PGMRV`` was lost as well reads as loss -- its ``$PGMRV`` is what normally tells.
+#: 64 frames: 0.64 s at 100 Hz, longer than any loss that keeps a 100 Hz link streaming
+#: within the default stale_after.
+_WRAP_LOSS_WINDOW = 64
 
 #: Datasheet answer deadlines that differ from the 200 ms default, by command key.
 COMMAND_DEADLINES_S: Mapping[str, float] = {"MAGCAL,END": 0.5, "PAR,SET": 0.5, "ACCCAL": 1.5}
@@ -137,7 +144,7 @@ class LinkCounters:
     reconnects: int = 0  #: successful opens after the first
     open_failures: int = 0
     stale_events: int = 0
-    device_resets: int = 0  #: unasked $PGMRV, or seq restarting at 0
+    device_resets: int = 0  #: unasked $PGMRV, or seq restarting at 0 (not just past the wrap)
     consumer_drops: int = 0  #: oldest frames dropped because the consumer lagged
     callback_errors: int = 0
     commands_sent: int = 0  #: attempts written, retries included
@@ -706,11 +713,13 @@ class CompassLink:
         expected = (last + 1) % SEQ_MODULUS
         if seq == expected:
             return
-        if seq == 0:
+        gap = (seq - expected) % SEQ_MODULUS
+        if seq == 0 and gap >= _WRAP_LOSS_WINDOW:
+            # The datasheet's RESET restarts the counter at 0 (its $PGMRV, which normally
+            # announces it, may have been lost on the line).
             self._device_reset("seq restarted at 0")
             self._restart_expected = False
             return
-        gap = (seq - expected) % SEQ_MODULUS
         if gap < _MAX_PLAUSIBLE_GAP:
             self._count("lost_frames", gap)
         else:
