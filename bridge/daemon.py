@@ -33,7 +33,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, TextIO
 
-from bridge import speedups
 from bridge.calibration.model import Calibration
 from bridge.calibrator import CalibrationController, CalibratorSettings
 from bridge.config import Config
@@ -476,12 +475,11 @@ class Daemon:
         self.calibrator.start()
         self.link.start()
         log.info(
-            "bridge started: %s (%s), calibration %s, outputs %s, per-frame path in %s",
+            "bridge started: %s (%s), calibration %s, outputs %s",
             self.link.name,
             self.cfg.device.protocol,
             self.calibration_source,
             ", ".join(o.name for o in self.outputs) or "none",
-            "C (bridge._speedups)" if speedups.IMPLEMENTATION == "c" else "pure Python",
         )
         return self
 

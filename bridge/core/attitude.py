@@ -37,10 +37,9 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import numpy.typing as npt
 
-from bridge import speedups
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
-from bridge.core.geometry import FloatArray, dcm_to_euler
+from bridge.core.geometry import FloatArray, dcm_to_euler, euler_to_quaternion, wrap_degrees_360
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
 from bridge.core.wmm import EarthField, earth_field
@@ -54,8 +53,6 @@ Quat = tuple[float, float, float, float]
 
 _TWO_PI = 2.0 * math.pi
 _DEG = 180.0 / math.pi
-# The compiled attitude arithmetic (None without bridge._speedups; see solve_counts).
-_c_solve = speedups.solve
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,16 +159,6 @@ class _State:
     publish_true: bool
     sin_degraded: float  # |sin(pitch)| above which the solution is degraded
     database: FieldDatabase | None
-    #: The same numbers flat for the compiled solve (mo, mm, ao, am, sin_degraded,
-    #: declination_deg, publish_true: bridge/_speedups.c), None when it is not in use.
-    consts: tuple[float | bool | None, ...] | None = None
-
-
-def _fold_360(a: float) -> float:
-    a = math.fmod(a, 360.0)
-    if a < 0.0:
-        a += 360.0
-    return 0.0 if a >= 360.0 else a
 
 
 def _sensor_chain(
@@ -241,9 +228,6 @@ class AttitudeEngine:
         declination_deg = ref.declination_deg if ref else None
         publish_true = self._heading_reference == "true"
         sin_degraded = math.sin(math.radians(self._limits.degraded_pitch_deg))
-        consts = None
-        if _c_solve is not None and self._database is None:
-            consts = (*mo, *mm, *ao, *am, sin_degraded, declination_deg, publish_true)
         return _State(
             mo=mo,
             mm=mm,
@@ -255,7 +239,6 @@ class AttitudeEngine:
             publish_true=publish_true,
             sin_degraded=sin_degraded,
             database=self._database,
-            consts=consts,
         )
 
     @property
@@ -345,22 +328,6 @@ class AttitudeEngine:
         Raises ``ValueError`` on non-finite input (the quality state is left untouched).
         """
         s = self._state  # one read: a concurrent update cannot mix two configurations
-        if s.consts is not None and _c_solve is not None:
-            # The compiled twin of the Python below (_finish and _assemble's arithmetic):
-            # bit-identical results, tests/test_speedups.py. The quality flags stay here.
-            r = _c_solve(s.consts, mx, my, mz, ax, ay, az)
-            if r is None:
-                raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
-            # r: AttitudeSolution's fields up to `degraded`, in order, then |g|.
-            bn, dip, gn = r[10], r[11], r[13]
-            disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
-            return AttitudeSolution(*r[:13], disturbed, accelerating)
-        return self._solve_python(s, mx, my, mz, ax, ay, az)
-
-    def _solve_python(
-        self, s: _State, mx: float, my: float, mz: float, ax: float, ay: float, az: float
-    ) -> AttitudeSolution:
-        """:meth:`solve_counts` in Python: the reference, and the path without bridge._speedups."""
         dx, dy, dz = mx - s.mo[0], my - s.mo[1], mz - s.mo[2]
         m = s.mm
         hx = m[0] * dx + m[1] * dy + m[2] * dz
@@ -427,13 +394,7 @@ class AttitudeEngine:
         horizontal_min = 0.02 * bn
         if bn == 0.0 or (xh * xh + yh * yh) < horizontal_min * horizontal_min:
             degraded = True  # field (nearly) along the vertical: heading undefined
-        # _fold_360 written out (per frame: a call costs more than the arithmetic). atan2
-        # is in [-180, 180]: one wrap, then the rounding guard (-1e-15 + 360 == 360.0).
-        heading_mag = math.atan2(-yh, xh) * _DEG
-        if heading_mag < 0.0:
-            heading_mag += 360.0
-            if heading_mag >= 360.0:
-                heading_mag = 0.0
+        heading_mag = wrap_degrees_360(math.atan2(-yh, xh) * _DEG)
         return self._assemble(
             s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
         )
@@ -456,18 +417,7 @@ class AttitudeEngine:
         degraded: bool,
     ) -> AttitudeSolution:
         decl = s.declination_deg
-        heading_true: float | None = None
-        if decl is not None:
-            # _fold_360's common case written out: heading in [0, 360) plus a declination
-            # in [-180, 180] needs one wrap (exact in binary: Sterbenz). The rest (a
-            # rounded 360.0, an odd declination) goes through _fold_360 itself.
-            heading_true = heading_mag + decl
-            if heading_true >= 360.0:
-                heading_true -= 360.0
-            elif heading_true < 0.0:
-                heading_true += 360.0
-            if not 0.0 <= heading_true < 360.0:
-                heading_true = _fold_360(heading_true)
+        heading_true = wrap_degrees_360(heading_mag + decl) if decl is not None else None
         if s.publish_true and heading_true is not None:
             published, label = heading_true, "true"
         else:
@@ -475,17 +425,6 @@ class AttitudeEngine:
         yaw = math.radians(published)
         if yaw > math.pi:
             yaw -= _TWO_PI
-        # quaternion body->NED from ZYX Euler half angles
-        hr, hp, hyw = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
-        cr2, sr2 = math.cos(hr), math.sin(hr)
-        cp2, sp2 = math.cos(hp), math.sin(hp)
-        cy2, sy2 = math.cos(hyw), math.sin(hyw)
-        qw = cr2 * cp2 * cy2 + sr2 * sp2 * sy2
-        qx = sr2 * cp2 * cy2 - cr2 * sp2 * sy2
-        qy = cr2 * sp2 * cy2 + sr2 * cp2 * sy2
-        qz = cr2 * cp2 * sy2 - sr2 * sp2 * cy2
-        if qw < 0.0:
-            qw, qx, qy, qz = -qw, -qx, -qy, -qz
         disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
         return AttitudeSolution(
             roll,
@@ -495,7 +434,7 @@ class AttitudeEngine:
             heading_true,
             decl,
             label,  # type: ignore[arg-type]
-            (qw, qx, qy, qz),
+            euler_to_quaternion(roll, pitch, yaw),
             (hx, hy, hz),
             (gx, gy, gz),
             bn,
@@ -518,7 +457,7 @@ class AttitudeEngine:
         down = float(R[2, 0] * hx + R[2, 1] * hy + R[2, 2] * hz)
         dip = math.degrees(math.asin(max(-1.0, min(1.0, down / bn)))) if bn > 0.0 else 0.0
         degraded = (not match.ok) or abs(math.sin(pitch)) > s.sin_degraded
-        heading_mag = _fold_360(math.degrees(yaw))
+        heading_mag = wrap_degrees_360(math.degrees(yaw))
         return self._assemble(
             s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
         )

@@ -44,7 +44,6 @@ from dataclasses import dataclass
 from enum import IntFlag, StrEnum
 from typing import Literal, TypeAlias
 
-from bridge import speedups
 from bridge.protocol.framing import (
     INT_RE,
     MAX_BODY_BYTES,
@@ -52,7 +51,6 @@ from bridge.protocol.framing import (
     DecodeError,
     DropReason,
     LineSplitter,
-    _State,
     check_int,
     check_real,
     check_token,
@@ -675,141 +673,7 @@ def decode_body(body: str, direction: Direction = "host") -> GmrFrame:
     return parser(fields)
 
 
-# --------------------------------------------------------------------------- $PGMRA fast path
-# Why: at 100 Hz the per-frame decode runs "cold" (caches flushed between frames), so its
-# cost is simply the amount of code it runs. The general path (LineSplitter state machine ->
-# decode_body -> parse_int/parse_decimal per field -> AttitudeFrame.__post_init__ checking
-# every field again) runs a lot of it for what is nearly always one valid $PGMRA line per
-# read. The fast path handles that case and nothing else: a chunk of whole $PGMRA lines (no
-# partial line buffered, none left over) in the shape below, every one valid. For any other
-# chunk -- a partial line, another sentence, an unusual or invalid field, a bad checksum --
-# it gives up and the general path decodes the whole chunk, so drop reasons, counters and
-# last_error always come from the general path. tests/test_protocol_fastpath.py checks the
-# two paths give identical frames and counters for valid and mutated input.
-
-# One $PGMRA line in the datasheet's shape: fields as wide as the datasheet's ranges need
-# (seq up to 5 digits, ADC counts up to 4, angles with exactly one decimal -- "angles have one
-# decimal" -- and a minus only on the signed ones), flags as two upper-case hex digits with
-# bits 5-7 clear (first digit 0 or 1), the checksum as "two upper-case hex digits", CRLF or
-# bare LF. Leading zeros pass: the general path accepts them too and both read the same
-# number. What the widths do not bound (seq <= 65535, ADC <= 4095, heading < 360 except the
-# tolerated 360.0, pitch and roll limits) is checked in _decode_attitude_lines: spelling the
-# ranges out as regex alternations measured slower. The longest body this accepts is 63
-# bytes, well within MAX_BODY_BYTES, so no too_long case can differ between the paths.
-_ATTITUDE_LINE = re.compile(
-    rb"\$(PGMRA"  # group 1: the body, for the checksum
-    rb",([0-9]{1,5})"  # seq
-    rb",([0-9]{1,3}\.[0-9])"  # heading
-    rb",(-?[0-9]{1,2}\.[0-9])"  # pitch
-    rb",(-?[0-9]{1,3}\.[0-9])"  # roll
-    + (rb",([0-9]{1,4})" * 6)  # mx my mz ax ay az
-    + rb",([01][0-9A-F]))"  # flags
-    rb"\*([0-9A-F]{2})\r?\n"
-)
-# LineSplitter states, read and set by GmrDecoder.feed around the fast path.
-_LINE = _State.LINE
-_IDLE = _State.IDLE
-
-# flags value -> the Flags the general path builds (Flags(i) is cached by the enum anyway;
-# a tuple index is cheaper than the enum call).
-_FLAGS_BY_VALUE: tuple[Flags, ...] = tuple(Flags(i) for i in range(FLAGS_MASK + 1))
-
-
-class _AttitudeSlots:
-    """Same slots, same layout as :class:`AttitudeFrame`, but no frozen ``__setattr__``.
-
-    The fast path fills one of these with plain attribute stores (measured cheaper, hot
-    and cold, than object.__setattr__ or the slot descriptors on the frozen class) and
-    then turns it into an AttitudeFrame by assigning ``__class__``;
-    Python only allows that between classes of identical layout (TypeError otherwise,
-    so a change to AttitudeFrame cannot go unnoticed). This skips __post_init__, whose
-    checks the fast path has already made (the same ones, inline).
-    """
-
-    __slots__ = AttitudeFrame.__slots__
-    seq: int
-    heading: float
-    pitch: float
-    roll: float
-    mx: int
-    my: int
-    mz: int
-    ax: int
-    ay: int
-    az: int
-    flags: Flags
-
-
-def _decode_attitude_lines(data: bytes) -> list[GmrFrame] | None:
-    """Frames for ``data`` if it is nothing but valid ``$PGMRA`` lines of the fast shape, else None.
-
-    None means "not the fast case": the caller then feeds the whole chunk to the
-    general path, which decides (and counts) what is wrong with it.
-    """
-    frames: list[GmrFrame] = []
-    pos = 0
-    end = len(data)
-    while pos < end:
-        m = _ATTITUDE_LINE.match(data, pos)
-        if m is None:
-            return None
-        body, s_seq, s_hdg, s_pitch, s_roll, s_mx, s_my, s_mz, s_ax, s_ay, s_az, s_flags, cs = (
-            m.groups()
-        )
-        # Checksum: the received value XORed with every body byte must cancel to 0. A plain
-        # loop: an int.from_bytes XOR-fold is faster hot but slower cold (more distinct code).
-        x = int(cs, 16)
-        for b in body:
-            x ^= b
-        seq = int(s_seq)
-        heading = float(s_hdg)
-        # "+ 0.0": "-0.0" -> 0.0, as check_real does.
-        pitch = float(s_pitch) + 0.0
-        roll = float(s_roll) + 0.0
-        mx = int(s_mx)
-        my = int(s_my)
-        mz = int(s_mz)
-        ax = int(s_ax)
-        ay = int(s_ay)
-        az = int(s_az)
-        if heading >= 360.0:
-            if heading != 360.0:
-                return None
-            heading = 0.0  # tolerated rounding artefact, as in _decode_attitude
-        # The regex admits only non-negative ADC counts: all six fit in 12 bits (<= 4095)
-        # exactly when their bitwise OR does.
-        if not (
-            x == 0
-            and seq <= SEQ_MAX
-            and -90.0 <= pitch <= 90.0
-            and -180.0 <= roll <= 180.0
-            and (mx | my | mz | ax | ay | az) <= 0xFFF
-        ):
-            return None
-        frame = _AttitudeSlots()
-        frame.seq = seq
-        frame.heading = heading
-        frame.pitch = pitch
-        frame.roll = roll
-        frame.mx = mx
-        frame.my = my
-        frame.mz = mz
-        frame.ax = ax
-        frame.ay = ay
-        frame.az = az
-        frame.flags = _FLAGS_BY_VALUE[int(s_flags, 16)]
-        frame.__class__ = AttitudeFrame  # type: ignore[assignment]
-        frames.append(frame)  # type: ignore[arg-type]
-        pos = m.end()
-    return frames
-
-
-# The compiled twin of _decode_attitude_lines when bridge._speedups is built (same frames,
-# same None cases: tests/test_speedups.py), else the function above.
-_decode_fast: Callable[[bytes], list[GmrFrame] | None] = _decode_attitude_lines
-if speedups.bind_attitude_frame is not None and speedups.decode_attitude_lines is not None:
-    speedups.bind_attitude_frame(_AttitudeSlots, AttitudeFrame, _FLAGS_BY_VALUE, SEQ_MAX)
-    _decode_fast = speedups.decode_attitude_lines
+# --------------------------------------------------------------------------- decoder
 
 
 class GmrDecoder:
@@ -820,15 +684,12 @@ class GmrDecoder:
     ``$PGMRQ`` only. Anything else is ``unknown_id``.
     """
 
-    __slots__ = ("_direction", "_fast", "_splitter", "counters", "last_error")
+    __slots__ = ("_direction", "_splitter", "counters", "last_error")
 
-    def __init__(self, direction: Direction = "host", *, _fast_path: bool = True) -> None:
-        # ``_fast_path=False`` (tests only) forces the general path for every chunk, so the
-        # fast path can be checked against it.
+    def __init__(self, direction: Direction = "host") -> None:
         if direction not in ("host", "device"):
             raise ValueError(f"direction must be 'host' or 'device', got {direction!r}")
         self._direction: Direction = direction
-        self._fast = _fast_path and direction == "host"  # the device never receives $PGMRA
         self.counters = CodecCounters()
         self._splitter = LineSplitter(self.counters.dropped)
         #: The last sentence-level rejection (for logs), None until one happens.
@@ -845,20 +706,6 @@ class GmrDecoder:
 
     def feed(self, data: bytes) -> list[GmrFrame]:
         """Consume a chunk of bytes; return the frames it completed, in order."""
-        splitter = self._splitter
-        # Fast path (see _decode_attitude_lines): only when no partial line is buffered, so
-        # the chunk's lines are whole. In SKIP (after noise) the general path would resync
-        # on the chunk's leading "$" exactly as from IDLE, so both states qualify.
-        if self._fast and splitter._state != _LINE:
-            fast = _decode_fast(data)
-            if fast:  # None: not the fast case; []: empty chunk, nothing to shortcut
-                # What the general path leaves behind for whole, valid lines: the
-                # splitter between lines, no drops, bytes and frames counted.
-                splitter._state = _IDLE
-                counters = self.counters
-                counters.bytes_in += len(data)
-                counters.frames += len(fast)
-                return fast
         self.counters.bytes_in += len(data)
         frames: list[GmrFrame] = []
         for body in self._splitter.feed(data):
