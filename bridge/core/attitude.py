@@ -20,7 +20,7 @@ Near +-90 deg pitch roll is undefined (gravity lies along x); the outputs stay
 finite (roll falls to whatever the tiny y/z components give, heading stays
 consistent with it) and the solution is flagged ``degraded``.
 
-:meth:`AttitudeEngine.solve_counts` is the daemon's fast path: the whole chain
+:meth:`AttitudeEngine.solve_counts` is the daemon's per-frame path: the whole chain
 is folded into two 3x3 matrices and two count offsets, evaluated with plain
 floats and ``math`` (numpy on 3-vectors costs more than the arithmetic).
 Configuration changes swap one immutable state object, so a reader thread can
@@ -32,20 +32,17 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
-from bridge.core.geometry import FloatArray, dcm_to_euler, euler_to_quaternion, wrap_degrees_360
+from bridge.core.geometry import FloatArray, euler_to_quaternion, wrap_degrees_360
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
 from bridge.core.wmm import EarthField, earth_field
-
-if TYPE_CHECKING:
-    from bridge.calibration.field_database import FieldDatabase
 
 HeadingReference = Literal["magnetic", "true"]
 Vec3 = tuple[float, float, float]
@@ -158,7 +155,6 @@ class _State:
     dip_deg: float | None
     publish_true: bool
     sin_degraded: float  # |sin(pitch)| above which the solution is degraded
-    database: FieldDatabase | None
 
 
 def _sensor_chain(
@@ -177,9 +173,6 @@ class AttitudeEngine:
     with :meth:`update_reference` or :meth:`update_position`. With
     ``heading_reference="true"`` but no declination known yet the magnetic
     heading is published and *labelled* magnetic in the solution.
-    ``attitude_source="field_database"`` takes the attitude from a
-    :class:`~bridge.calibration.field_database.FieldDatabase` (magnetometer
-    only) for bodies whose accelerometer is unusable.
     """
 
     def __init__(
@@ -189,8 +182,6 @@ class AttitudeEngine:
         reference: FieldReference | None = None,
         heading_reference: HeadingReference = "magnetic",
         limits: QualityLimits | None = None,
-        *,
-        field_database: FieldDatabase | None = None,
     ) -> None:
         if heading_reference not in ("magnetic", "true"):
             raise ValueError(
@@ -201,7 +192,6 @@ class AttitudeEngine:
         self._reference = reference
         self._heading_reference: HeadingReference = heading_reference
         self._limits = limits if limits is not None else QualityLimits()
-        self._database = field_database
         self._quality = QualityMonitor(self._limits)
         self._state = self._build()
 
@@ -238,7 +228,6 @@ class AttitudeEngine:
             dip_deg=ref.dip_deg if ref else None,
             publish_true=publish_true,
             sin_degraded=sin_degraded,
-            database=self._database,
         )
 
     @property
@@ -313,11 +302,6 @@ class AttitudeEngine:
         self._heading_reference = heading_reference
         self._state = self._build()
 
-    def set_field_database(self, database: FieldDatabase | None) -> None:
-        """Use a field database as the attitude source (``None``: back to the accelerometer)."""
-        self._database = database
-        self._state = self._build()
-
     # -- the fast path -------------------------------------------------------------
 
     def solve_counts(
@@ -341,8 +325,6 @@ class AttitudeEngine:
         if not math.isfinite(hx + hy + hz + gx + gy + gz):
             # The codec only passes 0..4095 integers; anything else is a caller bug.
             raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
-        if s.database is not None:
-            return self._solve_database(s, hx, hy, hz, gx, gy, gz)
         return self._finish(s, hx, hy, hz, gx, gy, gz)
 
     def solve_vectors(self, mag_G: npt.ArrayLike, accel_g: npt.ArrayLike) -> AttitudeSolution:
@@ -395,27 +377,6 @@ class AttitudeEngine:
         if bn == 0.0 or (xh * xh + yh * yh) < horizontal_min * horizontal_min:
             degraded = True  # field (nearly) along the vertical: heading undefined
         heading_mag = wrap_degrees_360(math.atan2(-yh, xh) * _DEG)
-        return self._assemble(
-            s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
-        )
-
-    def _assemble(
-        self,
-        s: _State,
-        roll: float,
-        pitch: float,
-        heading_mag: float,
-        hx: float,
-        hy: float,
-        hz: float,
-        gx: float,
-        gy: float,
-        gz: float,
-        gn: float,
-        bn: float,
-        dip: float,
-        degraded: bool,
-    ) -> AttitudeSolution:
         decl = s.declination_deg
         heading_true = wrap_degrees_360(heading_mag + decl) if decl is not None else None
         if s.publish_true and heading_true is not None:
@@ -442,24 +403,6 @@ class AttitudeEngine:
             degraded,
             disturbed,
             accelerating,
-        )
-
-    def _solve_database(
-        self, s: _State, hx: float, hy: float, hz: float, gx: float, gy: float, gz: float
-    ) -> AttitudeSolution:
-        """Attitude from the magnetometer alone (accelerometer ignored for attitude)."""
-        assert s.database is not None
-        R, match = s.database.attitude_from_field((hx, hy, hz))
-        roll, pitch, yaw = dcm_to_euler(R)
-        bn = math.sqrt(hx * hx + hy * hy + hz * hz)
-        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
-        # Dip from the database attitude: the field's down component in NED.
-        down = float(R[2, 0] * hx + R[2, 1] * hy + R[2, 2] * hz)
-        dip = math.degrees(math.asin(max(-1.0, min(1.0, down / bn)))) if bn > 0.0 else 0.0
-        degraded = (not match.ok) or abs(math.sin(pitch)) > s.sin_degraded
-        heading_mag = wrap_degrees_360(math.degrees(yaw))
-        return self._assemble(
-            s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
         )
 
 
