@@ -15,6 +15,7 @@ Subcommands::
     compass-bridge status [KEYEXPR] [--json]       # one-shot health of running bridges (Zenoh)
     compass-bridge bench accuracy [...]            # accuracy benchmark
     compass-bridge bench pipeline [...]            # speed and footprint benchmark
+    compass-bridge bench fuzz [--chunks N --messages M]  # hostile input against the daemon
     compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
 
 Long operations (record, calibrate, bench) draw a progress bar or spinner with
@@ -196,6 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
     )
     pipe.set_defaults(func=cmd_bench_pipeline, passthrough=True)
+    fuzz = bench_sub.add_parser(
+        "fuzz",
+        add_help=False,
+        help="hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
+    )
+    fuzz.set_defaults(func=cmd_bench_fuzz, passthrough=True)
     _tools_parsers(sub, common)
 
     mon = sub.add_parser(
@@ -435,6 +442,13 @@ def cmd_bench_pipeline(args: argparse.Namespace) -> int:
     from bridge.bench.pipeline import main as pipeline_main
 
     return int(pipeline_main(args.rest) or 0)
+
+
+def cmd_bench_fuzz(args: argparse.Namespace) -> int:
+    """``bench fuzz``: hand over to the benchmark's own command line."""
+    from bridge.bench.fuzz import main as fuzz_main
+
+    return int(fuzz_main(args.rest) or 0)
 
 
 def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
