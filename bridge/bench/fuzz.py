@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hashlib
-import json
 import logging
 import math
 import os
@@ -50,7 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bridge.bench.pipeline import Figure, _proc_rss_mb, format_figures
+from bridge.bench.pipeline import Figure, _proc_rss_mb, report
 
 log = logging.getLogger(__name__)
 
@@ -684,16 +683,7 @@ def main(argv: list[str] | None = None) -> int:
             max_growth_mb=args.max_growth_mb,
             step=lambda f, n: bar.update(f, note=n),
         )
-    ok = all(f.passed is not False for f in figures)
-    doc = {"figures": [f.to_dict() for f in figures], "passed": ok}
-    if args.json == "-":
-        print(json.dumps(doc, indent=2))
-    else:
-        print(format_figures(figures))
-        print(f"overall: {'PASS' if ok else 'FAIL'}")
-        if args.json:
-            Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
-    return 0 if ok else 1
+    return report(figures, args.json)
 
 
 if __name__ == "__main__":
