@@ -39,7 +39,12 @@ import numpy.typing as npt
 
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
-from bridge.core.geometry import FloatArray, euler_to_quaternion, wrap_degrees_360
+from bridge.core.geometry import (
+    FloatArray,
+    euler_to_quaternion,
+    wrap_degrees_360,
+    wrap_radians_pi,
+)
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
 from bridge.core.wmm import EarthField, earth_field
@@ -48,7 +53,6 @@ HeadingReference = Literal["magnetic", "true"]
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
-_TWO_PI = 2.0 * math.pi
 _DEG = 180.0 / math.pi
 
 
@@ -383,9 +387,7 @@ class AttitudeEngine:
             published, label = heading_true, "true"
         else:
             published, label = heading_mag, "magnetic"
-        yaw = math.radians(published)
-        if yaw > math.pi:
-            yaw -= _TWO_PI
+        yaw = wrap_radians_pi(math.radians(published))
         disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
         return AttitudeSolution(
             roll,

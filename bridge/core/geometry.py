@@ -199,6 +199,21 @@ def wrap_degrees_360(angle_deg: float) -> float:
     return 0.0 if a >= 360.0 else a
 
 
+def wrap_radians_pi(angle_rad: float) -> float:
+    """Fold an angle into (-pi, pi] radians (a yaw as MAVLink ATTITUDE carries it).
+
+    Angles already in range come back unchanged, bit for bit.
+    """
+    if -math.pi < angle_rad <= math.pi:
+        return angle_rad
+    a = math.fmod(angle_rad, 2.0 * math.pi)  # exact; in (-2 pi, 2 pi)
+    if a > math.pi:
+        a -= 2.0 * math.pi
+    elif a <= -math.pi:
+        a += 2.0 * math.pi
+    return a
+
+
 def wrap_degrees_180(angle_deg: float) -> float:
     """Fold an angle into [-180, 180)."""
     return wrap_degrees_360(angle_deg + 180.0) - 180.0

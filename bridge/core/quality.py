@@ -88,6 +88,17 @@ def accel_out_of_limits(accel_norm_g: float, limits: QualityLimits) -> bool:
     return not (abs(accel_norm_g - 1.0) <= limits.accel_tolerance_g)
 
 
+def heading_usable(saturated: bool, disturbed: bool) -> bool:
+    """Whether a heading can be trusted: no raw channel at an ADC rail, the field not disturbed.
+
+    The one judgement behind "healthy" wherever a heading is offered or reported
+    (the autopilot feed, the magnetometer health bit, a bridge's status): with a
+    channel clipped or a magnet nearby the heading is wrong by an unknown amount.
+    Acceleration and the gimbal zone only make it less precise (a larger sigma).
+    """
+    return not saturated and not disturbed
+
+
 class Debounce:
     """A boolean flag that rises after N consecutive ``True`` inputs and clears after M ``False``."""
 
