@@ -6,7 +6,9 @@ codec's documented readings, independently of :mod:`bridge.protocol`: a line is
 bytes, with a right ``*HH`` checksum and eleven fields in range. Every test feeds
 :class:`GmrDecoder` and compares what is observable -- the frames (values *and*
 field types), the bytes/frames counters, drops by reason, ``last_error`` -- with
-the oracle and with the same stream decoded in one piece ("offline").
+the oracle and with the same stream decoded in one piece ("offline"), or a byte at a
+time (then every line goes through the splitter, not the one-match route for the
+whole lines a read opens with).
 
 The property tests at the end are issue 15's fuzzing in the fast suite: random,
 truncated and corrupted chunks with valid frames mixed in give no false frame,
@@ -19,13 +21,14 @@ import functools
 import operator
 import re
 from dataclasses import fields
+from unittest.mock import patch
 
 import codec_props as props
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.protocol.framing import DecodeError, DropReason
+from bridge.protocol.framing import DecodeError, DropReason, LineSplitter
 from bridge.protocol.gmr import AttitudeFrame, Flags, GmrDecoder, GmrFrame, encode, encode_body
 
 EXAMPLES = settings(max_examples=250, deadline=None)
@@ -288,6 +291,48 @@ def test_valid_but_unusual_input_decodes(chunk: bytes) -> None:
     out = dec.feed(chunk)
     assert out and dec.counters.dropped.total == 0
     assert attitudes([f for f in out if isinstance(f, AttitudeFrame)]) == reference_frames(chunk)
+
+
+def _bytewise(chunk: bytes) -> tuple[object, ...]:
+    dec = GmrDecoder()
+    out = [f for i in range(len(chunk)) for f in dec.feed(chunk[i : i + 1])]
+    return observable(dec, out)
+
+
+def test_whole_lines_and_the_byte_by_byte_splitter_agree_on_every_edge() -> None:
+    """A read that opens with whole $PGMRA lines takes them with one match each; fed a byte
+    at a time, the same bytes go through the splitter. Both must give the same everything."""
+    template = DATASHEET_PGMRA[1:-5].decode().split(",")
+    chunks = [DATASHEET_PGMRA * 2, DATASHEET_PGMRA[:-2] + b"\n", b"$PGMRA,1*00\r\n"]
+    for i, tokens in enumerate(TOKENS):
+        for token in tokens:
+            parts = list(template)
+            parts[i + 1] = token
+            chunks.append(line(",".join(parts)) + DATASHEET_PGMRA)
+            chunks.append(DATASHEET_PGMRA + line(",".join(parts)))
+    chunks.append(DATASHEET_PGMRA.replace(b"*50", b"*51") + DATASHEET_PGMRA)
+    chunks.append(line("PGMRA," + ",".join(["0" * 12] * 11)))  # over 90 bytes: too long
+    for chunk in chunks:
+        dec = GmrDecoder()
+        assert observable(dec, dec.feed(chunk)) == _bytewise(chunk), chunk
+
+
+def test_a_read_of_whole_lines_skips_the_splitter_and_damage_does_not() -> None:
+    calls: list[bytes] = []
+    real = LineSplitter.feed
+
+    def spy(self: LineSplitter, data: bytes) -> list[str]:
+        calls.append(data)
+        return real(self, data)
+
+    dec = GmrDecoder()
+    with patch.object(LineSplitter, "feed", spy):
+        assert len(dec.feed(DATASHEET_PGMRA * 3)) == 3
+        assert calls == []
+        bad = DATASHEET_PGMRA.replace(b"*50", b"*51")
+        assert len(dec.feed(DATASHEET_PGMRA + bad + DATASHEET_PGMRA)) == 2
+    assert calls == [bad + DATASHEET_PGMRA]  # from the first line that needs it
+    assert dec.counters.dropped["checksum"] == 1 and dec.counters.frames == 5
 
 
 # --------------------------------------------------------------------------- damaged input

@@ -13,6 +13,13 @@ built can be encoded, and ``decode(encode(f)) == f`` for every frame whose numbe
 already sit on the datasheet's grid. The datasheet readings taken (tolerated
 ``360.0``, plain decimals, lower-case hex, ranges) are listed in
 :mod:`bridge.protocol.gmr_frames`.
+
+Decoding a read: whole ``$PGMRA`` lines at its start (what nearly every read holds at
+100 Hz) are matched with one pattern -- the framing and the same field rules the body
+decoder uses -- and built through the same code; everything else goes through the
+byte-by-byte :class:`~bridge.protocol.framing.LineSplitter` and :func:`decode_body`,
+which count what they drop. Both routes give the same frames and counters
+(tests/test_protocol_pgmra.py); docs/performance.md has the measured reason for the first.
 """
 
 from __future__ import annotations
@@ -24,10 +31,12 @@ from typing import Literal
 from bridge.protocol.framing import (
     DECIMAL_RE,
     INT_RE,
+    MAX_BODY_BYTES,
     CodecCounters,
     DecodeError,
     DropReason,
     LineSplitter,
+    checksum,
     parse_decimal,
     parse_int,
 )
@@ -94,16 +103,21 @@ def _expect_fields(fields: list[str], n: int, sentence: str) -> None:
 # The eleven $PGMRA fields in one pattern, composed of the field rules every sentence uses
 # (INT_RE, DECIMAL_RE, two hex digits): one match per frame instead of eleven calls. When it
 # fails, the per-field parsers say which field and why.
-_ATTITUDE_FIELDS = re.compile(
-    ",".join(
-        [
-            f"({INT_RE.pattern})",
-            *[f"({DECIMAL_RE.pattern})"] * 3,
-            *[f"({INT_RE.pattern})"] * 6,
-            f"({_HEX2_RE.pattern})",
-        ]
-    )
+_ATTITUDE_FIELDS_PATTERN = ",".join(
+    [
+        f"({INT_RE.pattern})",
+        *[f"({DECIMAL_RE.pattern})"] * 3,
+        *[f"({INT_RE.pattern})"] * 6,
+        f"({_HEX2_RE.pattern})",
+    ]
 )
+_ATTITUDE_FIELDS = re.compile(_ATTITUDE_FIELDS_PATTERN)
+# A whole $PGMRA line as the splitter would hand it over: the same fields between "$PGMRA,"
+# and "*HH" plus CRLF or LF. Groups: 1 the body, 2-12 the fields, 13 the checksum.
+_ATTITUDE_LINE = re.compile(
+    rb"\$(PGMRA," + _ATTITUDE_FIELDS_PATTERN.encode("ascii") + rb")\*([0-9A-Fa-f]{2})\r?\n"
+)
+_LINE_FIELDS = tuple(range(2, 13))
 
 
 def _attitude_field_error(f: list[str]) -> DecodeError:
@@ -112,29 +126,45 @@ def _attitude_field_error(f: list[str]) -> DecodeError:
     return DecodeError(DropReason.NUMBER, f"flags {f[10]!r} are not two hex digits")
 
 
+def _attitude(*f: str | bytes) -> AttitudeFrame:
+    """The frame of the eleven matched field texts; DecodeError when a value is out of range."""
+    heading = float(f[1])
+    if heading == 360.0:  # tolerated rounding artefact, see gmr_frames' docstring
+        heading = 0.0
+    return AttitudeFrame(
+        int(f[0]), heading, float(f[2]), float(f[3]),
+        int(f[4]), int(f[5]), int(f[6]), int(f[7]), int(f[8]), int(f[9]), int(f[10], 16),
+    )  # fmt: skip
+
+
 def _decode_attitude(f: list[str]) -> AttitudeFrame:
     _expect_fields(f, 11, "PGMRA")
     m = _ATTITUDE_FIELDS.fullmatch(",".join(f))
     if m is None:
         raise _attitude_field_error(f)
-    seq, hdg, pitch, roll, mx, my, mz, ax, ay, az, flags = m.groups()
-    heading = float(hdg)
-    if heading == 360.0:  # tolerated rounding artefact, see module docstring
-        heading = 0.0
-    # Plain numbers: __post_init__ range-checks them and makes the Flags (once, not twice).
-    return AttitudeFrame(
-        int(seq),
-        heading,
-        float(pitch),
-        float(roll),
-        int(mx),
-        int(my),
-        int(mz),
-        int(ax),
-        int(ay),
-        int(az),
-        int(flags, 16),  # type: ignore[arg-type]
-    )
+    return _attitude(*m.groups())
+
+
+def _leading_attitude_lines(data: bytes, frames: list[GmrFrame]) -> int:
+    """Decode the whole, valid ``$PGMRA`` lines that open ``data``; the offset after them.
+
+    A read at 100 Hz is nearly always one such line. Taking it with one match (framing
+    and field syntax together) and building it through the same :func:`_attitude`
+    spares the byte-by-byte splitter; the first line that does not match, fails its
+    checksum, is too long or out of range stops this, and the splitter and
+    :func:`decode_body` take it from there -- they count and drop what is wrong.
+    """
+    pos = 0
+    while m := _ATTITUDE_LINE.match(data, pos):
+        body = m.group(1)
+        if len(body) > MAX_BODY_BYTES or checksum(body) != int(m.group(13), 16):
+            break
+        try:
+            frames.append(_attitude(*m.group(*_LINE_FIELDS)))
+        except DecodeError:
+            break
+        pos = m.end()
+    return pos
 
 
 def _decode_version(f: list[str]) -> VersionFrame:
@@ -230,7 +260,16 @@ class GmrDecoder:
         """Consume a chunk of bytes; return the frames it completed, in order."""
         self.counters.bytes_in += len(data)
         frames: list[GmrFrame] = []
-        for body in self._splitter.feed(data):
+        splitter = self._splitter
+        if self._direction == "host" and not splitter.in_line:
+            done = _leading_attitude_lines(data, frames)
+            if done:
+                splitter.reset()  # between lines, where the splitter would be after them
+                if done == len(data):
+                    self.counters.frames += len(frames)
+                    return frames
+                data = data[done:]
+        for body in splitter.feed(data):
             try:
                 frames.append(decode_body(body, self._direction))
             except DecodeError as exc:

@@ -87,7 +87,8 @@ RATES_HZ: tuple[int, ...] = (1, 2, 5, 10, 20, 50, 100)
 SEQ_MAX = 65535
 #: PGMRC sample counter bound (a 32-bit firmware counter; keeps the line within 96 bytes).
 SAMPLES_MAX = 2**32 - 1
-ADC_RANGE = (0, 4095)
+ADC_MAX = 4095  #: a raw channel is 12 bits; 0 and ADC_MAX are its rails
+ADC_RANGE = (0, ADC_MAX)
 OFFSET_RANGE = (0.0, 4095.0)  #: Xoff/Yoff/Zoff, counts
 ACC_OFFSET_RANGE = (0.0, 4095.0)  #: Gxoff/Gyoff/Gzoff, counts
 PAR_SET_GAIN_RANGE = (0.1, 10.0)  #: what PAR,SET accepts
@@ -115,7 +116,7 @@ _set = object.__setattr__
 # --------------------------------------------------------------------------- frames
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class AttitudeFrame:
     """``$PGMRA``: on-board attitude (degrees) and raw ADC counts, streamed at the output rate.
 
@@ -135,16 +136,60 @@ class AttitudeFrame:
     az: int
     flags: Flags
 
-    def __post_init__(self) -> None:
-        _set(self, "seq", check_int(self.seq, "seq", 0, SEQ_MAX))
-        _set(self, "heading", check_real(self.heading, "heading", 0.0, 360.0, hi_open=True))
-        _set(self, "pitch", check_real(self.pitch, "pitch", -90.0, 90.0))
-        _set(self, "roll", check_real(self.roll, "roll", -180.0, 180.0))
-        for name in _ADC_NAMES:
-            _set(self, name, check_int(getattr(self, name), name, *ADC_RANGE))
-        flags = check_int(self.flags, "flags", 0, 0xFF)
-        if flags & ~FLAGS_MASK:
-            raise DecodeError(DropReason.RANGE, f"flags 0x{flags:02X} has bits 5-7 set")
+    def __init__(
+        self,
+        seq: int,
+        heading: float,
+        pitch: float,
+        roll: float,
+        mx: int,
+        my: int,
+        mz: int,
+        ax: int,
+        ay: int,
+        az: int,
+        flags: Flags | int,
+    ) -> None:
+        # The one validation of a $PGMRA frame, whoever builds it. A decoded frame comes as
+        # plain ints and floats within range: that case is one test and eleven stores (it
+        # runs for every frame, up to 100 Hz). Anything else (numpy numbers, Flags, a value
+        # out of range) goes through check_int / check_real, which normalise it or raise
+        # with the drop reason the decoder counts.
+        if (
+            type(seq) is type(mx) is type(my) is type(mz) is int
+            and type(ax) is type(ay) is type(az) is type(flags) is int
+            and type(heading) is type(pitch) is type(roll) is float
+            and 0 <= seq <= SEQ_MAX
+            and 0 <= mx <= ADC_MAX and 0 <= my <= ADC_MAX and 0 <= mz <= ADC_MAX
+            and 0 <= ax <= ADC_MAX and 0 <= ay <= ADC_MAX and 0 <= az <= ADC_MAX
+            and 0.0 <= heading < 360.0 and -90.0 <= pitch <= 90.0 and -180.0 <= roll <= 180.0
+            and 0 <= flags <= FLAGS_MASK
+        ):  # fmt: skip
+            heading += 0.0  # -0.0 -> 0.0, as check_real does
+            pitch += 0.0
+            roll += 0.0
+        else:
+            seq = check_int(seq, "seq", 0, SEQ_MAX)
+            heading = check_real(heading, "heading", 0.0, 360.0, hi_open=True)
+            pitch = check_real(pitch, "pitch", -90.0, 90.0)
+            roll = check_real(roll, "roll", -180.0, 180.0)
+            mx, my, mz, ax, ay, az = (
+                check_int(v, n, 0, ADC_MAX)
+                for v, n in zip((mx, my, mz, ax, ay, az), _ADC_NAMES, strict=True)
+            )
+            flags = check_int(flags, "flags", 0, 0xFF)
+            if flags & ~FLAGS_MASK:
+                raise DecodeError(DropReason.RANGE, f"flags 0x{flags:02X} has bits 5-7 set")
+        _set(self, "seq", seq)
+        _set(self, "heading", heading)
+        _set(self, "pitch", pitch)
+        _set(self, "roll", roll)
+        _set(self, "mx", mx)
+        _set(self, "my", my)
+        _set(self, "mz", mz)
+        _set(self, "ax", ax)
+        _set(self, "ay", ay)
+        _set(self, "az", az)
         _set(self, "flags", _FLAGS_BY_VALUE[flags])
 
     @property
