@@ -155,7 +155,8 @@ def _leading_attitude_lines(data: bytes, frames: list[GmrFrame]) -> int:
     :func:`decode_body` take it from there -- they count and drop what is wrong.
     """
     pos = 0
-    while m := _ATTITUDE_LINE.match(data, pos):
+    end = len(data)
+    while pos < end and (m := _ATTITUDE_LINE.match(data, pos)):
         body = m.group(1)
         if len(body) > MAX_BODY_BYTES or checksum(body) != int(m.group(13), 16):
             break
