@@ -635,10 +635,8 @@ def run(
     crashes = int(not alive) + int(alive and not responsive) + int(code != 0)
     tracebacks = log_text.count("Traceback (most recent call last)")
     first_tb = ""
-    if tracebacks:  # the block: "Traceback ...", its indented lines, the exception line
-        lines = log_text[log_text.find("Traceback") :].splitlines()
-        end = next((i for i, x in enumerate(lines[1:], 1) if not x.startswith(" ")), 0)
-        first_tb = "\n".join(lines[: end + 1])[-1500:]
+    if tracebacks:  # one log record: the daemon logs a traceback as one line, \n escaped
+        first_tb = log_text[log_text.find("Traceback") :].splitlines()[0][-1500:]
     growth = rss_after - rss_before
     return [
         Figure("false_frames", n_false, "ATTITUDE", 0.0, detail={
