@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import random
 from pathlib import Path
@@ -69,5 +70,12 @@ def test_mavlink_fuzz_notes_only_what_can_change_state() -> None:
 
 
 def test_wired_as_a_bench_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
-    assert cli_main(["bench", "fuzz", "--chunks", "0"]) == 2  # its own parser, via the CLI
+    # main() sets up the root logger on this test's captured stderr: put it back after.
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        assert cli_main(["bench", "fuzz", "--chunks", "0"]) == 2  # its own parser, via the CLI
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
     assert "--chunks and --messages must be >= 1" in capsys.readouterr().err
