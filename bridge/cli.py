@@ -5,6 +5,7 @@ Subcommands::
     compass-bridge run --config FILE [--set SECTION.KEY=VALUE ...] [--console]
     compass-bridge run --simulate                  # built-in simulated compass, live console line
     compass-bridge config [--config FILE] [--set ...]   # validate, print the effective config
+    compass-bridge config --docs                   # the configuration reference (Markdown)
     compass-bridge simulate --link PATH [--seed N] [--shake G]  # serve a simulated compass on a pty
     compass-bridge record --port DEV --out FILE [--duration S]  # raw byte stream, live line
     compass-bridge calibrate --recording FILE [--method NAME] [--plot FILE.png]
@@ -14,6 +15,7 @@ Subcommands::
     compass-bridge status [KEYEXPR] [--json]       # one-shot health of running bridges (Zenoh)
     compass-bridge bench accuracy [...]            # accuracy benchmark
     compass-bridge bench pipeline [...]            # speed and footprint benchmark
+    compass-bridge bench fuzz [--chunks N --messages M]  # hostile input against the daemon
     compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
 
 Long operations (record, calibrate, bench) draw a progress bar or spinner with
@@ -125,6 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
         "config", parents=[common], help="validate a configuration and print the effective one"
     )
     _config_options(cfg)
+    cfg.add_argument(
+        "--docs",
+        action="store_true",
+        help="print the configuration reference (docs/configuration.md) instead, as Markdown",
+    )
     cfg.set_defaults(func=cmd_config)
 
     sim = sub.add_parser(
@@ -197,6 +204,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
     )
     pipe.set_defaults(func=cmd_bench_pipeline, passthrough=True)
+    fuzz = bench_sub.add_parser(
+        "fuzz",
+        add_help=False,
+        help="hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
+    )
+    fuzz.set_defaults(func=cmd_bench_fuzz, passthrough=True)
     _tools_parsers(sub, common)
 
     mon = sub.add_parser(
@@ -381,7 +394,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """``config``: validate and print the effective configuration as TOML."""
+    """``config``: validate and print the effective configuration as TOML (or the reference)."""
+    if args.docs:
+        from bridge.config import reference_markdown
+
+        sys.stdout.write(reference_markdown())
+        return EXIT_OK
     cfg = load_config(args.config, args.overrides)
     sys.stdout.write(to_toml(cfg))
     return EXIT_OK
@@ -432,6 +450,13 @@ def cmd_bench_pipeline(args: argparse.Namespace) -> int:
     from bridge.bench.pipeline import main as pipeline_main
 
     return int(pipeline_main(args.rest) or 0)
+
+
+def cmd_bench_fuzz(args: argparse.Namespace) -> int:
+    """``bench fuzz``: hand over to the benchmark's own command line."""
+    from bridge.bench.fuzz import main as fuzz_main
+
+    return int(fuzz_main(args.rest) or 0)
 
 
 def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:

@@ -30,13 +30,32 @@ from pathlib import Path
 from typing import Any
 
 from bridge.config import DEFAULT_STATE_DIR
+from bridge.files import FileMissing, FileRefused, read_regular_file
 from bridge.ports import LoadResult, StorageError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_STATE_DIR", "LoadResult", "StateStore", "StorageError", "resolve_state_dir"]
+__all__ = [
+    "DEFAULT_STATE_DIR",
+    "DocumentError",
+    "FileMissing",
+    "FileRefused",
+    "LoadResult",
+    "StateStore",
+    "StorageError",
+    "read_regular_file",
+    "resolve_state_dir",
+]
 
 SCHEMA_PREFIX = "compass-bridge/"
+
+
+#: Upper bound of a stored document (calibration, parameters: a few kB in practice).
+MAX_DOCUMENT_BYTES = 1 << 20
+
+
+class DocumentError(StorageError, ValueError):
+    """A document refused before anything was written (NaN, not JSON-able, bad name)."""
 
 
 def resolve_state_dir(configured: str) -> Path:
@@ -73,18 +92,38 @@ class StateStore:
 
     def _path(self, name: str) -> Path:
         if not name.isidentifier():
-            raise ValueError(f"bad document name {name!r}")
+            raise DocumentError(f"bad document name {name!r}")
         return self.directory / f"{name}.json"
 
     def save(self, name: str, payload: dict[str, Any], version: int = 1) -> None:
         """Atomically replace document ``name``, keeping the previous good copy.
 
-        Raises :class:`StorageError` on any OS error (read-only, full, missing dir);
-        the files on disk are then unchanged or still loadable.
+        Raises :class:`StorageError` for every failure, so a caller that catches
+        it cannot be killed by another exception type: an OS error (read-only,
+        full, missing dir) or a path the OS refuses (a NUL byte in the directory);
+        :class:`DocumentError` (also a ValueError) for a payload that cannot be
+        stored (NaN, not JSON-able) before anything is written. The files on disk
+        are then unchanged or still loadable.
         """
         path = self._path(name)
-        # Canonical text so the digest does not depend on dict order.
-        payload_text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        try:
+            # Canonical text so the digest does not depend on dict order.
+            payload_text = json.dumps(
+                payload, sort_keys=True, separators=(",", ":"), allow_nan=False
+            )
+        except (TypeError, ValueError, RecursionError) as exc:
+            raise DocumentError(f"cannot save {name}: {exc}") from exc
+        try:
+            self._write(name, path, payload_text, version)
+        except OSError as exc:
+            raise StorageError(
+                f"cannot save {name} in {self.directory}: {exc.strerror or exc}"
+            ) from exc
+        except Exception as exc:  # e.g. ValueError("embedded null byte") from the OS layer
+            where = repr(str(self.directory))  # repr: the path may hold the NUL at fault
+            raise StorageError(f"cannot save {name} in {where}: {exc}") from exc
+
+    def _write(self, name: str, path: Path, payload_text: str, version: int) -> None:
         envelope = {
             "schema": SCHEMA_PREFIX + name,
             "version": version,
@@ -116,22 +155,21 @@ class StateStore:
                 os.replace(prev_tmp, prev)
             os.replace(tmp, path)
             _fsync_dir(self.directory)
-        except OSError as exc:
-            with contextlib.suppress(OSError):
+        except BaseException:
+            with contextlib.suppress(OSError, ValueError):
                 tmp.unlink()
-            raise StorageError(
-                f"cannot save {name} in {self.directory}: {exc.strerror or exc}"
-            ) from exc
+            raise
 
     def _verify_file(
         self, path: Path, name: str
     ) -> tuple[dict[str, Any] | None, str, float | None]:
         try:
-            raw = path.read_bytes()
-        except FileNotFoundError:
+            # Bounded, never blocks: a FIFO or device planted here must not hang the start.
+            raw = read_regular_file(path, MAX_DOCUMENT_BYTES)
+        except FileMissing:
             return None, f"{path.name}: missing", None
-        except OSError as exc:
-            return None, f"{path.name}: unreadable ({exc.strerror})", None
+        except FileRefused as exc:
+            return None, f"{path.name}: unreadable ({exc})", None
         try:
             env = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError):

@@ -337,10 +337,11 @@ def test_vectorised_heading_matches_the_fast_path() -> None:
     st.floats(-1e6, 1e6, allow_nan=False),
     st.one_of(st.none(), st.floats(-180.0, 180.0), st.sampled_from([-180.0, 180.0, 180.000005])),
 )
-def test_inline_heading_folds_match_fold_360(x: float, decl: float | None) -> None:
-    """The per-frame path folds headings inline; it must agree with _fold_360 (the rule:
+def test_heading_folds_match_the_one_fold(x: float, decl: float | None) -> None:
+    """The per-frame path folds headings with geometry.wrap_degrees_360 (the rule:
     [0, 360), and never 360.0) for the atan2 heading and for heading + declination."""
-    from bridge.core.attitude import _DEG, _fold_360
+    from bridge.core.attitude import _DEG
+    from bridge.core.geometry import wrap_degrees_360 as _fold_360
 
     eng = AttitudeEngine(
         Calibration(), reference=FieldReference(declination_deg=decl), heading_reference="true"

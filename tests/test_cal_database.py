@@ -9,7 +9,6 @@ import pytest
 
 from bridge.calibration.field_database import FieldDatabase
 from bridge.core import sensor
-from bridge.core.attitude import AttitudeEngine
 from bridge.core.geometry import angle_diff_deg, dcm_to_euler, euler_to_dcm, random_rotations
 from bridge.sim.physics import SensorModel, UnitErrors
 
@@ -76,52 +75,6 @@ def test_unconstrained_motion_is_ambiguous_and_says_so() -> None:
     assert flagged >= 45
     assert all("ambiguous" in m.reason or "sparse" in m.reason for _, m in results if not m.ok)
     assert all(np.all(np.isfinite(R)) for R, _ in results)
-
-
-def test_engine_uses_the_database_and_ignores_the_accelerometer() -> None:
-    # the database's attitudes are magnetic-north referenced: use the field in magnetic axes
-    b_mag = np.array([math.hypot(B_NED[0], B_NED[1]), 0.0, B_NED[2]])
-    rolls = np.radians(np.arange(-180.0, 180.0, 2.0))
-    db = FieldDatabase.from_field_model(b_mag, spin_attitudes(rolls))
-    eng = AttitudeEngine(field_database=db)
-    for r in (-170.0, -33.0, 0.0, 47.0, 121.0):
-        R = spin_attitudes(np.array([math.radians(r)]))[0]
-        mag_counts = sensor.gauss_to_mag_counts(R.T @ b_mag)
-        # the accelerometer reads 3 g of centripetal/thrust nonsense
-        acc_counts = sensor.g_to_acc_counts(np.array([2.0, 2.0, -1.0]))
-        sol = eng.solve_counts(*(float(v) for v in (*mag_counts, *acc_counts)))
-        assert float(angle_diff_deg(math.degrees(sol.roll), r)) == pytest.approx(0.0, abs=1.0)
-        assert math.degrees(sol.pitch) == pytest.approx(10.0, abs=1.0)
-        assert sol.heading_magnetic_deg == pytest.approx(60.0, abs=1.0)
-        assert not sol.degraded
-    assert sol.accelerating  # flagged (debounced), but the attitude does not depend on it
-    # back to the accelerometer: now the garbage accelerometer matters
-    eng.set_field_database(None)
-    sol = eng.solve_counts(
-        *(
-            float(v)
-            for v in (*sensor.gauss_to_mag_counts(b_mag), *sensor.g_to_acc_counts([2.0, 2.0, -1.0]))
-        )
-    )
-    assert abs(math.degrees(sol.pitch)) > 30.0
-
-
-def test_engine_marks_an_ambiguous_match_degraded() -> None:
-    rng = np.random.default_rng(4)
-    db = FieldDatabase.from_field_model(B_NED, random_rotations(rng, 2000))
-    eng = AttitudeEngine(field_database=db)
-    R = random_rotations(rng, 1)[0]
-    sol = eng.solve_counts(
-        *(
-            float(v)
-            for v in (
-                *sensor.gauss_to_mag_counts(R.T @ B_NED),
-                *sensor.g_to_acc_counts(R.T @ [0, 0, 1.0]),
-            )
-        )
-    )
-    assert sol.degraded
-    assert all(math.isfinite(v) for v in (sol.roll, sol.pitch, sol.yaw))
 
 
 def test_add_validates_counts_and_converts_true_north() -> None:

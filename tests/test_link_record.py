@@ -21,8 +21,8 @@ from bridge.link.record import (
     RecordingFormatError,
     RecordingReader,
     RecordingWriter,
-    record,
 )
+from bridge.link.recorder import record
 from bridge.link.serial_link import CompassLink, LinkState, Received
 from bridge.link.transport import ReplayTransport, SerialTransport
 from bridge.protocol.gmr import AttitudeFrame, CommandFrame, GmrDecoder, GmrFrame, encode

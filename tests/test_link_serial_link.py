@@ -89,6 +89,7 @@ class Peer:
         self.handlers: dict[str, Handler] = {}
         self.commands: list[tuple[float, CommandFrame]] = []
         self.sent_seqs: list[int] = []
+        self.lose: set[int] = set()  #: seqs never sent (lost on the line)
         self._seen: dict[str, int] = {}
         self._decoder = GmrDecoder(direction="device")
         self._sched: list[tuple[float, int, bytes]] = []
@@ -198,6 +199,8 @@ class Peer:
                     self.seq = 0
                     next_frame = now
                 if self.streaming and self._reboot_at is None and now >= next_frame:
+                    if self.seq in self.lose:
+                        self.seq = (self.seq + 1) % 65536
                     self.sent_seqs.append(self.seq)
                     out += frame(self.seq)
                     self.seq = (self.seq + 1) % 65536
@@ -339,6 +342,41 @@ def test_seq_gaps_count_lost_frames_across_wrap(peer: Peer) -> None:
         assert link.counters.lost_frames == 15
         assert 65535 in seqs or any(s < 100 for s in seqs)  # it did wrap
         assert link.counters.device_resets == 0
+
+
+def test_one_lost_frame_at_the_wrap_is_a_loss_not_a_reset(peer: Peer) -> None:
+    """Issue 15 #8: 65500..65534, 65535 lost, 0..39 read as a device reset and the
+    connect handshake ran again."""
+    col = Collector()
+    peer.lose = {65535}
+    peer.set_seq(65500)
+    with make_link(peer.path, col) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: handshake_done(peer), 5.0)
+        assert wait_until(lambda: 39 in col.seqs(), 5.0)
+        seqs = col.seqs()
+        first = seqs[0]
+        assert 65500 <= first < 65534  # the link saw the frames before the wrap
+        assert seqs[: seqs.index(39) + 1] == [*range(first, 65535), *range(40)]
+        c = link.counters
+        assert c.lost_frames == 1
+        assert c.device_resets == 0 and c.seq_discontinuities == 0
+        time.sleep(0.3)  # a re-run handshake would have sent its VER by now
+        assert len(peer.received("VER")) == 1 and len(peer.received("PAR,GET")) == 1
+
+
+def test_seq_restart_at_0_from_far_away_is_still_a_reset(peer: Peer) -> None:
+    """Next to the wrap rule: 0 after a frame well before 65535 is the reboot rule's."""
+    col = Collector()
+    peer.set_seq(65000)  # 535 frames before the wrap: not loss a streaming link shows
+    with make_link(peer.path, col) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: handshake_done(peer), 5.0)
+        assert wait_until(lambda: len(col.seqs()) > 5, 5.0)
+        peer.set_seq(0)
+        assert wait_until(lambda: link.counters.device_resets == 1, 5.0)
+        assert wait_until(lambda: len(peer.received("PAR,GET")) == 2, 5.0)  # handshake again
+        assert link.counters.lost_frames == 0
 
 
 def test_device_reset_by_unasked_version_and_by_seq_restart(peer: Peer) -> None:

@@ -172,7 +172,7 @@ def test_monitor_update_is_the_limit_functions_debounced(
     raise_after: int,
     clear_after: int,
 ) -> None:
-    """QualityMonitor.update is written out flat for speed: it must judge exactly as
+    """QualityMonitor.update must judge exactly as
     accel_out_of_limits / field_out_of_limits (dip ignored under acceleration) fed
     through two Debounce flags."""
     lim = QualityLimits(raise_after=raise_after, clear_after=clear_after)

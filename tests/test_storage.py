@@ -12,7 +12,15 @@ from pathlib import Path
 
 import pytest
 
-from bridge.storage import StateStore, StorageError, resolve_state_dir
+from bridge.storage import (
+    DocumentError,
+    FileMissing,
+    FileRefused,
+    StateStore,
+    StorageError,
+    read_regular_file,
+    resolve_state_dir,
+)
 
 
 def test_round_trip_and_previous_copy(tmp_path: Path) -> None:
@@ -95,6 +103,77 @@ def test_nan_is_refused_not_written(tmp_path: Path) -> None:
     with pytest.raises(ValueError):
         store.save("params", {"a": float("nan")})
     assert store.load("params").source == "none"
+
+
+def test_unstorable_payload_is_a_storage_error_too(tmp_path: Path) -> None:
+    # The callers catch StorageError: a payload error must not escape them as another type.
+    store = StateStore(tmp_path)
+    for bad in ({"a": float("inf")}, {"a": object()}):
+        with pytest.raises(DocumentError) as info:
+            store.save("params", bad)
+        assert isinstance(info.value, StorageError)
+    with pytest.raises(StorageError, match="bad document name"):
+        store.save("../x", {"a": 1})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_nul_byte_in_the_directory_is_a_storage_error(tmp_path: Path) -> None:
+    """Issue 15 #2: ValueError("embedded null byte") escaped save() and killed its caller."""
+    store = StateStore(str(tmp_path / "var") + "\0state")
+    with pytest.raises(StorageError, match="null byte") as info:
+        store.save("params", {"a": 1})
+    assert type(info.value) is StorageError
+    assert store.load("params").source == "none"  # and loading it is no crash either
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_fifo_planted_as_a_document_does_not_hang_the_load(tmp_path: Path) -> None:
+    os.mkfifo(tmp_path / "calibration.json")
+    res = StateStore(tmp_path).load("calibration")  # would block forever in a plain open()
+    assert res.source == "none"
+    assert any("named pipe" in p for p in res.problems), res.problems
+
+
+# --- read_regular_file: every file a configuration names is read through it ---------------
+
+
+def test_read_regular_file_reads_a_small_file(tmp_path: Path) -> None:
+    (tmp_path / "f").write_bytes(b"abc\n")
+    assert read_regular_file(tmp_path / "f", 4) == b"abc\n"
+    (tmp_path / "empty").write_bytes(b"")
+    assert read_regular_file(str(tmp_path / "empty"), 0) == b""
+
+
+@pytest.mark.parametrize(
+    ("target", "why"),
+    [
+        ("/dev/zero", "character device"),
+        ("/dev/urandom", "character device"),
+        ("fifo", "named pipe"),
+        ("dir", "directory"),
+        ("big", "over the 1024-byte limit"),
+        ("nul\0name", "NUL byte"),
+    ],
+)
+def test_read_regular_file_refuses_what_could_hang_or_flood(
+    tmp_path: Path, target: str, why: str
+) -> None:
+    os.mkfifo(tmp_path / "fifo")
+    (tmp_path / "dir").mkdir()
+    (tmp_path / "big").write_bytes(b"x" * 1025)
+    path = target if target.startswith("/") else str(tmp_path / target)
+    t0 = time.monotonic()
+    with pytest.raises(FileRefused, match=why):
+        read_regular_file(path, 1024)
+    assert time.monotonic() - t0 < 5.0  # refused, not read until memory runs out
+
+
+def test_read_regular_file_through_a_symlink_to_a_device_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "key").symlink_to("/dev/zero")
+    with pytest.raises(FileRefused, match="character device"):
+        read_regular_file(tmp_path / "key", 64)
+    with pytest.raises(FileMissing):
+        read_regular_file(tmp_path / "missing", 64)
 
 
 def test_state_dir_resolution(monkeypatch: pytest.MonkeyPatch) -> None:

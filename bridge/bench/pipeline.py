@@ -17,7 +17,7 @@ them as one JSON object too):
   each frame's first byte is written to the pty and when the ATTITUDE
   datagram carrying that frame's yaw arrives on a UDP socket. The unit turns
   at 300 deg/s, so every frame has its own yaw and the datagram names its
-  frame. p99 target 2 ms.
+  frame. p99 target 1 ms (issue 16).
 * **CPU and RSS** -- a second child, MAVLink and zenoh outputs on at the
   shipped stream rates (config/compass-bridge.toml: ATTITUDE 10 Hz, ...), the
   compass at 100 Hz: its user+system CPU time (its CPU-time clock, to the ns)
@@ -50,12 +50,10 @@ from typing import Any
 
 import numpy as np
 
-from bridge import speedups
-
 log = logging.getLogger(__name__)
 
 TARGET_FPS = 5000.0
-TARGET_P99_MS = 2.0
+TARGET_P99_MS = 1.0
 TARGET_CPU_PCT = 3.0
 TARGET_RSS_MB = 80.0
 TARGET_FIRST_ATTITUDE_S = 1.5
@@ -555,8 +553,6 @@ def live(
             "window_s": round(run.wall_s, 1),
             "cpu_s": round(run.cpu_s, 4),
             "attitude_hz": round(len(run.window) / run.wall_s, 1),
-            # bridge._speedups built or not (the child imports the same package)
-            "hot_path": speedups.IMPLEMENTATION,
         }
 
     worst_rss = max((fast, shipped), key=lambda r: r.rss_mb)
@@ -640,15 +636,23 @@ def main(argv: list[str] | None = None) -> int:
         with Progress("live daemon", 1.0, enabled=args.progress) as bar:
             figures += live(args.duration, step=lambda f, n: bar.update(f, note=n))
     logging.disable(logging.NOTSET)
+    return report(figures, args.json, cpu_count=os.cpu_count())
+
+
+def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
+    """Print the figures (a table, or JSON with ``json_to="-"``), maybe write them as JSON.
+
+    Returns the exit code of a benchmark: 0 when every figure meets its target.
+    """
     ok = all(f.passed is not False for f in figures)
-    doc = {"figures": [f.to_dict() for f in figures], "passed": ok, "cpu_count": os.cpu_count()}
-    if args.json == "-":
+    doc = {"figures": [f.to_dict() for f in figures], "passed": ok, **extra}
+    if json_to == "-":
         print(json.dumps(doc, indent=2))
     else:
         print(format_figures(figures))
         print(f"overall: {'PASS' if ok else 'FAIL'}")
-        if args.json:
-            Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
+        if json_to:
+            Path(json_to).write_text(json.dumps(doc, indent=2) + "\n")
     return 0 if ok else 1
 
 

@@ -20,7 +20,7 @@ Near +-90 deg pitch roll is undefined (gravity lies along x); the outputs stay
 finite (roll falls to whatever the tiny y/z components give, heading stays
 consistent with it) and the solution is flagged ``degraded``.
 
-:meth:`AttitudeEngine.solve_counts` is the daemon's fast path: the whole chain
+:meth:`AttitudeEngine.solve_counts` is the daemon's per-frame path: the whole chain
 is folded into two 3x3 matrices and two count offsets, evaluated with plain
 floats and ``math`` (numpy on 3-vectors costs more than the arithmetic).
 Configuration changes swap one immutable state object, so a reader thread can
@@ -32,30 +32,28 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from bridge import speedups
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
-from bridge.core.geometry import FloatArray, dcm_to_euler
+from bridge.core.geometry import (
+    FloatArray,
+    euler_to_quaternion,
+    wrap_degrees_360,
+    wrap_radians_pi,
+)
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
 from bridge.core.wmm import EarthField, earth_field
-
-if TYPE_CHECKING:
-    from bridge.calibration.field_database import FieldDatabase
 
 HeadingReference = Literal["magnetic", "true"]
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
-_TWO_PI = 2.0 * math.pi
 _DEG = 180.0 / math.pi
-# The compiled attitude arithmetic (None without bridge._speedups; see solve_counts).
-_c_solve = speedups.solve
 
 
 @dataclass(frozen=True, slots=True)
@@ -161,17 +159,6 @@ class _State:
     dip_deg: float | None
     publish_true: bool
     sin_degraded: float  # |sin(pitch)| above which the solution is degraded
-    database: FieldDatabase | None
-    #: The same numbers flat for the compiled solve (mo, mm, ao, am, sin_degraded,
-    #: declination_deg, publish_true: bridge/_speedups.c), None when it is not in use.
-    consts: tuple[float | bool | None, ...] | None = None
-
-
-def _fold_360(a: float) -> float:
-    a = math.fmod(a, 360.0)
-    if a < 0.0:
-        a += 360.0
-    return 0.0 if a >= 360.0 else a
 
 
 def _sensor_chain(
@@ -190,9 +177,6 @@ class AttitudeEngine:
     with :meth:`update_reference` or :meth:`update_position`. With
     ``heading_reference="true"`` but no declination known yet the magnetic
     heading is published and *labelled* magnetic in the solution.
-    ``attitude_source="field_database"`` takes the attitude from a
-    :class:`~bridge.calibration.field_database.FieldDatabase` (magnetometer
-    only) for bodies whose accelerometer is unusable.
     """
 
     def __init__(
@@ -202,8 +186,6 @@ class AttitudeEngine:
         reference: FieldReference | None = None,
         heading_reference: HeadingReference = "magnetic",
         limits: QualityLimits | None = None,
-        *,
-        field_database: FieldDatabase | None = None,
     ) -> None:
         if heading_reference not in ("magnetic", "true"):
             raise ValueError(
@@ -214,7 +196,6 @@ class AttitudeEngine:
         self._reference = reference
         self._heading_reference: HeadingReference = heading_reference
         self._limits = limits if limits is not None else QualityLimits()
-        self._database = field_database
         self._quality = QualityMonitor(self._limits)
         self._state = self._build()
 
@@ -241,9 +222,6 @@ class AttitudeEngine:
         declination_deg = ref.declination_deg if ref else None
         publish_true = self._heading_reference == "true"
         sin_degraded = math.sin(math.radians(self._limits.degraded_pitch_deg))
-        consts = None
-        if _c_solve is not None and self._database is None:
-            consts = (*mo, *mm, *ao, *am, sin_degraded, declination_deg, publish_true)
         return _State(
             mo=mo,
             mm=mm,
@@ -254,8 +232,6 @@ class AttitudeEngine:
             dip_deg=ref.dip_deg if ref else None,
             publish_true=publish_true,
             sin_degraded=sin_degraded,
-            database=self._database,
-            consts=consts,
         )
 
     @property
@@ -330,11 +306,6 @@ class AttitudeEngine:
         self._heading_reference = heading_reference
         self._state = self._build()
 
-    def set_field_database(self, database: FieldDatabase | None) -> None:
-        """Use a field database as the attitude source (``None``: back to the accelerometer)."""
-        self._database = database
-        self._state = self._build()
-
     # -- the fast path -------------------------------------------------------------
 
     def solve_counts(
@@ -345,22 +316,6 @@ class AttitudeEngine:
         Raises ``ValueError`` on non-finite input (the quality state is left untouched).
         """
         s = self._state  # one read: a concurrent update cannot mix two configurations
-        if s.consts is not None and _c_solve is not None:
-            # The compiled twin of the Python below (_finish and _assemble's arithmetic):
-            # bit-identical results, tests/test_speedups.py. The quality flags stay here.
-            r = _c_solve(s.consts, mx, my, mz, ax, ay, az)
-            if r is None:
-                raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
-            # r: AttitudeSolution's fields up to `degraded`, in order, then |g|.
-            bn, dip, gn = r[10], r[11], r[13]
-            disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
-            return AttitudeSolution(*r[:13], disturbed, accelerating)
-        return self._solve_python(s, mx, my, mz, ax, ay, az)
-
-    def _solve_python(
-        self, s: _State, mx: float, my: float, mz: float, ax: float, ay: float, az: float
-    ) -> AttitudeSolution:
-        """:meth:`solve_counts` in Python: the reference, and the path without bridge._speedups."""
         dx, dy, dz = mx - s.mo[0], my - s.mo[1], mz - s.mo[2]
         m = s.mm
         hx = m[0] * dx + m[1] * dy + m[2] * dz
@@ -374,8 +329,6 @@ class AttitudeEngine:
         if not math.isfinite(hx + hy + hz + gx + gy + gz):
             # The codec only passes 0..4095 integers; anything else is a caller bug.
             raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
-        if s.database is not None:
-            return self._solve_database(s, hx, hy, hz, gx, gy, gz)
         return self._finish(s, hx, hy, hz, gx, gy, gz)
 
     def solve_vectors(self, mag_G: npt.ArrayLike, accel_g: npt.ArrayLike) -> AttitudeSolution:
@@ -427,65 +380,14 @@ class AttitudeEngine:
         horizontal_min = 0.02 * bn
         if bn == 0.0 or (xh * xh + yh * yh) < horizontal_min * horizontal_min:
             degraded = True  # field (nearly) along the vertical: heading undefined
-        # _fold_360 written out (per frame: a call costs more than the arithmetic). atan2
-        # is in [-180, 180]: one wrap, then the rounding guard (-1e-15 + 360 == 360.0).
-        heading_mag = math.atan2(-yh, xh) * _DEG
-        if heading_mag < 0.0:
-            heading_mag += 360.0
-            if heading_mag >= 360.0:
-                heading_mag = 0.0
-        return self._assemble(
-            s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
-        )
-
-    def _assemble(
-        self,
-        s: _State,
-        roll: float,
-        pitch: float,
-        heading_mag: float,
-        hx: float,
-        hy: float,
-        hz: float,
-        gx: float,
-        gy: float,
-        gz: float,
-        gn: float,
-        bn: float,
-        dip: float,
-        degraded: bool,
-    ) -> AttitudeSolution:
+        heading_mag = wrap_degrees_360(math.atan2(-yh, xh) * _DEG)
         decl = s.declination_deg
-        heading_true: float | None = None
-        if decl is not None:
-            # _fold_360's common case written out: heading in [0, 360) plus a declination
-            # in [-180, 180] needs one wrap (exact in binary: Sterbenz). The rest (a
-            # rounded 360.0, an odd declination) goes through _fold_360 itself.
-            heading_true = heading_mag + decl
-            if heading_true >= 360.0:
-                heading_true -= 360.0
-            elif heading_true < 0.0:
-                heading_true += 360.0
-            if not 0.0 <= heading_true < 360.0:
-                heading_true = _fold_360(heading_true)
+        heading_true = wrap_degrees_360(heading_mag + decl) if decl is not None else None
         if s.publish_true and heading_true is not None:
             published, label = heading_true, "true"
         else:
             published, label = heading_mag, "magnetic"
-        yaw = math.radians(published)
-        if yaw > math.pi:
-            yaw -= _TWO_PI
-        # quaternion body->NED from ZYX Euler half angles
-        hr, hp, hyw = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
-        cr2, sr2 = math.cos(hr), math.sin(hr)
-        cp2, sp2 = math.cos(hp), math.sin(hp)
-        cy2, sy2 = math.cos(hyw), math.sin(hyw)
-        qw = cr2 * cp2 * cy2 + sr2 * sp2 * sy2
-        qx = sr2 * cp2 * cy2 - cr2 * sp2 * sy2
-        qy = cr2 * sp2 * cy2 + sr2 * cp2 * sy2
-        qz = cr2 * cp2 * sy2 - sr2 * sp2 * cy2
-        if qw < 0.0:
-            qw, qx, qy, qz = -qw, -qx, -qy, -qz
+        yaw = wrap_radians_pi(math.radians(published))
         disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
         return AttitudeSolution(
             roll,
@@ -495,7 +397,7 @@ class AttitudeEngine:
             heading_true,
             decl,
             label,  # type: ignore[arg-type]
-            (qw, qx, qy, qz),
+            euler_to_quaternion(roll, pitch, yaw),
             (hx, hy, hz),
             (gx, gy, gz),
             bn,
@@ -503,24 +405,6 @@ class AttitudeEngine:
             degraded,
             disturbed,
             accelerating,
-        )
-
-    def _solve_database(
-        self, s: _State, hx: float, hy: float, hz: float, gx: float, gy: float, gz: float
-    ) -> AttitudeSolution:
-        """Attitude from the magnetometer alone (accelerometer ignored for attitude)."""
-        assert s.database is not None
-        R, match = s.database.attitude_from_field((hx, hy, hz))
-        roll, pitch, yaw = dcm_to_euler(R)
-        bn = math.sqrt(hx * hx + hy * hy + hz * hz)
-        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
-        # Dip from the database attitude: the field's down component in NED.
-        down = float(R[2, 0] * hx + R[2, 1] * hy + R[2, 2] * hz)
-        dip = math.degrees(math.asin(max(-1.0, min(1.0, down / bn)))) if bn > 0.0 else 0.0
-        degraded = (not match.ok) or abs(math.sin(pitch)) > s.sin_degraded
-        heading_mag = _fold_360(math.degrees(yaw))
-        return self._assemble(
-            s, roll, pitch, heading_mag, hx, hy, hz, gx, gy, gz, gn, bn, dip, degraded
         )
 
 

@@ -117,8 +117,20 @@ def quaternion_to_dcm(q: npt.ArrayLike) -> FloatArray:
 
 
 def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    """Quaternion (w, x, y, z) from ZYX Euler angles (radians)."""
-    return dcm_to_quaternion(euler_to_dcm(roll, pitch, yaw))
+    """Quaternion (w, x, y, z), body->NED, w >= 0, from ZYX Euler angles (radians).
+
+    The one conversion of the package: the attitude engine, MAVLink
+    ATTITUDE_QUATERNION and Zenoh's ``attitude`` all give this quaternion for the
+    same angles. The closed form of the half angles (plain floats, no matrix).
+    """
+    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
+    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
+    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    w = cr * cp * cy + sr * sp * sy
+    x = sr * cp * cy - cr * sp * sy
+    y = cr * sp * cy + sr * cp * sy
+    z = cr * cp * sy - sr * sp * cy
+    return (w, x, y, z) if w >= 0.0 else (-w, -x, -y, -z)
 
 
 def axis_angle_to_dcm(axis: npt.ArrayLike, angle: float) -> FloatArray:
@@ -177,11 +189,29 @@ def random_rotations(rng: np.random.Generator, n: int) -> FloatArray:
 
 
 def wrap_degrees_360(angle_deg: float) -> float:
-    """Fold an angle into [0, 360)."""
+    """Fold an angle into [0, 360) -- the one fold of the package (headings, declination).
+
+    ``0.0`` where rounding would give 360.0 (``-1e-15 + 360.0 == 360.0``).
+    """
     a = math.fmod(angle_deg, 360.0)
     if a < 0.0:
         a += 360.0
     return 0.0 if a >= 360.0 else a
+
+
+def wrap_radians_pi(angle_rad: float) -> float:
+    """Fold an angle into (-pi, pi] radians (a yaw as MAVLink ATTITUDE carries it).
+
+    Angles already in range come back unchanged, bit for bit.
+    """
+    if -math.pi < angle_rad <= math.pi:
+        return angle_rad
+    a = math.fmod(angle_rad, 2.0 * math.pi)  # exact; in (-2 pi, 2 pi)
+    if a > math.pi:
+        a -= 2.0 * math.pi
+    elif a <= -math.pi:
+        a += 2.0 * math.pi
+    return a
 
 
 def wrap_degrees_180(angle_deg: float) -> float:

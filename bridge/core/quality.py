@@ -88,6 +88,17 @@ def accel_out_of_limits(accel_norm_g: float, limits: QualityLimits) -> bool:
     return not (abs(accel_norm_g - 1.0) <= limits.accel_tolerance_g)
 
 
+def heading_usable(saturated: bool, disturbed: bool) -> bool:
+    """Whether a heading can be trusted: no raw channel at an ADC rail, the field not disturbed.
+
+    The one judgement behind "healthy" wherever a heading is offered or reported
+    (the autopilot feed, the magnetometer health bit, a bridge's status): with a
+    channel clipped or a magnet nearby the heading is wrong by an unknown amount.
+    Acceleration and the gimbal zone only make it less precise (a larger sigma).
+    """
+    return not saturated and not disturbed
+
+
 class Debounce:
     """A boolean flag that rises after N consecutive ``True`` inputs and clears after M ``False``."""
 
@@ -138,28 +149,15 @@ class QualityMonitor:
     ) -> tuple[bool, bool]:
         """One frame in; ``(disturbed, accelerating)`` out, both debounced.
 
-        The same judgement as :func:`accel_out_of_limits` and :func:`field_out_of_limits`
-        (then :meth:`Debounce.update` on each), written out flat: this runs for every frame, and
-        at 100 Hz each Python call costs microseconds (tests/test_quality.py checks the
-        two forms agree).
+        The judgement is :func:`accel_out_of_limits` and :func:`field_out_of_limits`;
+        under acceleration the "down" direction is wrong, so the dip says nothing
+        about the field and only the magnitude is judged.
         """
         lim = self.limits
-        accel_bad = not (abs(accel_norm_g - 1.0) <= lim.accel_tolerance_g)
-        # Under acceleration the "down" direction is wrong, so the dip says nothing
-        # about the field: judge the magnitude only. "not <=": NaN counts as bad.
-        if not math.isfinite(field_G) or (
-            expected_total_G is not None
-            and expected_total_G > 0.0
-            and abs(field_G - expected_total_G) > lim.field_tolerance * expected_total_G
-        ):
-            field_bad = True
-        else:
-            field_bad = (
-                not accel_bad
-                and dip_deg is not None
-                and expected_dip_deg is not None
-                and not abs(dip_deg - expected_dip_deg) <= lim.dip_tolerance_deg
-            )
+        accel_bad = accel_out_of_limits(accel_norm_g, lim)
+        field_bad = field_out_of_limits(
+            field_G, None if accel_bad else dip_deg, expected_total_G, expected_dip_deg, lim
+        )
         return self._field.update(field_bad), self._accel.update(accel_bad)
 
     @property

@@ -3,8 +3,9 @@
 ``open_transport(port, baud)`` turns a configured port string into a
 :class:`Transport` (a serial device, ``"sim"``, or ``"replay:PATH"``);
 :class:`CompassLink` reads it on one thread, keeps it alive and runs command
-transactions; :func:`record` taps a port into a recording that
-``replay:PATH`` plays back.
+transactions (:mod:`~bridge.link.transactions`); :func:`record`
+(:mod:`~bridge.link.recorder`) taps a port into a recording
+(:mod:`~bridge.link.record`, the file format) that ``replay:PATH`` plays back.
 """
 
 from bridge.link.record import (
@@ -12,9 +13,8 @@ from bridge.link.record import (
     RecordingHeader,
     RecordingReader,
     RecordingWriter,
-    RecordSummary,
-    record,
 )
+from bridge.link.recorder import RecordSummary, record
 from bridge.link.serial_link import (
     CommandError,
     CommandNotSupported,

@@ -18,16 +18,9 @@ Link states (:class:`LinkState`), each change logged once:
   closes and reopens it (with backoff) and stays STALE until frames come back
 * ``ABSENT``    -- the port cannot be opened or went away; reopened with backoff, quietly
 
-Command transactions (GMR protocol only) are serialised with a lock. The
-device's answers carry no transaction id, so an answer is matched on its
-command word (``$PGMRK,<word>``, ``$PGMRV`` for VER, ``$PGMRP`` for PAR,GET)
-and its shape. To keep a *late* answer to a timed-out attempt from being taken
-for the answer to a later command, every attempt leaves an "expected answer"
-slot that lives for the command's deadline plus ``late_answer_window``; an
-answer that matches no current transaction consumes a slot and is counted as
-late, and a new command waits (bounded) until no slot of its command word is
-outstanding -- only then can the next ``$PGMRK,<word>`` be its own answer.
-The device answers commands in order, so slots are consumed oldest first.
+Command transactions (GMR protocol only) are serialised; how an answer is matched
+to its command, and a late answer kept from passing for a later command's, is
+:mod:`bridge.link.transactions`.
 """
 
 from __future__ import annotations
@@ -37,10 +30,15 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from typing import Literal, Protocol, TypeAlias
 
+from bridge.link.transactions import (
+    COMMAND_DEADLINES_S,
+    DEFAULT_DEADLINE_S,
+    Routed,
+    Transactions,
+)
 from bridge.link.transport import EndOfRecording, Transport
 from bridge.ports import (
     CommandError,
@@ -63,6 +61,21 @@ from bridge.protocol.gmr import (
     VersionFrame,
     encode,
 )
+
+__all__ = [
+    "COMMAND_DEADLINES_S",
+    "DEFAULT_DEADLINE_S",
+    "CommandError",
+    "CommandNotSupported",
+    "CommandRejected",
+    "CommandTimeout",
+    "CompassLink",
+    "LinkCounters",
+    "LinkDown",
+    "LinkProtocol",
+    "LinkState",
+    "Received",
+]
 from bridge.protocol.heading import HeadingDecoder, HeadingFrame
 
 Frame: TypeAlias = GmrFrame | HeadingFrame
@@ -75,10 +88,13 @@ SEQ_MODULUS = 65536
 #: A forward seq gap this large cannot be frame loss on a link that would have gone stale
 #: long before (at 100 Hz it is 5.5 minutes): count it as a discontinuity instead.
 _MAX_PLAUSIBLE_GAP = SEQ_MODULUS // 2
-
-#: Datasheet answer deadlines that differ from the 200 ms default, by command key.
-COMMAND_DEADLINES_S: Mapping[str, float] = {"MAGCAL,END": 0.5, "PAR,SET": 0.5, "ACCCAL": 1.5}
-DEFAULT_DEADLINE_S = 0.2
+#: ``seq`` 0 after a frame at most this many frames before the wrap is frame loss across
+#: the wrap (65534, [65535 lost], 0), not a reboot. A reboot restarts at 0 "from far
+#: away"; one in the last 64 frames of a 65536-frame cycle (0.1 % of them) whose
+#: ``$PGMRV`` was lost as well reads as loss -- its ``$PGMRV`` is what normally tells.
+#: 64 frames: 0.64 s at 100 Hz, longer than any loss that keeps a 100 Hz link streaming
+#: within the default stale_after.
+_WRAP_LOSS_WINDOW = 64
 
 _READ_TIMEOUT_S = 0.05  # bounds how late the reader notices close() and staleness
 _READ_CHUNK = 4096
@@ -89,50 +105,6 @@ _LIVE = (LinkState.OPENING, LinkState.STREAMING)
 
 class _Decoder(Protocol):
     def feed(self, data: bytes) -> Sequence[Frame]: ...
-
-
-@dataclass(slots=True, eq=False)  # compared by identity: each is one attempt
-class _Slot:
-    word: str  # the answer's command word ("VER" for $PGMRV, "PAR" for $PGMRP)
-    expires: float
-
-
-@dataclass(slots=True)
-class _Txn:
-    cmd: CommandFrame
-    answer: GmrFrame | None = None
-
-
-def _answer_word(frame: object) -> str | None:
-    if isinstance(frame, AckFrame):
-        return frame.command
-    if isinstance(frame, VersionFrame):
-        return "VER"
-    if isinstance(frame, ParamsFrame):
-        return "PAR"
-    return None
-
-
-def _matches(cmd: CommandFrame, frame: GmrFrame) -> bool:
-    """Whether ``frame`` can be the answer to ``cmd`` (stricter than the codec's is_answer).
-
-    ERR answers carry only the command word, so any ERR with the right word
-    matches; OK answers must also have the shape the datasheet gives the
-    sub-command (RATE echoes the rate, MAGCAL,END has six results, START/ABORT
-    none, PAR,SET is acked while PAR,GET is answered by $PGMRP).
-    """
-    if not cmd.is_answer(frame):
-        return False
-    if not isinstance(frame, AckFrame) or not frame.ok:
-        return True
-    key = cmd.key
-    if key == "RATE":
-        return frame.fields == cmd.args
-    if key == "MAGCAL,END":
-        return len(frame.fields) == 6
-    if key in ("MAGCAL,START", "MAGCAL,ABORT"):
-        return not frame.fields
-    return key != "PAR,GET"  # PAR,GET is answered by $PGMRP, never by an OK ack
 
 
 class CompassLink:
@@ -184,7 +156,6 @@ class CompassLink:
         self._on_state = on_state
         self._backoff_initial = backoff_initial
         self._backoff_max = backoff_max
-        self._late_window = late_answer_window
         self._clock = clock
 
         self._decoder: _Decoder = self._make_decoder()
@@ -215,12 +186,15 @@ class CompassLink:
         self._write_lock = threading.Lock()
         self._port_open = False
 
-        # Command transactions.
-        self._cmd_lock = threading.Lock()
-        self._answer_cond = threading.Condition()
-        self._current: _Txn | None = None
-        self._slots: list[_Slot] = []
-        self._last_ver_sent = -float("inf")
+        # Command transactions (callers' threads; the reader routes the answers).
+        self._txns = Transactions(
+            name=transport.name,
+            write=self._write,
+            count=self._count,
+            clock=clock,
+            late_window=late_answer_window,
+            stop=self._stop,
+        )
 
         # Sequence tracking (reader only).
         self._last_seq: int | None = None
@@ -289,7 +263,8 @@ class CompassLink:
     def close(self, timeout: float = 2.0) -> None:
         """Stop the threads (within about ``timeout`` s) and close the port."""
         self._stop.set()
-        for cond in (self._answer_cond, self._gen_cond, self._queue_cond, self._state_cond):
+        self._txns.wake()
+        for cond in (self._gen_cond, self._queue_cond, self._state_cond):
             with cond:
                 cond.notify_all()
         deadline = time.monotonic() + timeout
@@ -354,16 +329,7 @@ class CompassLink:
         per_try = timeout if timeout is not None else self.default_timeout(cmd)
         if not per_try > 0:
             raise ValueError(f"timeout must be positive, got {per_try}")
-        with self._cmd_lock:
-            self._wait_for_orphans(cmd.command)
-            txn = _Txn(cmd)
-            with self._answer_cond:
-                self._current = txn
-            try:
-                answer = self._transact(txn, line, per_try, retries)
-            finally:
-                with self._answer_cond:
-                    self._current = None
+        answer = self._txns.run(cmd, line, per_try, retries)
         if isinstance(answer, AckFrame) and not answer.ok:
             self._count("command_rejections")
             reason = answer.fields[0] if answer.fields else "?"
@@ -382,52 +348,6 @@ class CompassLink:
 
     # ------------------------------------------------------------------ commands
 
-    def _wait_for_orphans(self, word: str) -> None:
-        with self._answer_cond:
-            while True:
-                if self._stop.is_set():
-                    raise LinkDown("link is closed")
-                now = self._clock()
-                self._expire_slots(now)
-                pending = [s.expires for s in self._slots if s.word == word]
-                if not pending:
-                    return
-                self._answer_cond.wait(max(0.0, max(pending) - now) + 0.001)
-
-    def _transact(self, txn: _Txn, line: bytes, per_try: float, retries: int) -> GmrFrame:
-        word = txn.cmd.command
-        for attempt in range(retries + 1):
-            if attempt:
-                self._count("command_retries")
-                log.debug("%s: no answer to %s, resending", self.name, txn.cmd.key)
-            slot = _Slot(word, self._clock() + per_try + self._late_window)
-            with self._answer_cond:
-                # Registered before writing: the answer may beat the return of write().
-                self._slots.append(slot)
-                if word == "VER":
-                    self._last_ver_sent = self._clock()
-            try:
-                self._write(line)
-            except LinkDown:
-                with self._answer_cond:  # never sent: no answer can come for it
-                    if slot in self._slots:
-                        self._slots.remove(slot)
-                raise
-            self._count("commands_sent")
-            with self._answer_cond:
-                end = self._clock() + per_try
-                while txn.answer is None:
-                    if self._stop.is_set():
-                        raise LinkDown("link closed while waiting for an answer")
-                    left = end - self._clock()
-                    if left <= 0:
-                        break
-                    self._answer_cond.wait(left)
-                if txn.answer is not None:
-                    return txn.answer
-        self._count("command_timeouts")
-        raise CommandTimeout(f"no answer to {txn.cmd.key} after {retries + 1} attempt(s)")
-
     def _write(self, data: bytes) -> None:
         with self._write_lock:
             if not self._port_open:
@@ -438,45 +358,12 @@ class CompassLink:
                 # The reader will notice the loss on its next read; just fail this command.
                 raise LinkDown(f"{self.name}: write failed: {e}") from e
 
-    def _expire_slots(self, now: float) -> None:
-        if self._slots:
-            self._slots = [s for s in self._slots if s.expires > now]
-
-    def _take_slot(self, word: str) -> bool:
-        for i, s in enumerate(self._slots):
-            if s.word == word:
-                del self._slots[i]
-                return True
-        return False
-
     def _route_answer(self, frame: GmrFrame, now: float) -> None:
-        """Reader side: give an answer-type frame to the waiting command, or account for it."""
-        word = _answer_word(frame)
-        if word is None:
-            return
-        with self._answer_cond:
-            self._expire_slots(now)
-            txn = self._current
-            if txn is not None and txn.answer is None and _matches(txn.cmd, frame):
-                txn.answer = frame
-                self._take_slot(word)
-                self._answer_cond.notify_all()
-                return
-            if self._take_slot(word):
-                self._count("late_answers")
-                log.debug("%s: late answer absorbed: %s", self.name, frame)
-                self._answer_cond.notify_all()  # a command may be waiting for this orphan
-                return
-            ver_recently = now - self._last_ver_sent < (DEFAULT_DEADLINE_S + self._late_window)
-        if isinstance(frame, VersionFrame):
-            # A VER answer can be doubled by a power-up $PGMRV racing our VER on connect;
-            # only a version nobody asked for lately, from a device already seen streaming
-            # on this connection, is a reset (a power-up announcement is not one we saw).
-            if not ver_recently and self._last_seq is not None:
-                self._device_reset("unasked $PGMRV")
-        else:
-            self._count("unsolicited_answers")
-            log.debug("%s: unsolicited answer: %s", self.name, frame)
+        """Reader side: an answer-type frame to the transactions; a reboot's $PGMRV to us."""
+        # Only a version nobody asked for lately, from a device already seen streaming on
+        # this connection, is a reset (a power-up announcement is not one we saw).
+        if self._txns.route(frame, now) is Routed.VERSION and self._last_seq is not None:
+            self._device_reset("unasked $PGMRV")
 
     # ------------------------------------------------------------------ reader
 
@@ -644,11 +531,13 @@ class CompassLink:
         expected = (last + 1) % SEQ_MODULUS
         if seq == expected:
             return
-        if seq == 0:
+        gap = (seq - expected) % SEQ_MODULUS
+        if seq == 0 and gap >= _WRAP_LOSS_WINDOW:
+            # The datasheet's RESET restarts the counter at 0 (its $PGMRV, which normally
+            # announces it, may have been lost on the line).
             self._device_reset("seq restarted at 0")
             self._restart_expected = False
             return
-        gap = (seq - expected) % SEQ_MODULUS
         if gap < _MAX_PLAUSIBLE_GAP:
             self._count("lost_frames", gap)
         else:

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 from bridge.app.sample import CompassSample
+from bridge.core.geometry import euler_to_quaternion, wrap_radians_pi
+from bridge.core.quality import heading_usable
 from bridge.core.sensor import STANDARD_GRAVITY
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
@@ -158,12 +160,13 @@ def sys_status(h: Health) -> Message:
     lost frames, reconnects, stale events and pipeline errors.
     """
     mag, acc = M.MAV_SYS_STATUS_SENSOR_3D_MAG, M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-    ok = h.fresh and h.link_state is LinkState.STREAMING and not h.saturated
+    live = h.fresh and h.link_state is LinkState.STREAMING
     # Every sensor we do not have counts as healthy, as ArduPilot reports them: ground
     # stations read a clear health bit as a fault (MAVProxy says "fence breach" when the
     # GEOFENCE bit is clear, whether or not a fence is present).
     absent = _UINT32 & ~(mag | acc)
-    health = absent | (mag if ok and not h.disturbed else 0) | (acc if ok else 0)
+    mag_ok = live and heading_usable(h.saturated, h.disturbed)
+    health = absent | (mag if mag_ok else 0) | (acc if live and not h.saturated else 0)
     total = h.bad_lines + h.good_lines
     drop = round(10000 * h.bad_lines / total) if total else 0
     return message(
@@ -190,13 +193,6 @@ def sys_status(h: Health) -> Message:
 # ---------------------------------------------------------------------------- per-sample messages
 
 
-def _wrap_pi(a: float) -> float:
-    a = math.fmod(a + math.pi, 2.0 * math.pi)
-    if a <= 0.0:
-        a += 2.0 * math.pi
-    return a - math.pi
-
-
 def euler_of(sample: CompassSample) -> tuple[float, float, float]:
     """(roll, pitch, yaw) in radians; yaw from the published heading, unknown angles 0."""
     a = sample.attitude
@@ -204,19 +200,7 @@ def euler_of(sample: CompassSample) -> tuple[float, float, float]:
         return a.roll, a.pitch, a.yaw
     roll = math.radians(sample.roll_deg) if sample.roll_deg is not None else 0.0
     pitch = math.radians(sample.pitch_deg) if sample.pitch_deg is not None else 0.0
-    return roll, pitch, _wrap_pi(math.radians(sample.heading_deg))
-
-
-def quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    """(w, x, y, z) body->NED from ZYX Euler angles, w >= 0."""
-    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
-    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
-    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
-    w = cr * cp * cy + sr * sp * sy
-    x = sr * cp * cy - cr * sp * sy
-    y = cr * sp * cy + sr * cp * sy
-    z = cr * cp * sy - sr * sp * cy
-    return (w, x, y, z) if w >= 0.0 else (-w, -x, -y, -z)
+    return roll, pitch, wrap_radians_pi(math.radians(sample.heading_deg))
 
 
 def _ms32(t_ms: int) -> int:
@@ -232,7 +216,7 @@ def attitude(sample: CompassSample, time_boot_ms: int) -> Message:
 def attitude_quaternion(sample: CompassSample, time_boot_ms: int) -> Message:
     """ATTITUDE_QUATERNION (q1..q4 = w, x, y, z)."""
     a = sample.attitude
-    q = a.quaternion if a is not None else quaternion(*euler_of(sample))
+    q = a.quaternion if a is not None else euler_to_quaternion(*euler_of(sample))
     return M.MAVLink_attitude_quaternion_message(
         _ms32(time_boot_ms), q[0], q[1], q[2], q[3], 0.0, 0.0, 0.0, (0.0, 0.0, 0.0, 0.0)
     )
@@ -350,7 +334,7 @@ def feed_usable(sample: CompassSample) -> bool:
     gap (it falls back on its own sources) than by a confident bad value.
     """
     a = sample.attitude
-    return not sample.saturated and not (a is not None and a.disturbed)
+    return heading_usable(sample.saturated, a is not None and a.disturbed)
 
 
 def feed_yaw_sigma_rad(sample: CompassSample, sigma_deg: float) -> float:
@@ -365,10 +349,10 @@ def feed_euler(sample: CompassSample) -> tuple[float, float, float, bool]:
     roll, pitch, _published = euler_of(sample)
     true = sample.heading_true_deg
     if true is not None:
-        return roll, pitch, _wrap_pi(math.radians(true)), True
+        return roll, pitch, wrap_radians_pi(math.radians(true)), True
     mag = sample.heading_magnetic_deg
     hdg = mag if mag is not None else sample.heading_deg
-    return roll, pitch, _wrap_pi(math.radians(hdg)), False
+    return roll, pitch, wrap_radians_pi(math.radians(hdg)), False
 
 
 def _pose_covariance(yaw_var: float) -> list[float]:
@@ -395,7 +379,7 @@ def odometry(
         x=0.0,
         y=0.0,
         z=0.0,
-        q=quaternion(roll, pitch, yaw),
+        q=euler_to_quaternion(roll, pitch, yaw),
         vx=nan,
         vy=nan,
         vz=nan,

@@ -148,6 +148,9 @@ class _State:
     SKIP = 2  # discarding up to the next "$" (junk run or the rest of a dropped line)
 
 
+_IDLE, _SKIP = _State.IDLE, _State.SKIP
+
+
 class LineSplitter:
     """Streaming splitter: bytes in, checksum-verified line bodies (``str``) out.
 
@@ -173,6 +176,11 @@ class LineSplitter:
         """Bytes of the current partial line held between calls (never over MAX_BODY_BYTES + 3)."""
         return len(self._buf)
 
+    @property
+    def in_line(self) -> bool:
+        """A line has started and not ended yet (its bytes so far are buffered)."""
+        return self._state == _State.LINE
+
     def reset(self) -> None:
         """Forget any partial line without counting it (e.g. after the port is reopened)."""
         self._buf.clear()
@@ -193,17 +201,18 @@ class LineSplitter:
     def feed(self, data: bytes) -> list[str]:
         """Consume a chunk; return the bodies of the lines it completed, in order."""
         out: list[str] = []
+        buf = self._buf
         i = 0
         n = len(data)
         while i < n:
             state = self._state
-            if state == _State.SKIP:
+            if state == _SKIP:
                 j = data.find(b"$", i)
                 if j < 0:
                     break
                 i = j + 1
                 self._start_line()
-            elif state == _State.IDLE:
+            elif state == _IDLE:
                 b = data[i]
                 if b == _DOLLAR:
                     i += 1
@@ -212,66 +221,63 @@ class LineSplitter:
                     i += 1
                 else:
                     # First byte of a junk run: count it once, swallow the run in SKIP.
-                    self._drop(DropReason.NOISE, _State.SKIP)
-            elif self._cr:
+                    self._drop(DropReason.NOISE, _SKIP)
+            elif self._cr:  # the line's CR ended the previous chunk
                 b = data[i]
                 if b == _LF:
                     i += 1
-                    body = self._finish()
-                    if body is not None:
-                        out.append(body)
+                    self._finish(bytes(buf), out)
                 elif b == _DOLLAR:
                     i += 1
                     self._counters.add(DropReason.NO_CHECKSUM)  # cut before its LF
                     self._start_line()
                 else:
-                    self._drop(DropReason.NOISE, _State.SKIP)
+                    self._drop(DropReason.NOISE, _SKIP)
             else:
                 m = _SPECIAL.search(data, i)
                 end = m.start() if m is not None else n
-                if end > i:
-                    if len(self._buf) + (end - i) > _MAX_CONTENT:
-                        # Resync on the next "$" without buffering the rest of the line.
-                        self._drop(DropReason.TOO_LONG, _State.SKIP)
-                        i = end
-                        continue
-                    self._buf += data[i:end]
-                i = end
+                if len(buf) + (end - i) > _MAX_CONTENT:
+                    # Resync on the next "$" without buffering the rest of the line.
+                    self._drop(DropReason.TOO_LONG, _SKIP)
+                    i = end
+                    continue
                 if m is None:
+                    buf += data[i:end]
                     break
-                b = data[i]
-                i += 1
-                if b == _LF:
-                    body = self._finish()
-                    if body is not None:
-                        out.append(body)
-                elif b == _CR:
-                    self._cr = True
+                b = data[end]
+                if b == _LF or (b == _CR and data[end + 1 : end + 2] == b"\n"):
+                    # The terminator (CR LF both in this chunk: one step, the common case).
+                    self._finish(bytes(buf) + data[i:end] if buf else data[i:end], out)
+                    i = end + (1 if b == _LF else 2)
+                    continue
+                buf += data[i:end]
+                i = end + 1
+                if b == _CR:
+                    self._cr = True  # its LF comes with the next chunk (or not)
                 elif b == _DOLLAR:
                     self._counters.add(DropReason.NO_CHECKSUM)  # the partial line was cut
                     self._start_line()
                 else:
-                    self._drop(DropReason.NOISE, _State.SKIP)
+                    self._drop(DropReason.NOISE, _SKIP)
         return out
 
-    def _finish(self) -> str | None:
-        """A terminator arrived: verify ``body*HH`` and return the body, or count the drop."""
-        content = bytes(self._buf)
+    def _finish(self, content: bytes, out: list[str]) -> None:
+        """A terminator arrived: verify ``body*HH``; the body goes to ``out``, or the drop is counted."""
         self._buf.clear()
         self._cr = False
-        self._state = _State.IDLE
+        self._state = _IDLE
         star = content.find(b"*")
         if star < 0 or not _HEX2.fullmatch(content, star + 1):
             self._counters.add(DropReason.NO_CHECKSUM)
-            return None
+            return
         body = content[:star]
         if len(body) > MAX_BODY_BYTES:
             self._counters.add(DropReason.TOO_LONG)
-            return None
+            return
         if checksum(body) != int(content[star + 1 :], 16):
             self._counters.add(DropReason.CHECKSUM)
-            return None
-        return body.decode("ascii")
+            return
+        out.append(body.decode("ascii"))
 
 
 # --------------------------------------------------------------------------- field primitives

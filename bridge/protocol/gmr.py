@@ -4,62 +4,65 @@ Device -> host: ``$PGMRA`` (attitude + raw), ``$PGMRV`` (version), ``$PGMRC``
 (calibration progress), ``$PGMRP`` (flash parameters), ``$PGMRK`` (ack).
 Host -> device: ``$PGMRQ`` (command).
 
-Every frame is a frozen, slotted dataclass that validates itself on
-construction with the *same* rules the decoder applies, so any frame that can
-be built can be encoded, and ``decode(encode(f)) == f`` for every frame whose
-numbers already sit on the datasheet's grid (angles and offsets to 0.1, gains
-to 0.0001). Constructors raise :class:`DecodeError` (a ValueError) carrying the
-drop reason the decoder would count for the same content.
+The frames and their encoding are :mod:`bridge.protocol.gmr_frames` (re-exported
+here: import everything from this module); this module decodes. Every frame
+validates itself on construction with the *same* rules the decoder applies --
+:class:`AttitudeFrame` is the one validation of a ``$PGMRA`` frame, whoever builds
+it (the decoder, the simulated firmware, a benchmark) -- so any frame that can be
+built can be encoded, and ``decode(encode(f)) == f`` for every frame whose numbers
+already sit on the datasheet's grid. The datasheet readings taken (tolerated
+``360.0``, plain decimals, lower-case hex, ranges) are listed in
+:mod:`bridge.protocol.gmr_frames`.
 
-Readings of the datasheet taken here:
-
-* ``hdg`` "0.0-359.9": the decoder tolerates exactly ``360.0`` and reports it
-  as 0.0 -- it is what a firmware rounding 359.95..359.99 to one decimal
-  prints, and dropping it would blank the heading every time the vehicle
-  points north. :func:`encode` never emits it (it wraps to ``0.0``).
-* Numbers are accepted as plain decimals (``-?digits[.digits]``) with any
-  number of decimals; ``+1``, ``1e3``, ``.5``, ``nan``, ``inf`` are ``number``.
-  Encoding uses the datasheet's decimals. Flags accept lower-case hex.
-* ``$PGMRP`` ranges: offsets 0-4095 (so the factory Gzoff = 2949.5 is
-  legitimate) and gains 0.0977-10.2375, the span of what the flash can
-  legitimately hold: PAR,SET's 0.1-10 *plus* what MAGCAL,END can write
-  (span ratios with every span in 400..4095 counts). A stricter 0.1-10 check
-  would lock the host out of reading a unit after an extreme calibration.
-* ``$PGMRC`` requires min <= max per axis (an untracked axis reports 0,0).
-* ``$PGMRK,...,OK`` is accepted only for commands that acknowledge OK with
-  the datasheet's result fields (RATE 1, MAGCAL 0 or 6, ACCCAL 3, PAR/RESET 0);
-  ``ERR`` is accepted for any command word (UNKNOWN echoes an unknown command)
-  with exactly one of the six reasons.
-* ``$PGMRQ`` decoding (device side) only requires a non-empty command word:
-  the device must *answer* malformed commands (ERR,UNKNOWN / ERR,ARGS), so it
-  has to see them; :meth:`CommandFrame.error` gives that answer.
+Decoding a read: whole ``$PGMRA`` lines at its start (what nearly every read holds at
+100 Hz) are matched with one pattern -- the framing and the same field rules the body
+decoder uses -- and built through the same code; everything else goes through the
+byte-by-byte :class:`~bridge.protocol.framing.LineSplitter` and :func:`decode_body`,
+which count what they drop. Both routes give the same frames and counters
+(tests/test_protocol_pgmra.py); docs/performance.md has the measured reason for the first.
 """
 
 from __future__ import annotations
 
-import numbers
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
-from enum import IntFlag, StrEnum
-from typing import Literal, TypeAlias
+from typing import Literal
 
-from bridge import speedups
 from bridge.protocol.framing import (
+    DECIMAL_RE,
     INT_RE,
     MAX_BODY_BYTES,
     CodecCounters,
     DecodeError,
     DropReason,
     LineSplitter,
-    _State,
-    check_int,
-    check_real,
-    check_token,
-    fmt_fixed,
+    checksum,
     parse_decimal,
     parse_int,
-    render_line,
+)
+from bridge.protocol.gmr_frames import (
+    _ADC_NAMES,
+    _HEX2_RE,
+    _PARAM_NAMES,
+    ACC_OFFSET_RANGE,
+    ADC_RANGE,
+    FLAGS_MASK,
+    GAIN_RANGE,
+    OFFSET_RANGE,
+    PAR_SET_GAIN_RANGE,
+    RATES_HZ,
+    SEQ_MAX,
+    AckFrame,
+    AckReason,
+    AttitudeFrame,
+    CalProgressFrame,
+    CommandFrame,
+    Flags,
+    GmrFrame,
+    ParamsFrame,
+    VersionFrame,
+    encode,
+    encode_body,
 )
 
 __all__ = [
@@ -67,8 +70,10 @@ __all__ = [
     "ADC_RANGE",
     "FLAGS_MASK",
     "GAIN_RANGE",
+    "OFFSET_RANGE",
     "PAR_SET_GAIN_RANGE",
     "RATES_HZ",
+    "SEQ_MAX",
     "AckFrame",
     "AckReason",
     "AttitudeFrame",
@@ -87,534 +92,80 @@ __all__ = [
 ]
 
 
-class Flags(IntFlag):
-    """``$PGMRA`` flag bits (bits 5-7 are always zero)."""
-
-    CAL = 0x01  #: magnetometer calibration mode active
-    MAGOK = 0x02  #: flash holds a magnetometer calibration
-    ACCOK = 0x04  #: flash holds an accelerometer level reference
-    SAT = 0x08  #: a channel of this frame is saturated
-    FLASHERR = 0x10  #: the last flash write failed verification
-
-
-class AckReason(StrEnum):
-    """``$PGMRK,<command>,ERR,<reason>`` reasons."""
-
-    UNKNOWN = "UNKNOWN"  #: no such command
-    ARGS = "ARGS"  #: bad arguments
-    STATE = "STATE"  #: not allowed in the current mode
-    RANGE = "RANGE"  #: calibration saw too little rotation
-    MOTION = "MOTION"  #: device not still
-    FLASH = "FLASH"  #: flash write failed
-
-
-FLAGS_MASK = 0x1F
-RATES_HZ: tuple[int, ...] = (1, 2, 5, 10, 20, 50, 100)
-SEQ_MAX = 65535
-#: PGMRC sample counter bound (a 32-bit firmware counter; keeps the line within 96 bytes).
-SAMPLES_MAX = 2**32 - 1
-ADC_RANGE = (0, 4095)
-OFFSET_RANGE = (0.0, 4095.0)  #: Xoff/Yoff/Zoff, counts
-ACC_OFFSET_RANGE = (0.0, 4095.0)  #: Gxoff/Gyoff/Gzoff, counts
-PAR_SET_GAIN_RANGE = (0.1, 10.0)  #: what PAR,SET accepts
-#: What the flash can hold: PAR,SET's range plus MAGCAL,END ratios of spans in 400..4095.
-GAIN_RANGE = (400 / 4095, 4095 / 400)
-
-_HEX2_RE = re.compile(r"[0-9A-Fa-f]{2}")
-
-
-def _f1(x: float) -> str:
-    return fmt_fixed(x, 1)
-
-
-def _f4(x: float) -> str:
-    return fmt_fixed(x, 4)
-
-
-def _set(obj: object, name: str, value: object) -> None:
-    # Frozen dataclasses: normalise fields in __post_init__ (np.int64 -> int, int -> float).
-    object.__setattr__(obj, name, value)
-
-
 def _expect_fields(fields: list[str], n: int, sentence: str) -> None:
     if len(fields) != n:
         raise DecodeError(DropReason.FIELDS, f"{sentence} needs {n} fields, got {len(fields)}")
 
 
-# --------------------------------------------------------------------------- frames
-
-
-@dataclass(frozen=True, slots=True)
-class AttitudeFrame:
-    """``$PGMRA``: on-board attitude (degrees) and raw ADC counts, streamed at the output rate.
-
-    ``heading`` is magnetic, clockwise from north, in [0, 360); ``pitch`` nose
-    up positive in [-90, 90]; ``roll`` right wing down positive in [-180, 180].
-    """
-
-    seq: int
-    heading: float
-    pitch: float
-    roll: float
-    mx: int
-    my: int
-    mz: int
-    ax: int
-    ay: int
-    az: int
-    flags: Flags
-
-    def __post_init__(self) -> None:
-        _set(self, "seq", check_int(self.seq, "seq", 0, SEQ_MAX))
-        _set(self, "heading", check_real(self.heading, "heading", 0.0, 360.0, hi_open=True))
-        _set(self, "pitch", check_real(self.pitch, "pitch", -90.0, 90.0))
-        _set(self, "roll", check_real(self.roll, "roll", -180.0, 180.0))
-        for name in ("mx", "my", "mz", "ax", "ay", "az"):
-            _set(self, name, check_int(getattr(self, name), name, *ADC_RANGE))
-        flags = check_int(self.flags, "flags", 0, 0xFF)
-        if flags & ~FLAGS_MASK:
-            raise DecodeError(DropReason.RANGE, f"flags 0x{flags:02X} has bits 5-7 set")
-        _set(self, "flags", Flags(flags))
-
-    @property
-    def mag_counts(self) -> tuple[int, int, int]:
-        """(mx, my, mz) raw magnetometer counts."""
-        return (self.mx, self.my, self.mz)
-
-    @property
-    def acc_counts(self) -> tuple[int, int, int]:
-        """(ax, ay, az) raw accelerometer counts."""
-        return (self.ax, self.ay, self.az)
-
-
-@dataclass(frozen=True, slots=True)
-class VersionFrame:
-    """``$PGMRV``: firmware version, hardware revision, serial number (at power-up and on VER)."""
-
-    firmware: str
-    hardware: str
-    serial: str
-
-    def __post_init__(self) -> None:
-        for name in ("firmware", "hardware", "serial"):
-            check_token(getattr(self, name), name)
-        _check_length(self)
-
-
-@dataclass(frozen=True, slots=True)
-class CalProgressFrame:
-    """``$PGMRC``: min/max counts tracked so far in magnetometer calibration (1 Hz).
-
-    An axis not yet tracked reports ``0, 0``.
-    """
-
-    samples: int
-    xmin: int
-    xmax: int
-    ymin: int
-    ymax: int
-    zmin: int
-    zmax: int
-
-    def __post_init__(self) -> None:
-        _set(self, "samples", check_int(self.samples, "samples", 0, SAMPLES_MAX))
-        for axis in "xyz":
-            lo = check_int(getattr(self, axis + "min"), axis + "min", *ADC_RANGE)
-            hi = check_int(getattr(self, axis + "max"), axis + "max", *ADC_RANGE)
-            if lo > hi:
-                raise DecodeError(DropReason.RANGE, f"{axis}min={lo} > {axis}max={hi}")
-            _set(self, axis + "min", lo)
-            _set(self, axis + "max", hi)
-
-    def span(self, axis: Literal["x", "y", "z"]) -> int:
-        """max - min counts seen on ``axis`` (MAGCAL,END needs >= 400 on every axis)."""
-        lo: int = getattr(self, axis + "min")
-        hi: int = getattr(self, axis + "max")
-        return hi - lo
-
-
-@dataclass(frozen=True, slots=True)
-class ParamsFrame:
-    """``$PGMRP``: the nine flash parameters (reply to PAR,GET; also PAR,SET's arguments).
-
-    Offsets in counts (one decimal), gains dimensionless (four decimals).
-    """
-
-    xoff: float
-    yoff: float
-    zoff: float
-    kx: float
-    ky: float
-    kz: float
-    gxoff: float
-    gyoff: float
-    gzoff: float
-
-    def __post_init__(self) -> None:
-        for name in ("xoff", "yoff", "zoff"):
-            _set(self, name, check_real(getattr(self, name), name, *OFFSET_RANGE))
-        for name in ("kx", "ky", "kz"):
-            _set(self, name, check_real(getattr(self, name), name, *GAIN_RANGE))
-        for name in ("gxoff", "gyoff", "gzoff"):
-            _set(self, name, check_real(getattr(self, name), name, *ACC_OFFSET_RANGE))
-
-    @classmethod
-    def factory(cls) -> ParamsFrame:
-        """The datasheet's factory flash content."""
-        return cls(2458.0, 2458.0, 2458.0, 1.0, 1.0, 1.0, 2458.0, 2458.0, 2949.5)
-
-    def values(self) -> tuple[float, ...]:
-        """The nine values in sentence order."""
-        return tuple(getattr(self, n) for n in _PARAM_NAMES)
-
-    def fields(self) -> tuple[str, ...]:
-        """The nine values formatted as the datasheet says (offsets .1f, gains .4f)."""
-        return tuple(
-            _f4(v) if n.startswith("k") else _f1(v)
-            for n, v in zip(_PARAM_NAMES, self.values(), strict=True)
-        )
-
-
-_PARAM_NAMES = ("xoff", "yoff", "zoff", "kx", "ky", "kz", "gxoff", "gyoff", "gzoff")
-
-
-# Result fields of "$PGMRK,<command>,OK,...": allowed field counts per command word.
-_OK_RESULT_COUNTS: dict[str, tuple[int, ...]] = {
-    "RATE": (1,),
-    "MAGCAL": (0, 6),
-    "ACCCAL": (3,),
-    "PAR": (0,),
-    "RESET": (0,),
-}
-
-
-def _check_ok_results(command: str, fields: tuple[str, ...]) -> None:
-    counts = _OK_RESULT_COUNTS.get(command)
-    if counts is None:
-        raise DecodeError(DropReason.RANGE, f"{command!r} never acknowledges OK")
-    if len(fields) not in counts:
-        raise DecodeError(
-            DropReason.FIELDS, f"{command},OK needs {counts} result fields, got {len(fields)}"
-        )
-    if command == "RATE":
-        hz = parse_int(fields[0], "rate")
-        if hz not in RATES_HZ:
-            raise DecodeError(DropReason.RANGE, f"rate {hz} Hz not one of {RATES_HZ}")
-    elif command == "MAGCAL" and fields:
-        for i, text in enumerate(fields):
-            name = ("xoff", "yoff", "zoff", "kx", "ky", "kz")[i]
-            rng = GAIN_RANGE if i >= 3 else OFFSET_RANGE
-            check_real(parse_decimal(text, name), name, *rng)
-    elif command == "ACCCAL":
-        for name, text in zip(("gxoff", "gyoff", "gzoff"), fields, strict=True):
-            check_real(parse_decimal(text, name), name, *ACC_OFFSET_RANGE)
-
-
-@dataclass(frozen=True, slots=True)
-class AckFrame:
-    """``$PGMRK``: command acknowledgement.
-
-    ``fields`` holds the OK result fields as sent, or ``(reason,)`` on ERR.
-    Build them with :meth:`success`, :meth:`failure`, :meth:`rate_ok`,
-    :meth:`magcal_ok`, :meth:`acccal_ok`.
-    """
-
-    command: str
-    ok: bool
-    fields: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        check_token(self.command, "command")
-        if not isinstance(self.ok, bool):
-            raise DecodeError(DropReason.RANGE, f"ok must be a bool, got {self.ok!r}")
-        fields = tuple(self.fields)
-        for f in fields:
-            check_token(f, "result field")
-        if self.ok:
-            _check_ok_results(self.command, fields)
-        else:
-            if len(fields) != 1:
-                raise DecodeError(DropReason.FIELDS, f"ERR needs one reason, got {fields!r}")
-            if fields[0] not in AckReason.__members__:
-                raise DecodeError(DropReason.RANGE, f"unknown ERR reason {fields[0]!r}")
-        _set(self, "fields", fields)
-        _check_length(self)
-
-    @classmethod
-    def success(cls, command: str, fields: tuple[str, ...] = ()) -> AckFrame:
-        """``$PGMRK,<command>,OK[,<fields>]``."""
-        return cls(command, True, fields)
-
-    @classmethod
-    def failure(cls, command: str, reason: AckReason | str) -> AckFrame:
-        """``$PGMRK,<command>,ERR,<reason>``."""
-        return cls(command, False, (AckReason(reason).value,))
-
-    @classmethod
-    def rate_ok(cls, hz: int) -> AckFrame:
-        """``$PGMRK,RATE,OK,<hz>``."""
-        return cls("RATE", True, (str(check_int(hz, "rate", 1, 100)),))
-
-    @classmethod
-    def magcal_ok(
-        cls, xoff: float, yoff: float, zoff: float, kx: float, ky: float, kz: float
-    ) -> AckFrame:
-        """``$PGMRK,MAGCAL,OK,<xoff>,<yoff>,<zoff>,<kx>,<ky>,<kz>`` (the MAGCAL,END answer)."""
-        offs = [_f1(check_real(v, "offset", *OFFSET_RANGE)) for v in (xoff, yoff, zoff)]
-        gains = [_f4(check_real(v, "gain", *GAIN_RANGE)) for v in (kx, ky, kz)]
-        return cls("MAGCAL", True, (*offs, *gains))
-
-    @classmethod
-    def acccal_ok(cls, gxoff: float, gyoff: float, gzoff: float) -> AckFrame:
-        """``$PGMRK,ACCCAL,OK,<gxoff>,<gyoff>,<gzoff>``."""
-        return cls(
-            "ACCCAL",
-            True,
-            tuple(
-                _f1(check_real(v, "level offset", *ACC_OFFSET_RANGE)) for v in (gxoff, gyoff, gzoff)
-            ),
-        )
-
-    @property
-    def reason(self) -> AckReason | None:
-        """The ERR reason, or None when ``ok``."""
-        return None if self.ok else AckReason(self.fields[0])
-
-    @property
-    def values(self) -> tuple[float, ...]:
-        """The OK result fields as numbers (empty on ERR or when there are none)."""
-        return tuple(float(f) for f in self.fields) if self.ok else ()
-
-    @property
-    def rate_hz(self) -> int | None:
-        """The rate confirmed by ``RATE,OK``, else None."""
-        return int(self.fields[0]) if self.ok and self.command == "RATE" else None
-
-
-_COMMAND_WORDS = ("VER", "RATE", "MAGCAL", "ACCCAL", "PAR", "RESET")
-
-
-@dataclass(frozen=True, slots=True)
-class CommandFrame:
-    """``$PGMRQ,<command>[,<arg>...]``: a host command.
-
-    The dataclass accepts any well-formed command (the device must be able to
-    receive a bad one to answer ERR); the classmethod constructors build only
-    valid ones. :meth:`error` says what the device answers it.
-    """
-
-    command: str
-    args: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        check_token(self.command, "command")
-        args = tuple(self.args)
-        for a in args:
-            check_token(a, "argument", empty_ok=True)
-        _set(self, "args", args)
-        _check_length(self)
-
-    @classmethod
-    def ver(cls) -> CommandFrame:
-        """``VER``: answered by ``$PGMRV``."""
-        return cls("VER")
-
-    @classmethod
-    def rate(cls, hz: int) -> CommandFrame:
-        """``RATE,<hz>`` with hz one of 1, 2, 5, 10, 20, 50, 100 (ValueError otherwise)."""
-        if isinstance(hz, bool) or not isinstance(hz, numbers.Integral) or hz not in RATES_HZ:
-            raise ValueError(f"rate must be one of {RATES_HZ} Hz, got {hz!r}")
-        return cls("RATE", (str(int(hz)),))
-
-    @classmethod
-    def magcal_start(cls) -> CommandFrame:
-        """``MAGCAL,START``: enter magnetometer calibration mode."""
-        return cls("MAGCAL", ("START",))
-
-    @classmethod
-    def magcal_end(cls) -> CommandFrame:
-        """``MAGCAL,END``: compute, write flash, leave calibration mode."""
-        return cls("MAGCAL", ("END",))
-
-    @classmethod
-    def magcal_abort(cls) -> CommandFrame:
-        """``MAGCAL,ABORT``: leave calibration mode, flash unchanged."""
-        return cls("MAGCAL", ("ABORT",))
-
-    @classmethod
-    def acccal(cls) -> CommandFrame:
-        """``ACCCAL``: average 1 s of accelerometer samples as the level reference."""
-        return cls("ACCCAL")
-
-    @classmethod
-    def par_get(cls) -> CommandFrame:
-        """``PAR,GET``: answered by ``$PGMRP``."""
-        return cls("PAR", ("GET",))
-
-    @classmethod
-    def par_set(cls, params: ParamsFrame) -> CommandFrame:
-        """``PAR,SET`` with the nine values; gains must lie in 0.1-10 as the device requires."""
-        for name in ("kx", "ky", "kz"):
-            check_real(getattr(params, name), name, *PAR_SET_GAIN_RANGE)
-        return cls("PAR", ("SET", *params.fields()))
-
-    @classmethod
-    def reset(cls) -> CommandFrame:
-        """``RESET``: reboot the device."""
-        return cls("RESET")
-
-    @property
-    def key(self) -> str:
-        """Command word plus sub-command where there is one, e.g. ``"MAGCAL,END"``."""
-        if self.command in ("MAGCAL", "PAR") and self.args:
-            return f"{self.command},{self.args[0]}"
-        return self.command
-
-    def rate_hz(self) -> int:
-        """The rate of a valid ``RATE`` command (ValueError otherwise)."""
-        if self.command != "RATE" or self.error() is not None:
-            raise ValueError(f"not a valid RATE command: {self}")
-        return int(self.args[0])
-
-    def params(self) -> ParamsFrame:
-        """The nine values of a valid ``PAR,SET`` (ValueError otherwise)."""
-        if self.key != "PAR,SET" or self.error() is not None:
-            raise ValueError(f"not a valid PAR,SET command: {self}")
-        return ParamsFrame(*(float(a) for a in self.args[1:]))
-
-    def error(self) -> AckReason | None:
-        """What the device answers for the command *itself*: UNKNOWN, ARGS, or None if valid.
-
-        Mode-dependent refusals (STATE) are the firmware's business, not the codec's.
-        """
-        cmd, args = self.command, self.args
-        if cmd not in _COMMAND_WORDS:
-            return AckReason.UNKNOWN
-        if cmd in ("VER", "ACCCAL", "RESET"):
-            return None if not args else AckReason.ARGS
-        if cmd == "RATE":
-            if len(args) == 1 and INT_RE.fullmatch(args[0]) and int(args[0]) in RATES_HZ:
-                return None
-            return AckReason.ARGS
-        if cmd == "MAGCAL":
-            return None if args in (("START",), ("END",), ("ABORT",)) else AckReason.ARGS
-        # PAR
-        if args == ("GET",):
-            return None
-        if len(args) != 10 or args[0] != "SET":
-            return AckReason.ARGS
-        try:
-            values = [parse_decimal(a, "PAR,SET") for a in args[1:]]
-            for i, v in enumerate(values):
-                rng = PAR_SET_GAIN_RANGE if 3 <= i < 6 else OFFSET_RANGE
-                check_real(v, _PARAM_NAMES[i], *rng)
-        except DecodeError:
-            return AckReason.ARGS
-        return None
-
-    def is_answer(self, frame: GmrFrame) -> bool:
-        """Whether ``frame`` answers this command (``$PGMRK,<command>``, or PGMRV/PGMRP)."""
-        if isinstance(frame, AckFrame):
-            return frame.command == self.command
-        if isinstance(frame, VersionFrame):
-            return self.command == "VER"
-        if isinstance(frame, ParamsFrame):
-            return self.key == "PAR,GET"
-        return False
-
-    def ack_ok(self, fields: tuple[str, ...] = ()) -> AckFrame:
-        """The ``$PGMRK,<command>,OK`` answer (for the simulated firmware)."""
-        return AckFrame(self.command, True, fields)
-
-    def ack_err(self, reason: AckReason | str) -> AckFrame:
-        """The ``$PGMRK,<command>,ERR,<reason>`` answer (for the simulated firmware)."""
-        return AckFrame.failure(self.command, reason)
-
-
-GmrFrame: TypeAlias = (
-    AttitudeFrame | VersionFrame | CalProgressFrame | ParamsFrame | AckFrame | CommandFrame
-)
-
-
-# --------------------------------------------------------------------------- encode
-
-
-def encode_body(frame: GmrFrame) -> str:
-    """The sentence body (between ``$`` and ``*``) for ``frame``."""
-    parts: list[str]
-    if isinstance(frame, AttitudeFrame):
-        hdg = _f1(frame.heading)
-        if hdg == "360.0":  # 359.95.. rounds up: the datasheet's range stops at 359.9
-            hdg = "0.0"
-        parts = [
-            "PGMRA",
-            str(frame.seq),
-            hdg,
-            _f1(frame.pitch),
-            _f1(frame.roll),
-            *(str(c) for c in (*frame.mag_counts, *frame.acc_counts)),
-            f"{int(frame.flags):02X}",
-        ]
-    elif isinstance(frame, VersionFrame):
-        parts = ["PGMRV", frame.firmware, frame.hardware, frame.serial]
-    elif isinstance(frame, CalProgressFrame):
-        parts = [
-            "PGMRC",
-            *(
-                str(v)
-                for v in (
-                    frame.samples,
-                    frame.xmin,
-                    frame.xmax,
-                    frame.ymin,
-                    frame.ymax,
-                    frame.zmin,
-                    frame.zmax,
-                )
-            ),
-        ]
-    elif isinstance(frame, ParamsFrame):
-        parts = ["PGMRP", *frame.fields()]
-    elif isinstance(frame, AckFrame):
-        parts = ["PGMRK", frame.command, "OK" if frame.ok else "ERR", *frame.fields]
-    elif isinstance(frame, CommandFrame):
-        parts = ["PGMRQ", frame.command, *frame.args]
-    else:
-        raise TypeError(f"not a GMR frame: {frame!r}")
-    return ",".join(parts)
-
-
-def encode(frame: GmrFrame) -> bytes:
-    """The full line for ``frame``: ``$<body>*<CS>\\r\\n``."""
-    return render_line(encode_body(frame))
-
-
-def _check_length(frame: GmrFrame) -> None:
-    # Only frames with free-form strings can outgrow a line; refuse them at construction
-    # so that every constructible frame is encodable.
-    n = len(encode_body(frame))
-    if n > MAX_BODY_BYTES:
-        raise DecodeError(DropReason.TOO_LONG, f"sentence body is {n} bytes, over {MAX_BODY_BYTES}")
-
-
 # --------------------------------------------------------------------------- decode
+
+
+# The eleven $PGMRA fields in one pattern, composed of the field rules every sentence uses
+# (INT_RE, DECIMAL_RE, two hex digits): one match per frame instead of eleven calls. When it
+# fails, the per-field parsers say which field and why.
+_ATTITUDE_FIELDS_PATTERN = ",".join(
+    [
+        f"({INT_RE.pattern})",
+        *[f"({DECIMAL_RE.pattern})"] * 3,
+        *[f"({INT_RE.pattern})"] * 6,
+        f"({_HEX2_RE.pattern})",
+    ]
+)
+_ATTITUDE_FIELDS = re.compile(_ATTITUDE_FIELDS_PATTERN)
+# A whole $PGMRA line as the splitter would hand it over: the same fields between "$PGMRA,"
+# and "*HH" plus CRLF or LF. Groups: 1 the body, 2-12 the fields, 13 the checksum.
+_ATTITUDE_LINE = re.compile(
+    rb"\$(PGMRA," + _ATTITUDE_FIELDS_PATTERN.encode("ascii") + rb")\*([0-9A-Fa-f]{2})\r?\n"
+)
+_LINE_FIELDS = tuple(range(2, 13))
+
+
+def _attitude_field_error(f: list[str]) -> DecodeError:
+    for text, name in zip(f, ("seq", "heading", "pitch", "roll", *_ADC_NAMES), strict=False):
+        (parse_decimal if name in ("heading", "pitch", "roll") else parse_int)(text, name)
+    return DecodeError(DropReason.NUMBER, f"flags {f[10]!r} are not two hex digits")
+
+
+def _attitude(*f: str | bytes) -> AttitudeFrame:
+    """The frame of the eleven matched field texts; DecodeError when a value is out of range."""
+    heading = float(f[1])
+    if heading == 360.0:  # tolerated rounding artefact, see gmr_frames' docstring
+        heading = 0.0
+    return AttitudeFrame(
+        int(f[0]), heading, float(f[2]), float(f[3]),
+        int(f[4]), int(f[5]), int(f[6]), int(f[7]), int(f[8]), int(f[9]), int(f[10], 16),
+    )  # fmt: skip
 
 
 def _decode_attitude(f: list[str]) -> AttitudeFrame:
     _expect_fields(f, 11, "PGMRA")
-    seq = parse_int(f[0], "seq")
-    hdg = parse_decimal(f[1], "heading")
-    if hdg == 360.0:  # tolerated rounding artefact, see module docstring
-        hdg = 0.0
-    pitch = parse_decimal(f[2], "pitch")
-    roll = parse_decimal(f[3], "roll")
-    mx, my, mz, ax, ay, az = (
-        parse_int(t, n) for t, n in zip(f[4:10], ("mx", "my", "mz", "ax", "ay", "az"), strict=True)
-    )
-    if not _HEX2_RE.fullmatch(f[10]):
-        raise DecodeError(DropReason.NUMBER, f"flags {f[10]!r} are not two hex digits")
-    # The plain int: __post_init__ range-checks it and makes the Flags (once, not twice).
-    return AttitudeFrame(seq, hdg, pitch, roll, mx, my, mz, ax, ay, az, int(f[10], 16))  # type: ignore[arg-type]
+    m = _ATTITUDE_FIELDS.fullmatch(",".join(f))
+    if m is None:
+        raise _attitude_field_error(f)
+    return _attitude(*m.groups())
+
+
+def _leading_attitude_lines(data: bytes, frames: list[GmrFrame]) -> int:
+    """Decode the whole, valid ``$PGMRA`` lines that open ``data``; the offset after them.
+
+    A read at 100 Hz is nearly always one such line. Taking it with one match (framing
+    and field syntax together) and building it through the same :func:`_attitude`
+    spares the byte-by-byte splitter; the first line that does not match, fails its
+    checksum, is too long or out of range stops this, and the splitter and
+    :func:`decode_body` take it from there -- they count and drop what is wrong.
+    """
+    pos = 0
+    end = len(data)
+    while pos < end and (m := _ATTITUDE_LINE.match(data, pos)):
+        body = m.group(1)
+        if len(body) > MAX_BODY_BYTES or checksum(body) != int(m.group(13), 16):
+            break
+        try:
+            frames.append(_attitude(*m.group(*_LINE_FIELDS)))
+        except DecodeError:
+            break
+        pos = m.end()
+    return pos
 
 
 def _decode_version(f: list[str]) -> VersionFrame:
@@ -675,141 +226,7 @@ def decode_body(body: str, direction: Direction = "host") -> GmrFrame:
     return parser(fields)
 
 
-# --------------------------------------------------------------------------- $PGMRA fast path
-# Why: at 100 Hz the per-frame decode runs "cold" (caches flushed between frames), so its
-# cost is simply the amount of code it runs. The general path (LineSplitter state machine ->
-# decode_body -> parse_int/parse_decimal per field -> AttitudeFrame.__post_init__ checking
-# every field again) runs a lot of it for what is nearly always one valid $PGMRA line per
-# read. The fast path handles that case and nothing else: a chunk of whole $PGMRA lines (no
-# partial line buffered, none left over) in the shape below, every one valid. For any other
-# chunk -- a partial line, another sentence, an unusual or invalid field, a bad checksum --
-# it gives up and the general path decodes the whole chunk, so drop reasons, counters and
-# last_error always come from the general path. tests/test_protocol_fastpath.py checks the
-# two paths give identical frames and counters for valid and mutated input.
-
-# One $PGMRA line in the datasheet's shape: fields as wide as the datasheet's ranges need
-# (seq up to 5 digits, ADC counts up to 4, angles with exactly one decimal -- "angles have one
-# decimal" -- and a minus only on the signed ones), flags as two upper-case hex digits with
-# bits 5-7 clear (first digit 0 or 1), the checksum as "two upper-case hex digits", CRLF or
-# bare LF. Leading zeros pass: the general path accepts them too and both read the same
-# number. What the widths do not bound (seq <= 65535, ADC <= 4095, heading < 360 except the
-# tolerated 360.0, pitch and roll limits) is checked in _decode_attitude_lines: spelling the
-# ranges out as regex alternations measured slower. The longest body this accepts is 63
-# bytes, well within MAX_BODY_BYTES, so no too_long case can differ between the paths.
-_ATTITUDE_LINE = re.compile(
-    rb"\$(PGMRA"  # group 1: the body, for the checksum
-    rb",([0-9]{1,5})"  # seq
-    rb",([0-9]{1,3}\.[0-9])"  # heading
-    rb",(-?[0-9]{1,2}\.[0-9])"  # pitch
-    rb",(-?[0-9]{1,3}\.[0-9])"  # roll
-    + (rb",([0-9]{1,4})" * 6)  # mx my mz ax ay az
-    + rb",([01][0-9A-F]))"  # flags
-    rb"\*([0-9A-F]{2})\r?\n"
-)
-# LineSplitter states, read and set by GmrDecoder.feed around the fast path.
-_LINE = _State.LINE
-_IDLE = _State.IDLE
-
-# flags value -> the Flags the general path builds (Flags(i) is cached by the enum anyway;
-# a tuple index is cheaper than the enum call).
-_FLAGS_BY_VALUE: tuple[Flags, ...] = tuple(Flags(i) for i in range(FLAGS_MASK + 1))
-
-
-class _AttitudeSlots:
-    """Same slots, same layout as :class:`AttitudeFrame`, but no frozen ``__setattr__``.
-
-    The fast path fills one of these with plain attribute stores (measured cheaper, hot
-    and cold, than object.__setattr__ or the slot descriptors on the frozen class) and
-    then turns it into an AttitudeFrame by assigning ``__class__``;
-    Python only allows that between classes of identical layout (TypeError otherwise,
-    so a change to AttitudeFrame cannot go unnoticed). This skips __post_init__, whose
-    checks the fast path has already made (the same ones, inline).
-    """
-
-    __slots__ = AttitudeFrame.__slots__
-    seq: int
-    heading: float
-    pitch: float
-    roll: float
-    mx: int
-    my: int
-    mz: int
-    ax: int
-    ay: int
-    az: int
-    flags: Flags
-
-
-def _decode_attitude_lines(data: bytes) -> list[GmrFrame] | None:
-    """Frames for ``data`` if it is nothing but valid ``$PGMRA`` lines of the fast shape, else None.
-
-    None means "not the fast case": the caller then feeds the whole chunk to the
-    general path, which decides (and counts) what is wrong with it.
-    """
-    frames: list[GmrFrame] = []
-    pos = 0
-    end = len(data)
-    while pos < end:
-        m = _ATTITUDE_LINE.match(data, pos)
-        if m is None:
-            return None
-        body, s_seq, s_hdg, s_pitch, s_roll, s_mx, s_my, s_mz, s_ax, s_ay, s_az, s_flags, cs = (
-            m.groups()
-        )
-        # Checksum: the received value XORed with every body byte must cancel to 0. A plain
-        # loop: an int.from_bytes XOR-fold is faster hot but slower cold (more distinct code).
-        x = int(cs, 16)
-        for b in body:
-            x ^= b
-        seq = int(s_seq)
-        heading = float(s_hdg)
-        # "+ 0.0": "-0.0" -> 0.0, as check_real does.
-        pitch = float(s_pitch) + 0.0
-        roll = float(s_roll) + 0.0
-        mx = int(s_mx)
-        my = int(s_my)
-        mz = int(s_mz)
-        ax = int(s_ax)
-        ay = int(s_ay)
-        az = int(s_az)
-        if heading >= 360.0:
-            if heading != 360.0:
-                return None
-            heading = 0.0  # tolerated rounding artefact, as in _decode_attitude
-        # The regex admits only non-negative ADC counts: all six fit in 12 bits (<= 4095)
-        # exactly when their bitwise OR does.
-        if not (
-            x == 0
-            and seq <= SEQ_MAX
-            and -90.0 <= pitch <= 90.0
-            and -180.0 <= roll <= 180.0
-            and (mx | my | mz | ax | ay | az) <= 0xFFF
-        ):
-            return None
-        frame = _AttitudeSlots()
-        frame.seq = seq
-        frame.heading = heading
-        frame.pitch = pitch
-        frame.roll = roll
-        frame.mx = mx
-        frame.my = my
-        frame.mz = mz
-        frame.ax = ax
-        frame.ay = ay
-        frame.az = az
-        frame.flags = _FLAGS_BY_VALUE[int(s_flags, 16)]
-        frame.__class__ = AttitudeFrame  # type: ignore[assignment]
-        frames.append(frame)  # type: ignore[arg-type]
-        pos = m.end()
-    return frames
-
-
-# The compiled twin of _decode_attitude_lines when bridge._speedups is built (same frames,
-# same None cases: tests/test_speedups.py), else the function above.
-_decode_fast: Callable[[bytes], list[GmrFrame] | None] = _decode_attitude_lines
-if speedups.bind_attitude_frame is not None and speedups.decode_attitude_lines is not None:
-    speedups.bind_attitude_frame(_AttitudeSlots, AttitudeFrame, _FLAGS_BY_VALUE, SEQ_MAX)
-    _decode_fast = speedups.decode_attitude_lines
+# --------------------------------------------------------------------------- decoder
 
 
 class GmrDecoder:
@@ -820,15 +237,12 @@ class GmrDecoder:
     ``$PGMRQ`` only. Anything else is ``unknown_id``.
     """
 
-    __slots__ = ("_direction", "_fast", "_splitter", "counters", "last_error")
+    __slots__ = ("_direction", "_splitter", "counters", "last_error")
 
-    def __init__(self, direction: Direction = "host", *, _fast_path: bool = True) -> None:
-        # ``_fast_path=False`` (tests only) forces the general path for every chunk, so the
-        # fast path can be checked against it.
+    def __init__(self, direction: Direction = "host") -> None:
         if direction not in ("host", "device"):
             raise ValueError(f"direction must be 'host' or 'device', got {direction!r}")
         self._direction: Direction = direction
-        self._fast = _fast_path and direction == "host"  # the device never receives $PGMRA
         self.counters = CodecCounters()
         self._splitter = LineSplitter(self.counters.dropped)
         #: The last sentence-level rejection (for logs), None until one happens.
@@ -845,23 +259,18 @@ class GmrDecoder:
 
     def feed(self, data: bytes) -> list[GmrFrame]:
         """Consume a chunk of bytes; return the frames it completed, in order."""
-        splitter = self._splitter
-        # Fast path (see _decode_attitude_lines): only when no partial line is buffered, so
-        # the chunk's lines are whole. In SKIP (after noise) the general path would resync
-        # on the chunk's leading "$" exactly as from IDLE, so both states qualify.
-        if self._fast and splitter._state != _LINE:
-            fast = _decode_fast(data)
-            if fast:  # None: not the fast case; []: empty chunk, nothing to shortcut
-                # What the general path leaves behind for whole, valid lines: the
-                # splitter between lines, no drops, bytes and frames counted.
-                splitter._state = _IDLE
-                counters = self.counters
-                counters.bytes_in += len(data)
-                counters.frames += len(fast)
-                return fast
         self.counters.bytes_in += len(data)
         frames: list[GmrFrame] = []
-        for body in self._splitter.feed(data):
+        splitter = self._splitter
+        if self._direction == "host" and not splitter.in_line:
+            done = _leading_attitude_lines(data, frames)
+            if done:
+                splitter.reset()  # between lines, where the splitter would be after them
+                if done == len(data):
+                    self.counters.frames += len(frames)
+                    return frames
+                data = data[done:]
+        for body in splitter.feed(data):
             try:
                 frames.append(decode_body(body, self._direction))
             except DecodeError as exc:

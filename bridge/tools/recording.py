@@ -1,6 +1,6 @@
 """``compass-bridge record`` with a live line: elapsed time, bytes so far, ETA.
 
-:func:`bridge.link.record.record` is a blocking loop that owns the port and the
+:func:`bridge.link.recorder.record` is a blocking loop that owns the port and the
 signals; it reports nothing while it runs. It flushes every chunk it writes,
 so the size of the output file *is* its progress: a small thread watches the
 file and drives a :class:`~bridge.tools.progress.Progress` -- a bar with an ETA
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, TextIO
 from bridge.tools.progress import Progress
 
 if TYPE_CHECKING:
-    from bridge.link.record import RecordSummary
+    from bridge.link.recorder import RecordSummary
 
 #: How often the watcher looks at the file (s): the bar redraws no faster anyway.
 POLL_S = 0.2
@@ -42,7 +42,7 @@ def record_with_progress(
     stream: TextIO | None = None,
 ) -> RecordSummary:
     """Run the recorder in this thread (it handles SIGINT/SIGTERM) with a live line."""
-    from bridge.link.record import record
+    from bridge.link.recorder import record
 
     stop = threading.Event()
     with Progress("recording", duration, enabled=enabled, stream=stream, tick=True) as bar:

@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
+from bridge.core.quality import heading_usable
 from bridge.fleet.monitor import MonitorOptions, monitor_config
 
 #: What ``status`` asks when no key expression is given: every bridge's status.
@@ -114,8 +115,7 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
         state == "streaming"
         and isinstance(rate, int | float)
         and rate > 0
-        and not disturbed
-        and not flags.get("saturated")
+        and heading_usable(bool(flags.get("saturated")), bool(disturbed))
     )
     return rec
 
