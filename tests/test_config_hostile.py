@@ -281,3 +281,32 @@ def test_cli_bad_endpoint_exits_2_naming_the_key(tmp_path: Path) -> None:
     assert res.returncode == 2
     assert res.stderr.startswith("config error: mavlink.endpoints[0]: ")
     assert "not a valid IPv4 address" in res.stderr and len(res.stderr.splitlines()) == 1
+
+
+@pytest.mark.parametrize("feed", ["px4_odometry", "ardupilot_vision"])
+def test_a_heading_feed_the_autopilot_would_drop_is_refused_at_start(
+    tmp_path: Path, feed: str
+) -> None:
+    """Standalone with component 1 the feed carries the autopilot's own ids (ArduPilot
+    drops them): `config` and `run` exit 2 naming the key; companion or another id is fine."""
+    cfg = tmp_path / "feed.toml"
+    cfg.write_text(f'[mavlink]\nheading_feed = "{feed}"\n')
+    for cmd in ("config", "run"):
+        r = subprocess.run(
+            [sys.executable, "-m", "bridge", cmd, "--config", str(cfg)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert r.returncode == 2, r.stderr
+        assert "mavlink.heading_feed" in r.stderr and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+    for extra in ('role = "companion"', "component_id = 42"):
+        cfg.write_text(f'[mavlink]\nheading_feed = "{feed}"\n{extra}\n')
+        r = subprocess.run(
+            [sys.executable, "-m", "bridge", "config", "--config", str(cfg)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert r.returncode == 0, r.stderr

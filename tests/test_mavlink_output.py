@@ -432,7 +432,8 @@ def test_companion_role_takes_the_autopilots_position(
 def test_heading_feed_for_the_autopilot(
     tmp_path: Path, rigs: Callable[..., Rig], feed: str
 ) -> None:
-    rig = rigs(tmp_path, ideal=True, mavlink={"heading_feed": feed})
+    # Beside the autopilot (component 200): from component 1 the autopilot would drop it.
+    rig = rigs(tmp_path, ideal=True, mavlink={"heading_feed": feed, "role": "companion"})
     g = rig.gcs("udp")
     mtype = "ODOMETRY" if feed == "px4_odometry" else "VISION_POSITION_ESTIMATE"
     g.flush()
@@ -461,7 +462,7 @@ def test_heading_feed_for_the_autopilot(
         pairs += 1
     assert pairs >= 10
     # COMPASS_USE = 0: the autopilot gets nothing from us
-    g.set_param("COMPASS_USE", 0.0, INT8)
+    g.set_param("COMPASS_USE", 0.0, INT8, target=(1, 200))
     g.flush()
     assert rate(g.collect(1.5), mtype, 1.5) == 0.0
 
