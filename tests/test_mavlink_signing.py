@@ -194,3 +194,44 @@ def test_one_forged_far_future_packet_locks_pymavlinks_checker_out_but_not_ours(
     assert not any(pymavlink_accepts(p) for p in later)  # <- pymavlink's lock-out
     # the bridge's checker looked at the signature first: the sender goes on
     assert [ours.verify(p, GCS_SYSID, GCS_COMPID) for p in later] == [Verdict.OK] * 3
+
+
+def test_a_packet_captured_before_a_restart_is_still_a_replay_after_it(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    """Issue 15: signed PARAM_SET 15 then 16, restart, the captured 15 sent again: still 16."""
+    rig = signed_rig(tmp_path, rigs)
+    g = gcs_with_key(rig, KEY)
+
+    def packed(value: float) -> bytes:
+        msg = g.mav.param_set_encode(1, 1, b"BRG_SR_HUD", value, REAL32)
+        return bytes(msg.pack(g.mav))
+
+    fifteen = packed(15.0)  # captured off the air
+    g.conn.write(fifteen)
+    assert g.wait("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD").param_value == 15.0
+    g.conn.write(packed(16.0))
+    assert g.wait("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD").param_value == 16.0
+    rig.stop()  # the bridge restarts on the same state directory
+
+    again = signed_rig(tmp_path, rigs)
+    assert again.daemon.params.get("BRG_SR_HUD") == 16.0  # persisted
+    attacker = gcs_with_key(again, None)
+    attacker.conn.write(fifteen)  # the exact bytes, well within a minute
+    attacker.nothing("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD", 1.0)
+    assert again.daemon.params.get("BRG_SR_HUD") == 16.0
+    assert again.out.counters.refused_replay == 1
+    # the operator's own next packet (a newer timestamp) is obeyed
+    g2 = gcs_with_key(again, KEY)
+    g2.mav.param_set_send(1, 1, b"BRG_SR_HUD", 3.0, REAL32)
+    assert g2.wait("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD").param_value == 3.0
+
+
+def test_a_damaged_replay_table_is_forgiven_not_fatal() -> None:
+    s = Signing(KEY)
+    assert (
+        s.restore({"timestamp": "x", "streams": [[0, 1, 1, 5], [1, "a"], "junk", [0, -1, 1, 2]]})
+        == 1
+    )
+    assert s.restore(None) == 0 and s.restore([1, 2]) == 0
+    assert s.snapshot()["streams"] == [[0, 1, 1, 5]]

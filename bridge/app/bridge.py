@@ -163,6 +163,7 @@ class Bridge:
             events=self.events,
             device=self.device,
             mavlink_tap=self.mavlink_tap,
+            documents=documents,
         )
         self.settings.subscribe(self._on_settings)
         self.params.subscribe(self._on_params)

@@ -25,7 +25,7 @@ from bridge.app.settings import EngineSettings
 from bridge.calibrator.controller import CalibrationController
 from bridge.calibrator.store import CalibrationStore
 from bridge.events import EventBus
-from bridge.ports import DevicePort
+from bridge.ports import DevicePort, DocumentStore
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,9 @@ class BridgeServices:
     * ``calibrations`` -- the stored calibration and its report;
     * ``events`` -- operator events (subscribe; adapters may emit their own);
     * ``device`` -- the compass (version, parameters, state; commands);
-    * ``mavlink_tap`` -- the MAVLink messages sent, for mirrors.
+    * ``mavlink_tap`` -- the MAVLink messages sent, for mirrors;
+    * ``documents`` -- the state directory, for what an adapter must keep across a
+      restart (MAVLink's signing replay table); None without one.
     """
 
     status: Callable[[], DaemonStatus]
@@ -98,3 +100,4 @@ class BridgeServices:
     events: EventBus
     device: DevicePort
     mavlink_tap: MessageTap
+    documents: DocumentStore | None = None

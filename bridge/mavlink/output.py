@@ -63,6 +63,7 @@ from bridge.mavlink.dispatch import CommandDispatcher
 from bridge.mavlink.endpoints import Endpoint, EndpointCounters, Link, open_endpoint
 from bridge.mavlink.paramproto import FLAVOURS, Flavour, ParamEncoding, ParamProtocol
 from bridge.mavlink.signing import Signing, Verdict
+from bridge.ports import StorageError
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +79,11 @@ REPORT_PERIOD_S = 1.0  #: MAG_CAL_REPORT repeated while a result waits for accep
 _SIGNED_TYPES = frozenset(
     {"COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "GLOBAL_POSITION_INT", "GPS_RAW_INT"}
 )
+#: Signed messages that change state: the replay table is saved before one is obeyed.
+_OBEYED_TYPES = frozenset({"COMMAND_LONG", "COMMAND_INT", "PARAM_SET"})
+#: Name of the signing replay table in the state directory (``<storage.dir>/signing.json``).
+SIGNING_DOCUMENT = "signing"
+_SIGNING_SAVE_S = 10.0  # other valid signed traffic (positions): saved at most this often
 _INBOX_TYPES = _SIGNED_TYPES | {
     "PARAM_REQUEST_LIST",
     "PARAM_REQUEST_READ",
@@ -204,6 +210,9 @@ class MavlinkOutput:
         self._last_report = -math.inf
         self._report: Message | None = None  # the MAG_CAL_REPORT repeated until answered
         self._refusal_logged: dict[str, float] = {}
+        self._signing_dirty = False  # valid signed packets since the table was last saved
+        self._signing_saved_at = -math.inf
+        self._signing_save_failed = False
         self._stream_encoders: dict[int, Callable[[CompassSample], Message | None]] = {
             S.ATTITUDE: lambda s: T.attitude(s, self.time_boot_ms(s.t)),
             S.ATTITUDE_QUATERNION: lambda s: T.attitude_quaternion(s, self.time_boot_ms(s.t)),
@@ -283,6 +292,7 @@ class MavlinkOutput:
         if self._threads:
             raise RuntimeError("mavlink output already started")
         svc = self.services
+        self._restore_signing()
         self._apply_rates()
         for i, text in enumerate(self.settings.endpoints):
             self.endpoints.append(
@@ -344,6 +354,8 @@ class MavlinkOutput:
                 t.join(max(0.05, deadline - self.clock()))
         for ep in self.endpoints:
             ep.close(max(0.05, deadline - self.clock()))
+        if self._signing_dirty:
+            self._save_signing()
 
     # ------------------------------------------------------------------ sending
 
@@ -514,6 +526,8 @@ class MavlinkOutput:
             if out:
                 self.broadcast(out)
             self.dispatcher.pending.expire(now)
+            if self._signing_dirty and now - self._signing_saved_at >= _SIGNING_SAVE_S:
+                self._save_signing()
 
     def _calibration_keepalive(self, now: float) -> list[Message]:
         """MAG_CAL_PROGRESS while a magnetometer calibration runs; MAG_CAL_REPORT about once
@@ -637,8 +651,14 @@ class MavlinkOutput:
 
     def _handle(self, msg: Any, link: Link) -> None:
         kind = msg.get_type()
-        if kind in _SIGNED_TYPES and self._refuse_unsigned(msg):
-            return
+        if kind in _SIGNED_TYPES and self.signing is not None:
+            if self._refuse_unsigned(msg):
+                return
+            self._signing_dirty = True
+            if kind in _OBEYED_TYPES:
+                # Write-ahead: the packet's timestamp is on disk before it changes anything,
+                # so a copy replayed after a restart is still refused.
+                self._save_signing()
         if kind in ("COMMAND_LONG", "COMMAND_INT"):
             self.dispatcher.handle(C.command_from_message(msg), link)
         elif kind in ("GLOBAL_POSITION_INT", "GPS_RAW_INT"):
@@ -661,6 +681,38 @@ class MavlinkOutput:
             answer = ftp.reply(msg, int(msg.target_network))
             if answer is not None:
                 link.send(answer)
+
+    # ------------------------------------------------------------------ the signing table
+
+    def _restore_signing(self) -> None:
+        docs = self.services.documents
+        if self.signing is None or docs is None:
+            return
+        loaded = docs.load(SIGNING_DOCUMENT)
+        for p in loaded.problems:
+            log.warning("mavlink: stored signing state: %s", p)
+        n = self.signing.restore(loaded.payload)
+        if n:
+            log.info("mavlink: %d signed streams restored: replays stay refused", n)
+
+    def _save_signing(self) -> None:
+        docs = self.services.documents
+        if self.signing is None or docs is None:
+            return
+        try:
+            docs.save(SIGNING_DOCUMENT, self.signing.snapshot())
+        except StorageError as e:
+            if not self._signing_save_failed:
+                log.error(
+                    "mavlink: signing replay table not saved (%s): a packet captured now "
+                    "could be replayed after a restart",
+                    e,
+                )
+            self._signing_save_failed = True
+            return
+        self._signing_dirty = False
+        self._signing_save_failed = False
+        self._signing_saved_at = self.clock()
 
     def _param_set(self, msg: Any) -> None:
         name, reason, echo = self.params.set(msg, source=_OWN_SET)

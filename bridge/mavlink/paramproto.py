@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import struct
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -75,8 +76,10 @@ _F32 = struct.Struct("<f")
 _I32 = struct.Struct("<i")
 _U32 = struct.Struct("<I")
 
-#: A peer gets at most one whole parameter list per this many seconds.
+#: A peer gets at most one whole parameter list per this many seconds ...
 LIST_INTERVAL_S = 2.0
+#: ... and all peers together at most this many per LIST_INTERVAL_S.
+LISTS_PER_INTERVAL = 8
 
 
 def param_name(raw: bytes | str) -> str:
@@ -151,27 +154,40 @@ def _as_signed(raw: int, wire_type: int) -> int:
 
 
 class ListLimiter:
-    """At most one whole parameter list per peer per ``interval_s`` (what a GCS needs on
-    connect and on refresh); requests inside the window are dropped and counted."""
+    """Whole parameter lists, rate-limited: at most one per peer per ``interval_s`` (what a
+    ground station needs on connect and on refresh), and at most ``total`` per
+    ``interval_s`` for all peers together (a flood of spoofed source addresses, each a
+    new "peer" on a ``udpin`` port, cannot multiply it). Requests over either limit are
+    dropped and counted."""
 
     def __init__(
-        self, interval_s: float = LIST_INTERVAL_S, *, clock: Callable[[], float] = time.monotonic
+        self,
+        interval_s: float = LIST_INTERVAL_S,
+        total: int = LISTS_PER_INTERVAL,
+        *,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.interval_s = interval_s
+        self.total = total
         self._clock = clock
         self._last: dict[Any, float] = {}
+        self._recent: deque[float] = deque()
         self.refused = 0
 
     def allow(self, peer: Any) -> bool:
         """Whether ``peer`` may have a whole list now (and count it as having had one)."""
         now = self._clock()
+        recent = self._recent
+        while recent and now - recent[0] >= self.interval_s:
+            recent.popleft()
         last = self._last.get(peer)
-        if last is not None and now - last < self.interval_s:
+        if (last is not None and now - last < self.interval_s) or len(recent) >= self.total:
             self.refused += 1
             return False
         if len(self._last) > 256:  # forget peers long gone
             self._last = {p: t for p, t in self._last.items() if now - t < self.interval_s}
         self._last[peer] = now
+        recent.append(now)
         return True
 
 

@@ -27,6 +27,10 @@ every endpoint:
   must increase; a stream seen for the first time must not be more than
   :data:`NEW_STREAM_WINDOW_S` older than our own timestamp. Only a valid
   packet updates the table and advances our own timestamp.
+* **restart**: the table lives on in the state directory (:meth:`Signing.snapshot`,
+  :meth:`Signing.restore`; the MAVLink output writes it before it obeys a signed
+  command or parameter set), so a packet captured before a restart is still a
+  replay after it.
 """
 
 from __future__ import annotations
@@ -131,6 +135,45 @@ class Signing:
             self._timestamp = max(self._timestamp, ts)
             self.accepted += 1
         return Verdict.OK
+
+    def snapshot(self) -> dict[str, Any]:
+        """The replay table and our timestamp, JSON-ready (what survives a restart)."""
+        with self._lock:
+            return {
+                "timestamp": self._timestamp,
+                "streams": [[*k, ts] for k, ts in self._streams.items()],
+            }
+
+    def restore(self, doc: object) -> int:
+        """Take back a :meth:`snapshot` (after a restart); returns the streams restored.
+
+        Entries that are not four non-negative integers are ignored: a damaged
+        document must not stop the bridge, and at worst forgets streams (which are
+        then judged as new ones: no more than a minute old).
+        """
+        if not isinstance(doc, dict):
+            return 0
+        streams = doc.get("streams")
+        n = 0
+        with self._lock:
+            ts0 = doc.get("timestamp")
+            if isinstance(ts0, int) and not isinstance(ts0, bool) and ts0 >= 0:
+                self._timestamp = max(self._timestamp, ts0)
+            for entry in streams if isinstance(streams, list) else ():
+                if (
+                    isinstance(entry, list)
+                    and len(entry) == 4
+                    and all(
+                        isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in entry
+                    )
+                ):
+                    link_id, sysid, compid, ts = entry
+                    key = (link_id, sysid, compid)
+                    self._streams[key] = max(ts, self._streams.get(key, 0))
+                    n += 1
+            while len(self._streams) > _MAX_STREAMS:
+                self._streams.popitem(last=False)
+        return n
 
     def _reject(self, verdict: Verdict) -> Verdict:
         with self._lock:
