@@ -371,11 +371,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     if args.simulate:
         # The simulated compass speaks the GMR protocol, whatever a --config file says.
-        overrides[:0] = ["device.port=sim", "device.protocol=gmr"]
+        # A first run shows a heading that turns with the unit: it starts calibrated with
+        # its true errors unless a calibration is stored (or --set sim.calibrated=false).
+        overrides[:0] = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
         if not any(o.startswith("storage.dir=") for o in overrides):
             # The simulated unit must never read or overwrite a real unit's calibration
             # in the service's state directory: give it a per-user directory of its own.
-            overrides.insert(2, f"storage.dir={simulator_state_dir()}")
+            overrides.insert(3, f"storage.dir={simulator_state_dir()}")
     elif args.config is None:
         raise UsageError("run needs --config FILE (or --simulate for the built-in simulator)")
     cfg = load_config(args.config, overrides)

@@ -458,6 +458,12 @@ class SimConfig(Section):
     seed: int = setting(1, between(0, 2**32 - 1), "unit seed: the simulated unit's errors")
     motion: str = setting("turns", one_of(*SIM_MOTIONS), "motion script of the simulated unit")
     ideal: bool = setting(False, None, "a perfect, noise-free unit instead of a drawn one")
+    calibrated: bool = setting(
+        False,
+        None,
+        "with no calibration stored, start with the unit's true calibration (what a good "
+        "calibration gives) instead of none; run --simulate turns it on",
+    )
     shake_g: float = setting(
         0.0, between(0.0, 0.5), "hand-held shake of the unit: linear acceleration, g RMS per axis"
     )

@@ -60,8 +60,10 @@ class ConsoleOutput(LatestSampleWorker):
         *,
         tty: bool | None = None,
         interval: float | None = None,
+        intro: str = "",
     ) -> None:
         self._stream = stream if stream is not None else sys.stdout
+        self._intro = intro
         self.tty = self._stream.isatty() if tty is None else tty
         super().__init__(
             "console",
@@ -72,7 +74,10 @@ class ConsoleOutput(LatestSampleWorker):
         self._width = 0
 
     def emit(self, sample: CompassSample | None) -> None:
-        """Write the line for the latest sample."""
+        """Write the line for the latest sample (after the intro line, the first time)."""
+        if self._intro:
+            self._stream.write(self._intro + "\n")
+            self._intro = ""
         line = format_line(sample, self._status())
         if self.tty:
             pad = max(0, self._width - len(line))

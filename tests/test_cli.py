@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.metadata
+import itertools
 import logging
 import os
 import re
@@ -122,9 +123,30 @@ def test_run_simulate_shows_changing_heading_and_stops_on_signal(
     # the default simulated unit turns at 10 deg/s and a line comes once a second
     assert len(set(headings)) == len(headings), headings
     assert all(0.0 <= h < 360.0 for h in headings)
+    # A first run shows a heading that turns as the unit turns: the simulator starts it
+    # with its true calibration, so each second adds 10 deg (modulo 360, +- the noise),
+    # and the first line says so, how to see the raw unit and how to calibrate it.
+    steps = [(b - a) % 360.0 for a, b in itertools.pairwise(headings)]
+    assert all(abs(d - 10.0) < 1.5 for d in steps), headings
+    assert "calibrated with its true errors" in lines[0]
+    assert "--set sim.calibrated=false" in lines[0] and "calibrate it" in lines[0]
     assert code == 0, err
     assert took < STOP_BOUND_S, f"stop took {took:.1f} s"
     assert "Traceback" not in err
+
+
+def test_run_simulate_can_show_the_uncalibrated_unit(tmp_path: Path) -> None:
+    proc = spawn(tmp_path, "run", "--simulate", "--set", "sim.calibrated=false")
+    try:
+        lines = read_lines(proc, want=3, deadline_s=20)
+    finally:
+        code, _, err = stop(proc, signal.SIGTERM)
+    assert code == 0, err
+    assert "UNCALIBRATED" in lines[0] and "calibrate it yourself" in lines[0]
+    headings = [float(m.group(1)) for x in lines if (m := HEADING_RE.match(x))]
+    # the raw unit's hard iron makes its heading run unevenly: not 10 deg every second
+    steps = [(b - a) % 360.0 for a, b in itertools.pairwise(headings)]
+    assert any(abs(d - 10.0) > 3.0 for d in steps), headings
 
 
 def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Path) -> None:

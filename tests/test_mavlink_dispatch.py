@@ -10,8 +10,10 @@ so a PX4-flavoured bridge receives PREFLIGHT_CALIBRATION with param6 = param7 = 
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from test_mavlink_rig import M, Rig, rig_factory, wait_until
@@ -117,3 +119,31 @@ def test_mavsdk_style_commands_with_nan_parameters(
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, -1.0).result == M.MAV_RESULT_FAILED
     assert rig.daemon.calibrator.snapshot().running  # and nothing was cancelled
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
+
+
+def test_an_outcome_from_another_thread_during_the_work_neither_blocks_nor_reorders() -> None:
+    """The work (the calibration controller) emits events from its own threads; waiting for
+    them must not block on the dispatcher (it deadlocked a live accept), and the final ack
+    still follows the IN_PROGRESS one."""
+    from bridge.events import Event
+    from bridge.mavlink.commands import Command
+    from bridge.mavlink.dispatch import PendingAcks
+
+    sent: list[Any] = []
+
+    class Link:
+        def send(self, packet: Any) -> None:
+            sent.append(packet)
+
+    acks = PendingAcks()
+    cmd = Command(M.MAV_CMD_DO_ACCEPT_MAG_CAL, (0.0,) * 7, 1, 1, 255, 190)
+
+    def work() -> bool:
+        t = threading.Thread(target=acks.on_event, args=(Event("calibration.done", "done"),))
+        t.start()
+        t.join(5.0)
+        assert not t.is_alive(), "the event thread blocked on the dispatcher"
+        return True
+
+    assert acks.long_work(cmd, Link(), work, ("calibration.done",), ("calibration.failed",))  # type: ignore[arg-type]
+    assert [p.result for p in sent] == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_ACCEPTED]

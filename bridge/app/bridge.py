@@ -100,7 +100,8 @@ def location_field(location: tuple[float, float, float] | None) -> EarthField | 
 class Bridge:
     """The running bridge's state (see the module docstring).
 
-    ``calibration`` overrides the stored calibration (tests, replays);
+    ``calibration`` overrides the stored calibration (tests, replays, the simulator's
+    true calibration), ``calibration_source`` says where it came from;
     ``calibrator_settings`` and ``clock`` tune the calibration controller
     (tests run it on a simulated clock).
     """
@@ -112,6 +113,7 @@ class Bridge:
         *,
         documents: DocumentStore | None = None,
         calibration: Calibration | None = None,
+        calibration_source: str = "",
         calibrator_settings: CalibratorSettings | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -123,7 +125,7 @@ class Bridge:
             calibration = stored.calibration
             self.calibration_source = stored.description
         else:
-            self.calibration_source = "given"
+            self.calibration_source = calibration_source or "given"
         self.engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
         field = location_field(options.location)
         self.settings = EngineSettings(self.engine, field=field)

@@ -33,6 +33,7 @@ from bridge.app.services import BridgeServices
 from bridge.app.settings import EngineSettings
 from bridge.calibration.model import Calibration
 from bridge.calibrator import CalibrationController, CalibratorSettings
+from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
 from bridge.console import ConsoleOutput
 from bridge.core.attitude import AttitudeEngine
@@ -68,6 +69,43 @@ def make_transport(cfg: Config) -> Transport:
     )
 
 
+def _simulator_calibration(
+    cfg: Config, transport: Transport, documents: StateStore
+) -> tuple[Calibration | None, str, str]:
+    """The simulated compass's calibration and the console's intro line about it.
+
+    A newcomer's first run shows a heading that turns with the simulated unit: with
+    nothing stored, the unit starts with its true calibration (known in simulation,
+    what a good calibration gives), unless ``[sim] calibrated = false`` asks for the
+    raw unit. A stored calibration (one the user made) is used as for a real compass.
+    """
+    seed = f"seed {cfg.sim.seed}"
+    if CalibrationStore(documents).load().stored:
+        return (
+            None,
+            "",
+            f"Simulated compass ({seed}) with the calibration stored in {cfg.storage.dir}.",
+        )
+    calibrate = "calibrate it yourself: README, 'Calibrate it'"
+    if not cfg.sim.calibrated:
+        return (
+            None,
+            "",
+            f"Simulated compass ({seed}), UNCALIBRATED: its heading carries the unit's "
+            f"hard- and soft-iron errors; {calibrate}.",
+        )
+    firmware = getattr(transport, "firmware", None)
+    errors = getattr(getattr(firmware, "sensor", None), "errors", None)
+    if errors is None:
+        return None, "", ""
+    return (
+        errors.true_calibration(),
+        "simulator (the unit's true errors)",
+        f"Simulated compass ({seed}), calibrated with its true errors. To see it "
+        f"uncalibrated: --set sim.calibrated=false; to {calibrate}.",
+    )
+
+
 class Daemon:
     """The running bridge: the application, the compass link, the outputs.
 
@@ -91,6 +129,12 @@ class Daemon:
         self.cfg = cfg
         if transport is None:
             transport = make_transport(cfg)
+        documents = StateStore(cfg.storage.dir)
+        #: One line for the console about the calibration in use ("" for a real compass).
+        self.intro = ""
+        source = ""
+        if cfg.device.port == "sim" and calibration is None:
+            calibration, source, self.intro = _simulator_calibration(cfg, transport, documents)
 
         def make_link(
             on_frame: Callable[[Received], None],
@@ -111,8 +155,9 @@ class Daemon:
         self.bridge = Bridge(
             BridgeOptions.from_config(cfg),
             make_link,
-            documents=StateStore(cfg.storage.dir),
+            documents=documents,
             calibration=calibration,
+            calibration_source=source,
             calibrator_settings=calibrator_settings,
             clock=clock,
         )
@@ -239,7 +284,7 @@ def build_outputs(
     services = daemon.bridge.services
     outputs: list[Output] = []
     if console:
-        outputs.append(ConsoleOutput(daemon.status))
+        outputs.append(ConsoleOutput(daemon.status, intro=daemon.intro))
     if cfg.mavlink.endpoints:
         from bridge.mavlink import MavlinkOutput, MavlinkSettings
 

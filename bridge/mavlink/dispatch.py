@@ -94,16 +94,21 @@ class _PendingAck:
     kinds: tuple[str, ...]  #: event kinds that end it
     failure_kinds: tuple[str, ...]
     deadline: float
+    announced: bool = False  #: the IN_PROGRESS ack is out
+    final: int | None = None  #: an outcome that came before the IN_PROGRESS ack went out
 
 
 class PendingAcks:
-    """Commands answered IN_PROGRESS whose final ACK an event (or a time-out) brings."""
+    """Commands answered IN_PROGRESS whose final ACK an event (or a time-out) brings.
+
+    The lock is held only to look at the list and send (a non-blocking hand-off),
+    never while the work runs: the work calls into the calibration controller, whose
+    events come back here from its own threads.
+    """
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self._clock = clock
-        # Re-entrant: an event may be emitted (and finish a pending command) from inside the
-        # very controller call the dispatcher makes while it holds this lock.
-        self.lock = threading.RLock()
+        self.lock = threading.Lock()
         self._pending: list[_PendingAck] = []
 
     def long_work(
@@ -117,7 +122,8 @@ class PendingAcks:
         """Run ``work``; if it returns True the command is long work: IN_PROGRESS now, and
         the final COMMAND_ACK when one of ``kinds`` (ACCEPTED) or ``failures`` (FAILED)
         is emitted, or FAILED after a time-out. Registered *before* the work starts, so an
-        outcome that comes at once is not missed; the lock keeps the two acks in order.
+        outcome that comes at once is not missed; it is then sent right after the
+        IN_PROGRESS ack, so the two always go out in that order.
         """
         pending = _PendingAck(
             cmd.command,
@@ -130,40 +136,49 @@ class PendingAcks:
         )
         with self.lock:
             self._pending.append(pending)
-            long = False
-            try:
-                long = work()
-            finally:
-                if not long and pending in self._pending:
-                    self._pending.remove(pending)
-            if long:
-                link.send(
-                    T.command_ack(
-                        cmd.command, C.IN_PROGRESS, cmd.source_system, cmd.source_component
+        long = False
+        try:
+            long = work()
+        finally:
+            with self.lock:
+                if not long:
+                    if pending in self._pending:
+                        self._pending.remove(pending)
+                else:
+                    link.send(
+                        T.command_ack(
+                            cmd.command, C.IN_PROGRESS, cmd.source_system, cmd.source_component
+                        )
                     )
-                )
+                    pending.announced = True
+                    if pending.final is not None:  # the outcome came during the work
+                        self._pending.remove(pending)
+                        self._send_final(pending, pending.final)
         return long
+
+    @staticmethod
+    def _send_final(p: _PendingAck, result: int) -> None:
+        p.link.send(T.command_ack(p.command, result, p.system, p.component, progress=100))
 
     def on_event(self, event: Event) -> None:
         """Finish the commands ``event`` ends (any thread)."""
         with self.lock:
-            done = [
-                p for p in self._pending if event.kind in p.kinds or event.kind in p.failure_kinds
-            ]
-            if not done:
-                return
-            self._pending = [p for p in self._pending if p not in done]
-            # Under the lock: the IN_PROGRESS ack of the same command goes out first.
-            for p in done:
+            for p in [p for p in self._pending if p.final is None]:
+                if event.kind not in p.kinds and event.kind not in p.failure_kinds:
+                    continue
                 result = C.FAILED if event.kind in p.failure_kinds else C.ACCEPTED
-                p.link.send(T.command_ack(p.command, result, p.system, p.component, progress=100))
+                if p.announced:
+                    self._pending.remove(p)
+                    self._send_final(p, result)
+                else:
+                    p.final = result  # long_work sends it after the IN_PROGRESS ack
 
     def expire(self, now: float) -> None:
         """FAILED for the commands whose outcome did not come in time."""
         with self.lock:
             if not self._pending:
                 return
-            late = [p for p in self._pending if now > p.deadline]
+            late = [p for p in self._pending if p.announced and now > p.deadline]
             self._pending = [p for p in self._pending if p not in late]
         for p in late:
             log.warning("mavlink: no outcome for command %d in time; answering FAILED", p.command)
