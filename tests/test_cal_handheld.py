@@ -17,7 +17,9 @@ from handheld_rig import FIELD, Tumbled, collect, held, tumble
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import AffineCalibration, CalibrationResult
 from bridge.calibration.series import hann_kernel, motion_rms_g, runs, window_means
-from bridge.calibrator.results import judge_accuracy, mag_report
+from bridge.calibrator.report import fit_report
+from bridge.calibrator.results import judge_accuracy
+from bridge.calibrator.state import Mode
 from bridge.sim.physics import UnitErrors
 from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_G
 
@@ -136,7 +138,7 @@ def test_announced_heading_error_is_within_2x_of_the_measured(seed: int, shake: 
     assert 0.5 * measured <= _announced(res) <= 2.0 * measured
     # the bag's fitness looks as good while its heading is many times worse: the old lie
     assert _announced(bag) < 0.5 * s["bag"].frame_rms_deg
-    report = mag_report(res.calibration, res.report)
+    report = fit_report(Mode.MAG, res.calibration.mag, res.report).to_dict()
     assert report["fitness"] == pytest.approx(res.report.fitness_mG)
     assert report["heading_error_deg"] == pytest.approx(res.report.heading_error_deg)
 

@@ -39,6 +39,8 @@ from bridge.calibrator import (
     CalibrationController,
     CalibratorSettings,
     CalibratorSnapshot,
+    Failure,
+    Phase,
     Result,
 )
 from bridge.config import Config, config_from_mapping
@@ -50,6 +52,7 @@ from bridge.daemon import Daemon
 from bridge.events import Event, Severity
 from bridge.link.serial_link import LinkState
 from bridge.link.transport import SimTransport
+from bridge.mavlink import calmap
 from bridge.protocol.gmr import Flags, ParamsFrame
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import (
@@ -144,7 +147,7 @@ class Rig:
 
     def finished(self, timeout: float = DEADLINE_S) -> CalibratorSnapshot:
         return self.wait(
-            lambda s: not s.running and s.status != MagCalStatus.MAG_CAL_NOT_STARTED, timeout
+            lambda s: not s.running and s.phase not in (Phase.IDLE, Phase.CANCELLED), timeout
         )
 
 
@@ -251,12 +254,13 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     assert out.result is Result.IN_PROGRESS
     assert rig.ctl.start_mag().result is Result.DENIED  # one at a time
     snap = rig.finished()
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS and snap.pending_accept
+    assert snap.phase is Phase.SUCCEEDED and snap.pending_accept
 
     # progress: ArduPilot's two steps, a growing sphere coverage, percent rising to 99
     prog = [e.data for e in rig.log.of("calibration.progress")]
-    statuses = [p["cal_status"] for p in prog]
-    assert statuses[0] == "MAG_CAL_RUNNING_STEP_ONE" and "MAG_CAL_RUNNING_STEP_TWO" in statuses
+    steps = [(p["phase"], p["step"]) for p in prog]
+    assert steps[0] == ("collecting", 1) and ("collecting", 2) in steps
+    assert calmap.snapshot_status(snap) is MagCalStatus.MAG_CAL_SUCCESS
     pct = [p["completion_pct"] for p in prog]
     assert pct == sorted(pct) and pct[-1] >= 90.0 and max(pct) < 100.0
     sections = sum(bin(b).count("1") for b in prog[-1]["completion_mask"])
@@ -266,7 +270,7 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     # the report: small fitness, and offsets/scale as the physics has them
     done = rig.log.wait("calibration.done")[0]
     rep = done.data["report"]
-    assert rep["cal_status"] == "MAG_CAL_SUCCESS" and rep["autosaved"] is False
+    assert rep["status"] == "success" and rep["failure"] is None and rep["autosaved"] is False
     assert 0.0 < rep["fitness"] < 2.0  # mG; ArduPilot accepts up to 16
     true_ofs = -1000.0 * np.asarray(truth.mag.offset)
     assert np.allclose([rep["ofs_x"], rep["ofs_y"], rep["ofs_z"]], true_ofs, atol=5.0)
@@ -328,12 +332,12 @@ def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[...
         seed=5,
     )
     assert rig.ctl.start_mag(autosave=True, delay_s=5.0).ok
-    assert rig.ctl.snapshot().status is MagCalStatus.MAG_CAL_WAITING_TO_START
-    rig.wait(lambda s: s.status is MagCalStatus.MAG_CAL_RUNNING_STEP_ONE)
+    assert rig.ctl.snapshot().phase is Phase.WAITING
+    rig.wait(lambda s: s.phase is Phase.COLLECTING and s.step == 1)
     started = rig.log.of("calibration.started")[0]
     assert started.data["delay_s"] == 5.0 and started.data["autosave"] is True
     snap = rig.finished()
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS and not snap.pending_accept
+    assert snap.phase is Phase.SUCCEEDED and not snap.pending_accept
     done = rig.log.wait("calibration.done")[0]
     assert done.data["autosaved"] is True and done.data["report"]["autosaved"] is True
     rig.log.wait("calibration.accepted")  # without an accept()
@@ -362,9 +366,12 @@ def test_wrong_field_fails_bad_radius_and_retry_restarts(
     rig.ctl.set_field(wrong)
     assert rig.ctl.start_mag().ok
     snap = rig.finished()
-    assert snap.status is MagCalStatus.MAG_CAL_BAD_RADIUS  # = MAG_CAL_FAILED_RADIUS (7)
+    assert snap.phase is Phase.FAILED and snap.failure is Failure.RADIUS
+    # ... which MAVLink reports as MAG_CAL_FAILED_RADIUS (7, once MAG_CAL_BAD_RADIUS)
+    assert calmap.snapshot_status(snap) is MagCalStatus.MAG_CAL_BAD_RADIUS
     failed = rig.log.wait("calibration.failed")[0]
-    assert failed.severity is Severity.ERROR and failed.data["cal_status_code"] == 7
+    assert failed.severity is Severity.ERROR and failed.data["failure"] == "failed_radius"
+    assert calmap.mag_cal_status(Phase.FAILED, 2, Failure(failed.data["failure"])) == 7
     assert "scale factor" in failed.data["reason"]
     assert rig.ctl.accept().result is Result.FAILED
     assert rig.daemon.engine.calibration == Calibration()
@@ -398,7 +405,8 @@ def test_cancel_mid_way_and_when_idle(tmp_path: Path, rigs: Callable[..., Rig]) 
     cancelled = rig.log.wait("calibration.cancelled")[0]
     assert cancelled.data["mode"] == "mag"
     snap = rig.ctl.snapshot()
-    assert snap.status is MagCalStatus.MAG_CAL_NOT_STARTED and not snap.running
+    assert snap.phase is Phase.CANCELLED and not snap.running
+    assert calmap.snapshot_status(snap) is MagCalStatus.MAG_CAL_NOT_STARTED
     n_progress = len(rig.log.of("calibration.progress"))
     time.sleep(0.5)  # 5 simulated seconds of tumbling: nothing more happens
     assert len(rig.log.of("calibration.progress")) == n_progress
@@ -415,10 +423,10 @@ def test_still_device_times_out(tmp_path: Path, rigs: Callable[..., Rig]) -> Non
     rig = rigs(tmp_path, Still.from_deg(5.0, -3.0, 40.0), fast=True, settings=settings)
     assert rig.ctl.start_mag().ok
     snap = rig.finished()
-    assert snap.status is MagCalStatus.MAG_CAL_FAILED
+    assert snap.phase is Phase.FAILED and snap.failure is Failure.FAILED
     failed = rig.log.wait("calibration.failed")[0]
     assert "timed out" in failed.data["reason"]
-    assert failed.data["report"]["cal_status"] == "MAG_CAL_FAILED"
+    assert failed.data["report"]["failure"] == "failed"
     assert failed.text.startswith("Calibration failed") and len(failed.text) <= 50
     # a still unit offers one direction: nowhere near a third of the sphere
     pct = [e.data["completion_pct"] for e in rig.log.of("calibration.progress")]
@@ -429,11 +437,11 @@ def test_silent_compass_fails_the_calibration(tmp_path: Path, rigs: Callable[...
     # The daemon's own controller (real clock, ArduPilot-like 2 s without data).
     rig = rigs(tmp_path, Tumble(1), fast=False)
     assert rig.ctl.start_mag().ok
-    rig.wait(lambda s: s.status is MagCalStatus.MAG_CAL_RUNNING_STEP_ONE)
+    rig.wait(lambda s: s.phase is Phase.COLLECTING and s.step == 1)
     rig.daemon.link.close()  # the compass goes silent mid-calibration
     failed = rig.log.wait("calibration.failed", timeout=10.0)[0]
     assert "no data from the compass" in failed.data["reason"]
-    assert rig.ctl.snapshot().status is MagCalStatus.MAG_CAL_FAILED
+    assert rig.ctl.snapshot().phase is Phase.FAILED
 
 
 # =====================================================================================
@@ -447,7 +455,7 @@ def test_six_face_accel_calibration(tmp_path: Path, rigs: Callable[..., Rig]) ->
     truth = rig.fw.sensor.errors.true_calibration()
     assert rig.ctl.start_accel().result is Result.IN_PROGRESS
     snap = rig.finished(timeout=DEADLINE_S)
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS, rig.log.kinds()
+    assert snap.phase is Phase.SUCCEEDED, rig.log.kinds()
 
     # PX4's wording and order: each face detected, then done, in the order shown
     order = ["down", "left", "right", "front", "back", "up"]
@@ -489,7 +497,7 @@ def test_host_level_calibration_in_real_time(tmp_path: Path, rigs: Callable[...,
     assert abs(math.degrees(a0.roll)) > 0.3 or abs(math.degrees(a0.pitch)) > 0.3
     assert rig.ctl.start_level(onboard=False).result is Result.IN_PROGRESS
     snap = rig.finished(timeout=10.0)
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS
+    assert snap.phase is Phase.SUCCEEDED
     rep = rig.log.wait("calibration.done")[0].data["report"]
     assert abs(rep["trim_roll_deg"] - math.degrees(a0.roll)) < 0.3
     assert abs(rep["trim_pitch_deg"] - math.degrees(a0.pitch)) < 0.3
@@ -505,7 +513,7 @@ def test_level_calibration_refuses_a_moving_unit(tmp_path: Path, rigs: Callable[
     rig = rigs(tmp_path, Tumble(2), fast=False)
     assert rig.ctl.start_level().ok
     snap = rig.finished(timeout=10.0)
-    assert snap.status is MagCalStatus.MAG_CAL_FAILED
+    assert snap.phase is Phase.FAILED
     assert "moved" in rig.log.wait("calibration.failed")[0].data["reason"]
     assert rig.daemon.engine.calibration == Calibration()
 
@@ -532,7 +540,7 @@ def test_onboard_magcal_guided_and_ended_by_the_controller(
     rig.log.wait("calibration.instruction")
     assert rig.fw.calibrating  # MAGCAL,START reached the device
     snap = rig.finished()
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS, rig.log.kinds()
+    assert snap.phase is Phase.SUCCEEDED, rig.log.kinds()
     assert not rig.fw.calibrating
 
     texts = [e.text for e in rig.log.of("calibration.instruction")]
@@ -544,7 +552,7 @@ def test_onboard_magcal_guided_and_ended_by_the_controller(
     assert ended_at[0] - epoch >= 50.0
     prog = [e.data for e in rig.log.of("calibration.progress")]
     assert prog[-1]["completion_pct"] >= 85.0 and prog[-1]["spans"][2] >= 400
-    assert any(p["cal_status"] == "MAG_CAL_RUNNING_STEP_TWO" for p in prog)
+    assert any(p["step"] == 2 for p in prog)
 
     done = rig.log.wait("calibration.done")[0]
     rep = done.data["report"]
@@ -582,7 +590,7 @@ def test_onboard_range_failure_over_a_real_pty(tmp_path: Path, rigs: Callable[..
             failed = log.wait("calibration.failed")[0]
             assert failed.data["report"]["device_error"] == "RANGE"
             assert "RANGE" in failed.data["reason"]
-            assert daemon.calibrator.snapshot().status is MagCalStatus.MAG_CAL_FAILED
+            assert daemon.calibrator.snapshot().phase is Phase.FAILED
             assert _params(fw) == before and not fw.calibrating
         finally:
             daemon.stop()
@@ -609,10 +617,10 @@ def test_onboard_level_acccal_success_and_motion_failure(
     still = rigs(tmp_path / "a", Still.from_deg(1.0, 2.0, 0.0), fast=False, onboard=True)
     assert still.ctl.start_level().result is Result.IN_PROGRESS
     snap = still.finished(timeout=10.0)
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS
+    assert snap.phase is Phase.SUCCEEDED
     rep = still.log.wait("calibration.done")[0].data["report"]
     page = still.fw.flash.page
-    assert page.accok and (rep["gxoff"], rep["gyoff"], rep["gzoff"]) == (
+    assert page.accok and tuple(rep["device"][k] for k in ("gxoff", "gyoff", "gzoff")) == (
         page.gxoff,
         page.gyoff,
         page.gzoff,
@@ -623,7 +631,7 @@ def test_onboard_level_acccal_success_and_motion_failure(
     before = _params(moving.fw)
     assert moving.ctl.start_level().ok
     snap = moving.finished(timeout=10.0)
-    assert snap.status is MagCalStatus.MAG_CAL_FAILED
+    assert snap.phase is Phase.FAILED
     failed = moving.log.wait("calibration.failed")[0]
     assert failed.data["report"]["device_error"] == "MOTION"
     assert "moved" in failed.data["reason"]
@@ -693,7 +701,7 @@ def test_storage_failure_keeps_the_calibration_in_memory(
     # in memory and in use, and the bridge keeps running
     assert rig.daemon.engine.calibration != Calibration()
     snap = rig.ctl.snapshot()
-    assert snap.status is MagCalStatus.MAG_CAL_SUCCESS and not snap.calibration_saved
+    assert snap.phase is Phase.SUCCEEDED and not snap.calibration_saved
     n = rig.daemon.samples
     assert _wait(lambda: rig.daemon.samples > n + 3)
     assert rig.daemon.pipeline_errors == 0 and rig.ctl.errors == 0

@@ -18,8 +18,7 @@ import pytest
 from handheld_rig import FIELD, Tumbled, held, tumble
 
 from bridge.calibration.model import Calibration
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import CalibrationController, CalibratorSettings
+from bridge.calibrator import CalibrationController, CalibratorSettings, Phase
 from bridge.calibrator.motion import MOTION_TEXT, FrameSeries, MotionJudge
 from bridge.core.attitude import AttitudeEngine
 from bridge.events import Event, EventBus, Severity
@@ -88,16 +87,14 @@ def calibrate_live(
         if step_one and snap.completion_pct >= 33.2:
             # step one's buffer is full: let the worker fit its sphere before going on
             step_one = False
-            assert ctl.wait_for(lambda s: s.status != MagCalStatus.MAG_CAL_RUNNING_STEP_ONE, WAIT_S)
-        if not snap.running or (
-            snap.status is MagCalStatus.MAG_CAL_RUNNING_STEP_TWO and snap.completion_pct >= 98.9
-        ):
+            assert ctl.wait_for(lambda s: s.step != 1 or not s.running, WAIT_S)
+        if not snap.running or (snap.step == 2 and snap.completion_pct >= 98.9):
             break
     done = ctl.wait_for(lambda s: not s.running, WAIT_S)
     assert done is not None, ctl.snapshot()
     events.wait_any(("calibration.done", "calibration.failed"))
     before = ctl._engine.calibration
-    if done.status is MagCalStatus.MAG_CAL_SUCCESS:
+    if done.phase is Phase.SUCCEEDED:
         assert ctl.accept().ok
     return ctl, events, before
 
@@ -142,7 +139,7 @@ def test_violent_motion_is_told_while_it_happens_and_the_calibration_fails() -> 
         seconds = float(rec.t[-1])
         assert len(warnings) <= seconds / 5.0 + 1
         f = failed[0].data
-        assert f["cal_status"] == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+        assert f["failure"] == "failed_residuals"  # MAVLink: MAG_CAL_FAILED_RESIDUALS_HIGH
         assert "slower / steadier" in f["reason"]
         assert ctl._engine.calibration == before
     finally:

@@ -15,11 +15,14 @@ import pytest
 
 from bridge.calibration.accel_faces import Face
 from bridge.calibration.coverage import section
-from bridge.calibration.model import AffineCalibration, Calibration, CalibrationReport
+from bridge.calibration.model import (
+    AffineCalibration,
+    Calibration,
+    CalibrationReport,
+)
 from bridge.calibrator.collect import (
     FaceCollector,
     MagCollector,
-    OnboardMagTracker,
     StillCollector,
     counts_to_nominal,
     sphere_step,
@@ -30,19 +33,26 @@ from bridge.calibrator.controller import (
     Outcome,
     Result,
 )
+from bridge.calibrator.onboard import OnboardMagTracker
+from bridge.calibrator.report import Failure, SessionReport, fit_report
 from bridge.calibrator.results import (
     device_params_for,
     fixed_yaw_calibration,
-    mag_report,
     orientation_confidence,
 )
+from bridge.calibrator.state import Mode
 from bridge.core.attitude import AttitudeEngine
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, random_rotations
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.events import EventBus
 from bridge.link.serial_link import CompassLink
 from bridge.link.transport import SimTransport
-from bridge.protocol.gmr import AttitudeFrame, CalProgressFrame, Flags, ParamsFrame
+from bridge.protocol.gmr import (
+    AttitudeFrame,
+    CalProgressFrame,
+    Flags,
+    ParamsFrame,
+)
 from bridge.sim.firmware import make_firmware
 
 B_NED = np.array([0.21, 0.01, 0.43])  # gauss, a mid-latitude field
@@ -282,7 +292,7 @@ def test_onboard_tracker_needs_both_full_turns() -> None:
     for _ in range(3):
         if tr.step == 2:
             events += [e for e in [tr.progress(dev.report())] if e]
-    assert events == ["side_done"] and tr.step == 3
+    assert events == ["done"] and tr.step == 3
     assert min(tr.spans) >= 400
 
 
@@ -363,22 +373,50 @@ def test_orientation_confidence_tells_right_from_wrong() -> None:
     assert math.isnan(orientation_confidence(mag[:5], grav[:5]))
 
 
-def test_mag_report_is_ardupilot_shaped_and_json_ready() -> None:
+def test_a_fit_report_holds_ardupilots_figures_and_reads_back_from_json() -> None:
     cal = Calibration(
         mag=AffineCalibration.from_arrays((0.1, -0.2, 0.05), np.diag([1.1, 0.9, 1.0]))
     )
-    rep = mag_report(
-        cal,
+    rep = fit_report(
+        Mode.MAG,
+        cal.mag,
         CalibrationReport("ellipsoid_aligned", fitness_mG=1.5, radius_G=0.48),
         autosaved=True,
         confidence=12.0,
     )
-    assert (rep["ofs_x"], rep["ofs_y"], rep["ofs_z"]) == pytest.approx((-100.0, 200.0, -50.0))
-    assert rep["scale_factor"] == pytest.approx(1.0)
-    assert (rep["diag_x"], rep["diag_y"]) == pytest.approx((1.1, 0.9))
-    assert rep["cal_status_code"] == 4 and rep["autosaved"] is True
-    assert rep["coverage_pct"] is None  # NaN becomes null
-    json.dumps(rep, allow_nan=False)
+    assert rep.ok and rep.failure is None and rep.autosaved
+    assert rep.mag is not None and rep.fit is not None
+    # COMPASS_OFS is added to the raw field: the negated offset, in mG
+    assert rep.mag.ofs_mG == pytest.approx((-100.0, 200.0, -50.0))
+    assert rep.mag.scale == pytest.approx(1.0) and rep.mag.diag[:2] == pytest.approx((1.1, 0.9))
+    assert rep.fit.fitness_mG == 1.5 and rep.fit.radius_mG == pytest.approx(480.0)
+    assert rep.fit.orientation_confidence == 12.0
+    d = rep.to_dict()
+    assert (d["ofs_x"], d["ofs_y"], d["ofs_z"]) == pytest.approx((-100.0, 200.0, -50.0))
+    assert d["status"] == "success" and d["fitness"] == 1.5 and d["autosaved"] is True
+    assert d["coverage_pct"] is None  # NaN becomes null
+    back = SessionReport.from_dict(json.loads(json.dumps(d, allow_nan=False)))
+    assert back.mag == rep.mag and back.fit is not None
+    assert back.fit.fitness_mG == 1.5 and math.isnan(back.fit.coverage_pct)
+    assert (back.mode, back.method, back.autosaved, back.notes) == (
+        rep.mode,
+        rep.method,
+        rep.autosaved,
+        rep.notes,
+    )
+    # a fit's failing verdict, in the calibrator's neutral terms, with its reason
+    bad = fit_report(
+        Mode.MAG,
+        cal.mag,
+        CalibrationReport(
+            "ellipsoid_aligned",
+            status="MAG_CAL_BAD_RADIUS",  # the older spelling of MAG_CAL_FAILED_RADIUS
+            notes=("accelerometer: given", "field radius 990 mG outside 150-950 mG"),
+        ),
+    )
+    assert bad.failure is Failure.RADIUS and bad.reason.startswith("field radius 990")
+    again = SessionReport.from_dict(bad.to_dict())
+    assert again.failure is Failure.RADIUS and again.reason == bad.reason
 
 
 def test_outcome_and_settings_validation() -> None:

@@ -12,8 +12,9 @@ a simulated clock in tests.
 * :class:`FaceCollector` -- PX4's six-face accelerometer routine: wait until
   the unit rests still on a face, average it, ask for the next one.
 * :class:`StillCollector` -- one still average (level calibration, fixed yaw).
-* :class:`OnboardMagTracker` -- follows the device's own MAGCAL routine from
-  its ``$PGMRC`` spans and the attitude, and says when each turn is complete.
+
+The device's own MAGCAL routine is followed by
+:class:`~bridge.calibrator.onboard.OnboardMagTracker`.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from bridge.calibration.ellipsoid import fit_sphere
 from bridge.calibration.samples import COMPASS_CAL_NUM_SAMPLES, SampleAcceptor
 from bridge.calibrator.motion import FrameSeries, MotionJudge, MotionWarning
 from bridge.core import sensor
-from bridge.protocol.gmr import CalProgressFrame, ParamsFrame
+from bridge.protocol.gmr import AttitudeFrame, Flags
 
 FloatArray = npt.NDArray[np.float64]
 Vec3 = tuple[float, float, float]
@@ -70,6 +71,13 @@ def counts_to_nominal(
         ((ax - z) / ag, (ay - z) / ag, (az - z) / ag),
         sat,
     )
+
+
+def frame_vectors(f: AttitudeFrame) -> tuple[Vec3, Vec3, bool]:
+    """An attitude frame's raw vectors in nominal gauss and g, and whether it is saturated
+    (a channel at an ADC rail, or the device's SAT flag)."""
+    mag, acc, sat = counts_to_nominal(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+    return mag, acc, sat or bool(f.flags & Flags.SAT)
 
 
 # ---------------------------------------------------------------------------
@@ -434,156 +442,3 @@ class StillCollector:
     def still(self) -> bool:
         """Every accelerometer axis varied less than ``still_tol_g`` (one sigma)."""
         return self.means()[2] < self.still_tol_g
-
-
-# ---------------------------------------------------------------------------
-# the device's on-board MAGCAL
-# ---------------------------------------------------------------------------
-
-#: Datasheet MAGCAL conditions: level = tilt under 20 deg; on its side = |gz| under 0.35 g.
-ONBOARD_LEVEL_TILT_DEG = 20.0
-ONBOARD_SIDE_GZ_G = 0.35
-ONBOARD_MIN_SPAN = 400  #: counts: MAGCAL,END fails with RANGE below this on any axis
-
-
-def _swept_deg(points: list[tuple[float, float]], centre: tuple[float, float]) -> float:
-    """Total turning angle (degrees, absolute) of a path of 2-D points about ``centre``."""
-    if len(points) < 2:
-        return 0.0
-    p = np.asarray(points, dtype=np.float64) - np.asarray(centre)
-    ang = np.arctan2(p[:, 1], p[:, 0])
-    d = np.diff(ang)
-    d = (d + math.pi) % (2.0 * math.pi) - math.pi
-    return abs(math.degrees(float(d.sum())))
-
-
-class OnboardMagTracker:
-    """Follows the device's two-turn MAGCAL routine and says when each turn is complete.
-
-    The device tracks x/y extremes while level and the z extreme while on its
-    side (its own tests, with its own level reference -- reproduced here from
-    the flash page). A turn counts as complete when (a) the raw field has swept
-    ``min_turn_deg`` about the centre of the device's own min/max in the plane
-    that turns, and (b) the ``$PGMRC`` spans of the axes that turn have stopped
-    growing over the last ``settle_reports`` reports (by more than
-    ``growth_tol`` counts) and reached the device's 400 counts. (a) alone would
-    be fooled by a min/max centre that is still wrong; (b) alone by a pause
-    mid-turn.
-    """
-
-    def __init__(
-        self,
-        level_reference: ParamsFrame | None = None,
-        *,
-        min_turn_deg: float = 330.0,
-        settle_reports: int = 2,
-        growth_tol: float = 8.0,
-        point_spacing: float = 15.0,
-    ) -> None:
-        page = level_reference if level_reference is not None else ParamsFrame.factory()
-        self._goff = (page.gxoff, page.gyoff, page.gzoff - sensor.ACC_COUNTS_PER_G)
-        self.min_turn_deg = min_turn_deg
-        self.settle_reports = settle_reports
-        self.growth_tol = growth_tol
-        self.point_spacing = point_spacing
-        self.step = 1  #: 1 level turn, 2 side turn, 3 both seen
-        self.level_points: list[tuple[float, float]] = []
-        self.side_points: list[tuple[float, float, float]] = []
-        self.side_axis: int | None = None  #: 0 (x) or 1 (y): the other horizontal axis on the side
-        self.history: deque[CalProgressFrame] = deque(maxlen=max(2, settle_reports + 1))
-        self.level_swept = 0.0
-        self.side_swept = 0.0
-        self.attitude = "other"  #: "level", "side" or "other" (device's definitions)
-
-    def classify(self, ax: int, ay: int, az: int) -> str:
-        """The device's view of a frame: "level", "side" or "other"."""
-        gx, gy, gz = ax - self._goff[0], ay - self._goff[1], az - self._goff[2]
-        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
-        if gn == 0.0:
-            return "other"
-        tilt = math.degrees(math.acos(max(-1.0, min(1.0, gz / gn))))
-        if tilt < ONBOARD_LEVEL_TILT_DEG:
-            return "level"
-        if abs(gz) < ONBOARD_SIDE_GZ_G * sensor.ACC_COUNTS_PER_G:
-            return "side"
-        return "other"
-
-    def frame(self, mx: int, my: int, mz: int, ax: int, ay: int, az: int) -> None:
-        """One attitude frame: remember the path of the field while level / on the side."""
-        self.attitude = self.classify(ax, ay, az)
-        if self.attitude == "level":
-            if _far(self.level_points, (mx, my), self.point_spacing):
-                self.level_points.append((float(mx), float(my)))
-        elif self.attitude == "side":
-            gx, gy = abs(ax - self._goff[0]), abs(ay - self._goff[1])
-            # On its side the horizontal plane holds z and whichever of x/y is not vertical.
-            axis = 0 if gx < gy else 1
-            if self.side_axis is None:
-                self.side_axis = axis
-            if axis == self.side_axis:
-                h = float(mx if axis == 0 else my)
-                pts = [(p[0] if axis == 0 else p[1], p[2]) for p in self.side_points[-1:]]
-                if _far(pts, (h, mz), self.point_spacing):
-                    self.side_points.append((float(mx), float(my), float(mz)))
-
-    def progress(self, frame: CalProgressFrame) -> str | None:
-        """One ``$PGMRC``; returns ``"level_done"`` or ``"side_done"`` when a turn completes."""
-        self.history.append(frame)
-        xmid = (frame.xmin + frame.xmax) / 2.0 if frame.xmax > 0 else None
-        ymid = (frame.ymin + frame.ymax) / 2.0 if frame.ymax > 0 else None
-        zmid = (frame.zmin + frame.zmax) / 2.0 if frame.zmax > 0 else None
-        if xmid is not None and ymid is not None:
-            self.level_swept = _swept_deg(self.level_points, (xmid, ymid))
-        if zmid is not None and self.side_axis is not None:
-            hmid = xmid if self.side_axis == 0 else ymid
-            pts = [(p[self.side_axis], p[2]) for p in self.side_points]
-            if hmid is None:  # never level: centre the other axis on its own path
-                hmid = float(np.mean([p[0] for p in pts])) if pts else 0.0
-            self.side_swept = _swept_deg(pts, (hmid, zmid))
-        if self.step == 1 and self._turn_done(("x", "y"), self.level_swept):
-            self.step = 2
-            return "level_done"
-        if self.step == 2 and self._turn_done(("z",), self.side_swept):
-            self.step = 3
-            return "side_done"
-        return None
-
-    def _turn_done(self, axes: tuple[str, ...], swept: float) -> bool:
-        if swept < self.min_turn_deg or len(self.history) < self.settle_reports + 1:
-            return False
-        last = self.history[-1]
-        first = self.history[-1 - self.settle_reports]
-        for a in axes:
-            span = last.span(a)  # type: ignore[arg-type]
-            if span < ONBOARD_MIN_SPAN:
-                return False
-            tol = max(self.growth_tol, 0.01 * span)
-            if span - first.span(a) > tol:  # type: ignore[arg-type]
-                return False
-        return True
-
-    @property
-    def spans(self) -> tuple[int, int, int]:
-        """The last reported (x, y, z) spans in counts."""
-        if not self.history:
-            return (0, 0, 0)
-        f = self.history[-1]
-        return (f.span("x"), f.span("y"), f.span("z"))
-
-    @property
-    def percent(self) -> float:
-        """Level turn 0-50 %, side turn 50-99 % (100 is the device's OK)."""
-        lv = min(1.0, self.level_swept / 360.0)
-        sd = min(1.0, self.side_swept / 360.0)
-        if self.step == 1:
-            return min(49.0, 50.0 * lv)
-        if self.step == 2:
-            return 50.0 + min(48.0, 49.0 * sd)
-        return 99.0
-
-
-def _far(points: list[tuple[float, float]], p: tuple[float, float], spacing: float) -> bool:
-    if not points:
-        return True
-    q = points[-1]
-    return (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 >= spacing * spacing

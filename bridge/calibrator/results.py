@@ -1,10 +1,8 @@
 """Pure helpers behind the calibration controller: reports, device parameters, fixed yaw.
 
-Nothing here does I/O or keeps time; the controller (``controller.py``) calls
-these from its worker thread and turns the outcome into events.
+Nothing here does I/O or keeps time; the sessions hand these to the
+controller's worker thread as fits to run, or call them directly.
 
-* :func:`mag_report` -- a fit as the fields of MAVLink MAG_CAL_REPORT
-  (ArduPilot's COMPASS_OFS/DIA/ODI/SCALE view), JSON-ready;
 * :func:`judge_accuracy` -- fails a fit whose predicted heading error is too large;
 * :func:`orientation_confidence` -- ArduPilot's ``calculate_orientation`` figure
   of merit: how much better the fitted orientation explains the samples than
@@ -19,7 +17,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -28,7 +25,6 @@ from bridge.calibration.alignment import motion_failure_reason
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
-    CalibrationReport,
     CalibrationResult,
 )
 from bridge.calibration.sanity import MagCalStatus
@@ -39,10 +35,6 @@ from bridge.protocol.gmr import OFFSET_RANGE, PAR_SET_GAIN_RANGE, ParamsFrame
 
 FloatArray = npt.NDArray[np.float64]
 
-#: MAG_CAL_PROGRESS / MAG_CAL_REPORT compass index and mask: the bridge has one compass.
-COMPASS_ID = 0
-CAL_MASK = 1
-
 #: Rotations a wrongly set COMPASS_ORIENT can produce (ArduPilot's table, custom ones
 #: excluded); every one is at least 45 deg from the identity except the identity itself.
 _CANDIDATES: tuple[FloatArray, ...] = tuple(
@@ -52,10 +44,6 @@ _CANDIDATES: tuple[FloatArray, ...] = tuple(
     )
     if math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(m)) - 1.0) / 2.0)))) >= 44.0
 )
-
-
-def _finite_or_none(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
 
 
 def _unit_rows(v: FloatArray) -> FloatArray:
@@ -82,64 +70,6 @@ def orientation_confidence(mag_corrected: npt.ArrayLike, gravity: npt.ArrayLike)
     others = min(float(np.var(np.sum(g * (m @ R.T), axis=1))) for R in _CANDIDATES)
     # A floor keeps a noise-free (simulated) unit finite: 1e-12 is far below any real spread.
     return others / max(best, 1e-12)
-
-
-def mag_report(
-    calibration: Calibration,
-    report: CalibrationReport,
-    *,
-    autosaved: bool = False,
-    confidence: float = math.nan,
-) -> dict[str, Any]:
-    """A magnetometer fit as MAG_CAL_REPORT fields plus the engine's own figures (JSON-ready).
-
-    ``ofs_*`` are COMPASS_OFS_* (milligauss, *added* to the raw field), ``diag_*``
-    / ``offdiag_*`` COMPASS_DIA_* / COMPASS_ODI_*, ``scale_factor``
-    COMPASS_SCALE, ``fitness`` the RMS residual in milligauss; ``cal_status``
-    is the MAG_CAL_STATUS name and ``cal_status_code`` its wire value.
-    """
-    status = MagCalStatus.parse(report.status)
-    view = calibration.mag.ardupilot_view()
-    rot_deg = math.degrees(float(np.linalg.norm(view.rotation_rotvec)))
-    out: dict[str, Any] = {
-        "compass_id": COMPASS_ID,
-        "cal_mask": CAL_MASK,
-        "cal_status": status.name,
-        "cal_status_code": int(status),
-        "autosaved": bool(autosaved),
-        "fitness": _finite_or_none(report.fitness_mG),
-        "ofs_x": view.ofs_mG[0],
-        "ofs_y": view.ofs_mG[1],
-        "ofs_z": view.ofs_mG[2],
-        "diag_x": view.diag[0],
-        "diag_y": view.diag[1],
-        "diag_z": view.diag[2],
-        "offdiag_x": view.offdiag[0],
-        "offdiag_y": view.offdiag[1],
-        "offdiag_z": view.offdiag[2],
-        "orientation_confidence": _finite_or_none(confidence),
-        # The bridge never changes COMPASS_ORIENT by itself (ArduPilot's COMPASS_AUTO_ROT=0).
-        "old_orientation": int(Rotation.ROTATION_NONE),
-        "new_orientation": int(Rotation.ROTATION_NONE),
-        "scale_factor": view.scale,
-        "rotation_deg": rot_deg,
-        "method": report.method,
-        "n_samples": report.n_samples,
-        "n_rejected": report.n_rejected,
-        "radius_mG": _finite_or_none(1000.0 * report.radius_G),
-        "coverage_pct": _finite_or_none(report.coverage_pct),
-        "field_spread_before_nT": _finite_or_none(report.field_spread_before_nT),
-        "field_spread_after_nT": _finite_or_none(report.field_spread_after_nT),
-        # A frame series' fit (a live calibration) predicts the heading error it leaves;
-        # "fitness" then includes it, "residual_mG" is the magnetometer's own residual.
-        "residual_mG": _finite_or_none(report.residual_mG),
-        "heading_error_deg": _finite_or_none(report.heading_error_deg),
-        "tilt_error_deg": _finite_or_none(report.tilt_error_deg),
-        "motion_g": _finite_or_none(report.motion_g),
-        "window_s": _finite_or_none(report.window_s),
-        "notes": list(report.notes),
-    }
-    return out
 
 
 def judge_accuracy(result: CalibrationResult, max_heading_error_deg: float) -> CalibrationResult:
@@ -224,18 +154,6 @@ def device_params_for(mag: AffineCalibration) -> DeviceMagParams:
         if not glo <= k <= ghi:
             raise ValueError(f"K{axis} {k:.4f} outside the device's {glo}-{ghi}")
     return DeviceMagParams(offs[0], offs[1], offs[2], gains[0], gains[1], gains[2])
-
-
-def device_calibration_view(params: ParamsFrame) -> dict[str, float]:
-    """A device flash page's magnetometer part in ArduPilot terms (COMPASS_OFS in mG), for reports."""
-    return {
-        "ofs_x": -1000.0 * (params.xoff - sensor.ZERO_COUNTS) / sensor.MAG_COUNTS_PER_GAUSS,
-        "ofs_y": -1000.0 * (params.yoff - sensor.ZERO_COUNTS) / sensor.MAG_COUNTS_PER_GAUSS,
-        "ofs_z": -1000.0 * (params.zoff - sensor.ZERO_COUNTS) / sensor.MAG_COUNTS_PER_GAUSS,
-        "diag_x": params.kx,
-        "diag_y": params.ky,
-        "diag_z": params.kz,
-    }
 
 
 def attitude_from_gravity(g: npt.ArrayLike) -> tuple[float, float]:

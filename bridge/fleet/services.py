@@ -25,37 +25,39 @@ START_KINDS = ("mag", "accel", "level", "fixed_yaw")
 
 
 def calibration_state(svc: BridgeServices) -> dict[str, Any]:
-    """The small calibration summary ``<prefix>/status`` carries."""
+    """The small calibration summary ``<prefix>/status`` carries (``phase``: the calibrator's
+    neutral phase -- idle, waiting, collecting, fitting, succeeded, failed, cancelled)."""
     snap = svc.calibrator.snapshot()
     if snap.running:
         state = "running"
     elif snap.pending_accept:
         state = "pending_accept"
-    elif snap.mode is not None and snap.status.failed:
+    elif snap.failure is not None:
         state = "failed"
     else:
         state = "idle"
-    report = snap.last_report or {}
-    fitness = report.get("fitness_mG", report.get("fitness"))
+    fit = snap.report.fit if snap.report is not None else None
+    fitness = fit.fitness_mG if fit is not None and math.isfinite(fit.fitness_mG) else None
     return {
         "state": state,
         "mode": snap.mode,
-        "status": snap.status.name,
+        "phase": snap.phase.value,
         "percent": round(snap.completion_pct, 1),
         "onboard": snap.onboard,
         "source": snap.calibration_source or svc.status().calibration_source,
         "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
         "saved": snap.calibration_saved,
-        "fitness_mG": fitness if isinstance(fitness, int | float) else None,
+        "fitness_mG": fitness,
     }
 
 
 def calibration_info(svc: BridgeServices) -> dict[str, Any]:
     """The ``<prefix>/calibration`` answer: the parameters in use and their quality report."""
     snap = svc.calibrator.snapshot()
-    report: Mapping[str, Any] | None = snap.last_report
-    if report is None:
-        report = svc.calibrations.load().report  # queries are rare: read on demand
+    # queries are rare: the stored report is read on demand
+    report: Mapping[str, Any] | None = (
+        snap.report.to_dict() if snap.report is not None else svc.calibrations.load().report
+    )
     return {
         "calibration": svc.settings.calibration.to_dict(),
         "source": snap.calibration_source or svc.status().calibration_source,

@@ -10,6 +10,7 @@ application's :class:`~bridge.app.services.BridgeServices`; the modules:
 * :mod:`~bridge.mavlink.telemetry`  -- what is sent, in which units (pure)
 * :mod:`~bridge.mavlink.paramproto` -- the parameter protocol, encoded per autopilot flavour
 * :mod:`~bridge.mavlink.commands`   -- commands and calibration events mapped to MAVLink (pure)
+* :mod:`~bridge.mavlink.calmap`     -- the calibrator's phases, reports and texts in MAVLink terms
 * :mod:`~bridge.mavlink.dispatch`   -- the command handlers, the autopilot's position
 * :mod:`~bridge.mavlink.output`     -- the output: threads, publishing, notifications
 """

@@ -28,6 +28,7 @@
     between ``<`` and ``>``.
 
 Calibrations started elsewhere (zenoh, the CLI) are relayed ArduPilot-style.
+The mapping of the calibrator's state, reports and texts is :mod:`bridge.mavlink.calmap`.
 """
 
 from __future__ import annotations
@@ -37,9 +38,9 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from bridge.calibration.sanity import MagCalStatus
 from bridge.calibrator import Outcome, Result
 from bridge.events import Event
+from bridge.mavlink import calmap
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.mavlink.telemetry import (
@@ -50,9 +51,6 @@ from bridge.mavlink.telemetry import (
 )
 
 Flow = Literal["ardupilot", "px4"]
-
-#: PX4's calibration protocol version, which QGroundControl checks in "calibration started".
-PX4_CAL_VERSION = 2
 
 # Command ids used here (names as in MAVLink's MAV_CMD).
 DO_START_MAG_CAL = int(M.MAV_CMD_DO_START_MAG_CAL)
@@ -161,72 +159,6 @@ def result_code(outcome: Outcome, *, in_progress_is_final: bool = True) -> int:
 # ---------------------------------------------------------------------------- calibration events
 
 
-def _px4_sensor(data: dict[str, Any]) -> str:
-    """PX4's sensor word: "mag", "accel" or "level"."""
-    mode = str(data.get("mode", ""))
-    if mode in ("level", "onboard_level"):
-        return "level"
-    return str(data.get("sensor", "mag"))
-
-
-def cal_line(text: str) -> str:
-    """A ``[cal]`` line that fits one STATUSTEXT (QGroundControl parses single messages)."""
-    line = "[cal] " + text
-    return line if len(line.encode("utf-8")) <= STATUSTEXT_LEN else line[:STATUSTEXT_LEN]
-
-
-def px4_text(event: Event) -> str | None:
-    """The PX4 ``[cal]`` line for a calibration event (None: no PX4 equivalent)."""
-    d = event.data
-    k = event.kind
-    if k == "calibration.started":
-        return f"[cal] calibration started: {PX4_CAL_VERSION} {_px4_sensor(d)}"
-    if k == "calibration.progress":
-        pct = d.get("completion_pct")
-        if not isinstance(pct, int | float) or not math.isfinite(pct):
-            return None
-        return f"[cal] progress <{max(0, min(100, int(pct)))}>"
-    if k == "calibration.face_detected":
-        return f"[cal] {d.get('side', '?')} orientation detected"
-    if k == "calibration.face_done":
-        return f"[cal] {d.get('side', '?')} side done, rotate to a different side"
-    if k == "calibration.done":
-        return f"[cal] calibration done: {_px4_sensor(d)}"
-    if k == "calibration.failed":
-        return cal_line(f"calibration failed: {d.get('reason', 'unknown')}")
-    if k == "calibration.cancelled":
-        return "[cal] calibration cancelled"
-    if k in ("calibration.instruction", "calibration.motion"):
-        return cal_line(event.text)
-    return None
-
-
-_MAG_MODES = frozenset({"mag", "onboard_mag", "fixed_yaw"})
-
-
-def report_from_dict(report: dict[str, Any]) -> MagCalReport:
-    """A controller report (``bridge.calibrator.results.mag_report`` shape) as MAG_CAL_REPORT."""
-
-    def num(key: str, default: float = 0.0) -> float:
-        v = report.get(key)
-        return float(v) if isinstance(v, int | float) and math.isfinite(v) else default
-
-    status = MagCalStatus.parse(report.get("cal_status", "MAG_CAL_FAILED"))
-    return MagCalReport(
-        # Codes 8-10 are newer than many ground stations; ArduPilot sends FAILED for them.
-        cal_status=int(status.legacy),
-        autosaved=bool(report.get("autosaved", False)),
-        fitness=num("fitness"),
-        ofs=(num("ofs_x"), num("ofs_y"), num("ofs_z")),
-        diag=(num("diag_x", 1.0), num("diag_y", 1.0), num("diag_z", 1.0)),
-        offdiag=(num("offdiag_x"), num("offdiag_y"), num("offdiag_z")),
-        orientation_confidence=num("orientation_confidence"),
-        old_orientation=int(num("old_orientation")),
-        new_orientation=int(num("new_orientation")),
-        scale_factor=num("scale_factor", 1.0),
-    )
-
-
 class CalibrationRelay:
     """Calibration events -> MAVLink packets, in the style of the flow that started them.
 
@@ -276,31 +208,24 @@ class CalibrationRelay:
                     return []  # QGroundControl needs changes only
                 self._last_pct = ipct
         out: list[Message] = []
-        data = event.data
-        mode = str(data.get("mode", ""))
-        if event.kind in ("calibration.done", "calibration.failed") and mode in _MAG_MODES:
-            report = data.get("report")
-            if isinstance(report, dict):
-                r = report_from_dict(report)
+        if event.kind in ("calibration.done", "calibration.failed"):
+            r = calmap.event_report(event.data)
+            if r is not None:
                 self.last_report = r
                 out.append(mag_cal_report(r, self.compass_id))
-        # The controller cuts texts to one STATUSTEXT; a failure's whole reason is worth
-        # a second (chunked) message: "MAGCAL,END: too little rotation (RANGE)".
-        text = event.text
-        reason = data.get("reason")
-        if event.kind == "calibration.failed" and isinstance(reason, str) and reason:
-            text = f"Calibration failed: {reason}"
+        # The calibrator's texts are whole sentences: they go out chunked when longer than
+        # one STATUSTEXT ("Calibration failed: MAGCAL,END: too little rotation (RANGE)").
         if flow == "px4":
-            line = px4_text(event)
+            line = calmap.px4_text(event)
             if line is not None:
                 out += statustext(int(event.severity), line)
-                if event.kind == "calibration.failed" and len(line) >= STATUSTEXT_LEN:
+                if event.kind == "calibration.failed" and len(line.encode()) >= STATUSTEXT_LEN:
                     # the [cal] line had to be cut: the whole reason follows for the log
-                    out += statustext(int(event.severity), text, chunk_id=_chunk_id(event))
+                    out += statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
             return out
         if event.kind == "calibration.progress":
             return out  # ArduPilot flow: MAG_CAL_PROGRESS carries it
-        return out + statustext(int(event.severity), text, chunk_id=_chunk_id(event))
+        return out + statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
 
 
 def _chunk_id(event: Event) -> int:

@@ -28,8 +28,9 @@ from bridge import __version__
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices
 from bridge.calibration.model import Calibration
-from bridge.calibrator import Outcome, Result
+from bridge.calibrator import CalibratorSnapshot, Outcome, Result
 from bridge.events import Event, Severity
+from bridge.mavlink import calmap
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
@@ -232,7 +233,7 @@ class Sender(Protocol):
         """Our health."""
         ...
 
-    def progress_message(self, snap: Any) -> Message:
+    def progress_message(self, snap: CalibratorSnapshot) -> Message:
         """MAG_CAL_PROGRESS."""
         ...
 
@@ -384,7 +385,9 @@ class CommandDispatcher:
             self.out.relay.begin(None)
             # PX4 reports a refusal the same way as a failure, so QGroundControl shows it.
             self.out.broadcast(
-                T.statustext(int(Severity.ERROR), C.cal_line(f"calibration failed: {out.message}"))
+                T.statustext(
+                    int(Severity.ERROR), calmap.cal_line(f"calibration failed: {out.message}")
+                )
             )
         self.out.calibration_started()
         return C.result_code(out)
@@ -509,8 +512,11 @@ class CommandDispatcher:
         if msgid == T.SYS_STATUS:
             return T.sys_status(out.health(now))
         if msgid == T.MAG_CAL_REPORT:
-            r = self.svc.calibrator.snapshot().last_report
-            return T.mag_cal_report(C.report_from_dict(r), out.compass_id) if r else None
+            snap = self.svc.calibrator.snapshot()
+            r = snap.report
+            if r is None or snap.mode not in calmap.MAG_MODES:
+                return None
+            return T.mag_cal_report(calmap.report_figures(r), out.compass_id)
         if msgid == T.MAG_CAL_PROGRESS:
             return out.progress_message(self.svc.calibrator.snapshot())
         s = out.latest

@@ -51,10 +51,11 @@ from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
 from bridge.app.settings import SettingsChange
+from bridge.calibrator import CalibratorSnapshot
 from bridge.config import Config
 from bridge.events import Event
+from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
-from bridge.mavlink import ftp
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message
@@ -428,16 +429,9 @@ class MavlinkOutput:
         """Our HEARTBEAT now."""
         return T.heartbeat(self.identity, T.system_status(self.health(now)))
 
-    def progress_message(self, snap: Any) -> Message:
+    def progress_message(self, snap: CalibratorSnapshot) -> Message:
         """MAG_CAL_PROGRESS from a calibrator snapshot."""
-        return T.mag_cal_progress(
-            int(snap.status),
-            snap.attempt,
-            snap.completion_pct,
-            snap.completion_mask,
-            snap.direction,
-            compass_id=self.compass_id,
-        )
+        return calmap.progress_message(snap, self.compass_id)
 
     def calibration_started(self) -> None:
         """A calibration command was handled: progress at once, not at the next tick."""

@@ -168,20 +168,14 @@ def calibrated_missing(cal: Calibration, v: RecordedVectors) -> frozenset[int]:
 
 
 def offline_report(res: CalibrationResult) -> dict[str, Any]:
-    """The fit as a MAG_CAL_REPORT-shaped dict with the engine's figures."""
-    from bridge.calibrator.results import mag_report
+    """The fit as the bridge reports a calibration (the calibrator's report, JSON form) with
+    ``cal_status``, the MAG_CAL_STATUS name a live calibration's MAG_CAL_REPORT gives."""
+    from bridge.calibrator.report import fit_report
+    from bridge.calibrator.state import Mode
+    from bridge.mavlink.calmap import report_status
 
-    rep = mag_report(res.calibration, res.report)
-    d = res.report.to_dict()
-    rep.update(
-        {
-            "field_spread_before_nT": d["field_spread_before_nT"],
-            "field_spread_after_nT": d["field_spread_after_nT"],
-            "method": res.report.method,
-            "n_samples": res.report.n_samples,
-        }
-    )
-    return rep
+    report = fit_report(Mode.MAG, res.calibration.mag, res.report)
+    return {**report.to_dict(), "cal_status": report_status(report).name}
 
 
 # ---------------------------------------------------------------------------

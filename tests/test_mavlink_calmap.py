@@ -1,0 +1,138 @@
+"""The calibrator's neutral state, reports and texts in MAVLink's terms (pure)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pytest
+from test_mavlink_telemetry import decode, wire_text
+
+from bridge.calibration.sanity import MagCalStatus
+from bridge.calibrator import Failure, Mode, Phase, SessionReport
+from bridge.calibrator.report import DeviceOutcome, FitQuality, MagParams
+from bridge.events import Event, Severity
+from bridge.mavlink import calmap
+from bridge.mavlink.commands import CalibrationRelay
+from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
+
+
+@pytest.mark.parametrize(
+    ("phase", "step", "failure", "status"),
+    [
+        (Phase.IDLE, 0, None, MagCalStatus.MAG_CAL_NOT_STARTED),
+        (Phase.CANCELLED, 1, None, MagCalStatus.MAG_CAL_NOT_STARTED),
+        (Phase.WAITING, 1, None, MagCalStatus.MAG_CAL_WAITING_TO_START),
+        (Phase.COLLECTING, 1, None, MagCalStatus.MAG_CAL_RUNNING_STEP_ONE),
+        (Phase.COLLECTING, 2, None, MagCalStatus.MAG_CAL_RUNNING_STEP_TWO),
+        (Phase.FITTING, 2, None, MagCalStatus.MAG_CAL_RUNNING_STEP_TWO),
+        (Phase.SUCCEEDED, 2, None, MagCalStatus.MAG_CAL_SUCCESS),
+        (Phase.FAILED, 1, Failure.FAILED, MagCalStatus.MAG_CAL_FAILED),
+        (Phase.FAILED, 2, Failure.ORIENTATION, MagCalStatus.MAG_CAL_FAILED_ORIENTATION),
+        (Phase.FAILED, 1, Failure.RADIUS, MagCalStatus.MAG_CAL_FAILED_RADIUS),
+        (Phase.FAILED, 2, Failure.OFFSETS, MagCalStatus.MAG_CAL_FAILED_OFFSETS),
+        (Phase.FAILED, 2, Failure.SCALING, MagCalStatus.MAG_CAL_FAILED_DIAG_SCALING),
+        (Phase.FAILED, 2, Failure.RESIDUALS, MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH),
+    ],
+)
+def test_phases_map_to_mag_cal_status(
+    phase: Phase, step: int, failure: Failure | None, status: MagCalStatus
+) -> None:
+    assert calmap.mag_cal_status(phase, step, failure) is status
+    assert int(status) == getattr(M, status.name)  # pymavlink's wire code
+
+
+def test_a_report_becomes_mag_cal_report() -> None:
+    rep = SessionReport(
+        Mode.MAG,
+        "ellipsoid_aligned",
+        failure=Failure.RESIDUALS,
+        reason="fitness 20.00 mG above COMPASS_CAL_FIT 16.0",
+        mag=MagParams((-100.0, 200.0, -50.0), (1.1, 0.9, 1.0), (0.01, -0.02, 0.0), 1.03, 2.0),
+        fit=FitQuality(fitness_mG=20.0, orientation_confidence=7.5),
+    )
+    r = calmap.report_figures(rep)
+    # code 10 is newer than many ground stations: sent as MAG_CAL_FAILED, as ArduPilot does
+    assert r.cal_status == M.MAG_CAL_FAILED and calmap.report_status(rep) == 10
+    m = rep.mag
+    assert m is not None
+    assert (r.fitness, r.ofs, r.diag, r.offdiag) == (20.0, m.ofs_mG, m.diag, m.offdiag)
+    assert (r.scale_factor, r.orientation_confidence, r.autosaved) == (1.03, 7.5, False)
+    assert r.old_orientation == r.new_orientation == 0  # ROTATION_NONE: never changed
+    # a device's MAGCAL: its offsets and gains, no fitness (0 on the wire)
+    dev = SessionReport(
+        Mode.ONBOARD_MAG,
+        "device MAGCAL",
+        autosaved=True,
+        mag=MagParams((12.0, -3.0, 4.0), (1.0, 0.95, 1.02)),
+        device=DeviceOutcome({"xoff": 2427.3}),
+    )
+    rd = calmap.report_figures(dev)
+    assert rd.cal_status == M.MAG_CAL_SUCCESS and rd.autosaved and math.isnan(rd.fitness)
+
+
+def test_only_magnetometer_sessions_send_mag_cal_report() -> None:
+    level = SessionReport(Mode.LEVEL, "level_trim", autosaved=True)
+    assert calmap.event_report({"mode": "level", "report": level.to_dict()}) is None
+    mag = SessionReport(Mode.FIXED_YAW, "fixed_yaw", autosaved=True, mag=MagParams((1.0, 2.0, 3.0)))
+    r = calmap.event_report({"mode": "fixed_yaw", "report": mag.to_dict()})
+    assert r is not None and r.ofs == (1.0, 2.0, 3.0) and r.cal_status == M.MAG_CAL_SUCCESS
+    assert calmap.event_report({"mode": "mag", "report": {"mode": "nonsense"}}) is None
+
+
+def _failed(reason: str) -> Event:
+    rep = SessionReport(Mode.ONBOARD_MAG, "onboard_mag", failure=Failure.FAILED, reason=reason)
+    data: dict[str, Any] = {
+        "mode": "onboard_mag",
+        "sensor": "mag",
+        "failure": "failed",
+        "reason": reason,
+        "report": rep.to_dict(),
+    }
+    return Event("calibration.failed", f"Calibration failed: {reason}", Severity.ERROR, data)
+
+
+def test_whole_sentences_go_out_chunked_and_px4_lines_stay_single() -> None:
+    reason = (
+        "MAGCAL,END: too little rotation (RANGE) -- turn it one full turn, level and on its side"
+    )
+    event = _failed(reason)
+    assert len(event.text) > 50  # the calibrator does not cut it
+    # ArduPilot flow: MAG_CAL_REPORT, then the sentence in spec chunks that join back whole
+    relay = CalibrationRelay()
+    relay.begin("ardupilot")
+    packets = relay.packets(event)
+    assert packets[0].get_msgId() == M.MAVLINK_MSG_ID_MAG_CAL_REPORT
+    texts = [p for p in packets if p.get_msgId() == M.MAVLINK_MSG_ID_STATUSTEXT]
+    chunks = [wire_text(p) for p in texts]
+    assert len(chunks) >= 2 and all(len(c) == 50 for c in chunks[:-1]) and len(chunks[-1]) < 50
+    assert b"".join(chunks).decode() == event.text
+    assert len({decode(p).id for p in texts}) == 1
+    # PX4 flow: the [cal] line QGroundControl parses is one message, cut; the whole follows
+    relay.begin("px4")
+    packets = relay.packets(event)
+    lines = [decode(p) for p in packets if p.get_msgId() == M.MAVLINK_MSG_ID_STATUSTEXT]
+    assert lines[0].id == 0 and lines[0].text.startswith("[cal] calibration failed: MAGCAL,END")
+    assert len(lines[0].text.encode()) == 50
+    rest = b"".join(wire_text(p) for p in packets[2:]).decode()
+    assert rest == event.text
+    # a cut never leaves half a UTF-8 character
+    assert calmap.cal_line("é" * 40).encode().decode() == "[cal] " + "é" * 22
+
+
+def test_px4_lines_for_each_event() -> None:
+    def line(kind: str, text: str = "", **data: Any) -> str | None:
+        return calmap.px4_text(Event(kind, text, Severity.INFO, data))
+
+    assert line("calibration.started", mode="level", sensor="level") == (
+        "[cal] calibration started: 2 level"
+    )
+    assert line("calibration.progress", completion_pct=41.7) == "[cal] progress <41>"
+    assert line("calibration.done", mode="onboard_level", sensor="level") == (
+        "[cal] calibration done: level"
+    )
+    assert line("calibration.face_done", side="up") == (
+        "[cal] up side done, rotate to a different side"
+    )
+    assert line("calibration.cancelled") == "[cal] calibration cancelled"
+    assert line("calibration.accepted") is None
