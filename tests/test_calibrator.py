@@ -350,6 +350,21 @@ def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[...
     assert after.calibration_age_s is not None and after.calibration_age_s < 60.0
 
 
+def test_the_fitness_limit_follows_compass_cal_fit(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    rig = rigs(tmp_path, Still(), fast=False)
+    assert rig.ctl.fitness_limit_mG == 16.0  # ArduPilot's default
+    # QGroundControl sets 100 for its calibration (and back after): the controller follows
+    assert rig.daemon.params.set("COMPASS_CAL_FIT", 100.0).accepted
+    assert rig.ctl.fitness_limit_mG == 100.0
+    assert rig.daemon.params.set("COMPASS_CAL_FIT", 8.0).accepted
+    assert rig.ctl.fitness_limit_mG == 8.0
+    # a stored value is the limit of a bridge that starts with it
+    again = rigs(tmp_path, Still(), fast=False)
+    assert again.ctl.fitness_limit_mG == 8.0
+
+
 def test_wrong_field_fails_bad_radius_and_retry_restarts(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:

@@ -10,6 +10,7 @@ the simulator's (``handheld_rig``).
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 
@@ -18,10 +19,12 @@ import pytest
 from handheld_rig import FIELD, Tumbled, held, tumble
 
 from bridge.calibration.model import Calibration
-from bridge.calibrator import CalibrationController, CalibratorSettings, Phase
+from bridge.calibration.sanity import MagCalStatus
+from bridge.calibrator import CalibrationController, CalibratorSettings, Failure, Phase
 from bridge.calibrator.motion import MOTION_TEXT, FrameSeries, MotionJudge
 from bridge.core.attitude import AttitudeEngine
 from bridge.events import Event, EventBus, Severity
+from bridge.mavlink import calmap
 from bridge.mavlink.commands import CalibrationRelay
 from bridge.protocol.gmr import AttitudeFrame, Flags
 
@@ -70,14 +73,18 @@ def _frame(seq: int, rec: Tumbled, i: int) -> AttitudeFrame:
 
 
 def calibrate_live(
-    rec: Tumbled, settings: CalibratorSettings | None = None
+    rec: Tumbled, settings: CalibratorSettings | None = None, fit_limit_mG: float | None = None
 ) -> tuple[CalibrationController, Events, Calibration]:
-    """Start a host magnetometer calibration and feed it the tumble until it ends; accept it."""
+    """Start a host magnetometer calibration and feed it the tumble until it ends; accept it.
+
+    ``fit_limit_mG`` is COMPASS_CAL_FIT (None: ArduPilot's default, 16 mG)."""
     clock, events, bus = Clock(), Events(), EventBus()
     bus.subscribe(events)
     ctl = CalibrationController(
         AttitudeEngine(), bus, field=FIELD, settings=settings, clock=clock
     ).start()
+    if fit_limit_mG is not None:
+        ctl.fitness_limit_mG = fit_limit_mG
     assert ctl.start_mag().ok
     step_one = True
     for i in range(len(rec.t)):
@@ -156,6 +163,29 @@ def test_a_tight_accuracy_limit_fails_a_calibration_that_cannot_reach_it() -> No
         assert failed[0].data["report"]["heading_error_deg"] > 0.001
         assert ctl.accept().result.value == "failed"
         assert ctl._engine.calibration == before
+    finally:
+        ctl.close()
+
+
+def test_a_fit_above_compass_cal_fit_fails_as_ardupilot_fails_it() -> None:
+    # The fitness limit is COMPASS_CAL_FIT (the application keeps it so); a fit above it
+    # fails with MAG_CAL_FAILED_RESIDUALS_HIGH, saying which limit it broke.
+    rec = tumble(3, 0.05, seconds=150.0)
+    ctl, events, before = calibrate_live(rec, fit_limit_mG=0.3)
+    try:
+        failed = events.of("calibration.failed")
+        assert len(failed) == 1 and not events.of("calibration.done")
+        f = failed[0].data
+        assert f["failure"] == "failed_residuals"
+        assert calmap.mag_cal_status(Phase.FAILED, 2, Failure(f["failure"])) == (
+            MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH
+        )
+        assert f["reason"].endswith("above COMPASS_CAL_FIT 0.3")
+        assert f["report"]["fitness"] > 0.3  # the good fit of the first test, judged stricter
+        assert ctl.accept().result.value == "failed"
+        assert ctl._engine.calibration == before
+        with pytest.raises(ValueError):
+            ctl.fitness_limit_mG = math.nan
     finally:
         ctl.close()
 

@@ -171,6 +171,7 @@ class Bridge:
         self.params.subscribe(self._on_params)
         self.params.start()
         self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
+        self.calibrator.fitness_limit_mG = self.params.get("COMPASS_CAL_FIT")
 
     # -- lifecycle -----------------------------------------------------------------
 
@@ -223,6 +224,8 @@ class Bridge:
     def _on_params(self, change: ParamChange) -> None:
         if "BRG_CAL_ONBOARD" in change.names:
             self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
+        if "COMPASS_CAL_FIT" in change.names:  # the host fit's fitness limit (ArduPilot's)
+            self.calibrator.fitness_limit_mG = self.params.get("COMPASS_CAL_FIT")
         if self.calibrations.documents is not None and self.params.last_error:
             self.events.emit(
                 Event(

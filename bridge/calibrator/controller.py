@@ -133,6 +133,7 @@ class CalibrationController:
         self._field = field
         self.settings = settings if settings is not None else CalibratorSettings()
         self._onboard = bool(onboard)
+        self._fitness_limit = self.settings.fitness_max_mG
         self._clock = clock
         self._wall = wall_clock
         self._lock = threading.RLock()
@@ -203,6 +204,23 @@ class CalibrationController:
     @onboard.setter
     def onboard(self, value: bool) -> None:
         self._onboard = bool(value)
+
+    @property
+    def fitness_limit_mG(self) -> float:
+        """The largest fitness a host magnetometer fit may have (COMPASS_CAL_FIT, mG).
+
+        A session takes the value it starts with (as ArduPilot); the application
+        sets it whenever the parameter changes. Not finite or not positive:
+        ``ValueError``.
+        """
+        return self._fitness_limit
+
+    @fitness_limit_mG.setter
+    def fitness_limit_mG(self, value: float) -> None:
+        v = number(value)
+        if v is None or v <= 0.0:
+            raise ValueError(f"fitness limit must be positive and finite, got {value!r}")
+        self._fitness_limit = v
 
     def set_field(self, field: EarthField | None) -> None:
         """The local Earth field (WMM at the vehicle's position), e.g. when the position changes."""
@@ -293,6 +311,7 @@ class CalibrationController:
                 retry=bool(retry),
                 autosave=bool(autosave),
                 delay_s=delay,
+                fitness_limit_mG=self._fitness_limit,
                 seed=self._sessions + 1,
             )
 

@@ -3,7 +3,8 @@
 * :class:`MagSession` -- ArduPilot's two-step magnetometer collection
   (:class:`~bridge.calibrator.collect.MagCollector`), step one's sphere and
   the final fit of every frame in the worker, then the fit is judged against
-  the heading error limit (:func:`~bridge.calibrator.results.judge_accuracy`). A
+  COMPASS_CAL_FIT (:func:`~bridge.calibrator.results.judge_fitness`) and the
+  heading error limit (:func:`~bridge.calibrator.results.judge_accuracy`). A
   success waits for accept unless ``autosave``; ``retry`` starts a failed fit
   over (ArduPilot's retry);
 * :class:`FaceSession` -- PX4's six faces, then the six-face fit (saved at once);
@@ -49,6 +50,7 @@ from bridge.calibrator.results import (
     attitude_from_gravity,
     fixed_yaw_calibration,
     judge_accuracy,
+    judge_fitness,
     orientation_confidence,
 )
 from bridge.calibrator.session import (
@@ -75,7 +77,9 @@ LEVEL_INSTRUCTION = "keep the vehicle level and still"
 class MagSession(Session):
     """A host magnetometer calibration (see the module docstring).
 
-    ``seed`` makes the buffer's thinning repeatable.
+    ``fitness_limit_mG`` is COMPASS_CAL_FIT when the session starts (ArduPilot
+    fixes its tolerance at the start too); ``seed`` makes the buffer's
+    thinning repeatable.
     """
 
     mode = Mode.MAG
@@ -88,12 +92,15 @@ class MagSession(Session):
         retry: bool = False,
         autosave: bool = False,
         delay_s: float = 0.0,
+        fitness_limit_mG: float | None = None,
         seed: int = 0,
     ) -> None:
         super().__init__(settings, now, autosave=autosave)
         self.retry = retry
         self.delay_s = delay_s
         self.start_at = now + delay_s
+        limit = settings.fitness_max_mG if fitness_limit_mG is None else fitness_limit_mG
+        self.fitness_limit_mG = float(limit)
         self._seed = seed
         self.collector = self._collector()
         self.result: Calibration | None = None  #: the fitted calibration (success only)
@@ -164,7 +171,7 @@ class MagSession(Session):
         col = self.collector
         mag, acc = col.data()
         t, mag_all, acc_all, sat_all = col.series.arrays()
-        max_err = self.settings.max_heading_error_deg
+        limit, max_err = self.fitness_limit_mG, self.settings.max_heading_error_deg
 
         def fit(ctx: FitContext) -> tuple[CalibrationResult, float]:
             current = ctx.calibration.accel
@@ -175,7 +182,7 @@ class MagSession(Session):
             data = CalibrationData(
                 mag_all, acc_all, sat_all, reference=ctx.field, accel_calibration=accel, t_s=t
             )
-            res = judge_accuracy(calibrate(BEST, data), max_err)
+            res = judge_accuracy(judge_fitness(calibrate(BEST, data), limit), max_err)
             conf = math.nan
             if res.report.ok:
                 cal = res.calibration

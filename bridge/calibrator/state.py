@@ -85,7 +85,10 @@ class Outcome:
 class CalibratorSettings:
     """Tunables (defaults follow ArduPilot / PX4 where they have one).
 
-    Times are seconds of the controller's clock.
+    Times are seconds of the controller's clock. ``fitness_max_mG`` is the
+    starting value of the host magnetometer fit's fitness limit; the
+    application keeps it equal to COMPASS_CAL_FIT
+    (:attr:`~bridge.calibrator.controller.CalibrationController.fitness_limit_mG`).
     """
 
     capacity: int = 300  #: magnetometer sample buffer (ArduPilot's COMPASS_CAL_NUM_SAMPLES)
@@ -103,6 +106,7 @@ class CalibratorSettings:
     motion_limit_g: float = 0.09  #: linear acceleration (g RMS per axis) the operator is told of
     motion_interval_s: float = 5.0  #: at most one "calibration.motion" warning per interval
     max_heading_error_deg: float = 0.25  #: a fit predicting a larger heading error fails
+    fitness_max_mG: float = 16.0  #: a fit with a larger fitness fails (COMPASS_CAL_FIT)
 
     def __post_init__(self) -> None:
         if self.capacity < 20:
@@ -121,6 +125,7 @@ class CalibratorSettings:
             "motion_limit_g",
             "motion_interval_s",
             "max_heading_error_deg",
+            "fitness_max_mG",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
