@@ -57,6 +57,7 @@ from bridge.protocol.gmr import Flags, ParamsFrame
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import (
     AttitudeList,
+    HandOnboardCalRotation,
     Motion,
     OnboardCalRotation,
     Sequence,
@@ -64,6 +65,7 @@ from bridge.sim.motion import (
     Still,
     Tumble,
     YawTurns,
+    with_shake,
 )
 from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.sim.pty import PtyCompass
@@ -584,6 +586,46 @@ def test_onboard_magcal_guided_and_ended_by_the_controller(
     assert np.allclose([page.xoff, page.yoff, page.zoff], true_counts, atol=40.0)
     # the host's own calibration is untouched (the result lives in the device)
     assert rig.daemon.engine.calibration == host_before
+
+
+def test_onboard_magcal_at_hand_pace_is_ended_by_the_bridge(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    # Issue 13: the datasheet's two-step motion done by hand -- a level turn in about 15 s,
+    # tipped 90 deg to the right in 3 s, a turn on the side in about 15 s, wobbling and
+    # shaking as a hand does. The bridge ends MAGCAL itself: nobody accepts.
+    lead = 10.0
+    hand = HandOnboardCalRotation(turn_s=15.0, tip_s=3.0, yaw0=0.3, seed=7)
+    motion = _lead_in(with_shake(hand, 0.05, seed=7), seconds=lead)
+    rig = rigs(tmp_path, motion, fast=True, settings=FAST, onboard=True, seed=7)
+    truth = rig.fw.sensor.errors.true_calibration()
+    ended_at: list[float] = []
+    rig.daemon.events.subscribe(
+        lambda e: ended_at.append(rig.clock()) if e.kind == "calibration.done" else None
+    )
+    assert rig.ctl.start_mag().result is Result.IN_PROGRESS
+    rig.log.wait("calibration.instruction")
+    epoch = rig.fw.motion_epoch
+    assert epoch is not None and rig.clock() - epoch < lead  # started before the turn
+    snap = rig.finished()
+    assert snap.phase is Phase.SUCCEEDED, rig.log.kinds()
+    assert not rig.fw.calibrating  # MAGCAL,END reached the device
+    texts = [e.text for e in rig.log.of("calibration.instruction")]
+    assert texts == [INSTRUCTION_LEVEL_TURN, INSTRUCTION_SIDE_TURN]
+    # END went out near the end of the side turn: past 300 deg of it, within 3 s after it
+    t_end = ended_at[0] - epoch - lead
+    assert hand.side_turned_deg(t_end) >= 300.0 and t_end <= hand.duration + 3.0
+    rep = rig.log.wait("calibration.done")[0].data["report"]
+    assert rep["method"] == "device MAGCAL" and rep["autosaved"] is True
+    page = rig.fw.flash.page
+    assert page.magok
+    # min/max near the unit's true offsets (counts): x and y as in the slow routine; z
+    # looser -- on its side the 1100-count vertical field leaks into z through a few
+    # degrees of the unit's misalignment and the hand's wobble (1100 sin 3 deg = 58)
+    true_counts = [2458.0 + 2560.0 * o for o in truth.mag.offset]
+    assert np.allclose([page.xoff, page.yoff], true_counts[:2], atol=40.0)
+    assert abs(page.zoff - true_counts[2]) < 70.0
+    assert rig.ctl.accept().result is Result.ACCEPTED  # nothing left to accept
 
 
 def test_onboard_range_failure_over_a_real_pty(tmp_path: Path, rigs: Callable[..., Rig]) -> None:

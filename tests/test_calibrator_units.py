@@ -51,12 +51,17 @@ from bridge.events import EventBus
 from bridge.link.serial_link import CompassLink
 from bridge.link.transport import SimTransport
 from bridge.protocol.gmr import (
+    AckFrame,
     AttitudeFrame,
     CalProgressFrame,
+    CommandFrame,
     Flags,
+    GmrDecoder,
     ParamsFrame,
+    encode,
 )
 from bridge.sim.firmware import make_firmware
+from bridge.sim.motion import AttitudeList, HandOnboardCalRotation, Sequence
 
 B_NED = np.array([0.21, 0.01, 0.43])  # gauss, a mid-latitude field
 V3 = tuple[float, float, float]
@@ -314,6 +319,74 @@ def test_onboard_tracker_uses_the_device_level_reference() -> None:
     tr = OnboardMagTracker(page)
     assert tr.classify(2458, 2458 + 250, 2949) == "level"
     assert OnboardMagTracker().classify(2458, 2458 + 250, 2949) == "other"
+
+
+def _routine(
+    seed: int, motion: HandOnboardCalRotation, end_at: float | None = None, lead_s: float = 5.0
+) -> tuple[OnboardMagTracker, list[tuple[float, str]], tuple[float, ...]]:
+    """The simulated compass's own MAGCAL while ``motion`` plays (after ``lead_s`` level and
+    still), followed by a tracker. ``MAGCAL,END`` goes to the compass when the tracker says
+    "done", or at ``end_at`` (motion time) when given. Returns the tracker, what it said when
+    (motion time, s), and the compass's answer to END (empty: none)."""
+    still = AttitudeList([(0.0, 0.0, 0.0)], lead_s, 0.0)
+    fw = make_firmware(seed, motion=Sequence([still, motion]), power_on_at=0.0)
+    decoder, tracker = GmrDecoder(), OnboardMagTracker()
+    said: list[tuple[float, str]] = []
+    answer: tuple[float, ...] = ()
+    t = lead_s - 1.0
+    fw.receive(encode(CommandFrame.magcal_start()), t)
+    ended = False
+    while t < lead_s + motion.duration + 6.0:
+        t += 0.01
+        for f in decoder.feed(fw.poll(t)):
+            if isinstance(f, AttitudeFrame):
+                tracker.frame(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+            elif isinstance(f, CalProgressFrame):
+                what = tracker.progress(f)
+                if what:
+                    said.append((t - lead_s, what))
+                if what == "done" and end_at is None:
+                    fw.receive(encode(CommandFrame.magcal_end()), t)
+                    ended = True
+            elif isinstance(f, AckFrame) and f.values:
+                answer = f.values
+        if end_at is not None and not ended and t >= lead_s + end_at:
+            fw.receive(encode(CommandFrame.magcal_end()), t)
+            ended = True
+    return tracker, said, answer
+
+
+def test_onboard_tracker_sees_the_routine_through_at_hand_pace() -> None:
+    # Issue 13: the datasheet's motion as a person does it -- a level turn in about 15 s,
+    # tipped 90 deg to the right in 3 s, a turn on the side in about 15 s.
+    hand = HandOnboardCalRotation(turn_s=15.0, tip_s=3.0, yaw0=0.3, seed=7)
+    tr, said, answer = _routine(7, hand)
+    assert [w for _, w in said] == ["level_done", "done"] and tr.step == 3
+    (t_level, _), (t_done, _) = said
+    assert t_level <= hand.turn_s + 1.5  # before the tip
+    # ended near the end of the side turn: not before 300 deg, at most 2.5 s after it
+    assert hand.side_turned_deg(t_done) >= 300.0 and t_done <= hand.duration + 2.5
+    assert min(tr.spans) >= 400
+    # nothing was left to see: the compass computes what it would after the whole motion
+    _, _, waited = _routine(7, hand, end_at=hand.duration + 1.0)
+    assert len(answer) == 6 and answer == waited
+    # The tip moves the field against the side turn: the path's net angle about the
+    # device's centre stays under the 330 deg a turn needs (the measure that never ended
+    # this routine); how far round it reached does not.
+    last = tr.history[-1]
+    assert tr.side_axis == 0
+    centre = np.array([(last.xmin + last.xmax) / 2.0, (last.zmin + last.zmax) / 2.0])
+    p = np.array([(x, z) for x, _, z in tr.side_points]) - centre
+    steps = np.diff(np.arctan2(p[:, 1], p[:, 0]))
+    net = abs(math.degrees(float(((steps + math.pi) % (2 * math.pi) - math.pi).sum())))
+    assert net < 330.0 <= tr.side_swept
+
+
+def test_onboard_tracker_waits_while_a_turn_is_short() -> None:
+    hand = HandOnboardCalRotation(turn_s=15.0, tip_s=3.0, yaw0=0.3, seed=7, side_turn_deg=300.0)
+    tr, said, answer = _routine(7, hand)
+    assert [w for _, w in said] == ["level_done"] and tr.step == 2 and answer == ()
+    assert tr.side_swept < 330.0 and 50.0 < tr.percent < 99.0
 
 
 # -- device parameters -----------------------------------------------------------------

@@ -12,6 +12,7 @@ from bridge.core.geometry import dcm_to_rotvec, euler_to_dcm
 from bridge.sim.motion import (
     SIX_FACES,
     AttitudeList,
+    HandOnboardCalRotation,
     HandShake,
     Motion,
     OnboardCalRotation,
@@ -178,6 +179,49 @@ def test_onboard_cal_rotation_matches_the_datasheet_routine() -> None:
         for a, b in itertools.pairwise(np.arange(19.0, 25.0, 0.01))
     ]
     assert max(steps) < 0.4
+
+
+def test_the_routine_at_hand_pace_keeps_the_datasheets_conditions_and_turns_fully() -> None:
+    m = HandOnboardCalRotation(turn_s=15.0, tip_s=3.0, yaw0=0.3, wobble_deg=3.0, seed=2)
+    assert m.duration == pytest.approx(15.0 + 1.0 + 3.0 + 1.0 + 15.0)
+    assert m.side_starts_at == pytest.approx(20.0)
+    ts = np.arange(0.0, m.duration, 0.05)
+    phases = [m.phase_at(float(t)) for t in ts]
+    assert [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]] == [
+        "level",
+        "pause",
+        "tip",
+        "pause",
+        "side",
+    ]
+    assert m.phase_at(m.duration + 1.0) == "held"
+    tilt, gz_side, level_yaw, side_az = [], [], [], []
+    for t, p in zip(ts, phases, strict=True):
+        R = m.attitude(float(t))
+        assert_rotation(R)
+        g = R.T @ DOWN  # gravity in body axes
+        if p == "level":
+            tilt.append(math.degrees(math.acos(g[2])))
+            level_yaw.append(m.heading_deg(float(t)))
+        elif p == "side":
+            gz_side.append(abs(g[2]))
+            side_az.append(math.degrees(math.atan2(R[1, 2], R[0, 2])) % 360.0)
+    # the hand wobbles (never exactly level) but stays within the device's conditions
+    assert 1.0 < max(tilt) <= 3.0 * math.sqrt(2.0) + 1e-9 < 20.0
+    assert max(gz_side) < 0.35 and max(gz_side) > 0.01
+    # one full turn level, one on the side: every 10-degree sector is swept
+    assert np.histogram(level_yaw, bins=36, range=(0, 360))[0].min() > 0
+    assert np.histogram(side_az, bins=36, range=(0, 360))[0].min() > 0
+    # at rest at both ends of a turn, twice the mean rate half way
+    rate = np.degrees(np.abs(np.diff(np.unwrap(np.radians(level_yaw))))) / 0.05
+    assert rate[0] < 2.0 and rate[-1] < 2.0 and 40.0 < rate.max() < 50.0
+    assert m.side_turned_deg(20.0) == 0.0 and m.side_turned_deg(35.0) == pytest.approx(360.0)
+    assert m.side_turned_deg(27.5) == pytest.approx(180.0)
+    # an "about" full turn and a seeded wobble
+    short = HandOnboardCalRotation(15.0, side_turn_deg=300.0, seed=2)
+    assert short.side_turned_deg(short.duration) == pytest.approx(300.0)
+    other = HandOnboardCalRotation(15.0, 3.0, 0.3, wobble_deg=3.0, seed=3)
+    assert rot_angle_deg(other.attitude(5.0), m.attitude(5.0)) > 0.1
 
 
 def test_six_faces_put_each_axis_down() -> None:

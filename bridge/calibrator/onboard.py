@@ -9,13 +9,25 @@ reference). Device commands run in the controller's worker; their answers
 come back to the session.
 
 **When the bridge ends MAGCAL** (judged from the device's ``$PGMRC``
-reports and the attitude frames): a turn is complete when (a) the raw field
-has swept ``onboard_min_turn_deg`` about the centre of the device's own
-min/max in the plane that turns, and (b) the ``$PGMRC`` spans of the axes
-that turn have stopped growing over the last ``onboard_settle_reports``
-reports and reached the device's 400 counts. (a) alone would be fooled by a
-min/max centre that is still wrong; (b) alone by a pause mid-turn.
-``MAGCAL,END`` goes out when both turns are complete.
+reports and the attitude frames): each turn is complete when
+
+1. the field, seen only in frames the device itself counts -- level (tilt
+   under 20 deg from its own level reference) for the level turn, on its
+   side (|gz| under 0.35 g) for the side turn -- has gone round at least
+   ``onboard_min_turn_deg`` (330 deg) of the circle it draws about the centre
+   of the device's own min/max in the plane that turns. What counts is how far
+   round it has *reached* (the extent of the unwrapped angle), not the net
+   angle: tipping the unit onto its side moves the field against the turn by
+   up to ~40 deg, which a net angle subtracts from a full turn on the side --
+   with some units below 330 deg, so that END never came;
+2. the ``$PGMRC`` spans of the axes that turn (x and y level, z on the side)
+   have each reached the device's 400 counts and grown by no more than 8
+   counts (or 1 %) over the last ``onboard_settle_reports`` (2) reports.
+
+(1) alone would be fooled by a centre that is still wrong early in a turn,
+(2) alone by a pause mid-turn. ``MAGCAL,END`` goes out when both turns are
+complete, in either order; at hand pace (a turn in about 15 s) that is a
+second or two after the side turn ends.
 """
 
 from __future__ import annotations
@@ -54,14 +66,16 @@ FRAMES_WITHOUT_CAL = 5
 
 
 def _turned_deg(points: list[tuple[float, float]], centre: tuple[float, float]) -> float:
-    """Total turning angle (degrees, absolute) of a path of 2-D points about ``centre``."""
+    """How far round ``centre`` a path of 2-D points has reached, in degrees.
+
+    The extent of the path's unwrapped angle: a stretch backwards neither adds
+    nor takes away (unlike the net angle), a second turn adds.
+    """
     if len(points) < 2:
         return 0.0
     p = np.asarray(points, dtype=np.float64) - np.asarray(centre)
-    ang = np.arctan2(p[:, 1], p[:, 0])
-    d = np.diff(ang)
-    d = (d + math.pi) % (2.0 * math.pi) - math.pi
-    return abs(math.degrees(float(d.sum())))
+    ang = np.unwrap(np.arctan2(p[:, 1], p[:, 0]))
+    return math.degrees(float(ang.max() - ang.min()))
 
 
 class OnboardMagTracker:
@@ -95,8 +109,8 @@ class OnboardMagTracker:
         self.side_points: list[tuple[float, float, float]] = []
         self.side_axis: int | None = None  #: 0 (x) or 1 (y): the other horizontal axis on the side
         self.history: deque[CalProgressFrame] = deque(maxlen=max(2, settle_reports + 1))
-        self.level_swept = 0.0  #: how far the level turn has turned (deg)
-        self.side_swept = 0.0  #: how far the side turn has turned (deg)
+        self.level_swept = 0.0  #: how far round the level turn has reached (deg)
+        self.side_swept = 0.0  #: how far round the side turn has reached (deg)
         self.attitude = "other"  #: "level", "side" or "other" (device's definitions)
 
     @property

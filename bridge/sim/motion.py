@@ -332,6 +332,93 @@ class OnboardCalRotation(MotionBase):
         return euler_to_dcm(0.5 * math.pi, 0.0, self.yaw0 + full * t3 / self.turn_s)
 
 
+class HandOnboardCalRotation(MotionBase):
+    """The datasheet's MAGCAL routine as a person does it by hand.
+
+    Like :class:`OnboardCalRotation` -- a level turn, a tip 90 deg onto the
+    right side, a turn on the side -- but at a hand's pace and with a hand's
+    imperfections: each turn (``level_turn_deg`` / ``side_turn_deg``, one full
+    turn by default) takes ``turn_s`` seconds, starting and ending at rest
+    with the rate peaking at twice the mean mid-turn; the unit is held
+    ``pause_s`` before and after the tip (``tip_s``); and throughout it
+    wobbles ``wobble_deg`` in roll and pitch at a fraction of a hertz (the
+    hand never holds it exactly level, nor exactly on its side). Seeded: the
+    wobble's frequencies and phases come from ``seed``. ``phase_at(t)`` names
+    the phase: "level", "pause", "tip", "side", "held".
+    """
+
+    def __init__(
+        self,
+        turn_s: float = 15.0,
+        tip_s: float = 3.0,
+        yaw0: float = 0.0,
+        *,
+        level_turn_deg: float = 360.0,
+        side_turn_deg: float = 360.0,
+        pause_s: float = 1.0,
+        wobble_deg: float = 3.0,
+        seed: int = 0,
+    ) -> None:
+        self.turn_s = _check_time("turn_s", turn_s, positive=True)
+        self.tip_s = _check_time("tip_s", tip_s, positive=True)
+        self.pause_s = _check_time("pause_s", pause_s)
+        self.yaw0 = float(yaw0)
+        self.level_turn = math.radians(float(level_turn_deg))
+        self.side_turn = math.radians(float(side_turn_deg))
+        self.wobble = math.radians(_check_time("wobble_deg", wobble_deg))
+        rng = np.random.default_rng([seed, 0x7A11])
+        self._freq = rng.uniform(0.2, 0.7, size=2)  # Hz: a slow sway, not a tremor
+        self._phase = rng.uniform(0.0, 2.0 * math.pi, size=2)
+        # level turn, pause, tip, pause, side turn
+        self._marks = np.cumsum([0.0, self.turn_s, self.pause_s, self.tip_s, self.pause_s])
+        self.duration = float(self._marks[-1]) + self.turn_s
+
+    def phase_at(self, t: float) -> str:
+        """ "level", "pause", "tip", "side" or "held" (after the side turn)."""
+        names = ("level", "pause", "tip", "pause", "side")
+        if t >= self.duration:
+            return "held"
+        i = max(0, int(np.searchsorted(self._marks, t, side="right")) - 1)
+        return names[i]
+
+    @property
+    def side_starts_at(self) -> float:
+        """When the turn on the side begins (seconds into the script)."""
+        return float(self._marks[-1])
+
+    def side_turned_deg(self, t: float) -> float:
+        """How far the turn on the side has gone at ``t`` (degrees)."""
+        s = (t - self.side_starts_at) / self.turn_s
+        return math.degrees(self.side_turn * self._ease(s))
+
+    @staticmethod
+    def _ease(s: float) -> float:
+        """0 -> 1, at rest at both ends, fastest (twice the mean rate) half way."""
+        s = min(1.0, max(0.0, s))
+        return s - math.sin(2.0 * math.pi * s) / (2.0 * math.pi)
+
+    def attitude(self, t: float) -> FloatArray:
+        """The routine's attitude, tilted by the hand's wobble."""
+        t = min(max(0.0, t), self.duration)
+        m = self._marks
+        w = self.wobble * np.sin(2.0 * math.pi * self._freq * t + self._phase)
+        sway = euler_to_dcm(float(w[0]), float(w[1]), 0.0)
+        if t < m[1]:
+            base = euler_to_dcm(0.0, 0.0, self.yaw0 + self.level_turn * self._ease(t / self.turn_s))
+        else:
+            yaw = self.yaw0 + self.level_turn
+            if t < m[2]:
+                roll = 0.0
+            elif t < m[3]:
+                roll = 0.5 * math.pi * _smoothstep((t - m[2]) / self.tip_s)
+            else:
+                roll = 0.5 * math.pi
+                yaw += self.side_turn * self._ease((t - m[4]) / self.turn_s)
+            # yaw about NED down with the unit on its side: Rz(yaw) @ Rx(roll)
+            base = euler_to_dcm(roll, 0.0, yaw)
+        return sway @ base
+
+
 #: ArduPilot's ACCELCAL_VEHICLE_POS order and the attitude of each face (roll, pitch, yaw).
 SIX_FACES: tuple[tuple[str, Euler], ...] = (
     ("LEVEL", (0.0, 0.0, 0.0)),
