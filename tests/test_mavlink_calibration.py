@@ -34,7 +34,7 @@ from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field
-from bridge.mavlink.output import REPORT_PERIOD_S
+from bridge.mavlink.commands import REPORT_PERIOD_S
 from bridge.protocol.gmr import ParamsFrame
 from bridge.sim.firmware import Firmware
 from bridge.sim.motion import (

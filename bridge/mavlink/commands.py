@@ -35,10 +35,12 @@ from __future__ import annotations
 
 import math
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from bridge.calibrator import Outcome, Result
+from bridge.calibrator import CalibratorSnapshot, Outcome, Result
 from bridge.events import Event
 from bridge.mavlink import calmap
 from bridge.mavlink.dialect import Message
@@ -159,6 +161,12 @@ def result_code(outcome: Outcome, *, in_progress_is_final: bool = True) -> int:
 # ---------------------------------------------------------------------------- calibration events
 
 
+#: MAG_CAL_PROGRESS while a magnetometer calibration runs, every this many seconds.
+PROGRESS_PERIOD_S = 0.5
+#: MAG_CAL_REPORT repeated while a result waits for accept (ArduPilot), every this many seconds.
+REPORT_PERIOD_S = 1.0
+
+
 class CalibrationRelay:
     """Calibration events -> MAVLink packets, in the style of the flow that started them.
 
@@ -166,14 +174,60 @@ class CalibrationRelay:
     ``started`` event is emitted from inside the start call); the flow ends
     with the session (done, failed, cancelled). Thread-safe: events arrive on
     the controller's threads.
+
+    :meth:`keepalive` (the output's telemetry thread) sends MAG_CAL_PROGRESS
+    while a magnetometer calibration runs, and repeats a result's
+    MAG_CAL_REPORT about once a second, as ArduPilot does, until a
+    DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL answers it (:meth:`answered`) or
+    another calibration starts: one lost datagram must not leave a ground
+    station waiting (QGroundControl waits for the report and never accepts,
+    MAVProxy accepts on every report). The PX4 flow has no report to wait for.
     """
 
-    def __init__(self, compass_id: int = 0) -> None:
+    def __init__(self, compass_id: int = 0, clock: Callable[[], float] = time.monotonic) -> None:
         self.compass_id = compass_id  #: the compass id of our MAG_CAL_REPORT
+        self._clock = clock
         self._lock = threading.Lock()
         self._flow: Flow | None = None
         self._last_pct: int | None = None
         self.last_report: MagCalReport | None = None
+        self._repeat: Message | None = None  # the MAG_CAL_REPORT repeated until answered
+        self._repeat_at = -math.inf
+        self._progress_at = -math.inf
+
+    # -- the keep-alive -------------------------------------------------------------
+
+    @property
+    def keepalive_due(self) -> float:
+        """When :meth:`keepalive` next has something to say (clock seconds)."""
+        return self._progress_at + PROGRESS_PERIOD_S
+
+    def keepalive(self, now: float, snapshot: Callable[[], CalibratorSnapshot]) -> list[Message]:
+        """MAG_CAL_PROGRESS while a magnetometer calibration runs; else the MAG_CAL_REPORT
+        waiting for an answer, about once a second."""
+        if now - self._progress_at < PROGRESS_PERIOD_S:
+            return []  # the controller is asked twice a second, not on every frame
+        self._progress_at = now
+        snap = snapshot()
+        if snap.running and snap.mode in ("mag", "onboard_mag"):
+            return [calmap.progress_message(snap, self.compass_id)]
+        with self._lock:
+            report = self._repeat
+            if report is None or now - self._repeat_at < REPORT_PERIOD_S:
+                return []
+            self._repeat_at = now
+        return [report]
+
+    def hurry(self) -> None:
+        """A calibration command was handled: progress (or the report) at the next look."""
+        self._progress_at = self._repeat_at = -math.inf
+
+    def answered(self) -> None:
+        """DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL for our compass: stop repeating the report."""
+        with self._lock:
+            self._repeat = None
+
+    # -- events ---------------------------------------------------------------------
 
     @property
     def flow(self) -> Flow | None:
@@ -199,6 +253,8 @@ class CalibrationRelay:
             return []  # a PARAM_SET of COMPASS_*: its PARAM_VALUE echo says enough
         with self._lock:
             flow = self._flow
+            if event.kind in ("calibration.started", "calibration.cancelled"):
+                self._repeat = None
             if event.kind in ("calibration.done", "calibration.failed", "calibration.cancelled"):
                 self._flow = None
             if event.kind == "calibration.progress":
@@ -213,6 +269,9 @@ class CalibrationRelay:
             if r is not None:
                 self.last_report = r
                 out.append(mag_cal_report(r, self.compass_id))
+                if flow != "px4":
+                    with self._lock:
+                        self._repeat, self._repeat_at = out[-1], self._clock()
         # The calibrator's texts are whole sentences: they go out chunked when longer than
         # one STATUSTEXT ("Calibration failed: MAGCAL,END: too little rotation (RANGE)").
         if flow == "px4":

@@ -75,8 +75,6 @@ DEFAULT_QUEUE_PACKETS = 128
 #: station takes it, or an accept sent for it, for one of the autopilot's.
 COMPANION_COMPASS_ID = 7
 _INBOX_MAX = 512
-_PROGRESS_PERIOD_S = 0.5  # MAG_CAL_PROGRESS while a magnetometer calibration runs
-REPORT_PERIOD_S = 1.0  #: MAG_CAL_REPORT repeated while a result waits for accept (ArduPilot)
 _SIGNED_TYPES = frozenset(
     {"COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "GLOBAL_POSITION_INT", "GPS_RAW_INT"}
 )
@@ -191,7 +189,7 @@ class MavlinkOutput:
             ParamEncoding(settings.autopilot, companion=settings.role == "companion"),
         )
         self.schedule = S.StreamSchedule({})
-        self.relay = C.CalibrationRelay(self.compass_id)
+        self.relay = C.CalibrationRelay(self.compass_id, self.clock)
         self.dispatcher = CommandDispatcher(self)
         self.latest: CompassSample | None = None
         self.alt_m = 0.0  #: the autopilot's altitude (companion role), for VFR_HUD
@@ -207,9 +205,6 @@ class MavlinkOutput:
         # Schedule id -> encoder of the per-sample stream in that slot (the heading feed's
         # slot holds the feed BRG_HDG_FEED chooses): see _apply_rates.
         self._sample_encoders: dict[int, Callable[[CompassSample], Message | None]] = {}
-        self._last_progress = -math.inf
-        self._last_report = -math.inf
-        self._report: Message | None = None  # the MAG_CAL_REPORT repeated until answered
         self._refusal_logged: dict[str, float] = {}
         self._signing_dirty = False  # valid signed packets since the table was last saved
         self._signing_saved_at = -math.inf
@@ -435,8 +430,7 @@ class MavlinkOutput:
 
     def calibration_started(self) -> None:
         """A calibration command was handled: progress at once, not at the next tick."""
-        self._last_progress = -math.inf
-        self._last_report = -math.inf
+        self.relay.hurry()
         self._wake.set()
 
     def _sample_streams(self) -> list[int]:
@@ -499,9 +493,7 @@ class MavlinkOutput:
         # sample streams go out from publish().
         while not self._stop.is_set():
             now = self.clock()
-            due_at = min(
-                self.schedule.next_clock_due(now), self._last_progress + _PROGRESS_PERIOD_S
-            )
+            due_at = min(self.schedule.next_clock_due(now), self.relay.keepalive_due)
             self._wake.wait(min(0.5, max(0.0, due_at - now)))
             self._wake.clear()
             if self._stop.is_set():
@@ -516,54 +508,26 @@ class MavlinkOutput:
                         out.append(T.heartbeat(self.identity, T.system_status(h)))
                     elif msgid == S.SYS_STATUS:
                         out.append(T.sys_status(h))
-            out += self._calibration_keepalive(now)
+            out += self.relay.keepalive(now, self.services.calibrator.snapshot)
             if out:
                 self.broadcast(out)
             self.dispatcher.pending.expire(now)
             if self._signing_dirty and now - self._signing_saved_at >= _SIGNING_SAVE_S:
                 self._save_signing()
 
-    def _calibration_keepalive(self, now: float) -> list[Message]:
-        """MAG_CAL_PROGRESS while a magnetometer calibration runs; MAG_CAL_REPORT about once
-        a second while its result waits for accept (one lost datagram must not leave a
-        ground station waiting: ArduPilot repeats it too)."""
-        if now - self._last_progress < _PROGRESS_PERIOD_S:
-            return []  # the controller is asked twice a second, not on every frame
-        self._last_progress = now
-        snap = self.services.calibrator.snapshot()
-        if snap.running and snap.mode in ("mag", "onboard_mag"):
-            return [self.progress_message(snap)]
-        report = self._report
-        if report is not None and now - self._last_report >= REPORT_PERIOD_S:
-            self._last_report = now
-            return [report]
-        return []
-
     def report_answered(self) -> None:
         """DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL for our compass: stop repeating the report."""
-        self._report = None
+        self.relay.answered()
 
     # ------------------------------------------------------------------ notifications
 
     def _on_event(self, event: Event) -> None:
-        """EventBus subscriber (any thread): relay, finish IN_PROGRESS commands.
-
-        A magnetometer result's MAG_CAL_REPORT is repeated about once a second, as
-        ArduPilot does, until a DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL answers it or
-        another calibration starts: one lost datagram must not leave a ground station
-        waiting (QGroundControl waits for the report and never accepts, MAVProxy accepts
-        on every report). The PX4 flow has no report to wait for.
-        """
-        flow = self.relay.flow
+        """EventBus subscriber (any thread): relay (see :class:`~bridge.mavlink.commands.CalibrationRelay`),
+        finish IN_PROGRESS commands."""
         packets = self.relay.packets(event)
-        if event.kind in ("calibration.started", "calibration.cancelled"):
-            self._report = None
         if packets:
             self.counters.events_relayed += 1
             self.broadcast(packets)
-            report = next((p for p in packets if p.get_msgId() == T.MAG_CAL_REPORT), None)
-            if report is not None and flow != "px4":
-                self._report, self._last_report = report, self.clock()
         self.dispatcher.pending.on_event(event)
 
     def _on_params(self, change: ParamChange) -> None:
