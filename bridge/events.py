@@ -35,7 +35,8 @@ class Severity(enum.IntEnum):
 @dataclass(frozen=True, slots=True)
 class Event:
     """One event. ``kind`` is a stable dotted name (``link.lost``, ``calibration.done``, ...);
-    ``text`` is the human sentence (a STATUSTEXT is at most 50 characters: keep it short);
+    ``text`` is the human sentence (short: the MAVLink adapter chunks a long one into
+    STATUSTEXT parts of 50 bytes);
     ``data`` holds machine-readable details (JSON-ready values only)."""
 
     kind: str
