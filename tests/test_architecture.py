@@ -20,3 +20,13 @@ def test_the_import_contracts_are_kept() -> None:
 
 def test_no_compiled_twin() -> None:
     assert not list((ROOT / "bridge").rglob("*.c"))
+
+
+def test_no_module_over_700_lines() -> None:
+    """A module a next engineer can read in one sitting (issue 16)."""
+    big = {
+        str(p.relative_to(ROOT)): n
+        for p in (ROOT / "bridge").rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > 700
+    }
+    assert not big, big
