@@ -197,6 +197,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
     )
     pipe.set_defaults(func=cmd_bench_pipeline, passthrough=True)
+    drift = bench_sub.add_parser(
+        "drift",
+        add_help=False,
+        help="hard-iron drift: detection time, false alarms, heading before/after learning",
+    )
+
+    def cmd_bench_drift(args: argparse.Namespace) -> int:
+        """``bench drift``: hand over to the benchmark's own command line."""
+        from bridge.bench.drift import main as drift_main
+
+        return int(drift_main(args.rest) or 0)
+
+    drift.set_defaults(func=cmd_bench_drift, passthrough=True)
     _tools_parsers(sub, common)
 
     mon = sub.add_parser(

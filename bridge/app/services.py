@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.app.drift import DriftMonitor
 from bridge.app.params import ParamStore
 from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
@@ -87,7 +88,8 @@ class BridgeServices:
     * ``calibrations`` -- the stored calibration and its report;
     * ``events`` -- operator events (subscribe; adapters may emit their own);
     * ``device`` -- the compass (version, parameters, state; commands);
-    * ``mavlink_tap`` -- the MAVLink messages sent, for mirrors.
+    * ``mavlink_tap`` -- the MAVLink messages sent, for mirrors;
+    * ``drift`` -- the calibration's drift monitor (status, undo of learned offsets).
     """
 
     status: Callable[[], DaemonStatus]
@@ -98,3 +100,4 @@ class BridgeServices:
     events: EventBus
     device: DevicePort
     mavlink_tap: MessageTap
+    drift: DriftMonitor | None = None
