@@ -29,7 +29,7 @@ from bridge.calibration.model import Calibration
 from bridge.calibrator.controller import CalibrationController, CalibratorSettings
 from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
-from bridge.core.attitude import AttitudeEngine
+from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Event, EventBus, Severity
 from bridge.ports import DevicePort, DocumentStore, LinkState, Received
@@ -110,8 +110,9 @@ class Bridge:
     """The running bridge's state (see the module docstring).
 
     ``calibration`` overrides the stored calibration (tests, replays);
-    ``calibrator_settings`` and ``clock`` tune the calibration controller
-    (tests run it on a simulated clock).
+    ``calibrator_settings`` and ``clock`` tune the calibration controller, and
+    ``clock`` times the drift monitor's samples too (tests run both on a
+    simulated clock; by default a sample keeps its frame's arrival time).
     """
 
     def __init__(
@@ -145,12 +146,20 @@ class Bridge:
             mode=options.learn,
             on_mode=self._drift_mode_lowered,
         )
+        observe: Callable[[AttitudeSolution, float, bool], None] = self.drift.observe
+        if clock is not time.monotonic:  # a simulated clock: the drive's time, not the host's
+
+            def on_clock(a: AttitudeSolution, t: float, saturated: bool) -> None:
+                self.drift.observe(a, clock(), saturated)
+
+            observe = on_clock
+
         self.pipeline = Pipeline(
             self.engine,
             self.events,
             feed=lambda frame: self.calibrator.feed(frame),
             calibrating=lambda: self.calibrator.calibrating,
-            observe=self.drift.observe,
+            observe=observe,
         )
         self.device = device(self.pipeline.on_frame, self.pipeline.on_link_state)
         self.calibrator = CalibrationController(

@@ -331,10 +331,11 @@ class DriftMonitor:
         v = self._judge.judge(recent, long, self._applied, learn=learn, quiet=quiet)
         if v.cut_before is not None:
             self._long.cut(v.cut_before)
+        # the status first: whoever hears an event and asks finds it already told
+        self._status = self._make_status(v, recent, stepped=False)
         self._announce(v, recent, long)
-        if v.step_G is not None and long is not None:
-            self._step(v.step_G, long)
-        self._status = self._make_status(v, recent if v.step_G is None else long)
+        if v.step_G is not None and long is not None and self._step(v.step_G, long):
+            self._status = self._make_status(v, recent, stepped=True)
 
     def _applied_for(self, cal: Calibration, mount: Mounting) -> Vec3 | None:
         if mount is not self._mount or self._base is None:
@@ -392,11 +393,11 @@ class DriftMonitor:
                 residual_mG=None if long is None else round(1000.0 * long.sigma_G, 2),
             )
 
-    def _step(self, step_G: Vec3, est: DriftEstimate) -> None:
-        """Apply one learned step (worker thread, lock held)."""
+    def _step(self, step_G: Vec3, est: DriftEstimate) -> bool:
+        """Apply one learned step (worker thread, lock held); whether it was applied."""
         base, current = self._base, self._current
         if base is None or self._settings.calibration is not current:
-            return  # changed meanwhile by someone else: the next block starts over
+            return False  # changed meanwhile by someone else: the next block starts over
         total = (
             self._applied[0] + step_G[0],
             self._applied[1] + step_G[1],
@@ -415,7 +416,7 @@ class DriftMonitor:
         if problem:
             del self._learned[id(cal)]
             log.warning("drift: learned offsets not applied: %s", problem)
-            return
+            return False
         self._applied, self._current = total, cal
         self._steps += 1
         self._emit(
@@ -425,8 +426,11 @@ class DriftMonitor:
             step_mG=[round(1000.0 * x, 2) for x in step_G],
             learned_mG=round(1000.0 * norm(total), 1),
         )
+        return True
 
-    def _make_status(self, v: Verdict | None, est: DriftEstimate | None) -> DriftStatus:
+    def _make_status(
+        self, v: Verdict | None, est: DriftEstimate | None, *, stepped: bool = False
+    ) -> DriftStatus:
         if self._mode == "off":
             return DriftStatus("off", "off")
         state = self._judge.state
@@ -445,7 +449,7 @@ class DriftMonitor:
                 learned,
                 self._steps,
             )
-        left = v.drift_G if v.step_G is None else minus(v.drift_G, v.step_G)
+        left = minus(v.drift_G, v.step_G) if stepped and v.step_G is not None else v.drift_G
         return DriftStatus(
             self._mode,
             state,
