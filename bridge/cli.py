@@ -14,6 +14,7 @@ Subcommands::
     compass-bridge status [KEYEXPR] [--json]       # one-shot health of running bridges (Zenoh)
     compass-bridge bench accuracy [...]            # accuracy benchmark
     compass-bridge bench pipeline [...]            # speed and footprint benchmark
+    compass-bridge bench drift [...]               # drift detection and learning benchmark
     compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
 
 Long operations (record, calibrate, bench) draw a progress bar or spinner with
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import signal
 import sys
@@ -149,6 +151,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=_location,
         metavar="LAT,LON[,ALT]",
         help="where the unit is (degrees, metres; default Zurich)",
+    )
+    sim.add_argument(
+        "--hard-iron-change",
+        type=_hard_iron_change,
+        metavar="X,Y,Z@S",
+        help="the unit's hard iron changes by X,Y,Z mG (sensor axes) S seconds after "
+        "power-up (a bracket bolted on: drift for the bridge to find)",
     )
     sim.add_argument(
         "--unplug-s",
@@ -307,6 +316,19 @@ def _location(text: str) -> tuple[float, float, float]:
     return (parts[0], parts[1], parts[2] if len(parts) == 3 else 0.0)
 
 
+def _hard_iron_change(text: str) -> tuple[tuple[float, float, float], float]:
+    """``X,Y,Z@S`` (mG, seconds) for ``simulate --hard-iron-change``: (gauss vector, time)."""
+    vec, at, when = text.partition("@")
+    try:
+        parts = [float(p) / 1000.0 for p in vec.split(",")]
+        t = float(when) if at else 0.0
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"want X,Y,Z@S (mG, seconds), got {text!r}") from None
+    if len(parts) != 3 or not all(math.isfinite(v) for v in (*parts, t)) or t < 0.0:
+        raise argparse.ArgumentTypeError(f"want X,Y,Z@S (mG, seconds), got {text!r}")
+    return (parts[0], parts[1], parts[2]), t
+
+
 def _setup_logging(args: argparse.Namespace) -> None:
     level = args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
     # One line per record, rate-limited repeats; under systemd (stderr is the journal)
@@ -415,6 +437,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         shake_g=args.shake,
         unplug_s=args.unplug_s,
         garbage_bytes=args.garbage_bytes,
+        hard_iron_change=args.hard_iron_change,
     )
 
 
