@@ -275,3 +275,14 @@ def test_settings_are_checked() -> None:
         DriftSettings(detect_mG=0.0)
     with pytest.raises(ValueError, match="two blocks"):
         DriftSettings(window_s=8.0)
+
+
+def test_a_vertical_change_needs_to_be_larger() -> None:
+    def declared(mG: tuple[float, float, float]) -> bool:
+        j = DriftJudge()
+        for k in range(4):
+            v = j.judge(est(5.0 * k, mG), None, ZERO, learn=False, quiet=True)
+        return v.state == "drift"
+
+    assert declared((12.0, 0.0, 0.0)) and not declared((0.0, 0.0, 12.0))
+    assert declared((0.0, 0.0, 16.0)) and declared((0.0, 0.0, -16.0))

@@ -445,7 +445,12 @@ def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
                    LEARN_MAX_DEG, mx <= LEARN_MAX_DEG)
         )  # fmt: skip
     cost = result["cost"]
-    added = cost["pipeline_hooked_us_per_frame"] - cost["pipeline_us_per_frame"]
+    # The hook alone is the work the pipeline adds; the two pipeline runs bound it from
+    # the outside, within their timing noise (a few tenths of a microsecond).
+    added = max(
+        cost["observe_us_per_frame"],
+        cost["pipeline_hooked_us_per_frame"] - cost["pipeline_us_per_frame"],
+    )
     out.append(
         target("pipeline time the drift monitor adds (us per frame, 100 Hz)", added, 5.0,
                added <= 5.0)

@@ -82,6 +82,9 @@ class DriftSettings:
     consistency_mG: float = 2.0
     min_samples: int = 150  #: no fit on fewer field samples
     detect_mG: float = 10.0  #: a change this large ...
+    #: ... or, straight up or down, this large: a vertical offset moves the heading only
+    #: with the tilt, and it is what a calibration's soft-iron error mimics best
+    detect_vertical_mG: float = 15.0
     detect_sigma_mG: float = 3.0  #: ... known this well ...
     detect_evaluations: int = 3  #: ... in this many fits in a row is drift
     clear_mG: float = 5.0  #: below this in as many fits: no drift (any more)

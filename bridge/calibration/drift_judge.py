@@ -65,7 +65,8 @@ class DriftJudge:
     (:meth:`DriftEstimate.known`), and only fits that are ``consistent``.
 
     Drift is declared when the change left in the calibration in use is at least
-    ``detect_mG``, known to ``detect_sigma_mG`` and clear of the noise, in
+    ``detect_mG`` (``detect_vertical_mG`` straight up or down; between the two
+    on an ellipsoid), known to ``detect_sigma_mG`` and clear of the noise, in
     ``detect_evaluations`` recent fits in a row; it clears after as many below
     ``clear_mG``. When the recent fit disagrees with the long one, the change
     happened in the recent window: the long window is cut (``cut_before``), so
@@ -124,7 +125,9 @@ class DriftJudge:
                 left = None
             cut = self._change_began(recent, long)
         if recent is not None and left is not None and recent.consistent:
-            size, sigma = 1000.0 * norm(left), 1000.0 * sig
+            k = s.detect_mG / s.detect_vertical_mG  # a vertical change counts for less
+            size = 1000.0 * math.sqrt(left[0] ** 2 + left[1] ** 2 + (k * left[2]) ** 2)
+            sigma = 1000.0 * sig
             if size >= s.detect_mG and size - 2.0 * sigma >= 0.5 * s.detect_mG:
                 m.above, m.below = m.above + 1, 0
             elif size < s.clear_mG:
