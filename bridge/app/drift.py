@@ -134,6 +134,12 @@ class DriftStatus:
         }
 
 
+def _checked(mode: str) -> str:
+    if mode not in LEARN_MODES:
+        raise ValueError(f"mode must be one of {', '.join(LEARN_MODES)}, got {mode!r}")
+    return mode
+
+
 def _round(v: float | None, digits: int) -> float | None:
     return None if v is None or not math.isfinite(v) else round(v, digits)
 
@@ -175,8 +181,6 @@ class DriftMonitor:
         on_mode: Callable[[str], None] | None = None,
         deferred: bool = False,
     ) -> None:
-        if mode not in LEARN_MODES:
-            raise ValueError(f"mode must be one of {', '.join(LEARN_MODES)}, got {mode!r}")
         self.config = config if config is not None else DriftSettings()
         self._settings = settings
         self._engine = settings.engine
@@ -185,7 +189,7 @@ class DriftMonitor:
         self._calibrating = calibrating
         self._store = store
         self._on_mode = on_mode
-        self._mode = mode
+        self._mode = _checked(mode)
         self._on = mode != "off"
         # reader thread
         self._period = 0.9 * self.config.sample_period_s  # a frame a hair early still counts
@@ -235,8 +239,7 @@ class DriftMonitor:
 
     def set_mode(self, mode: str) -> None:
         """Change the mode (BRG_CAL_LEARN); ``off`` forgets what was gathered."""
-        if mode not in LEARN_MODES:
-            raise ValueError(f"mode must be one of {', '.join(LEARN_MODES)}, got {mode!r}")
+        _checked(mode)
         with self._lock:
             if mode == self._mode:
                 return
