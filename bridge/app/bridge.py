@@ -210,8 +210,11 @@ class Bridge:
 
     def stop(self, timeout: float) -> None:
         """Stop them (a device calibration still running is aborted)."""
-        self.drift.close(timeout=0.5 * timeout)
-        self.calibrator.close(timeout=0.5 * timeout)
+        deadline = time.monotonic() + timeout
+        # The drift monitor's thread ends after the block at hand (milliseconds): the
+        # calibration worker, which may be waiting on the device, keeps the rest.
+        self.drift.close(timeout=0.25 * timeout)
+        self.calibrator.close(timeout=max(0.1, deadline - time.monotonic()))
 
     def set_outputs(self, outputs: Sequence[Output]) -> None:
         """The outputs every sample goes to, in order."""
