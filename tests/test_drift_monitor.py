@@ -42,7 +42,7 @@ class Rig:
         **kw: Any,
     ) -> None:
         self.unit = Unit(seed, 10.0, FIELD)
-        self.start_cal = self.unit.errors.true_calibration()
+        self.start_cal = kw.pop("calibration", None) or self.unit.errors.true_calibration()
         self.engine = AttitudeEngine(self.start_cal)
         self.settings = EngineSettings(self.engine, field=FIELD)
         self.events = EventBus()
@@ -191,3 +191,11 @@ def test_deferred_blocks_wait_for_drain() -> None:
     assert rig.monitor.status().state == "collecting"  # nothing processed yet
     assert rig.monitor.drain() == 11  # 60 s of 5 s blocks (the last one still filling)
     assert rig.monitor.status().state == "ok" and rig.monitor.drain() == 0
+
+
+def test_an_uncalibrated_unit_is_not_watched() -> None:
+    rig = Rig(mode="learn", calibration=Calibration())  # the identity: nothing to drift from
+    rig.drive(120.0)
+    rig.drive(60.0, changed=True)
+    assert rig.kinds() == [] and rig.applied == []
+    assert rig.monitor.status().state == "uncalibrated"

@@ -76,6 +76,8 @@ log = logging.getLogger(__name__)
 LEARN_MODES: tuple[str, ...] = ("off", "detect", "learn")
 #: ``source`` of a learned calibration.
 LEARNED = LEARNED_SOURCE
+_IDENTITY = Calibration()
+
 #: Every event kind the monitor emits.
 EVENT_KINDS: tuple[str, ...] = (
     "calibration.drift",
@@ -96,8 +98,9 @@ ApplyCalibration = Callable[
 class DriftStatus:
     """The monitor's state for status displays (read-only snapshot).
 
-    ``state``: "off", "collecting" (no verdict yet), "ok", "drift" (a change is
-    detected and not learned), "learning" (steps applied, not finished).
+    ``state``: "off", "uncalibrated" (the identity is in use: nothing to drift
+    from), "collecting" (no verdict yet), "ok", "drift" (a change is detected and
+    not learned), "learning" (steps applied, not finished).
     ``change_mG`` / ``offset_change_mG`` the change left in the calibration in use
     (body axes), ``heading_error_deg`` the worst heading error it gives a level
     vehicle, ``sigma_mG`` how well the last fit knows it; ``learned_mG`` the
@@ -314,6 +317,11 @@ class DriftMonitor:
         if applied is None:  # a calibration or mounting the monitor did not make: start over
             self._forget(b.cal, b.mount)
             applied = ZERO
+        if b.cal == _IDENTITY:
+            # Never calibrated: every offset is "drift", and learning offsets alone on raw
+            # soft iron and gains would make no calibration. A calibration comes first.
+            self._status = DriftStatus(self._mode, "uncalibrated")
+            return
         rows = np.asarray(b.rows, dtype=np.float64)
         rows[:, 1:4] += applied  # back to the base calibration's terms
         self._recent.add(rows)

@@ -317,7 +317,8 @@ def status_doc(
     """``<prefix>/status``: link state, frame rate, counters, calibration state.
 
     ``calibration`` may carry ``drift`` (:func:`drift_detected` reads it): the drift
-    monitor's ``mode``, ``state`` ("off", "collecting", "ok", "drift", "learning"),
+    monitor's ``mode``, ``state`` ("off", "uncalibrated", "collecting", "ok", "drift",
+    "learning"),
     ``detected``, ``change_mG`` and ``offset_change_mG`` (body axes), ``heading_error_deg``,
     ``sigma_mG``, ``learned_mG`` and ``steps``.
     """
