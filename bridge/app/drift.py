@@ -16,12 +16,17 @@ Modes (``[calibration] learn``, the MAVLink parameter ``BRG_CAL_LEARN``):
   announced: ``calibration.drift`` at WARNING (a STATUSTEXT whose text says
   "drift", the change and the heading error it causes), and shown in
   :meth:`DriftMonitor.status` (the Zenoh status document, ``compass-bridge monitor``);
-* ``learn`` (2) -- besides, the offsets are re-estimated and applied in
-  bounded steps once known well and stable, never while a calibration runs
-  nor within ``quiet_s`` of a disturbed sample -- one whose field is not the
-  Earth's as the fit corrects it (the pipeline's own flag compares with the
-  calibration in use, which a large drift itself upsets). A learned calibration is
-  applied and stored like any other, with source ``"learned"``.
+* ``learn`` (2) -- besides, once drift is declared, the offsets are
+  re-estimated and applied in bounded steps when known well and stable, never
+  while a calibration runs nor within ``quiet_s`` of a disturbed sample -- one
+  whose field is not the Earth's as the fit corrects it (the pipeline's own
+  flag compares with the calibration in use, which a large drift itself
+  upsets). A learned calibration is applied and stored like any other, with
+  source ``"learned"``; only its offsets differ from the calibration learning
+  started from.
+
+An uncalibrated unit (the identity in use) is not watched: every offset would be
+"drift", and offsets alone on raw soft iron make no calibration.
 
 Samples are kept in the terms of the *base* calibration (the one in use when
 watching began): a learned step only moves the offset, so the rows of the

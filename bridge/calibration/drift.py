@@ -1,4 +1,4 @@
-"""A hard-iron change, seen from the constraints every sample carries (pure: samples in, verdicts out).
+"""A hard-iron change, seen from the constraints every sample carries (pure: samples in, fits out).
 
 A vehicle's magnetic signature changes in service (a payload, a moved battery,
 a bracket): the magnetometer then reads the Earth's field plus a constant
@@ -7,30 +7,30 @@ Nothing else knows the true heading, but every calibrated sample ``h`` (body
 axes, gauss) with its gravity direction ``u = g / |g|`` must satisfy two
 constraints if the calibration still holds:
 
-* **field strength**: ``|h - b| = F``. Written linearly (``c = (F^2 - |b|^2) / 2F0``)::
+* **field strength** ``|h - b| = F``: every sample counts, turning or not. Turns
+  make the horizontal part of ``b`` observable, roll and pitch the vertical
+  part. Fitted as the geometric distance (Gauss-Newton), not the algebraic
+  sphere fit ``|h|^2 = 2 h.b + c``, whose noisy regressor drags ``b`` towards
+  the samples when they cover a narrow arc (a level drive: one circle).
+* **dip** ``u . (h - b) = V``, the vertical field ``F sin(dip)``: quasi-static
+  samples only -- a turning vehicle's accelerometer sees the centripetal
+  acceleration as a tilt of gravity (15 deg in a brisk turn), so a sample
+  counts only when the tilt-compensated heading is steady and ``|g|`` is 1 g;
+  speed changes still tilt it, so these rows are never trusted better than
+  ``dip_sigma_floor_G``.
 
-      (h / F0) . b + c = |h|^2 / (2 F0)
+``F`` and ``V`` are fitted too, with the World Magnetic Model's values
+(``reference``) as priors of +-``reference_sigma`` of the field -- when the
+calibration reads the model's horizontal field within ``scale_tolerance`` (one
+fitted elsewhere, or by a method that does not scale to the model, is judged on
+its own data). Samples whose field is off the fit by ``gate_fraction``, the
+whole run around them where it stands out of the noise, and ``guard_s`` more
+are left out (a magnet going by, tails included); the rest is re-weighted with
+Tukey's biweight. A fit says how well it knows each direction (its covariance:
+:meth:`DriftEstimate.known`) and whether one offset explains its window
+(``consistent``: not across a change, not full of a disturbance).
 
-  No gravity involved: every sample counts, turning or not. Turns make the
-  horizontal part of ``b`` observable, roll and pitch the vertical part.
-* **dip**: the field's component along gravity is the vertical field ``V = F sin(dip)``::
-
-      u . b + V = u . h
-
-  Only for quasi-static samples: a turning vehicle's accelerometer sees the
-  centripetal acceleration as a tilt of gravity (15 deg in a brisk turn), so a
-  sample counts only when the tilt-compensated heading is steady and ``|g|`` is 1 g.
-
-``F`` and ``V`` are estimated too, each with the World Magnetic Model's value
-(``reference``) as a prior of +-``reference_sigma`` of the field, so a wrong
-model or a calibration scaled to another field cannot pass for drift where
-the motion itself determines ``b``. The fit is weighted least squares over a
-sliding window (``window_s``), re-weighted with Tukey's biweight (a magnet
-going by gives residuals far beyond the rest and weighs nothing); samples
-whose field strength is off by more than ``gate_fraction`` -- and those within
-``guard_s`` of them -- are left out altogether.
-
-:class:`DriftEstimator` keeps the window and fits it;
+:class:`DriftEstimator` keeps a window and fits it;
 :class:`~bridge.calibration.drift_judge.DriftJudge` turns successive fits into
 verdicts (drift detected, cleared, the bounded learning steps). Times are the
 samples' own (no clock here).
