@@ -16,6 +16,7 @@ Subcommands::
     compass-bridge bench accuracy [...]            # accuracy benchmark
     compass-bridge bench pipeline [...]            # speed and footprint benchmark
     compass-bridge bench fuzz [--chunks N --messages M]  # hostile input against the daemon
+    compass-bridge bench drift [...]               # drift detection and learning benchmark
     compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
 
 Long operations (record, calibrate, bench) draw a progress bar or spinner with
@@ -33,6 +34,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import signal
 import sys
@@ -158,6 +160,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="where the unit is (degrees, metres; default Zurich)",
     )
     sim.add_argument(
+        "--hard-iron-change",
+        type=_hard_iron_change,
+        metavar="X,Y,Z@S",
+        help="the unit's hard iron changes by X,Y,Z mG (sensor axes) S seconds after "
+        "power-up (a bracket bolted on: drift for the bridge to find)",
+    )
+    sim.add_argument(
         "--unplug-s",
         type=float,
         default=1.0,
@@ -210,6 +219,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
     )
     fuzz.set_defaults(func=cmd_bench_fuzz, passthrough=True)
+    drift = bench_sub.add_parser(
+        "drift",
+        add_help=False,
+        help="hard-iron drift: detection time, false alarms, heading before/after learning",
+    )
+
+    def cmd_bench_drift(args: argparse.Namespace) -> int:
+        """``bench drift``: hand over to the benchmark's own command line."""
+        from bridge.bench.drift import main as drift_main
+
+        return int(drift_main(args.rest) or 0)
+
+    drift.set_defaults(func=cmd_bench_drift, passthrough=True)
     _tools_parsers(sub, common)
 
     mon = sub.add_parser(
@@ -305,6 +327,19 @@ def _location(text: str) -> tuple[float, float, float]:
             f"want LAT,LON[,ALT] in degrees (and metres), got {text!r}"
         )
     return (parts[0], parts[1], parts[2] if len(parts) == 3 else 0.0)
+
+
+def _hard_iron_change(text: str) -> tuple[tuple[float, float, float], float]:
+    """``X,Y,Z@S`` (mG, seconds) for ``simulate --hard-iron-change``: (gauss vector, time)."""
+    vec, at, when = text.partition("@")
+    try:
+        parts = [float(p) / 1000.0 for p in vec.split(",")]
+        t = float(when) if at else 0.0
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"want X,Y,Z@S (mG, seconds), got {text!r}") from None
+    if len(parts) != 3 or not all(math.isfinite(v) for v in (*parts, t)) or t < 0.0:
+        raise argparse.ArgumentTypeError(f"want X,Y,Z@S (mG, seconds), got {text!r}")
+    return (parts[0], parts[1], parts[2]), t
 
 
 def _setup_logging(args: argparse.Namespace) -> None:
@@ -422,6 +457,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         shake_g=args.shake,
         unplug_s=args.unplug_s,
         garbage_bytes=args.garbage_bytes,
+        hard_iron_change=args.hard_iron_change,
     )
 
 

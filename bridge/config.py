@@ -448,7 +448,7 @@ class LocationConfig(Section):
 
 
 #: Motion scripts of the simulated compass (bridge.sim.pty.MOTIONS; a test keeps them equal).
-SIM_MOTIONS = ("turns", "still", "tumble")
+SIM_MOTIONS = ("turns", "still", "tumble", "drive")
 
 
 @dataclass(frozen=True, slots=True)

@@ -316,3 +316,16 @@ def test_simulate_unplugs_on_sigusr1_and_sends_noise_on_sigusr2(tmp_path: Path) 
     finally:
         code, _, err = stop(sim, signal.SIGTERM)
     assert code == 0, err
+
+
+def test_simulate_takes_a_hard_iron_change_and_bench_drift_is_there() -> None:
+    from bridge.cli import build_parser
+
+    p = build_parser()
+    args = p.parse_args(["simulate", "--link", "/tmp/x", "--hard-iron-change", "10,-20,30@45"])
+    assert args.hard_iron_change == ((0.01, -0.02, 0.03), 45.0)
+    assert p.parse_args(["simulate", "--link", "/tmp/x"]).hard_iron_change is None
+    for bad in ("10,20@5", "a,b,c@1", "1,2,3@-1"):
+        with pytest.raises(SystemExit):
+            p.parse_args(["simulate", "--link", "/tmp/x", "--hard-iron-change", bad])
+    assert p.parse_args(["bench", "drift"]).bench == "drift"

@@ -906,3 +906,39 @@ def test_the_simulated_port_shakes_as_configured(tmp_path: Path) -> None:
     assert not isinstance(steady.firmware.motion, HandShake)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="motion must be one of"):
         make_motion("spin", 1)
+
+
+# ---------------------------------------------------------------- a hard-iron change while running
+
+
+def test_a_hard_iron_change_shows_from_its_time_on_and_survives_a_reset() -> None:
+    # an ideal, noise-free unit lying still: its counts move by exactly the change, at the
+    # change's time, and a RESET (the device reboots, the world does not) keeps it
+    fw = firmware()
+    delta = np.array([0.03, -0.02, 0.01])  # gauss, sensor axes
+    fw.change_hard_iron(delta, at_s=1.0)
+    h = Host(fw, step=0.005)
+    h.run(2.0)
+    frames = h.frames()
+    before = [f for t, f in frames if t < 1.0]
+    after = [f for t, f in frames if t > 1.05]
+    assert before and after
+    mag = lambda f: np.array([f.mx, f.my, f.mz], dtype=float)  # noqa: E731
+    np.testing.assert_allclose(mag(after[-1]) - mag(before[0]), 2560.0 * delta, atol=1.0)
+    assert all(np.array_equal(mag(f), mag(before[0])) for f in before)
+    h.send(CommandFrame.reset())
+    h.run(1.0)
+    np.testing.assert_array_equal(mag(h.frames()[-1][1]), mag(after[-1]))
+    assert fw.sensor.errors.true_calibration().mag.offset == pytest.approx(tuple(delta))
+
+
+def test_make_firmware_schedules_the_change() -> None:
+    from bridge.sim.firmware import make_firmware
+
+    fw = make_firmware(2, ideal=True, motion=Still(), hard_iron_change=((0.0, 0.04, 0.0), 0.5))
+    h = Host(fw, step=0.01)
+    h.run(1.0)
+    ys = [f.my for t, f in h.frames()]
+    assert ys[-1] - ys[0] == pytest.approx(2560.0 * 0.04, abs=1.0)
+    with pytest.raises(ValueError, match="finite"):
+        fw.change_hard_iron((math.nan, 0.0, 0.0))

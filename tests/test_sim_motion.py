@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bridge.core.geometry import dcm_to_rotvec, euler_to_dcm
+from bridge.sim.drive import Drive
 from bridge.sim.motion import (
     SIX_FACES,
     AttitudeList,
@@ -363,3 +364,47 @@ def test_with_shake_and_bad_shakes() -> None:
         HandShake(still, 0.05, band_hz=(2.5, 0.4))
     with pytest.raises(ValueError, match="tones"):
         HandShake(still, 0.05, tones=0)
+
+
+# -- a driving vehicle ------------------------------------------------------------------
+
+
+def test_drive_turns_everywhere_rolls_and_pitches_within_bounds() -> None:
+    d = Drive(3)
+    ts = np.arange(0.0, 600.0, 0.5)
+    e = np.degrees(np.array([d.euler(float(t)) for t in ts]))
+    assert np.abs(e[:, :2]).max() <= 15.0 + 1e-9
+    assert np.abs(e[:, :2]).max() > 10.0  # it does roll and pitch
+    octants = np.histogram(np.array([d.heading_deg(float(t)) for t in ts]), 8, (0, 360))[0]
+    assert (octants > 0).all()  # ten minutes see every heading
+    straight = [t for t in ts if d.yaw_rate_dps(float(t)) == 0.0]
+    assert 0.2 * len(ts) < len(straight) < 0.8 * len(ts)  # straights and turns
+    assert max(abs(d.yaw_rate_dps(float(t))) for t in ts) == pytest.approx(15.0, abs=0.5)
+
+
+def test_drive_acceleration_is_the_derivative_of_the_velocity() -> None:
+    # velocity v(t) (cos yaw, sin yaw) differentiated numerically: along-track speed
+    # change plus the centripetal v * yaw rate, in g (NED)
+    d = Drive(5)
+    dt = 1e-4
+    for t in np.arange(1.0, 300.0, 7.3):
+
+        def vel(x: float) -> np.ndarray:
+            yaw = math.radians(d.heading_deg(x))
+            return d.speed(x)[0] * np.array([math.cos(yaw), math.sin(yaw), 0.0])
+
+        want = (vel(t + dt) - vel(t - dt)) / (2 * dt) / 9.80665
+        np.testing.assert_allclose(d.linear_acc_ned_g(float(t)), want, atol=1e-5)
+    turning = max(np.linalg.norm(d.linear_acc_ned_g(float(t))) for t in np.arange(0, 300, 0.5))
+    assert 0.2 < turning < 0.4  # about 10 m/s x 15 deg/s
+
+
+def test_drive_is_a_pure_function_of_time() -> None:
+    a, b = Drive(7), Drive(7)
+    late = a.attitude(5000.0)  # drawn far ahead first ...
+    early = a.attitude(12.0)
+    np.testing.assert_array_equal(b.attitude(12.0), early)  # ... same as in order
+    np.testing.assert_array_equal(b.attitude(5000.0), late)
+    assert not np.array_equal(Drive(8).attitude(12.0), early)
+    with pytest.raises(ValueError):
+        Drive(1, max_roll_deg=90.0)

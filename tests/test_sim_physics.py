@@ -209,3 +209,36 @@ def test_default_site_field_is_a_mid_latitude_field() -> None:
     assert 0.45 < total < 0.52 and 60.0 < dip < 67.0
     m = SensorModel.at_location(UnitErrors.ideal())
     np.testing.assert_allclose(m.field_ned_G, f)
+
+
+def test_a_hard_iron_change_moves_the_counts_and_the_true_calibration() -> None:
+    from bridge.sim.physics import DEFAULT_LOCATION
+
+    model = SensorModel.at_location(UnitErrors.draw(np.random.default_rng(4)), DEFAULT_LOCATION)
+    delta = np.array([0.01, -0.03, 0.02])
+    changed = model.with_hard_iron_change(delta)
+    R = np.stack([np.eye(3)] * 5)
+    # same noise draws: only the hard iron differs
+    a = model.sample(R, np.random.default_rng(1))
+    b = changed.sample(R, np.random.default_rng(1))
+    np.testing.assert_allclose(b.mag_counts - a.mag_counts, np.tile(2560.0 * delta, (5, 1)), atol=1)
+    np.testing.assert_array_equal(a.acc_counts, b.acc_counts)
+    off = changed.errors.true_calibration().mag.offset_array
+    np.testing.assert_allclose(off - model.errors.true_calibration().mag.offset_array, delta)
+    assert model.errors.hard_iron_G is not changed.errors.hard_iron_G  # the unit is untouched
+
+
+def test_a_magnet_going_by_peaks_and_falls_with_the_cube_of_the_distance() -> None:
+    from bridge.sim.physics import magnet_pass
+
+    t = np.array([10.0, 11.0, 12.0, 20.0])
+    f = magnet_pass(t, 10.0, 0.5, (0.0, 3.0, 4.0), closest_m=1.0, speed_mps=1.0)
+    np.testing.assert_allclose(f[0], [0.0, 0.3, 0.4])
+    np.testing.assert_allclose(np.linalg.norm(f, axis=1), 0.5 / np.hypot(1.0, t - 10.0) ** 3)
+    # through the sensor: in the counts, not in the ideal body field
+    model = SensorModel(UnitErrors.ideal(), [0.2, 0.0, 0.4])
+    s = model.sample(np.stack([np.eye(3)] * 4), np.random.default_rng(0), None, f / 5.0)
+    np.testing.assert_allclose(s.mag_body_G, np.tile([0.2, 0.0, 0.4], (4, 1)))
+    np.testing.assert_allclose(s.mag_counts[0, 1:] - s.mag_counts[3, 1:], [153.6, 204.8], atol=1)
+    with pytest.raises(ValueError, match="non-zero"):
+        magnet_pass(t, 0.0, 0.1, (0.0, 0.0, 0.0))

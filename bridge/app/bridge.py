@@ -16,7 +16,9 @@ import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
+from bridge.app.drift import LEARN_MODES, DriftMonitor
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
 from bridge.app.paramspec import HEADING_FEEDS, STREAM_RATES
 from bridge.app.pipeline import Pipeline
@@ -27,7 +29,7 @@ from bridge.calibration.model import Calibration
 from bridge.calibrator.controller import CalibrationController, CalibratorSettings
 from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
-from bridge.core.attitude import AttitudeEngine
+from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Event, EventBus, Severity
 from bridge.ports import DevicePort, DocumentStore, LinkState, Received
@@ -48,6 +50,7 @@ class BridgeOptions:
     onboard: bool = False  #: BRG_CAL_ONBOARD's default
     calibration_timeout_s: float = 180.0
     heading_reference: HeadingReference = "magnetic"
+    learn: str = "detect"  #: BRG_CAL_LEARN's default: "off", "detect" or "learn"
     #: Parameter defaults the configuration sets (stream rates, heading feed, ...).
     param_defaults: Mapping[str, float] = field(default_factory=dict)
 
@@ -56,8 +59,13 @@ class BridgeOptions:
         """From a loaded configuration."""
         m, loc = cfg.mavlink, cfg.location
         heading: HeadingReference = "true" if _heading_reference(cfg) == "true" else "magnetic"
+        # [calibration] learn (the configuration's owner adds the key; "detect" until then)
+        learn = str(getattr(cfg.calibration, "learn", "detect"))
+        if learn not in LEARN_MODES:
+            raise ValueError(f"calibration.learn must be one of {LEARN_MODES}, got {learn!r}")
         defaults: dict[str, float] = {
             "BRG_CAL_ONBOARD": 1.0 if cfg.calibration.onboard else 0.0,
+            "BRG_CAL_LEARN": float(LEARN_MODES.index(learn)),
             "BRG_HDG_FEED": float(HEADING_FEEDS.index(m.heading_feed)),
             "BRG_YAW_SIGMA": m.heading_feed_sigma_deg,
             "BRG_HDG_REF": 1.0 if heading == "true" else 0.0,
@@ -69,6 +77,7 @@ class BridgeOptions:
             onboard=cfg.calibration.onboard,
             calibration_timeout_s=cfg.calibration.timeout_s,
             heading_reference=heading,
+            learn=learn,
             param_defaults=defaults,
         )
 
@@ -102,8 +111,9 @@ class Bridge:
 
     ``calibration`` overrides the stored calibration (tests, replays, the simulator's
     true calibration), ``calibration_source`` says where it came from;
-    ``calibrator_settings`` and ``clock`` tune the calibration controller
-    (tests run it on a simulated clock).
+    ``calibrator_settings`` and ``clock`` tune the calibration controller, and
+    ``clock`` times the drift monitor's samples too (tests run both on a
+    simulated clock; by default a sample keeps its frame's arrival time).
     """
 
     def __init__(
@@ -129,11 +139,29 @@ class Bridge:
         self.engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
         field = location_field(options.location)
         self.settings = EngineSettings(self.engine, field=field)
+        self.drift = DriftMonitor(
+            self.settings,
+            self.events,
+            apply=self._apply_learned,
+            calibrating=lambda: self.calibrator.calibrating,
+            store=self.calibrations,
+            mode=options.learn,
+            on_mode=self._drift_mode_lowered,
+        )
+        observe: Callable[[AttitudeSolution, float, bool], None] = self.drift.observe
+        if clock is not time.monotonic:  # a simulated clock: the drive's time, not the host's
+
+            def on_clock(a: AttitudeSolution, t: float, saturated: bool) -> None:
+                self.drift.observe(a, clock(), saturated)
+
+            observe = on_clock
+
         self.pipeline = Pipeline(
             self.engine,
             self.events,
             feed=lambda frame: self.calibrator.feed(frame),
             calibrating=lambda: self.calibrator.calibrating,
+            observe=observe,
         )
         self.device = device(self.pipeline.on_frame, self.pipeline.on_link_state)
         self.calibrator = CalibrationController(
@@ -166,22 +194,31 @@ class Bridge:
             device=self.device,
             mavlink_tap=self.mavlink_tap,
             documents=documents,
+            drift=self.drift,
         )
         self.settings.subscribe(self._on_settings)
         self.params.subscribe(self._on_params)
         self.params.start()
         self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
         self.calibrator.fitness_limit_mG = self.params.get("COMPASS_CAL_FIT")
+        self.drift.set_mode(LEARN_MODES[int(self.params.get("BRG_CAL_LEARN"))])
+        if self.params.get("BRG_CAL_UNDO") != 0:  # a request left over from a crash
+            self.params.set("BRG_CAL_UNDO", 0, source="start")
 
     # -- lifecycle -----------------------------------------------------------------
 
     def start(self) -> None:
-        """Start the application's own thread (the calibration worker)."""
+        """Start the application's own threads (the calibration worker, the drift monitor)."""
         self.calibrator.start()
+        self.drift.start()
 
     def stop(self, timeout: float) -> None:
-        """Stop it (a device calibration still running is aborted)."""
-        self.calibrator.close(timeout=timeout)
+        """Stop them (a device calibration still running is aborted)."""
+        deadline = time.monotonic() + timeout
+        # The drift monitor's thread ends after the block at hand (milliseconds): the
+        # calibration worker, which may be waiting on the device, keeps the rest.
+        self.drift.close(timeout=0.25 * timeout)
+        self.calibrator.close(timeout=max(0.1, deadline - time.monotonic()))
 
     def set_outputs(self, outputs: Sequence[Output]) -> None:
         """The outputs every sample goes to, in order."""
@@ -221,11 +258,48 @@ class Bridge:
             # A new position (reload, autopilot): fits are scaled to the field there.
             self.calibrator.set_field(self.settings.field)
 
+    def _apply_learned(
+        self,
+        cal: Calibration,
+        source: str,
+        report: Mapping[str, Any] | None,
+        view: Mapping[str, float] | None,
+    ) -> str:
+        """The drift monitor's learned (or restored) calibration: engine, store, events.
+
+        Not written to the device: its own heading is only shown beside ours, and
+        learning would wear its flash a step at a time.
+        """
+        out = self.calibrator.apply_calibration(
+            cal,
+            source=source,
+            report=dict(report) if report is not None else None,
+            write_device=False,
+            view=dict(view) if view is not None else None,
+        )
+        return "" if out.ok else out.message
+
+    def _drift_mode_lowered(self, mode: str) -> None:
+        """An undo turned learning down: the parameter follows (it persists the choice)."""
+        self.params.set("BRG_CAL_LEARN", float(LEARN_MODES.index(mode)), source="undo")
+
+    def undo_learned(self) -> tuple[bool, str]:
+        """Back to the calibration learning started from (Zenoh ``cmd/calibration/undo``,
+        ``BRG_CAL_UNDO``); see :meth:`~bridge.app.drift.DriftMonitor.undo`."""
+        return self.drift.undo()
+
     def _on_params(self, change: ParamChange) -> None:
         if "BRG_CAL_ONBOARD" in change.names:
             self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
         if "COMPASS_CAL_FIT" in change.names:  # the host fit's fitness limit (ArduPilot's)
             self.calibrator.fitness_limit_mG = self.params.get("COMPASS_CAL_FIT")
+        if "BRG_CAL_LEARN" in change.names:
+            self.drift.set_mode(LEARN_MODES[int(self.params.get("BRG_CAL_LEARN"))])
+        if "BRG_CAL_UNDO" in change.names and self.params.get("BRG_CAL_UNDO") != 0:
+            # An action on the change 0 -> 1 (a SET of the value already in force changes
+            # nothing): it reads back 1, as every ground station checks a SET's echo, until
+            # set to 0 (or a restart); a repeated request finds nothing learned to undo.
+            self.undo_learned()
         if self.calibrations.documents is not None and self.params.last_error:
             self.events.emit(
                 Event(

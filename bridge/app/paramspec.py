@@ -310,6 +310,27 @@ SPECS: tuple[ParamSpec, ...] = (
         "",
         "routing",
     ),
+    # -- calibration drift (bridge.app.drift)
+    ParamSpec(
+        "BRG_CAL_LEARN",
+        INT8,
+        1,
+        0,
+        2,
+        "hard-iron drift: 0 off, 1 detect and warn, 2 also learn the offsets",
+        "",
+        "learn",
+    ),
+    ParamSpec(
+        "BRG_CAL_UNDO",
+        INT8,
+        0,
+        0,
+        1,
+        "set 1: back to the calibration before learning (reads 1 until set to 0 again)",
+        "",
+        "learn",
+    ),
     # -- autopilot heading feed
     ParamSpec(
         "BRG_HDG_FEED",

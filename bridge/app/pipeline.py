@@ -50,7 +50,9 @@ class Pipeline:
     """Frames in, samples out to every output (see the module docstring).
 
     ``feed`` is the calibrator's per-frame hook and ``calibrating`` tells
-    whether a calibration runs (disturbance events are muted meanwhile).
+    whether a calibration runs (disturbance events are muted meanwhile);
+    ``observe`` sees every host solution with its time and saturation (the
+    drift monitor's hook: one comparison per frame).
     """
 
     def __init__(
@@ -60,11 +62,13 @@ class Pipeline:
         *,
         feed: Callable[[object], None],
         calibrating: Callable[[], bool],
+        observe: Callable[[AttitudeSolution, float, bool], None] | None = None,
     ) -> None:
         self.engine = engine
         self.events = events
         self._feed = feed
         self._calibrating = calibrating
+        self._observe = observe
         #: The outputs, in publish order; replaced whole (one reference store) on reload.
         self.outputs: tuple[Output, ...] = ()
         self.samples = 0
@@ -125,6 +129,10 @@ class Pipeline:
         a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
         if a.disturbed is not self._disturbed:
             self._disturbance_changed(a.disturbed, a, t)
+        # int & int: Flags' own "&" is Python code in the enum module (per frame).
+        saturated = (int(f.flags) & _SAT) != 0
+        if self._observe is not None:
+            self._observe(a, t, saturated)
         return CompassSample(
             t=t,
             source="host",
@@ -137,8 +145,7 @@ class Pipeline:
             roll_deg=math.degrees(a.roll),
             seq=f.seq,
             device_heading_deg=f.heading,
-            # int & int: Flags' own "&" is Python code in the enum module (per frame).
-            saturated=(int(f.flags) & _SAT) != 0,
+            saturated=saturated,
             attitude=a,
             raw_counts=(f.mx, f.my, f.mz, f.ax, f.ay, f.az),
         )

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.app.drift import DriftMonitor
 from bridge.app.params import ParamStore
 from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
@@ -90,6 +91,7 @@ class BridgeServices:
     * ``mavlink_tap`` -- the MAVLink messages sent, for mirrors;
     * ``documents`` -- the state directory, for what an adapter must keep across a
       restart (MAVLink's signing replay table); None without one.
+    * ``drift`` -- the calibration's drift monitor (status, undo of learned offsets).
     """
 
     status: Callable[[], DaemonStatus]
@@ -101,3 +103,4 @@ class BridgeServices:
     device: DevicePort
     mavlink_tap: MessageTap
     documents: DocumentStore | None = None
+    drift: DriftMonitor | None = None

@@ -3,7 +3,8 @@
 The fleet operator's view, in the spirit of gpsd's ``cgps``: one row per
 bridge seen under ``KEYEXPR`` (default ``fleet/**``) with its heading,
 attitude, the rate its headings arrive at, the compass link state, the
-calibration quality and how old its data is. Bridges are found by their
+calibration quality (``DRIFT`` among the flags when the bridge says its
+calibration has drifted) and how old its data is. Bridges are found by their
 publications and by their liveliness token; a bridge whose token vanishes is
 shown as ``gone`` until it comes back.
 
@@ -219,6 +220,8 @@ def _row(b: BridgeState, now: float) -> Row:
         if isinstance(dev_rate, int | float) and link == "streaming":
             link += f" {dev_rate:.0f}Hz"
         cal = _calibration_text(s.get("calibration") or {})
+        if schema.drift_detected(s):
+            flags.append("DRIFT")
     if b.alive is False:
         age = "gone"
     elif b.last_seen is None:

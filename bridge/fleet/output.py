@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 Clock = Callable[[], float]
 
 #: Remote calibration commands, as ``<prefix>/cmd/calibration/<name>``.
-CALIBRATION_COMMANDS: Final = ("start", "accept", "cancel")
+CALIBRATION_COMMANDS: Final = ("start", "accept", "cancel", "undo")
 
 #: Seconds between attempts to open the session after a failure.
 REOPEN_INTERVAL_S: Final = 0.5

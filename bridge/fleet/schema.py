@@ -314,7 +314,14 @@ def status_doc(
     t_unix: float,
     uptime_s: float,
 ) -> dict[str, Any]:
-    """``<prefix>/status``: link state, frame rate, counters, calibration state."""
+    """``<prefix>/status``: link state, frame rate, counters, calibration state.
+
+    ``calibration`` may carry ``drift`` (:func:`drift_detected` reads it): the drift
+    monitor's ``mode``, ``state`` ("off", "uncalibrated", "collecting", "ok", "drift",
+    "learning"),
+    ``detected``, ``change_mG`` and ``offset_change_mG`` (body axes), ``heading_error_deg``,
+    ``sigma_mG``, ``learned_mG`` and ``steps``.
+    """
     doc = _head(STATUS)
     doc.update(
         {
@@ -338,7 +345,20 @@ def status_doc(
 def status_key(doc: Mapping[str, Any]) -> tuple[Any, ...]:
     """What makes a status *change* worth an immediate publication (not the counters)."""
     cal = doc.get("calibration") or {}
-    return (doc.get("link", {}).get("state"), cal.get("state"), cal.get("source"))
+    drift = cal.get("drift") or {}
+    return (
+        doc.get("link", {}).get("state"),
+        cal.get("state"),
+        cal.get("source"),
+        drift.get("state") if isinstance(drift, Mapping) else None,
+    )
+
+
+def drift_detected(doc: Mapping[str, Any]) -> bool:
+    """A status document says the calibration has drifted (and it is not learned away yet)."""
+    cal = doc.get("calibration")
+    drift = cal.get("drift") if isinstance(cal, Mapping) else None
+    return isinstance(drift, Mapping) and drift.get("detected") is True
 
 
 def event_doc(event: Event) -> dict[str, Any]:

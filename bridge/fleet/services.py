@@ -48,6 +48,8 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
         "saved": snap.calibration_saved,
         "fitness_mG": fitness,
+        # the drift monitor (bridge.app.drift): mode, state, change left, heading error
+        "drift": svc.drift.status().to_dict() if svc.drift is not None else None,
     }
 
 
@@ -85,7 +87,11 @@ def _number(args: Mapping[str, Any], name: str, default: float | None = None) ->
 
 
 def run_calibration_command(
-    cal: CalibrationController, command: str, args: Mapping[str, Any]
+    cal: CalibrationController,
+    command: str,
+    args: Mapping[str, Any],
+    *,
+    undo: Callable[[], tuple[bool, str]] | None = None,
 ) -> CommandOutcome:
     """Map ``cmd/calibration/<command>`` with its JSON arguments onto the controller.
 
@@ -93,8 +99,14 @@ def run_calibration_command(
     ``fixed_yaw``), ``onboard`` (true/false; default the BRG_CAL_ONBOARD
     route), and for ``mag`` ``autosave``, ``retry``, ``delay_s``; for
     ``fixed_yaw`` ``yaw_deg`` (required), ``latitude_deg``, ``longitude_deg``.
-    ``accept`` and ``cancel`` take nothing.
+    ``accept`` and ``cancel`` take nothing, nor does ``undo``: back to the
+    calibration learning started from (``undo``, the drift monitor's).
     """
+    if command == "undo":
+        if undo is None:
+            return CommandOutcome(False, "no learned calibration to undo on this bridge")
+        ok, message = undo()
+        return CommandOutcome(ok, message, {"state": cal.snapshot().to_dict()})
     if command == "accept":
         outcome = cal.accept()
     elif command == "cancel":
@@ -133,8 +145,11 @@ def run_calibration_command(
 def fleet_services(svc: BridgeServices) -> FleetServices:
     """:class:`FleetServices` backed by the bridge's services."""
 
+    drift = svc.drift
+
     def run_command(command: str, args: Mapping[str, Any]) -> CommandOutcome:
-        return run_calibration_command(svc.calibrator, command, args)
+        undo = drift.undo if drift is not None else None
+        return run_calibration_command(svc.calibrator, command, args, undo=undo)
 
     def subscribe_mavlink(fn: Callable[[SentMessage], None]) -> Callable[[], None]:
         return svc.mavlink_tap.subscribe(fn)

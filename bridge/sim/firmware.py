@@ -229,6 +229,8 @@ class Firmware:
         self._cal_gen = 0
         self._acccal: list[tuple[int, int, int]] | None = None
         self._acc_gen = 0
+        # hard-iron changes still to come: (motion time, delta gauss), in time order
+        self._iron_steps: list[tuple[float, FloatArray]] = []
         self.frames_sent = 0
         self.frames_skipped = 0  #: ticks lost to flash writes
         self.commands_dropped = 0  #: lines that arrived while the device was not listening
@@ -273,6 +275,22 @@ class Firmware:
         out = bytes(self._out)
         self._out.clear()
         return out
+
+    def change_hard_iron(self, delta_G: npt.ArrayLike, at_s: float | None = None) -> None:
+        """From motion time ``at_s`` on (default: the next frame) the unit carries ``delta_G``
+        more hard iron (sensor axes, gauss): a bracket bolted on while it runs.
+
+        The change belongs to the world, not to the device: it survives RESETs and power
+        cycles, and frames sampled from then on (and their truth) show it.
+        """
+        d = np.asarray(delta_G, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(d)):
+            raise ValueError(f"delta_G must be finite, got {delta_G!r}")
+        at = -math.inf if at_s is None else float(at_s)
+        if math.isnan(at):
+            raise ValueError("at_s must be a time, got NaN")
+        self._iron_steps.append((at, d))
+        self._iron_steps.sort(key=lambda step: step[0])
 
     def inject_garbage(self, n: int) -> None:
         """``n`` random bytes appear in the output at once (line noise, a glitch)."""
@@ -397,6 +415,8 @@ class Firmware:
 
     def _sample(self, t: float) -> tuple[FloatArray, Any]:
         mt = t - (self._epoch if self._epoch is not None else t)
+        while self._iron_steps and self._iron_steps[0][0] <= mt:
+            self.sensor = self.sensor.with_hard_iron_change(self._iron_steps.pop(0)[1])
         R = self.motion.attitude(mt)
         return R, self.sensor.sample(R, self._rng, linear_acc_of(self.motion, mt))
 
@@ -616,21 +636,27 @@ def make_firmware(
     flash_path: str | None = None,
     ideal: bool = False,
     power_on_at: float | None = None,
+    hard_iron_change: tuple[npt.ArrayLike, float] | None = None,
 ) -> Firmware:
     """A ready simulated compass: unit errors drawn from ``seed`` at ``location``.
 
     Defaults: PX4 SITL's Zurich site, slow level turns at 10 deg/s, flash in
-    memory. ``ideal`` gives a perfect, noise-free unit.
+    memory. ``ideal`` gives a perfect, noise-free unit. ``hard_iron_change``
+    ``(delta_G, at_s)``: the unit's hard iron changes by ``delta_G`` (sensor axes,
+    gauss) ``at_s`` seconds after power-up (:meth:`Firmware.change_hard_iron`).
     """
     errors = UnitErrors.ideal() if ideal else UnitErrors.draw(np.random.default_rng(seed))
     sensor = SensorModel.at_location(errors, location or DEFAULT_LOCATION)
-    return Firmware(
+    fw = Firmware(
         sensor,
         motion if motion is not None else YawTurns(10.0),
         Flash(flash_path),
         np.random.default_rng([seed, 1]),
         power_on_at=power_on_at,
     )
+    if hard_iron_change is not None:
+        fw.change_hard_iron(*hard_iron_change)
+    return fw
 
 
 __all__ = [

@@ -27,7 +27,7 @@ The default simulator site is PX4 SITL's home at Zurich (47.397742 N, 8.545594 E
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -256,15 +256,25 @@ class SensorModel:
         """Model at ``(lat_deg, lon_deg, alt_m)`` with the WMM field of today."""
         return cls(errors, default_field_ned_G(location))
 
+    def with_hard_iron_change(self, delta_G: npt.ArrayLike) -> SensorModel:
+        """The same unit with ``delta_G`` more hard iron (sensor axes, gauss): a bracket
+        bolted on, a battery moved. Its :meth:`UnitErrors.true_calibration` follows."""
+        e = self.errors
+        hard = e.hard_iron_G + _frozen_array(delta_G, (3,), "delta_G")
+        return SensorModel(replace(e, hard_iron_G=hard), self.field_ned_G)
+
     def sample(
         self,
         R: npt.ArrayLike,
         rng: np.random.Generator,
         linear_acc_ned_g: npt.ArrayLike | None = None,
+        extra_field_ned_G: npt.ArrayLike | None = None,
     ) -> Sample:
         """Sample at one attitude (3, 3) or a stack (N, 3, 3); always returns N rows.
 
         ``linear_acc_ned_g``: (3,) or (N, 3) acceleration of the body in g, NED.
+        ``extra_field_ned_G``: (3,) or (N, 3) field added to the Earth's (a magnet going
+        by, :func:`magnet_pass`); the ideal ``mag_body_G`` stays the Earth's alone.
         """
         Rs = np.asarray(R, dtype=np.float64)
         if Rs.shape == (3, 3):
@@ -279,7 +289,11 @@ class SensorModel:
             g_ned = g_ned - np.broadcast_to(np.asarray(linear_acc_ned_g, dtype=np.float64), (n, 3))
         acc_body = np.einsum("nij,nj->ni", Rt, g_ned)
         e = self.errors
-        mag_G = mag_body @ self._mag_m.T + e.hard_iron_G
+        seen = mag_body
+        if extra_field_ned_G is not None:
+            extra = np.broadcast_to(np.asarray(extra_field_ned_G, dtype=np.float64), (n, 3))
+            seen = mag_body + np.einsum("nij,nj->ni", Rt, extra)
+        mag_G = seen @ self._mag_m.T + e.hard_iron_G
         acc_g = acc_body @ e.acc_matrix.T + e.acc_offset_g
         if e.mag_noise_G > 0.0:
             mag_G = mag_G + rng.normal(0.0, e.mag_noise_G, size=(n, 3))
@@ -322,3 +336,27 @@ class SensorModel:
             self.headroom(accel_margin_g=accel_margin_g, noise_sigmas=noise_sigmas).min_counts
             <= 0.0
         )
+
+
+def magnet_pass(
+    times: npt.ArrayLike,
+    at_s: float,
+    peak_G: float,
+    direction_ned: npt.ArrayLike = (1.0, 0.0, 0.0),
+    *,
+    closest_m: float = 1.0,
+    speed_mps: float = 1.0,
+) -> FloatArray:
+    """The field of a magnet going by: (N, 3) gauss, NED, at ``times`` (seconds).
+
+    A dipole passing at ``closest_m`` with ``speed_mps``, nearest at ``at_s``: its
+    strength falls as the cube of the distance, ``peak_G * (d0 / d)^3``, along a fixed
+    direction (a simplification: a real dipole's field also turns as it passes).
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    u = np.asarray(direction_ned, dtype=np.float64).reshape(3)
+    n = float(np.linalg.norm(u))
+    if not (n > 0.0 and math.isfinite(n)):
+        raise ValueError("direction_ned must be a finite non-zero vector")
+    d = np.hypot(closest_m, speed_mps * (t - at_s))
+    return np.asarray(peak_G * (closest_m / d)[:, None] ** 3 * (u / n), dtype=np.float64)

@@ -36,6 +36,7 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import Any
 
+from bridge.sim.drive import Drive
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import Motion, Still, Tumble, YawTurns, with_shake
 
@@ -320,6 +321,7 @@ MOTIONS: dict[str, Callable[[int], Motion]] = {
     "turns": lambda seed: YawTurns(10.0),
     "still": lambda seed: Still(),
     "tumble": lambda seed: Tumble(seed),
+    "drive": lambda seed: Drive(seed),
 }
 
 
@@ -347,13 +349,16 @@ def run_simulator(
     on_ready: Callable[[PtyCompass], None] | None = None,
     unplug_s: float = 1.0,
     garbage_bytes: int = 256,
+    hard_iron_change: tuple[tuple[float, float, float], float] | None = None,
 ) -> int:
     """Serve a simulated compass at ``link_path`` until SIGINT/SIGTERM (or ``stop`` is set).
 
     ``seed`` draws the unit's errors; ``location`` is ``(lat_deg, lon_deg, alt_m)``
     (default: PX4 SITL's Zurich); ``motion`` a script or one of :data:`MOTIONS`;
     ``flash_path`` keeps the unit's calibration across runs; ``shake_g`` shakes a
-    named motion like a hand (g RMS per axis). Returns 0.
+    named motion like a hand (g RMS per axis); ``hard_iron_change`` ``(delta_G,
+    at_s)`` changes the unit's hard iron while it runs
+    (:meth:`~bridge.sim.firmware.Firmware.change_hard_iron`). Returns 0.
 
     Fault injection from outside, for integrators and the daemon's fault tests:
     SIGUSR1 pulls the cable (the pty goes away; a new one appears at
@@ -361,7 +366,14 @@ def run_simulator(
     """
     if isinstance(motion, str):
         motion = make_motion(motion, seed, shake_g)
-    fw = make_firmware(seed, location=location, motion=motion, flash_path=flash_path, ideal=ideal)
+    fw = make_firmware(
+        seed,
+        location=location,
+        motion=motion,
+        flash_path=flash_path,
+        ideal=ideal,
+        hard_iron_change=hard_iron_change,
+    )
     stop_event = stop if stop is not None else threading.Event()
 
     unplug_requested = threading.Event()
