@@ -22,7 +22,7 @@ from bridge.config import (
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "config" / "compass-bridge.toml"
 # The configuration reference, generated from the declarations (tests/test_config_docs.py
-# keeps it fresh); it replaced the README's hand-kept table.
+# keeps it fresh); it replaced the README's former hand-kept table.
 REFERENCE = REPO / "docs" / "configuration.md"
 ENV: dict[str, str] = {}  # no $STATE_DIRECTORY unless a test sets one
 

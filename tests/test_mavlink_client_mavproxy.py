@@ -97,7 +97,7 @@ def test_mavproxy_calibrates_and_sets_every_parameter(
     download(mp, rig)
     before = rig.daemon.engine.calibration
 
-    # the README's on-board switch and a float, as a user types them
+    # docs/mavlink.md's on-board switch and a float, as a user types them
     mp.send("param set BRG_CAL_ONBOARD 1")
     mp.send("param set BRG_SR_HUD 2.5")
     assert wait_until(lambda: rig.daemon.params.get("BRG_SR_HUD") == 2.5)

@@ -617,7 +617,7 @@ def test_remote_calibration_drives_the_calibrator(tmp_path: Path) -> None:
 
 
 def test_access_control_denies_cmd_to_an_untrusted_peer(tmp_path: Path) -> None:
-    # The README's recipe, with peers told apart by zenoh id (on a real network:
+    # docs/zenoh.md's recipe, with peers told apart by zenoh id (on a real network:
     # usernames or certificate common names).
     acl = tmp_path / "zenoh-acl.json5"
     acl.write_text(

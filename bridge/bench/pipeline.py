@@ -27,7 +27,7 @@ them as one JSON object too):
 * **first ATTITUDE** -- from spawning a child to its first ATTITUDE
   datagram, the slower of the two (target 1.5 s).
 * **calibration fit** -- the default method (``best``) on 10 000 samples of a
-  drawn unit at random attitudes (no target: a figure for the README).
+  drawn unit at random attitudes (no target: a figure for docs/performance.md).
 """
 
 from __future__ import annotations
@@ -518,7 +518,7 @@ def live(
     * **ATTITUDE at 50 Hz**, the highest the configuration allows: the latency figure
       (half the frames have their own datagram to time) and its CPU, reported without a
       target. Each extra ATTITUDE datagram costs the kernel's loopback UDP send (about
-      70-85 us cold on this machine, measured in README "Speed and footprint").
+      70-85 us cold on this machine, measured in docs/performance.md).
 
     RSS and first ATTITUDE are the worse of the two.
     """
