@@ -280,9 +280,10 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     assert 0.8 < rep["scale_factor"] < 1.25
     assert rig.daemon.engine.calibration == before  # not applied before accept
     assert not (tmp_path / "state" / "calibration.json").exists()
-    # the uncalibrated tumble looked "disturbed" (the engine flagged it) but raised no
-    # alarm while the calibration ran (before it started, the alarm is legitimate)
-    assert rig.daemon.bridge.pipeline.disturbed_while_calibrating
+    # the uncalibrated tumble changed the engine's disturbance judgement while the
+    # calibration ran, and that raised no alarm (before it started, the alarm is
+    # legitimate; whether one came first depends on how fast the test started it)
+    assert rig.daemon.bridge.pipeline.muted_while_calibrating
     t_start = rig.log.of("calibration.started")[0].t_monotonic
     t_done = done.t_monotonic
     during = [e for e in rig.log.of("disturbance.start") if t_start <= e.t_monotonic <= t_done]

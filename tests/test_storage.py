@@ -188,8 +188,9 @@ _SAVER = """
 import sys
 from bridge.storage import StateStore
 store = StateStore(sys.argv[1])
-i = int(store.load("calibration").payload["gen"])
-print("ready", flush=True)
+i = int(store.load("calibration").payload["gen"]) + 1
+store.save("calibration", {"gen": i, "pad": "x" * 20000})
+print("saved", flush=True)
 while True:
     i += 1
     store.save("calibration", {"gen": i, "pad": "x" * 20000})
@@ -201,21 +202,21 @@ def test_kill_9_during_saves_never_loses_calibration(tmp_path: Path) -> None:
     store = StateStore(tmp_path)
     store.save("calibration", {"gen": 0, "pad": ""})
     last = 0
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 100  # 25 interpreters started on a loaded 2-core machine
     for i in range(25):
         assert time.monotonic() < deadline
         proc = subprocess.Popen(
             [sys.executable, "-c", _SAVER, str(tmp_path)], stdout=subprocess.PIPE, text=True
         )
         assert proc.stdout is not None
-        assert proc.stdout.readline().strip() == "ready"
-        time.sleep(0.005 * (i % 7))  # land the kill at varying points of the save
+        # "saved" once its first save is complete: the kill lands while it saves again
+        assert proc.stdout.readline().strip() == "saved"
+        time.sleep(0.005 * (i % 7))  # land the kill at varying points of a later save
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
         res = store.load("calibration")
         assert res.payload is not None, res.problems
         gen = int(res.payload["gen"])
-        # At most the save in flight is lost: never an older generation than the last seen.
-        assert gen >= last, (gen, last, res.source)
+        # A completed save survives the kill; at most the save in flight is lost.
+        assert gen > last, (gen, last, res.source)
         last = gen
-    assert last > 25  # the savers really were saving when they were killed

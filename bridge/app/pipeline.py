@@ -76,7 +76,8 @@ class Pipeline:
         self._frame_started_at: float | None = None  # set while a frame is in the pipeline
         self._disturbed = False  # disturbance state last reported as an event
         self._disturbed_at = -math.inf  # when it was reported
-        self.disturbed_while_calibrating = False  #: muted disturbance (diagnostics)
+        #: A change of the disturbance state went unreported because a calibration ran.
+        self.muted_while_calibrating = False
         self._link_lost = False  # link.lost emitted, link.restored not yet
 
     @property
@@ -194,12 +195,12 @@ class Pipeline:
         turning near the threshold would flap; a change inside the hold-off is reported
         when it ends, if it still holds then.
         """
-        if t - self._disturbed_at < DISTURBANCE_EVENT_MIN_S:
-            return
         if self._calibrating():
             # An uncalibrated unit tumbling for its calibration is "disturbed" half the
             # time: that is expected, not news. The state is re-judged once it ends.
-            self.disturbed_while_calibrating |= disturbed
+            self.muted_while_calibrating = True
+            return
+        if t - self._disturbed_at < DISTURBANCE_EVENT_MIN_S:
             return
         self._disturbed, self._disturbed_at = disturbed, t
         data = {"field_mG": round(1000.0 * a.field_strength_G, 1), "dip_deg": round(a.dip_deg, 1)}
