@@ -62,7 +62,7 @@ from bridge.bench.handheld import (
     format_handheld,
     run_handheld,
 )
-from bridge.bench.scoring import heading_errors, magnetic_heading_deg, still_means
+from bridge.bench.scoring import heading_errors, magnetic_heading_deg, positive_int, still_means
 from bridge.calibration.accel_faces import Face, detect_face
 from bridge.calibration.alignment import fit_ellipsoid_aligned
 from bridge.calibration.handheld import tilted_attitudes
@@ -449,13 +449,6 @@ def _json_default(o: object) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _positive_int(v: str) -> int:
-    n = int(v)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
-    return n
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: prints the table, optionally writes JSON; exit 1 if a target fails."""
     defaults = BenchConfig()
@@ -463,14 +456,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="compass-bridge bench accuracy",
         description="Heading accuracy of each calibration method on simulated units.",
     )
-    p.add_argument("--units", type=_positive_int, default=defaults.units, help="simulated units")
+    p.add_argument("--units", type=positive_int, default=defaults.units, help="simulated units")
     p.add_argument("--seed", type=int, default=defaults.seed, help="random seed")
     p.add_argument(
-        "--samples", type=_positive_int, default=defaults.samples, help="tumble frames per unit"
+        "--samples", type=positive_int, default=defaults.samples, help="tumble frames per unit"
     )
     p.add_argument(
         "--eval-samples",
-        type=_positive_int,
+        type=positive_int,
         default=defaults.eval_samples,
         help="fresh attitudes per unit and tilt bin",
     )
@@ -500,7 +493,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--rate", type=float, default=defaults.rate_hz, help="hand-held frame rate, Hz (default 50)"
     )
     p.add_argument(
-        "--holds", type=_positive_int, default=defaults.holds, help="held attitudes per unit"
+        "--holds", type=positive_int, default=defaults.holds, help="held attitudes per unit"
     )
     p.add_argument(
         "--e2e",

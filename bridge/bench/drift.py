@@ -45,7 +45,7 @@ import numpy.typing as npt
 from bridge.app.drift import DriftMonitor
 from bridge.app.pipeline import Pipeline
 from bridge.app.settings import EngineSettings
-from bridge.bench.scoring import HeldScore, score_held, target
+from bridge.bench.scoring import HeldScore, positive_int, score_held, target
 from bridge.calibration.drift import DriftSettings
 from bridge.calibration.handheld import tilted_attitudes
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
@@ -539,13 +539,6 @@ def format_report(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-    return v
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: prints the tables, optionally JSON; exit 1 if a target fails."""
     d = DriftBenchConfig()
@@ -553,7 +546,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="compass-bridge bench drift",
         description="Hard-iron drift: detection time, false alarms, heading before/after learning.",
     )
-    p.add_argument("--units", type=_positive_int, default=d.units, help="simulated units")
+    p.add_argument("--units", type=positive_int, default=d.units, help="simulated units")
     p.add_argument("--seed", type=int, default=d.seed, help="first unit seed")
     p.add_argument(
         "--sizes", type=float, nargs="+", default=list(d.sizes_mG), metavar="MG",

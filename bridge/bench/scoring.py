@@ -17,6 +17,7 @@ quantisation alone leave -- is comparable with each method.
 
 from __future__ import annotations
 
+import argparse
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -145,6 +146,14 @@ RATIO_LIMIT = 1.3
 MAX_MARGIN_DEG = 0.15
 #: A reported heading error is within this factor of the measured one.
 ESTIMATE_FACTOR = 2.0
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer of at least 1 (unit, sample and hold counts)."""
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
 
 
 def target(name: str, value: float, limit: float, passed: bool) -> dict[str, Any]:

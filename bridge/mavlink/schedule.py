@@ -16,18 +16,20 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from bridge.app.paramspec import STREAM_RATES
-from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 
-HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT
-SYS_STATUS = M.MAVLINK_MSG_ID_SYS_STATUS
-ATTITUDE = M.MAVLINK_MSG_ID_ATTITUDE
-ATTITUDE_QUATERNION = M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
-VFR_HUD = M.MAVLINK_MSG_ID_VFR_HUD
-SCALED_IMU = M.MAVLINK_MSG_ID_SCALED_IMU
-RAW_IMU = M.MAVLINK_MSG_ID_RAW_IMU
-HIGHRES_IMU = M.MAVLINK_MSG_ID_HIGHRES_IMU
-ODOMETRY = M.MAVLINK_MSG_ID_ODOMETRY
-VISION_POSITION_ESTIMATE = M.MAVLINK_MSG_ID_VISION_POSITION_ESTIMATE
+# The message ids, by name (one list, telemetry's): re-exported for the schedule's users.
+from bridge.mavlink.telemetry import (
+    ATTITUDE,
+    ATTITUDE_QUATERNION,
+    HEARTBEAT,
+    HIGHRES_IMU,
+    ODOMETRY,
+    RAW_IMU,
+    SCALED_IMU,
+    SYS_STATUS,
+    VFR_HUD,
+    VISION_POSITION_ESTIMATE,
+)
 
 
 @dataclass(frozen=True, slots=True)
