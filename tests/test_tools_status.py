@@ -32,6 +32,7 @@ def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path
     assert rec["quality"]["disturbed"] is False
     assert isinstance(rec["quality"]["heading_deg"], float)
     assert code == (0 if rec["healthy"] else 1)
+    assert rec["drift"]["mode"] == "detect" and rec["drift"]["detected"] is False
     text = human.getvalue()
     assert text.startswith(f"{b.prefix}: ") and "streaming on" in text and "frames/s" in text
 
@@ -54,3 +55,24 @@ def test_summary_of_a_stale_link_is_not_healthy() -> None:
     text = format_human([rec])
     assert "NOT OK" in text and "stale" in text and "2.0 h old" in text
     assert "unknown (no heading heard)" in text
+
+
+def test_a_drifted_calibration_is_said_on_its_own_line() -> None:
+    drift = {"mode": "detect", "state": "drift", "detected": True, "change_mG": 41.6,
+             "offset_change_mG": [40.0, -10.0, 5.0], "heading_error_deg": 11.2,
+             "sigma_mG": 1.3, "learned_mG": 0.0, "steps": 0}  # fmt: skip
+    a = BridgeAnswers(
+        "fleet/x/compass",
+        status={"link": {"state": "streaming", "port": "/dev/ttyUSB0", "frame_rate_hz": 100.0},
+                "calibration": {"source": "stored", "age_s": 60.0, "state": "idle",
+                                "drift": drift}},
+        heading={"heading_deg": 12.0, "flags": {"disturbed": False, "saturated": False}},
+    )  # fmt: skip
+    rec = summarise(a)
+    assert rec["drift"] == drift and rec["healthy"] is True  # a heading still streams
+    text = format_human([rec])
+    assert "drift        DRIFT, 42 mG change, heading error up to 11.2 deg, mode detect" in text
+    ok = summarise(BridgeAnswers("fleet/y/compass", status={"calibration": {
+        "drift": {**drift, "state": "ok", "detected": False, "learned_mG": 38.0, "steps": 4,
+                  "mode": "learn"}}}))  # fmt: skip
+    assert "drift        ok, 38 mG learned in 4 steps, mode learn" in format_human([ok])

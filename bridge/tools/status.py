@@ -2,8 +2,9 @@
 
 How it reaches the daemon: over Zenoh, which every bridge already speaks. It
 asks the ``<prefix>/status`` queryable (link state, frame rate, counters,
-calibration state and age) and ``<prefix>/calibration`` (the report of the
-calibration in use: fitness, field spread), and listens to
+calibration state and age, the drift monitor's verdict) and
+``<prefix>/calibration`` (the report of the calibration in use: fitness,
+field spread), and listens to
 ``<prefix>/heading`` for a moment for the latest quality flags (disturbance).
 By default it connects to ``tcp/127.0.0.1:7447``, the listener a bridge on
 this host opens (the same default as ``compass-bridge monitor``). No unix
@@ -111,6 +112,11 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
         },
         "errors": list(a.errors),
     }
+    # The drift monitor's verdict (bridge.app.drift, issue 17) as the status document has
+    # it; a drifted calibration leaves the bridge "healthy" (it streams a usable heading)
+    # but is said on its own line, as `monitor` flags it DRIFT.
+    drift = cal_state.get("drift")
+    rec["drift"] = dict(drift) if isinstance(drift, dict) else None
     rec["healthy"] = bool(
         state == "streaming"
         and isinstance(rate, int | float)
@@ -118,6 +124,23 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
         and heading_usable(bool(flags.get("saturated")), bool(disturbed))
     )
     return rec
+
+
+def _drift_text(d: dict[str, Any]) -> str:
+    """The drift monitor's verdict in a few words ("DRIFT 42 mG, up to 11.0 deg, ...")."""
+    state, mode = str(d.get("state") or "unknown"), d.get("mode")
+    parts = [state.upper() if d.get("detected") else state]
+    change, err = d.get("change_mG"), d.get("heading_error_deg")
+    if d.get("detected") and isinstance(change, int | float):
+        parts.append(f"{change:.0f} mG change")
+        if isinstance(err, int | float):
+            parts.append(f"heading error up to {err:.1f} deg")
+    learned = d.get("learned_mG")
+    if isinstance(learned, int | float) and learned > 0:
+        parts.append(f"{learned:.0f} mG learned in {d.get('steps', 0)} steps")
+    if mode:
+        parts.append(f"mode {mode}")
+    return ", ".join(parts)
 
 
 def format_human(records: list[dict[str, Any]]) -> str:
@@ -151,6 +174,9 @@ def format_human(records: list[dict[str, Any]]) -> str:
         if cal.get("state") and cal["state"] != "idle":
             parts.append(f"calibration {cal['state']}")
         out.append("  calibration  " + ", ".join(parts))
+        drift = r.get("drift")
+        if drift:
+            out.append("  drift        " + _drift_text(drift))
         if q.get("disturbed") is None:
             out.append("  disturbance  unknown (no heading heard)")
         else:
