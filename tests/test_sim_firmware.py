@@ -30,7 +30,7 @@ from bridge.protocol.gmr import (
     encode,
 )
 from bridge.sim.firmware import Firmware
-from bridge.sim.flash import Flash
+from bridge.sim.flash import FLASH_FILE_MAX_BYTES, Flash
 from bridge.sim.motion import (
     AttitudeList,
     HandShake,
@@ -827,6 +827,23 @@ def test_damaged_flash_file_falls_back_to_the_previous_copy(
     worst = Flash(path)
     assert worst.page == Flash().page and worst.load_source == "factory"
     assert worst.load_error is not None
+
+
+def test_a_flash_path_naming_a_device_a_fifo_or_a_huge_file_is_refused_not_read(
+    tmp_path: Path,
+) -> None:
+    """`--flash /dev/zero` (or a FIFO, or a huge file) gives factory content and a reason."""
+    (tmp_path / "dev.flash").symlink_to("/dev/zero")
+    os.mkfifo(tmp_path / "fifo.flash")
+    (tmp_path / "huge.flash").write_bytes(b" " * (FLASH_FILE_MAX_BYTES + 1))
+    for name, why in (
+        ("dev.flash", "character device"),
+        ("fifo.flash", "FIFO"),
+        ("huge.flash", "byte limit"),
+    ):
+        flash = Flash(tmp_path / name)  # returns at once: nothing blocks on a writer
+        assert flash.page == Flash().page and flash.load_source == "factory"
+        assert flash.load_error is not None and why in flash.load_error, flash.load_error
 
 
 def test_a_write_cut_midway_leaves_the_previous_content(

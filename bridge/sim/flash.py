@@ -38,9 +38,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bridge.files import FileMissing, FileRefused, read_regular_file
 from bridge.protocol.gmr import ParamsFrame
 
 FORMAT = "gmr-flash/1"
+#: A flash file is a few hundred bytes; anything over this is not one (and is not read).
+FLASH_FILE_MAX_BYTES = 64 * 1024
 _PARAM_NAMES = ("xoff", "yoff", "zoff", "kx", "ky", "kz", "gxoff", "gyoff", "gzoff")
 
 
@@ -175,11 +178,15 @@ class Flash:
         errors: list[str] = []
         for source, p in (("file", self.path), ("prev", self.prev_path)):
             try:
-                page = _decode(p.read_bytes())
-            except FileNotFoundError:
+                # a regular file of bounded size: `--flash /dev/zero` is an error, not a hang
+                page = _decode(read_regular_file(p, FLASH_FILE_MAX_BYTES))
+            except FileMissing:
                 errors.append(f"{p.name}: missing")
                 continue
-            except (OSError, ValueError, TypeError, KeyError, UnicodeDecodeError) as e:
+            except FileRefused as e:
+                errors.append(f"{p.name}: {e}")
+                continue
+            except (ValueError, TypeError, KeyError, UnicodeDecodeError) as e:
                 errors.append(f"{p.name}: {type(e).__name__}: {e}")
                 continue
             self.load_source = source
