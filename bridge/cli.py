@@ -200,38 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", parents=[common], help="benchmarks")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
     # The benchmark parses its own options (and its own --help): everything after
-    # "accuracy" is passed through unparsed (see main()).
-    acc = bench_sub.add_parser(
-        "accuracy",
-        add_help=False,
-        help="heading accuracy of the calibration methods (prints figures, JSON)",
-    )
-    acc.set_defaults(func=cmd_bench_accuracy, passthrough=True)
-    pipe = bench_sub.add_parser(
-        "pipeline",
-        add_help=False,
-        help="speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
-    )
-    pipe.set_defaults(func=cmd_bench_pipeline, passthrough=True)
-    fuzz = bench_sub.add_parser(
-        "fuzz",
-        add_help=False,
-        help="hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
-    )
-    fuzz.set_defaults(func=cmd_bench_fuzz, passthrough=True)
-    drift = bench_sub.add_parser(
-        "drift",
-        add_help=False,
-        help="hard-iron drift: detection time, false alarms, heading before/after learning",
-    )
-
-    def cmd_bench_drift(args: argparse.Namespace) -> int:
-        """``bench drift``: hand over to the benchmark's own command line."""
-        from bridge.bench.drift import main as drift_main
-
-        return int(drift_main(args.rest) or 0)
-
-    drift.set_defaults(func=cmd_bench_drift, passthrough=True)
+    # the benchmark's name is passed through unparsed (see main()).
+    for name, help_text in BENCHMARKS.items():
+        one = bench_sub.add_parser(name, add_help=False, help=help_text)
+        one.set_defaults(func=cmd_bench, passthrough=True)
     _tools_parsers(sub, common)
 
     mon = sub.add_parser(
@@ -476,25 +448,21 @@ def cmd_record(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_bench_accuracy(args: argparse.Namespace) -> int:
-    """``bench accuracy``: hand over to the benchmark's own command line."""
-    from bridge.bench.accuracy import main as accuracy_main
-
-    return int(accuracy_main(args.rest) or 0)
-
-
-def cmd_bench_pipeline(args: argparse.Namespace) -> int:
-    """``bench pipeline``: hand over to the benchmark's own command line."""
-    from bridge.bench.pipeline import main as pipeline_main
-
-    return int(pipeline_main(args.rest) or 0)
+#: The benchmarks, ``bridge.bench.<name>``, each with its own command line (``main``).
+BENCHMARKS = {
+    "accuracy": "heading accuracy of the calibration methods (prints figures, JSON)",
+    "pipeline": "speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
+    "fuzz": "hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
+    "drift": "hard-iron drift: detection time, false alarms, heading before/after learning",
+}
 
 
-def cmd_bench_fuzz(args: argparse.Namespace) -> int:
-    """``bench fuzz``: hand over to the benchmark's own command line."""
-    from bridge.bench.fuzz import main as fuzz_main
+def cmd_bench(args: argparse.Namespace) -> int:
+    """``bench NAME``: hand over to the benchmark's own command line (imported on use)."""
+    import importlib
 
-    return int(fuzz_main(args.rest) or 0)
+    bench_main = importlib.import_module(f"bridge.bench.{args.bench}").main
+    return int(bench_main(args.rest) or 0)
 
 
 def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
