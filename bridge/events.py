@@ -12,9 +12,9 @@ import enum
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,55 @@ class Event:
 
 Subscriber = Callable[[Event], None]
 
+_T = TypeVar("_T")
+
+
+class Subscribers(Generic[_T]):
+    """The callbacks of one fan-out: added and removed from any thread, called without a lock.
+
+    Copy-on-write: iterating takes the tuple in use with one reference read, so a
+    delivery never holds a lock while the callbacks run, and a callback may add or
+    remove subscribers (its own included) without disturbing the delivery in flight.
+    Every fan-out of the bridge (events, parameter and settings changes, the MAVLink
+    message tap) keeps its subscribers in one of these.
+    """
+
+    __slots__ = ("_fns", "_lock")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._fns: tuple[Callable[[_T], None], ...] = ()
+
+    def add(self, fn: Callable[[_T], None]) -> Callable[[], None]:
+        """Register ``fn``; returns the function that removes this registration."""
+        with self._lock:
+            self._fns = (*self._fns, fn)
+        removed = False
+
+        def remove() -> None:
+            nonlocal removed
+            with self._lock:
+                if removed:  # once: a second call must not take another registration
+                    return
+                removed = True
+                fns = list(self._fns)
+                for i, f in enumerate(fns):
+                    if f is fn:
+                        del fns[i]
+                        self._fns = tuple(fns)
+                        return
+
+        return remove
+
+    def __iter__(self) -> Iterator[Callable[[_T], None]]:
+        return iter(self._fns)  # one reference read: the set as it is now
+
+    def __bool__(self) -> bool:
+        return bool(self._fns)
+
+    def __len__(self) -> int:
+        return len(self._fns)
+
 
 class EventBus:
     """Fan-out of :class:`Event` to subscribers, synchronously and safely.
@@ -59,31 +108,22 @@ class EventBus:
 
     def __init__(self, history: int = 50) -> None:
         self._lock = threading.Lock()
-        self._subscribers: list[Subscriber] = []
+        self._subscribers: Subscribers[Event] = Subscribers()
         self._history: list[Event] = []
         self._history_len = history
         self.subscriber_errors = 0
 
     def subscribe(self, fn: Subscriber) -> Callable[[], None]:
         """Register ``fn``; returns a function that unsubscribes it."""
-        with self._lock:
-            self._subscribers.append(fn)
-
-        def unsubscribe() -> None:
-            with self._lock:
-                if fn in self._subscribers:
-                    self._subscribers.remove(fn)
-
-        return unsubscribe
+        return self._subscribers.add(fn)
 
     def emit(self, event: Event) -> None:
         """Deliver ``event`` to every subscriber; log it once."""
         log.log(_LOG_LEVEL[event.severity], "%s: %s", event.kind, event.text)
         with self._lock:
-            subs = list(self._subscribers)
             self._history.append(event)
             del self._history[: -self._history_len]
-        for fn in subs:
+        for fn in self._subscribers:
             try:
                 fn(event)
             except Exception:  # a broken front end must not break the producer

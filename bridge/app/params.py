@@ -37,6 +37,7 @@ from bridge.app.paramspec import (
 )
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
+from bridge.events import Subscribers
 from bridge.ports import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class ParamStore:
         self._defaults = dict(defaults or {})
         self._apply_calibration = apply_calibration
         self._lock = threading.RLock()
-        self._listeners: list[Listener] = []
+        self._listeners: Subscribers[ParamChange] = Subscribers()
         self._table = ParamTable(overrides=self._defaults)
         self._user_set: set[str] = set()
         self._own_calibration: Calibration | None = None  # the last one made from parameters
@@ -131,14 +132,7 @@ class ParamStore:
     def subscribe(self, fn: Listener) -> Callable[[], None]:
         """Call ``fn(change)`` after values change (in the changing thread); returns the
         unsubscribe function. ``fn`` must be quick and must not raise."""
-        with self._lock:
-            self._listeners = [*self._listeners, fn]
-
-        def unsubscribe() -> None:
-            with self._lock:
-                self._listeners = [f for f in self._listeners if f is not fn]
-
-        return unsubscribe
+        return self._listeners.add(fn)
 
     # -- setting -------------------------------------------------------------------
 

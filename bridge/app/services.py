@@ -25,7 +25,7 @@ from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
 from bridge.calibrator.controller import CalibrationController
 from bridge.calibrator.store import CalibrationStore
-from bridge.events import EventBus
+from bridge.events import EventBus, Subscribers
 from bridge.ports import DevicePort, DocumentStore
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ class MessageTap:
     """
 
     def __init__(self) -> None:
-        self._subscribers: tuple[Callable[[SentMessage], None], ...] = ()
+        self._subscribers: Subscribers[SentMessage] = Subscribers()
         self.errors = 0
 
     @property
@@ -59,12 +59,7 @@ class MessageTap:
 
     def subscribe(self, fn: Callable[[SentMessage], None]) -> Callable[[], None]:
         """Register ``fn``; returns the function that removes it."""
-        self._subscribers = (*self._subscribers, fn)  # one reference store
-
-        def remove() -> None:
-            self._subscribers = tuple(f for f in self._subscribers if f is not fn)
-
-        return remove
+        return self._subscribers.add(fn)
 
     def publish(self, message: SentMessage) -> None:
         """Hand ``message`` to every subscriber."""

@@ -27,6 +27,7 @@ from bridge.core.attitude import AttitudeEngine, FieldReference, HeadingReferenc
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits
 from bridge.core.wmm import EarthField, earth_field
+from bridge.events import Subscribers
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +57,7 @@ class EngineSettings:
         self.engine = engine
         self._lock = threading.RLock()
         self._emit_lock = threading.Lock()
-        self._listeners: list[Listener] = []
+        self._listeners: Subscribers[SettingsChange] = Subscribers()
         self._field = field
         self._declination_deg: float | None = None  # a fixed declination (COMPASS_AUTODEC=0)
         self._pending: list[SettingsChange] = []
@@ -109,14 +110,7 @@ class EngineSettings:
         order, and must be quick; they may read the settings and change them
         (that change is delivered after the current one).
         """
-        with self._lock:
-            self._listeners = [*self._listeners, fn]
-
-        def unsubscribe() -> None:
-            with self._lock:
-                self._listeners = [f for f in self._listeners if f is not fn]
-
-        return unsubscribe
+        return self._listeners.add(fn)
 
     def _changed(self, aspect: Aspect, source: str) -> None:
         """Deliver a change to every listener, one change at a time and in order.
@@ -133,8 +127,7 @@ class EngineSettings:
                         if not self._pending:
                             break
                         change = self._pending.pop(0)
-                        listeners = self._listeners
-                    for fn in listeners:
+                    for fn in self._listeners:
                         try:
                             fn(change)
                         except Exception:  # a broken listener must not undo the change
