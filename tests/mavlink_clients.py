@@ -122,6 +122,32 @@ class MavProxy:
                 pytest.fail(f"MAVProxy exited ({self.proc.returncode}):\n{self.text()}")
             self._drain(0.05)
 
+    def expect_each(self, patterns: dict[str, str], timeout: float = DEADLINE_S) -> dict[str, str]:
+        """For each key, the first line not consumed yet that matches its pattern, in
+        whatever order MAVProxy printed them: its answers to several requests in flight
+        need not come back in the order asked (a ``param fetch`` prints the first
+        PARAM_VALUE of that name to arrive, which may be a ``param set``'s late echo)."""
+        tests = {key: re.compile(pattern).search for key, pattern in patterns.items()}
+        found: dict[str, tuple[int, str]] = {}
+        deadline = time.monotonic() + timeout
+        while True:
+            for i in range(self._seen, len(self.lines)):
+                for key, test in tests.items():
+                    if key not in found and test(self.lines[i][1]):
+                        found[key] = (i, self.lines[i][1])
+                        break
+            if len(found) == len(tests):
+                self._seen = max(i for i, _ in found.values()) + 1
+                return {key: line for key, (_, line) in found.items()}
+            if time.monotonic() > deadline:
+                missing = sorted(set(tests) - set(found))
+                pytest.fail(
+                    f"MAVProxy printed nothing for {missing} within {timeout} s:\n{self.text()}"
+                )
+            if self.proc.poll() is not None and self._queue.empty():
+                pytest.fail(f"MAVProxy exited ({self.proc.returncode}):\n{self.text()}")
+            self._drain(0.05)
+
     def collect(self, seconds: float) -> None:
         """Read what it prints for ``seconds``."""
         end = time.monotonic() + seconds

@@ -73,8 +73,9 @@ def set_and_read_back_every_parameter(mp: MavProxy, rig: Rig) -> None:
     }
     for name in wanted:
         mp.send(f"param fetch {name}")
+    shown_lines = mp.expect_each({name: rf"^{name} = " for name in wanted})
     for name, value in wanted.items():
-        _, line = mp.expect(rf"^{name} = ")
+        line = shown_lines[name]
         shown = float(line.split(" = ", 1)[1])
         assert shown == pytest.approx(value, rel=1e-6, abs=1e-6), (name, line)
 
