@@ -110,17 +110,7 @@ class MavProxy:
         """The first line not consumed yet that matches ``pattern`` (a regular expression
         searched in the line, or a predicate); earlier lines stay in :attr:`lines`."""
         test = pattern if callable(pattern) else re.compile(pattern).search
-        deadline = time.monotonic() + timeout
-        while True:
-            for i in range(self._seen, len(self.lines)):
-                if test(self.lines[i][1]):
-                    self._seen = i + 1
-                    return self.lines[i]
-            if time.monotonic() > deadline:
-                pytest.fail(f"MAVProxy printed no {pattern!r} within {timeout} s:\n{self.text()}")
-            if self.proc.poll() is not None and self._queue.empty():
-                pytest.fail(f"MAVProxy exited ({self.proc.returncode}):\n{self.text()}")
-            self._drain(0.05)
+        return self._expect_all({repr(pattern): test}, timeout)[repr(pattern)]
 
     def expect_each(self, patterns: dict[str, str], timeout: float = DEADLINE_S) -> dict[str, str]:
         """For each key, the first line not consumed yet that matches its pattern, in
@@ -128,22 +118,30 @@ class MavProxy:
         need not come back in the order asked (a ``param fetch`` prints the first
         PARAM_VALUE of that name to arrive, which may be a ``param set``'s late echo)."""
         tests = {key: re.compile(pattern).search for key, pattern in patterns.items()}
-        found: dict[str, tuple[int, str]] = {}
+        return {key: line for key, (_, line) in self._expect_all(tests, timeout).items()}
+
+    def _expect_all(
+        self, tests: dict[str, Callable[[str], object]], timeout: float
+    ) -> dict[str, tuple[float, str]]:
+        """For each named test, the first line not consumed yet that it matches (a line
+        answers one test); then every line up to the last of them counts as consumed."""
+        found: dict[str, int] = {}
+        scanned = self._seen
         deadline = time.monotonic() + timeout
         while True:
-            for i in range(self._seen, len(self.lines)):
-                for key, test in tests.items():
-                    if key not in found and test(self.lines[i][1]):
-                        found[key] = (i, self.lines[i][1])
-                        break
-            if len(found) == len(tests):
-                self._seen = max(i for i, _ in found.values()) + 1
-                return {key: line for key, (_, line) in found.items()}
-            if time.monotonic() > deadline:
-                missing = sorted(set(tests) - set(found))
-                pytest.fail(
-                    f"MAVProxy printed nothing for {missing} within {timeout} s:\n{self.text()}"
+            for i in range(scanned, len(self.lines)):
+                key = next(
+                    (k for k, t in tests.items() if k not in found and t(self.lines[i][1])), None
                 )
+                if key is not None:
+                    found[key] = i
+            scanned = len(self.lines)
+            if len(found) == len(tests):
+                self._seen = max(found.values()) + 1
+                return {key: self.lines[i] for key, i in found.items()}
+            if time.monotonic() > deadline:
+                missing = ", ".join(k for k in tests if k not in found)
+                pytest.fail(f"MAVProxy printed no {missing} within {timeout} s:\n{self.text()}")
             if self.proc.poll() is not None and self._queue.empty():
                 pytest.fail(f"MAVProxy exited ({self.proc.returncode}):\n{self.text()}")
             self._drain(0.05)
