@@ -49,18 +49,8 @@ def make_sample(
     assert a is not None
     mc = np.rint(gauss_to_mag_counts(mag)).astype(int)
     ac = np.rint(g_to_acc_counts(acc)).astype(int)
-    return CompassSample(
-        t=t,
-        source="host",
-        heading_deg=a.heading_deg,
-        heading_reference=a.heading_reference,
-        heading_magnetic_deg=a.heading_magnetic_deg,
-        heading_true_deg=a.heading_true_deg,
-        declination_deg=a.declination_deg,
-        pitch_deg=math.degrees(a.pitch),
-        roll_deg=math.degrees(a.roll),
-        attitude=a,
-        raw_counts=(int(mc[0]), int(mc[1]), int(mc[2]), int(ac[0]), int(ac[1]), int(ac[2])),
+    return CompassSample.from_solution(
+        a, t, raw_counts=(int(mc[0]), int(mc[1]), int(mc[2]), int(ac[0]), int(ac[1]), int(ac[2]))
     )
 
 

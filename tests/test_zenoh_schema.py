@@ -47,20 +47,7 @@ def host_sample(roll_deg: float, pitch_deg: float, yaw_deg: float) -> CompassSam
     (mx, my, mz), (ax, ay, az) = s.mag_counts[0], s.acc_counts[0]
     ref = FieldReference(declination_deg=5.0)
     a = AttitudeEngine(Calibration(), reference=ref).solve_counts(mx, my, mz, ax, ay, az)
-    return CompassSample(
-        t=12.5,
-        source="host",
-        heading_deg=a.heading_deg,
-        heading_reference=a.heading_reference,
-        heading_magnetic_deg=a.heading_magnetic_deg,
-        heading_true_deg=a.heading_true_deg,
-        declination_deg=a.declination_deg,
-        pitch_deg=math.degrees(a.pitch),
-        roll_deg=math.degrees(a.roll),
-        seq=7,
-        device_heading_deg=101.5,
-        attitude=a,
-    )
+    return CompassSample.from_solution(a, 12.5, seq=7, device_heading_deg=101.5)
 
 
 def test_heading_document_carries_both_norths_and_declination() -> None:

@@ -134,20 +134,12 @@ class Pipeline:
         saturated = (int(f.flags) & _SAT) != 0
         if self._observe is not None:
             self._observe(a, t, saturated)
-        return CompassSample(
-            t=t,
-            source="host",
-            heading_deg=a.heading_deg,
-            heading_reference=a.heading_reference,
-            heading_magnetic_deg=a.heading_magnetic_deg,
-            heading_true_deg=a.heading_true_deg,
-            declination_deg=a.declination_deg,
-            pitch_deg=math.degrees(a.pitch),
-            roll_deg=math.degrees(a.roll),
+        return CompassSample.from_solution(
+            a,
+            t,
             seq=f.seq,
             device_heading_deg=f.heading,
             saturated=saturated,
-            attitude=a,
             raw_counts=(f.mx, f.my, f.mz, f.ax, f.ay, f.az),
         )
 

@@ -9,6 +9,7 @@ console and the service's status line all receive the same
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -60,6 +61,35 @@ class CompassSample:
     attitude: AttitudeSolution | None = None
     #: The frame's raw ADC counts (mx, my, mz, ax, ay, az), for MAVLink RAW_IMU; GMR frames only.
     raw_counts: tuple[int, int, int, int, int, int] | None = None
+
+    @classmethod
+    def from_solution(
+        cls,
+        a: AttitudeSolution,
+        t: float,
+        *,
+        seq: int | None = None,
+        device_heading_deg: float | None = None,
+        saturated: bool = False,
+        raw_counts: tuple[int, int, int, int, int, int] | None = None,
+    ) -> CompassSample:
+        """The host sample of the attitude engine's solution ``a`` (pitch and roll in degrees)."""
+        return cls(
+            t=t,
+            source="host",
+            heading_deg=a.heading_deg,
+            heading_reference=a.heading_reference,
+            heading_magnetic_deg=a.heading_magnetic_deg,
+            heading_true_deg=a.heading_true_deg,
+            declination_deg=a.declination_deg,
+            pitch_deg=math.degrees(a.pitch),
+            roll_deg=math.degrees(a.roll),
+            seq=seq,
+            device_heading_deg=device_heading_deg,
+            saturated=saturated,
+            attitude=a,
+            raw_counts=raw_counts,
+        )
 
 
 class Output(Protocol):
