@@ -63,7 +63,9 @@ class RealData:
     def every(self, k: int) -> RealData:
         """Every ``k``-th frame: the same motion seen by a slower logger."""
         s = slice(None, None, k)
-        return replace(self, mag_G=self.mag_G[s], acc_g=self.acc_g[s], seq=self.seq[s], t_s=self.t_s[s])
+        return replace(
+            self, mag_G=self.mag_G[s], acc_g=self.acc_g[s], seq=self.seq[s], t_s=self.t_s[s]
+        )
 
 
 def _comments_stripped(path: Path) -> list[str]:

@@ -40,21 +40,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.coverage import N_SECTIONS, sections
-from bridge.calibration.ellipsoid import fit_ellipsoid_geometry, reference_total_G
+from bridge.calibration.ellipsoid import ReferenceField, fit_ellipsoid_geometry, reference_total_G
 from bridge.calibration.model import CalibrationReport, CalibrationResult
 from bridge.calibration.samples import usable_mask
 from bridge.calibration.sanity import MagCalStatus, SanityLimits, check_mag_calibration
 from bridge.calibration.scalar import field_spread_nT
 from bridge.core.wmm import EarthField
-
-if TYPE_CHECKING:
-    from bridge.calibration.methods import CalibrationData
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -72,6 +69,21 @@ ASSUMED_DIP_DEG = 60.0
 _TURNING_ACC = 0.1
 
 SUCCESS = MagCalStatus.MAG_CAL_SUCCESS.name
+
+
+class CalibrationData(Protocol):
+    """What the rule reads of :class:`bridge.calibration.methods.CalibrationData`."""
+
+    @property
+    def mag_G(self) -> FloatArray: ...
+    @property
+    def acc_g(self) -> FloatArray | None: ...
+    @property
+    def saturated(self) -> BoolArray | None: ...
+    @property
+    def reference(self) -> ReferenceField: ...
+    @property
+    def reference_ned_G(self) -> FloatArray | None: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,7 +185,9 @@ def evidence(data: CalibrationData) -> Evidence | None:
         kept=int(np.count_nonzero(fit.inliers)),
         inliers=fit.inliers,
         noise_rel=fit.fitness_mG / 1000.0 / fit.radius_G,
-        offset_sd_rel=fit.offset_sd_G / fit.radius_G if math.isfinite(fit.offset_sd_G) else math.inf,
+        offset_sd_rel=fit.offset_sd_G / fit.radius_G
+        if math.isfinite(fit.offset_sd_G)
+        else math.inf,
         matrix_sd=fit.matrix_sd if math.isfinite(fit.matrix_sd) else math.inf,
         field_mG=field_mG,
         horizontal_mG=horizontal_mG,
@@ -225,18 +239,25 @@ def predict(
     return Prediction(systematic, uncertainty, handheld, heading, floor, limit)
 
 
+def _d(deg: float) -> str:
+    """Degrees as the reasons print them: two decimals, or two significant digits below 0.1."""
+    return f"{deg:.2f}" if abs(deg) >= 0.1 or deg == 0.0 else f"{deg:.2g}"
+
+
 def _cause(p: Prediction, ev: Evidence, rep: CalibrationReport, method: str) -> tuple[str, str]:
     """The status and the reason of a calibration over the limit: its largest part, and what to do."""
-    head = f"heading error ~{p.heading_deg:.2f} deg > {p.limit_deg:.2f}"
-    parts = {"systematic": p.systematic_mG, "uncertainty": p.uncertainty_mG, "handheld": p.handheld_mG}
+    head = f"heading error ~{_d(p.heading_deg)} deg > {_d(p.limit_deg)}"
+    parts = {
+        "systematic": p.systematic_mG,
+        "uncertainty": p.uncertainty_mG,
+        "handheld": p.handheld_mG,
+    }
     worst = max(parts, key=lambda k: parts[k])
     residuals = MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH.name
     if worst == "handheld":
-        shake = f", {rep.motion_g:.3f} g of shake" if math.isfinite(rep.motion_g) else ""
-        return residuals, (
-            f"{head} (accelerometer and alignment from {ev.kept} frames{shake}): "
-            "turn slower / steadier"
-        )
+        # Mostly the accelerometer and the alignment a hand's shake left uncertain (the
+        # notes say from how many frames and how much shake).
+        return residuals, f"{head}: turn slower / steadier"
     if worst == "systematic":
         return residuals, (
             f"{head}: {method} leaves |B| scattered {p.systematic_mG:.1f} mG beyond the sensor's "
@@ -276,7 +297,9 @@ def fail(result: CalibrationResult, status: str, reason: str) -> CalibrationResu
     """``result`` failed with ``reason`` (first among the notes too)."""
     rep = result.report
     notes = rep.notes if reason in rep.notes else (reason, *rep.notes)
-    return CalibrationResult(result.calibration, replace(rep, status=status, reason=reason, notes=notes))
+    return CalibrationResult(
+        result.calibration, replace(rep, status=status, reason=reason, notes=notes)
+    )
 
 
 def _first_reason(rep: CalibrationReport) -> str:
@@ -286,7 +309,9 @@ def _first_reason(rep: CalibrationReport) -> str:
     return own[0] if own else rep.status
 
 
-def _accel_only(result: CalibrationResult, data: CalibrationData, acceptance: Acceptance) -> CalibrationResult:
+def _accel_only(
+    result: CalibrationResult, data: CalibrationData, acceptance: Acceptance
+) -> CalibrationResult:
     """Six faces: the residual tilt (|g| scatter after the fit) seen across tan(dip)."""
     rep = result.report
     if not rep.ok:
@@ -295,7 +320,9 @@ def _accel_only(result: CalibrationResult, data: CalibrationData, acceptance: Ac
     dip = float(ref.inclination_deg) if isinstance(ref, EarthField) else ASSUMED_DIP_DEG
     tilt = rep.gravity_rms_after_mg / 1000.0 if math.isfinite(rep.gravity_rms_after_mg) else 0.0
     heading = math.degrees(math.atan(math.tan(tilt) * math.tan(math.radians(abs(dip)))))
-    judged = replace(rep, predicted_heading_deg=heading, heading_limit_deg=acceptance.heading_max_deg)
+    judged = replace(
+        rep, predicted_heading_deg=heading, heading_limit_deg=acceptance.heading_max_deg
+    )
     res = CalibrationResult(result.calibration, judged)
     if heading <= acceptance.heading_max_deg:
         return res
@@ -336,7 +363,9 @@ def accept(
     # The bounds every method answers to (ArduPilot's: radius, offsets, scaling, COMPASS_CAL_FIT).
     sanity = check_mag_calibration(
         mag,
-        radius_G=rep.radius_G if math.isfinite(rep.radius_G) else 1e-3 * (ev.field_mG if ev else 0.0),
+        radius_G=rep.radius_G
+        if math.isfinite(rep.radius_G)
+        else 1e-3 * (ev.field_mG if ev else 0.0),
         fitness_mG=rep.fitness_mG,
         check_rotation=check_rotation,
         limits=_limits(acc),
@@ -344,7 +373,8 @@ def accept(
     if ev is None:
         judged = CalibrationResult(result.calibration, _judged(rep, None, None, mag_all))
         if not sanity.ok:
-            return fail(judged, sanity.status.name, sanity.reasons[0])
+            why = _sanity_reason(sanity.reasons[0], sanity.status, rep)
+            return fail(judged, sanity.status.name, why)
         return fail(
             judged,
             MagCalStatus.MAG_CAL_FAILED.name,
@@ -353,13 +383,23 @@ def accept(
     p = predict(result, data, ev, acc)
     judged = CalibrationResult(result.calibration, _judged(rep, ev, p, mag_all))
     if not sanity.ok:
-        why = sanity.reasons[0]
-        if sanity.status is MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH:
-            why += ": keep iron away and turn slower"
-        return fail(judged, sanity.status.name, why)
+        return fail(
+            judged, sanity.status.name, _sanity_reason(sanity.reasons[0], sanity.status, rep)
+        )
     if not p.ok:
         return fail(judged, *_cause(p, ev, rep, rep.method))
     return judged
+
+
+def _sanity_reason(why: str, status: MagCalStatus, rep: CalibrationReport) -> str:
+    """A bound's reason with what to do: over COMPASS_CAL_FIT because a hand shook the
+    accelerometer (a hand-held fit's fitness counts it), or because the field itself
+    scatters; the other bounds say what is out of range."""
+    if status is not MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH:
+        return f"{why}: check the mounting and the field around the unit, then recalibrate"
+    if math.isfinite(rep.residual_mG) and rep.fitness_mG > math.sqrt(2.0) * rep.residual_mG:
+        return f"{why} (heading error ~{_d(rep.heading_error_deg)} deg): turn slower / steadier"
+    return f"{why}: keep iron away while turning, or raise COMPASS_CAL_FIT"
 
 
 def _limits(acc: Acceptance) -> SanityLimits:

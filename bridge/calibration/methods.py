@@ -36,8 +36,8 @@ from types import MappingProxyType
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.acceptance import Acceptance, accept
 from bridge.calibration.accel_faces import Face, fit_six_face
+from bridge.calibration.acceptance import Acceptance, accept
 from bridge.calibration.alignment import fit_ellipsoid_aligned, fit_ellipsoid_aligned_series
 from bridge.calibration.ellipsoid import ReferenceField, fit_ellipsoid, reference_total_G
 from bridge.calibration.minmax import fit_minmax
@@ -196,8 +196,12 @@ def _minmax(data: CalibrationData) -> CalibrationResult:
     res = plain
     if data.acc_g is not None:
         gated = fit_minmax(data.mag_G[ok], acc_g=data.acc_g[ok])
-        if gated.report.ok and not (plain.report.ok and plain.report.fitness_mG <= gated.report.fitness_mG):
-            res = replace_note(gated, "samples gated as the device's MAGCAL (level turn, side turn)")
+        if gated.report.ok and not (
+            plain.report.ok and plain.report.fitness_mG <= gated.report.fitness_mG
+        ):
+            res = replace_note(
+                gated, "samples gated as the device's MAGCAL (level turn, side turn)"
+            )
         elif plain.report.ok:
             res = replace_note(plain, "every sample used (a tumble)")
     return _with_accel(res, *accel_calibration_for(data))
@@ -238,9 +242,7 @@ def _scalar(data: CalibrationData) -> CalibrationResult:
         return res
     why = "; ".join(n.removeprefix("accel: ") for n in res.report.notes if n.startswith("accel:"))
     accel, source = accel_calibration_for(data)
-    return _with_accel(
-        replace_note(mag, f"accelerometer scalar fit failed ({why})"), accel, source
-    )
+    return _with_accel(replace_note(mag, f"accelerometer scalar fit failed ({why})"), accel, source)
 
 
 def _ellipsoid(data: CalibrationData) -> CalibrationResult:
