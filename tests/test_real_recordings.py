@@ -13,7 +13,9 @@ calibration a source publishes.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -96,6 +98,16 @@ def spread_rel(m: FloatArray) -> float:
 # ---------------------------------------------------------------------------
 # Fixtures: the recordings as an operator would have them
 # ---------------------------------------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging() -> Iterator[None]:
+    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
 
 
 @pytest.fixture(scope="module")
