@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from handheld_rig import FIELD, Tumbled, collect, held, tumble
 
+from bridge.calibration.acceptance import Acceptance
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import AffineCalibration, CalibrationResult
 from bridge.calibration.series import hann_kernel, motion_rms_g, runs, window_means
 from bridge.calibrator.report import fit_report
-from bridge.calibrator.results import judge_accuracy
 from bridge.calibrator.state import Mode
 from bridge.sim.physics import UnitErrors
 from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_G
@@ -155,9 +155,8 @@ def test_motion_too_violent_fails_instead_of_succeeding_worse(
     res = _series_fit(rec)
     s = held(rec, {"series": res.calibration})
     excess = math.sqrt(max(0.0, s["series"].rms_deg ** 2 - s["floor"].rms_deg ** 2))
-    verdict = judge_accuracy(res, 0.25)
+    verdict = res  # the best method is judged by the acceptance rule (0.25 deg here)
     if verdict.report.ok:
-        assert verdict is res
         assert excess <= 0.25 and excess <= 2.0 * res.report.heading_error_deg
     else:
         assert verdict.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
@@ -167,10 +166,14 @@ def test_motion_too_violent_fails_instead_of_succeeding_worse(
         assert excess > 0.25 and not verdict.report.ok
 
 
-def test_a_good_fit_passes_the_accuracy_judge_untouched() -> None:
-    good = _series_fit(tumble(3, 0.05, seconds=70.0))
-    assert judge_accuracy(good, 0.25) is good
-    assert judge_accuracy(good, 1e-3).report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+def test_a_good_fit_passes_the_accuracy_judge_and_a_tighter_target_fails_it() -> None:
+    rec = tumble(3, 0.05, seconds=70.0)
+    good = _series_fit(rec)
+    assert good.report.ok and good.report.predicted_heading_deg < 0.25
+    data = CalibrationData(rec.mag, rec.acc, rec.saturated, reference=FIELD, t_s=rec.t)
+    tight = calibrate(BEST, data, Acceptance(heading_max_deg=1e-3))
+    assert tight.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+    assert tight.report.reason.endswith(": turn slower / steadier")
 
 
 def test_a_short_series_falls_back_to_single_samples_and_bad_times_are_refused() -> None:
