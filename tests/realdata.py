@@ -72,6 +72,15 @@ def _comments_stripped(path: Path) -> list[str]:
     return [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
 
 
+def _ck(name: str, acc_mag: FloatArray, row: IntArray, source_rate_hz: float) -> RealData:
+    # The log reads -1 g on z lying flat: its axes are (forward, left, up). Turned by 180 deg
+    # about x -- (x, -y, -z), a rotation, for both sensors -- they are the compass's.
+    flip = np.array([1.0, -1.0, -1.0])
+    return RealData(
+        name, acc_mag[:, 3:6] * flip, acc_mag[:, 0:3] * flip, row, row / source_rate_hz, True
+    )
+
+
 def ck_tumble(source_rate_hz: float = 100.0) -> RealData:
     """CK-Explorer's hand tumble (LSM9DS1-class: 0.14 mG steps), 394 rows of 12 000.
 
@@ -81,20 +90,31 @@ def ck_tumble(source_rate_hz: float = 100.0) -> RealData:
     and the hard iron (0.15, -0.39, +0.06 G in these axes) stays inside the ADC's
     -0.96..+0.64 G. The source gives no sample rate; ``source_rate_hz`` is the
     one assumed for its row numbers (~100 Hz: a hand's 7-14 Hz tremor sits at
-    0.07-0.14 cycles per row, and the tumble then turns at ~45 deg/s).
+    0.07-0.14 cycles per row, and the tumble then turns at ~45 deg/s). The rows
+    kept are about every 6th of eight stretches: ~17 Hz frames in eight runs.
     """
     rows = list(csv.reader(_comments_stripped(DATA / "ck_tumble.csv")))[1:]
     a = np.array([[float(v) for v in r[1:]] for r in rows])
     row = np.array([int(r[0]) for r in rows], dtype=np.int64)
-    flip = np.array([1.0, -1.0, -1.0])
-    return RealData(
-        "ck_tumble",
-        a[:, 3:6] * flip,
-        a[:, 0:3] * flip,
-        row,
-        row / source_rate_hz,
-        True,
+    return _ck("ck_tumble", a, row, source_rate_hz)
+
+
+def ck_tumble_100hz(source_rate_hz: float = 100.0) -> RealData:
+    """The same log's 2000 consecutive rows 1400..3399: 20 s of the tumble at its own ~100 Hz.
+
+    Axes, units and the assumed rate as :func:`ck_tumble`; every row is a frame,
+    the frame counter the row number (``first_row`` in the file's header).
+    """
+    path = DATA / "ck_tumble_100hz.csv"
+    first = next(
+        int(ln.split(":", 1)[1])
+        for ln in path.read_text().splitlines()
+        if ln.startswith("# first_row:")
     )
+    rows = list(csv.reader(_comments_stripped(path)))[1:]
+    a = np.array([[float(v) for v in r] for r in rows])
+    row = first + np.arange(a.shape[0], dtype=np.int64)
+    return _ck("ck_tumble_100hz", a, row, source_rate_hz)
 
 
 def px4_mag_data1(rate_hz: float = 10.0) -> RealData:
