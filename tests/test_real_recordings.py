@@ -13,35 +13,48 @@ calibration a source publishes.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 import pytest
+from helpers import load_calibration
 from realdata import (
     DATA,
     PX4_PUBLISHED_DIAG,
     PX4_PUBLISHED_OFFSETS_G,
     RealData,
     ck_tumble,
+    ck_tumble_100hz,
     px4_mag_data1,
     sap6_hc,
     sap6_published,
     write_recording,
 )
 
-from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG
+from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
 from bridge.calibration.methods import CalibrationData, calibrate
-from bridge.calibration.model import CalibrationResult
+from bridge.calibration.model import Calibration, CalibrationResult
+from bridge.calibration.series import runs
 from bridge.cli import main
+from bridge.core.attitude import tilt_compensated_heading
 from bridge.tools.calibrate import RecordedVectors, read_recording
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
 
-SOURCES = {"ck_tumble": ck_tumble, "px4_mag_data1": px4_mag_data1, "sap6_HC": sap6_hc}
+SOURCES = {
+    "ck_tumble": ck_tumble,
+    "ck_tumble_100hz": ck_tumble_100hz,
+    "px4_mag_data1": px4_mag_data1,
+    "sap6_HC": sap6_hc,
+}
 
 
 # ---------------------------------------------------------------------------
@@ -135,9 +148,11 @@ def _fit(v: RecordedVectors, method: str) -> CalibrationResult:
 
 def test_the_shipped_excerpts_are_small_and_every_one_has_its_source_and_licence() -> None:
     sources = (DATA / "SOURCES.md").read_text()
-    for f in ("ck_tumble.csv", "px4_mag_data1.csv", "sap6_HC.json", "sap6_HC.cfg"):
-        assert (DATA / f).stat().st_size < 100_000, f
+    shipped = ("ck_tumble.csv", "ck_tumble_100hz.csv", "px4_mag_data1.csv", "sap6_HC.json")
+    for f in (*shipped, "sap6_HC.cfg"):
+        assert (DATA / f).stat().st_size < 150_000, f
         assert f"`{f}`" in sources
+    assert sum((DATA / f).stat().st_size for f in shipped) < 300_000
     for words in (
         "Apache-2.0",
         "Copyright 2023 CK-Explorer",
@@ -206,34 +221,60 @@ def test_the_fit_agrees_with_independent_least_squares_and_leaves_the_same_sprea
         c = np.asarray(res.calibration.mag.offset)
         assert 1000.0 * np.linalg.norm(c - c_geo) <= tol_mG, (method, c, c_geo)
         assert spread_rel(res.calibration.mag.apply(x)) <= 1.05 * best_reference, method
-    # the default method succeeds where the independent fit calibrates -- except where
-    # the hand-held part (accelerometer and alignment, which no magnetometer fit sees)
-    # is what these frames cannot pin down; then it says so (see the next test)
+    # the default method succeeds where the independent fit calibrates
     best = _fit(v, "best")
-    if name == "ck_tumble":
-        assert not best.report.ok
-        assert best.report.reason.endswith("turn slower / steadier"), best.report.reason
-        assert _fit(v, "ellipsoid").report.ok
-    else:
-        assert best.report.ok, best.report.reason
+    assert best.report.ok, best.report.reason
+    assert best.report.predicted_heading_deg <= best.report.heading_limit_deg
+
+
+@pytest.mark.parametrize("name", ["ck_tumble", "ck_tumble_100hz"])
+def test_the_default_method_calibrates_the_real_hand_tumble_and_saves_it(
+    name: str, recorded: dict[str, tuple[Path, RecordedVectors]], tmp_path: Path
+) -> None:
+    # `compass-bridge calibrate --recording` as an operator runs it: no --method (the
+    # default, best), --yes: it succeeds and saves what the independent fit finds
+    path, v = recorded[name]
+    state = tmp_path / "state"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["calibrate", "--recording", str(path), "--yes", "--state-dir", str(state)])
+    text = out.getvalue()
+    assert code == 0, text
+    assert "MAG_CAL_SUCCESS  (method ellipsoid_aligned)" in text and "saved to" in text
+    assert f"limit {DEFAULT_HEADING_MAX_DEG:.2f} deg" in text
+    saved, _ = load_calibration(state)
+    x = v.mag_G[~v.saturated]
+    c_geo, W_geo = geometric_ellipsoid(x)
+    c_alg, W_alg = algebraic_ellipsoid(x)
+    field_mG = 1000.0 * float(np.linalg.det(W_geo)) ** (-1.0 / 3.0)
+    centre_mG = 1000.0 * np.linalg.norm(np.asarray(saved.mag.offset) - c_geo)
+    assert centre_mG <= max(1.0, 0.005 * field_mG)
+    best_reference = min(spread_rel((x - c_geo) @ W_geo.T), spread_rel((x - c_alg) @ W_alg.T))
+    assert spread_rel(saved.mag.apply(x)) <= 1.05 * best_reference
 
 
 def test_a_real_hand_tumble_is_judged_on_its_accelerometer_and_alignment_too(
     recorded: dict[str, tuple[Path, RecordedVectors]],
 ) -> None:
     # 394 frames of a hand tumble with 0.05 g of shake: the magnetometer's part leaves
-    # ~0.1 deg, the accelerometer and alignment a jackknife ~0.6 deg -- over the 0.25
-    # target, and the failure names that part, not the magnetometer
+    # ~0.1 deg, the accelerometer and alignment a jackknife ~0.6 deg -- within the 1 deg
+    # target, so it succeeds; asked for 0.25 deg, it fails naming that part, not the
+    # magnetometer
     _, v = recorded["ck_tumble"]
     rep = _fit(v, "best").report
     mag_only = _fit(v, "ellipsoid").report
     assert mag_only.ok and mag_only.predicted_heading_deg < 0.2
-    assert rep.heading_error_deg > rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
+    assert rep.ok and rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
+    assert 0.4 < rep.heading_error_deg <= rep.predicted_heading_deg <= rep.heading_limit_deg
     assert rep.predicted_heading_deg == pytest.approx(
         math.hypot(rep.heading_error_deg, mag_only.predicted_heading_deg), rel=0.1
     )
     assert 0.03 < rep.motion_g < 0.08
     assert any("alignment from 394 frames" in n for n in rep.notes)
+    strict = calibrate("best", _data(v), Acceptance(heading_max_deg=0.25)).report
+    assert not strict.ok and strict.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+    assert strict.reason.startswith("heading error ~") and "> 0.25" in strict.reason
+    assert strict.reason.endswith("turn slower / steadier")
 
 
 def test_px4s_published_calibration_is_matched(
@@ -279,8 +320,15 @@ def test_min_max_keeps_every_sample_and_fails_when_its_scatter_condemns_it(
     rep = _fit(v, "minmax").report
     assert rep.n_samples == rep.n_frames == len(v.mag_G)  # a min/max of the tumble: all of it
     assert not rep.ok and rep.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
-    assert rep.predicted_heading_deg > rep.heading_limit_deg
-    assert "minmax leaves |B| scattered" in rep.reason and rep.reason.startswith("heading error ~")
+    # what it leaves condemns it: min/max on real tumbles leaves 1.4-5 deg against a 1 deg
+    # target (CK 1.39, PX4 3.37 against its floor-scaled 1.22, SAP6 5.06); on the 20 s
+    # run its fitness is over COMPASS_CAL_FIT too, and that bound speaks first
+    assert rep.predicted_heading_deg > max(DEFAULT_HEADING_MAX_DEG, rep.heading_limit_deg)
+    if name == "ck_tumble_100hz":
+        assert rep.reason.startswith("fitness ") and "above COMPASS_CAL_FIT 16.0" in rep.reason
+    else:
+        assert rep.reason.startswith("heading error ~")
+        assert "minmax leaves |B| scattered" in rep.reason
     # and it is never saved, whatever the operator answers
     state = tmp_path / "state"
     args = ["calibrate", "--recording", str(path), "--method", "minmax", "--yes"]
@@ -302,7 +350,8 @@ def test_a_noisy_sparse_sensor_is_held_to_what_its_noise_and_count_allow(
         math.atan2(ell.noise_mG * math.sqrt(3.0 / ell.n_samples), ell.horizontal_mG)
     )
     assert ell.heading_floor_deg == pytest.approx(floor, rel=1e-6)
-    assert ell.heading_limit_deg == pytest.approx(3.0 * floor) and ell.heading_limit_deg > 0.25
+    assert ell.heading_limit_deg == pytest.approx(3.0 * floor)
+    assert ell.heading_limit_deg > DEFAULT_HEADING_MAX_DEG
     for m, rep in reps.items():
         assert rep.ok, (m, rep.reason)
         assert rep.predicted_heading_deg <= rep.heading_limit_deg
@@ -331,9 +380,6 @@ def test_a_quiet_sensor_is_held_to_the_operators_target(
 
 
 def _cli(path: Path, *extra: str) -> tuple[int, str]:
-    import contextlib
-    import io
-
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         code = main(["calibrate", "--recording", str(path), "--no", *extra])
@@ -344,10 +390,11 @@ def test_offline_a_failure_prints_its_cause_and_no_parameters(
     recorded: dict[str, tuple[Path, RecordedVectors]],
 ) -> None:
     path, _ = recorded["ck_tumble"]
-    code, out = _cli(path)
+    code, out = _cli(path, "--method", "minmax")
     assert code == 1
     cause = next(ln for ln in out.splitlines() if ln.startswith("cause"))
-    assert "heading error ~" in cause and cause.endswith("turn slower / steadier")
+    assert cause.startswith("cause         heading error ~") and "> 1.00: minmax leaves" in cause
+    assert cause.endswith("use the best method, or keep iron away while turning")
     assert "no reference field" not in out and "COMPASS_OFS" not in out
     assert "parameters    none: the fit failed" in out
     assert "over the 394 samples the fit kept (of 394 frames)" in out
@@ -379,28 +426,36 @@ def test_the_coverage_map_is_drawn_from_the_raw_samples_whatever_the_method(
     assert "sphere coverage: 60/80 sections" in maps.pop()
 
 
-def test_a_live_failure_carries_its_cause_not_a_note(
-    recorded: dict[str, tuple[Path, RecordedVectors]],
-) -> None:
-    # The live session (no [location]: the fit's first note is the informational "no
-    # reference field") ends with the fit's cause as calibration.failed -- the event
-    # Zenoh publishes and the MAVLink adapter sends as STATUSTEXT.
-    import time
+def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
+    """A live host calibration fed ``src``'s frames on a fake clock at their own times.
+
+    Returns the session's end (its phase), the report of the final event and its text:
+    ``calibration.done`` or ``calibration.failed``, the event Zenoh publishes and the
+    MAVLink adapter sends as STATUSTEXT. No [location]: the fit's first note is then
+    the informational "no reference field".
+    """
+    import threading
 
     from bridge.calibrator import CalibrationController
-    from bridge.calibrator.state import CalibratorSettings, Phase
+    from bridge.calibrator.state import CalibratorSettings
     from bridge.core.attitude import AttitudeEngine
     from bridge.events import EventBus
     from bridge.protocol.gmr import AttitudeFrame, Flags
 
-    src = ck_tumble()
     counts = np.rint(np.column_stack([src.mag_G * 2560.0, src.acc_g * 491.5]) + 2458.0)
     clock = [1000.0]
-    got: list[object] = []
+    final: list[object] = []
+    ended = threading.Event()
+
+    def on_event(e: object) -> None:
+        if getattr(e, "kind", "") in ("calibration.done", "calibration.failed"):
+            final.append(e)
+            ended.set()
+
     bus = EventBus()
-    bus.subscribe(got.append)
-    # a small buffer (394 frames fill ArduPilot's two steps of 20) and the recording's own
-    # gaps between its stretches (seconds) allowed
+    bus.subscribe(on_event)
+    # a small buffer (a few hundred frames fill ArduPilot's two steps of 20) and the
+    # recordings' own gaps between stretches (seconds) allowed
     settings = CalibratorSettings(capacity=20, no_data_timeout_s=60.0)
     ctl = CalibrationController(
         AttitudeEngine(), bus, field=None, settings=settings, clock=lambda: clock[0]
@@ -408,26 +463,47 @@ def test_a_live_failure_carries_its_cause_not_a_note(
     try:
         assert ctl.start_mag().ok
         for i, c in enumerate(counts.astype(int)):
-            clock[0] = 1000.0 + float(src.t_s[i])
+            clock[0] = 1000.0 + float(src.t_s[i] - src.t_s[0])
             ctl.feed(AttitudeFrame(int(src.seq[i]) % 65536, 0.0, 0.0, 0.0, *map(int, c), Flags(0)))
             snap = ctl.snapshot()
+            if not snap.running:
+                break
             if snap.step == 1 and snap.completion_pct >= 33.0:
                 assert ctl.wait_for(lambda s: s.step != 1 or not s.running, 30.0) is not None
         done = ctl.wait_for(lambda s: not s.running, 30.0)
-        assert done is not None and done.phase is Phase.FAILED
-        deadline = time.monotonic() + 10.0
-        failed: list[object] = []
-        while not failed and time.monotonic() < deadline:
-            failed = [e for e in list(got) if getattr(e, "kind", "") == "calibration.failed"]
-            time.sleep(0.01)
-        assert len(failed) == 1
-        ev = failed[0]
-        reason = ev.data["reason"]  # type: ignore[attr-defined]
-        assert reason.startswith("heading error ~") and "no reference field" not in reason
-        assert reason.endswith("turn slower / steadier")
-        assert ev.text == f"Calibration failed: {reason}"  # type: ignore[attr-defined]
+        assert done is not None and ended.wait(10.0) and len(final) == 1
+        ev = final[0]
+        data = ev.data  # type: ignore[attr-defined]
+        return done.phase.value, data, ev.text  # type: ignore[attr-defined]
     finally:
         ctl.close()
+
+
+def test_a_live_failure_carries_its_cause_not_a_note() -> None:
+    # The 394-frame excerpt live: ArduPilot's second step keeps ~250 frames, from which
+    # the accelerometer and alignment are known to ~2 deg only (> 1): the session fails
+    # with the fit's cause as calibration.failed, not the fit's first note
+    phase, data, text = _live_session(ck_tumble())
+    assert phase == "failed"
+    reason = data["reason"]
+    assert isinstance(reason, str)
+    assert reason.startswith("heading error ~") and "no reference field" not in reason
+    assert reason.endswith("turn slower / steadier")
+    assert text == f"Calibration failed: {reason}"
+
+
+def test_a_live_session_calibrates_a_real_100_hz_hand_tumble() -> None:
+    # The 20 s run at its own 100 Hz, live: every frame of the second step is fitted as a
+    # series and the calibration succeeds within the target, seeing the hand's shake
+    phase, data, text = _live_session(ck_tumble_100hz())
+    assert phase == "succeeded", data
+    report = data["report"]
+    assert isinstance(report, dict)
+    assert report["n_frames"] > 1000 and report["n_samples"] == report["n_frames"]
+    assert 0.03 < report["motion_g"] < 0.08
+    assert 0.0 < report["heading_error_deg"] <= report["predicted_heading_deg"]
+    assert report["predicted_heading_deg"] <= report["heading_limit_deg"] == 1.0
+    assert text.startswith("Calibration done")
 
 
 # ---------------------------------------------------------------------------
@@ -454,25 +530,81 @@ def test_methods_that_need_a_live_unit_are_refused_on_a_recording(
 # ---------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("every", [1, 2, 5])
-def test_the_hand_held_model_copes_with_real_rates(every: int, tmp_path: Path) -> None:
-    # The tumble's frames carry the source's 100 Hz counter (a kept row every ~6):
-    # ~17 Hz of frames; every 2nd ~8 Hz; every 5th ~3 Hz, as a slow logger would see it.
-    src = ck_tumble().every(every)
+def _held_headings(cal: Calibration, v: RecordedVectors) -> tuple[FloatArray, BoolArray]:
+    """Tilt-compensated headings of every frame under ``cal``, and which are under 60 deg tilt."""
+    roll, pitch, heading = tilt_compensated_heading(
+        cal.mag.apply(v.mag_G), cal.accel.apply(v.acc_g)
+    )
+    tilt = np.degrees(np.arccos(np.clip(np.cos(roll) * np.cos(pitch), -1.0, 1.0)))
+    return heading, tilt < 60.0
+
+
+def test_a_100_hz_hand_tumble_is_read_at_its_own_frame_times(
+    recorded: dict[str, tuple[Path, RecordedVectors]],
+) -> None:
+    # 2000 consecutive rows of the log: one run of frames 10 ms apart, 20 s, fitted as
+    # a series over 2 s windows (seconds, not frames), with the hand's shake measured
+    _, v = recorded["ck_tumble_100hz"]
+    assert v.t_s is not None and len(v.t_s) == 2000
+    assert np.allclose(np.diff(v.t_s), 0.01, atol=1e-6) and v.t_s[-1] == pytest.approx(19.99)
+    assert runs(v.t_s, ~v.saturated) == [(0, 2000)]
+    rep = _fit(v, "best").report
+    assert rep.ok and rep.n_frames == rep.n_samples == 2000
+    assert 0.03 < rep.motion_g < 0.08
+    assert any(n.startswith("alignment from ") and " 2 s window means" in n for n in rep.notes)
+
+
+@pytest.mark.parametrize("every", [1, 2, 5, 10, 20, 30])
+def test_the_hand_held_model_copes_with_real_rates(
+    every: int, recorded: dict[str, tuple[Path, RecordedVectors]], tmp_path: Path
+) -> None:
+    # The 20 s run at its own 100 Hz, and the same motion as slower loggers see it:
+    # every 2nd frame 50 Hz, 5th 20 Hz, 10th 10 Hz, 20th 5 Hz, 30th 3.3 Hz (decimated:
+    # no public recording of a few Hz was found, tests/data/SOURCES.md)
+    src = ck_tumble_100hz().every(every)
     v = read_recording(str(write_recording(src, tmp_path / "ck.rec")))
     assert v.t_s is not None and np.allclose(v.t_s, src.t_s - src.t_s[0], atol=1e-6)
-    rate = src.rate_hz
-    assert {1: 14.0, 2: 7.0, 5: 2.9}[every] < rate < {1: 20.0, 2: 10.0, 5: 4.0}[every]
-    full = _fit(read_recording(str(write_recording(ck_tumble(), tmp_path / "all.rec"))), "best")
+    assert src.rate_hz == pytest.approx(100.0 / every, rel=1e-6)
+    _, v_full = recorded["ck_tumble_100hz"]
+    full = _fit(v_full, "best")
     res = _fit(v, "best")
     rep = res.report
-    # the motion it sees is the same hand whatever the rate (not a rate artefact)
+    # the motion it sees is the same hand whatever the rate (not a rate artefact), and
+    # it averages windows of seconds, not of a number of frames
     assert rep.motion_g == pytest.approx(full.report.motion_g, rel=0.35)
-    # the jackknife prediction is there, finite, and grows as frames get fewer
-    assert math.isfinite(rep.heading_error_deg) and rep.heading_error_deg > 0.0
-    assert rep.heading_error_deg >= 0.8 * full.report.heading_error_deg
+    assert any(re.match(r"alignment from \d+ [1-6] s window means", n) for n in rep.notes)
     # the magnetometer part is the same fit at every rate
     c, c_full = np.asarray(res.calibration.mag.offset), np.asarray(full.calibration.mag.offset)
     assert 1000.0 * np.linalg.norm(c - c_full) < 2.0
-    # and the verdict names the same cause
-    assert not rep.ok and rep.reason.endswith("turn slower / steadier")
+    # the jackknife prediction grows as frames get fewer, and covers what fewer frames
+    # change: the headings differ from the 100 Hz fit's by no more than it predicts
+    assert rep.heading_error_deg >= 0.95 * full.report.heading_error_deg
+    h, level = _held_headings(res.calibration, v_full)
+    h_full, _ = _held_headings(full.calibration, v_full)
+    d = (h - h_full + 180.0) % 360.0 - 180.0
+    assert float(np.sqrt(np.mean(d[level] ** 2))) <= rep.predicted_heading_deg
+    # and the verdict is the rule's: within the target it succeeds, beyond it it says why
+    assert rep.ok == (rep.predicted_heading_deg <= rep.heading_limit_deg)
+    if not rep.ok:
+        assert rep.reason.endswith("turn slower / steadier"), rep.reason
+    assert rep.ok == (every <= 5)  # 400 frames or more of these 20 s; 200 or fewer fail
+
+
+@pytest.mark.parametrize("every", [1, 2, 5])
+def test_the_hand_held_model_copes_with_frames_in_separate_runs(every: int, tmp_path: Path) -> None:
+    # The 394-frame excerpt: eight runs a few seconds each, gaps between (~17, 8 and 3 Hz)
+    src = ck_tumble().every(every)
+    v = read_recording(str(write_recording(src, tmp_path / "ck.rec")))
+    assert v.t_s is not None and np.allclose(v.t_s, src.t_s - src.t_s[0], atol=1e-6)
+    assert len(runs(v.t_s, ~v.saturated)) == 8
+    full = _fit(read_recording(str(write_recording(ck_tumble(), tmp_path / "all.rec"))), "best")
+    res = _fit(v, "best")
+    rep = res.report
+    assert rep.motion_g == pytest.approx(full.report.motion_g, rel=0.35)
+    c, c_full = np.asarray(res.calibration.mag.offset), np.asarray(full.calibration.mag.offset)
+    assert 1000.0 * np.linalg.norm(c - c_full) < 2.0
+    assert math.isfinite(rep.heading_error_deg)
+    assert rep.heading_error_deg >= 0.95 * full.report.heading_error_deg
+    assert rep.ok == (rep.predicted_heading_deg <= rep.heading_limit_deg)
+    if not rep.ok:
+        assert rep.reason.endswith("turn slower / steadier"), rep.reason
