@@ -336,6 +336,26 @@ def test_min_max_keeps_every_sample_and_fails_when_its_scatter_condemns_it(
     assert code == 1 and not (state / "calibration.json").exists()
 
 
+def test_a_min_max_leaving_a_fifth_of_the_field_is_condemned_by_the_heading_rule(
+    recorded: dict[str, tuple[Path, RecordedVectors]],
+) -> None:
+    # The min/max a collector that kept too few samples gave (the bug this suite was
+    # written for: +-32 % of |B|, ~21 deg, said SUCCESS): a min/max of the first 40 of
+    # PX4's samples, a cap of the sphere, judged on all of them. Even with
+    # COMPASS_CAL_FIT at QGroundControl's 100 mG, the heading rule condemns it.
+    from bridge.calibration.acceptance import accept
+    from bridge.calibration.minmax import fit_minmax
+
+    _, v = recorded["px4_mag_data1"]
+    res = fit_minmax(v.mag_G[:40])
+    n = np.linalg.norm(res.calibration.mag.apply(v.mag_G), axis=1)
+    assert 0.2 < (n.max() - n.min()) / 2.0 / n.mean() < 0.4
+    rep = accept(res, _data(v), Acceptance(fitness_max_mG=100.0)).report
+    assert not rep.ok and rep.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+    assert rep.predicted_heading_deg > 10.0 > 5.0 * rep.heading_limit_deg
+    assert rep.reason.startswith("heading error ~") and "minmax leaves |B| scattered" in rep.reason
+
+
 def test_a_noisy_sparse_sensor_is_held_to_what_its_noise_and_count_allow(
     recorded: dict[str, tuple[Path, RecordedVectors]],
 ) -> None:
