@@ -477,7 +477,12 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     where.add_argument(
         "--mavlink", metavar="URL", help="pymavlink connection to a running bridge (udpin:...)"
     )
-    cal.add_argument("--method", default="best", help="engine method (offline; default best)")
+    cal.add_argument(
+        "--method",
+        default="best",
+        help="engine method (offline; default best): minmax, scalar, ellipsoid, best "
+        "(twelve_position and accel_six_face need a live unit)",
+    )
     cal.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="for the WMM")
     cal.add_argument("--state-dir", metavar="DIR", help="offline: save an accepted result here")
     cal.add_argument(
@@ -513,13 +518,18 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """``calibrate``: see :mod:`bridge.tools.calibrate`."""
-    from bridge.calibration.methods import canonical_name
+    from bridge.calibration.methods import LIVE_ONLY, METHOD_NAMES, canonical_name
     from bridge.tools.calibrate import cmd_calibrate as run
 
     try:
-        canonical_name(args.method)
+        name = canonical_name(args.method)
     except ValueError as e:
         raise UsageError(str(e)) from None
+    if args.recording and name in LIVE_ONLY:
+        raise UsageError(
+            f"method {name!r} needs a live unit ({LIVE_ONLY[name]}), not a recording; "
+            f"on a recording use one of: {', '.join(m for m in METHOD_NAMES if m not in LIVE_ONLY)}"
+        )
     return run(args)
 
 

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from handheld_rig import FIELD, Tumbled, collect, held, tumble
 
+from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import AffineCalibration, CalibrationResult
 from bridge.calibration.series import hann_kernel, motion_rms_g, runs, window_means
 from bridge.calibrator.report import fit_report
-from bridge.calibrator.results import judge_accuracy
 from bridge.calibrator.state import Mode
 from bridge.sim.physics import UnitErrors
 from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_G
@@ -144,33 +144,48 @@ def test_announced_heading_error_is_within_2x_of_the_measured(seed: int, shake: 
 
 
 @pytest.mark.parametrize(
-    ("seed", "dps", "shake"), [(4, 120.0, 0.3), (1, 120.0, 0.3), (4, 45.0, 0.5), (1, 90.0, 0.5)]
+    ("seed", "dps", "shake"),
+    [(4, 120.0, 0.3), (1, 120.0, 0.3), (4, 45.0, 0.5), (1, 90.0, 0.5), (1, 180.0, 0.5)],
 )
 def test_motion_too_violent_fails_instead_of_succeeding_worse(
     seed: int, dps: float, shake: float
 ) -> None:
-    # far beyond a hand's usual shake: the fit either still holds within the calibrator's
-    # limit (0.25 deg) or fails saying why -- it never succeeds quietly worse
+    # far beyond a hand's usual shake: the fit either still holds within the operator's
+    # target (DEFAULT_HEADING_MAX_DEG, 1 deg) and within what it predicts, or fails saying
+    # why -- it never succeeds quietly worse
     rec = tumble(seed, shake, seconds=70.0, dps=dps)
     res = _series_fit(rec)
     s = held(rec, {"series": res.calibration})
     excess = math.sqrt(max(0.0, s["series"].rms_deg ** 2 - s["floor"].rms_deg ** 2))
-    verdict = judge_accuracy(res, 0.25)
-    if verdict.report.ok:
-        assert verdict is res
-        assert excess <= 0.25 and excess <= 2.0 * res.report.heading_error_deg
+    rep = res.report  # the best method is judged by the acceptance rule
+    assert rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
+    if rep.ok:
+        assert excess <= rep.heading_limit_deg and excess <= rep.predicted_heading_deg
     else:
-        assert verdict.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
-        assert verdict.report.notes[0].startswith("heading error ~")
-        assert verdict.report.notes[0].endswith("> 0.25: turn slower / steadier")
-    if (seed, dps) == (4, 120.0):  # this one is spoilt, and says so
-        assert excess > 0.25 and not verdict.report.ok
+        assert rep.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+        assert rep.notes[0] == rep.reason
+        assert rep.reason.startswith(("heading error ~", "fitness "))
+        assert rep.reason.endswith("turn slower / steadier")
+    if (seed, dps) == (1, 180.0):  # spoilt beyond the target, and says so
+        assert excess > DEFAULT_HEADING_MAX_DEG and not rep.ok
+    if (seed, dps) == (4, 120.0):
+        # leaves ~0.4 deg RMS beyond the floor: within the 1 deg target (and within the
+        # ~0.7 deg it predicts) -- but an operator who asks for 0.25 deg is told no, and why
+        assert rep.ok and excess > 0.25
+        data = CalibrationData(rec.mag, rec.acc, rec.saturated, reference=FIELD, t_s=rec.t)
+        strict = calibrate(BEST, data, Acceptance(heading_max_deg=0.25))
+        assert not strict.report.ok
+        assert strict.report.reason.endswith("> 0.25: turn slower / steadier")
 
 
-def test_a_good_fit_passes_the_accuracy_judge_untouched() -> None:
-    good = _series_fit(tumble(3, 0.05, seconds=70.0))
-    assert judge_accuracy(good, 0.25) is good
-    assert judge_accuracy(good, 1e-3).report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+def test_a_good_fit_passes_the_accuracy_judge_and_a_tighter_target_fails_it() -> None:
+    rec = tumble(3, 0.05, seconds=70.0)
+    good = _series_fit(rec)
+    assert good.report.ok and good.report.predicted_heading_deg < 0.25
+    data = CalibrationData(rec.mag, rec.acc, rec.saturated, reference=FIELD, t_s=rec.t)
+    tight = calibrate(BEST, data, Acceptance(heading_max_deg=1e-3))
+    assert tight.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+    assert tight.report.reason.endswith(": turn slower / steadier")
 
 
 def test_a_short_series_falls_back_to_single_samples_and_bad_times_are_refused() -> None:

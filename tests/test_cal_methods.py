@@ -84,7 +84,17 @@ def _matrix_error(cal: AffineCalibration, truth: AffineCalibration) -> float:
 def test_every_method_is_selectable_and_succeeds(name: str, unit: dict[str, object]) -> None:
     res = calibrate(name, _data_for(name, unit))
     assert res.report.method == name
-    assert res.report.ok, res.report.notes
+    if name == "minmax":
+        # Min/max sees no cross-axis terms: on this unit (3 deg non-orthogonality) its own
+        # |B| scatter condemns it, and the acceptance rule says so -- with its parameters
+        # still computed (the hard iron below).
+        assert res.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+        assert (
+            res.report.reason.startswith("heading error ~") and "minmax leaves" in res.report.reason
+        )
+        assert res.report.predicted_heading_deg > res.report.heading_limit_deg
+    else:
+        assert res.report.ok, res.report.notes
     errors = unit["errors"]
     assert isinstance(errors, UnitErrors)
     truth = errors.true_calibration()

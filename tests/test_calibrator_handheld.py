@@ -159,8 +159,14 @@ def test_a_tight_accuracy_limit_fails_a_calibration_that_cannot_reach_it() -> No
     try:
         failed = events.of("calibration.failed")
         assert len(failed) == 1
-        assert failed[0].data["reason"].endswith("> 0.001: turn slower / steadier")
-        assert failed[0].data["report"]["heading_error_deg"] > 0.001
+        # the limit is the operator's 0.001 deg, or what this quiet sensor's noise over
+        # its thousands of frames allows (3x the floor): still far below what it leaves
+        report = failed[0].data["report"]
+        assert 0.001 <= report["heading_limit_deg"] < 0.02
+        assert report["predicted_heading_deg"] > report["heading_limit_deg"]
+        assert failed[0].data["reason"].startswith("heading error ~")
+        assert failed[0].data["reason"].endswith(": turn slower / steadier")
+        assert report["heading_error_deg"] > 0.001
         assert ctl.accept().result.value == "failed"
         assert ctl._engine.calibration == before
     finally:
@@ -180,7 +186,8 @@ def test_a_fit_above_compass_cal_fit_fails_as_ardupilot_fails_it() -> None:
         assert calmap.mag_cal_status(Phase.FAILED, 2, Failure(f["failure"])) == (
             MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH
         )
-        assert f["reason"].endswith("above COMPASS_CAL_FIT 0.3")
+        assert "above COMPASS_CAL_FIT 0.3" in f["reason"]
+        assert f["reason"].endswith(": keep iron away while turning, or raise COMPASS_CAL_FIT")
         assert f["report"]["fitness"] > 0.3  # the good fit of the first test, judged stricter
         assert ctl.accept().result.value == "failed"
         assert ctl._engine.calibration == before

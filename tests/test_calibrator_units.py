@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from bridge.calibration.accel_faces import Face
-from bridge.calibration.alignment import fit_ellipsoid_aligned
+from bridge.calibration.acceptance import Acceptance
 from bridge.calibration.coverage import section
+from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
@@ -40,7 +41,6 @@ from bridge.calibrator.report import Failure, SessionReport, fit_report
 from bridge.calibrator.results import (
     device_params_for,
     fixed_yaw_calibration,
-    judge_fitness,
     orientation_confidence,
 )
 from bridge.calibrator.state import Mode
@@ -439,38 +439,37 @@ def test_fixed_yaw_recovers_the_hard_iron(orient: Rotation) -> None:
 # -- COMPASS_CAL_FIT ------------------------------------------------------------------
 
 
-def _noisy_fit(sigma_G: float) -> CalibrationResult:
-    """An aligned fit of 4000 sphere samples with ``sigma_G`` of noise on each axis."""
+def _judged(sigma_G: float, limit_mG: float) -> CalibrationResult:
+    """The best method on 4000 sphere samples with ``sigma_G`` of noise, COMPASS_CAL_FIT = limit."""
     rng = np.random.default_rng(1)
     R = random_rotations(rng, 4000)
     mag = np.einsum("nji,j->ni", R, B_NED) + np.array([0.05, -0.08, 0.1])
     mag += rng.normal(0.0, sigma_G, mag.shape)
     acc = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, 1.0]))
-    return fit_ellipsoid_aligned(mag, acc, None, float(np.linalg.norm(B_NED)))
+    data = CalibrationData(mag, acc, reference=float(np.linalg.norm(B_NED)))
+    return calibrate(BEST, data, Acceptance(fitness_max_mG=limit_mG))
 
 
 def test_the_fitness_limit_is_compass_cal_fit() -> None:
     # ~10 mG of noise: a fit ArduPilot's default 16 mG passes ...
-    ok = _noisy_fit(0.01)
+    ok = _judged(0.01, 16.0)
     assert ok.report.ok and 5.0 < ok.report.fitness_mG < 16.0
-    assert judge_fitness(ok, 16.0) is ok and judge_fitness(ok, 100.0) is ok
-    # ... and a limit under its fitness fails, first saying why
-    strict = judge_fitness(ok, 5.0)
+    assert _judged(0.01, 100.0).report.ok
+    # ... and a limit under its fitness fails, saying why and what to do
+    strict = _judged(0.01, 5.0)
     assert strict.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
-    assert (
-        strict.report.notes[0] == f"fitness {ok.report.fitness_mG:.2f} mG above COMPASS_CAL_FIT 5.0"
+    assert strict.report.reason.startswith(
+        f"fitness {ok.report.fitness_mG:.2f} mG above COMPASS_CAL_FIT 5.0: keep iron away"
     )
+    assert strict.report.notes[0] == strict.report.reason
     assert strict.calibration == ok.calibration
-    # ~20 mG: over the default, within QGroundControl's 100 during its calibration
-    rough = _noisy_fit(0.02)
+    # ~20 mG: over the default, within QGroundControl's 100 during its calibration --
+    # where 4000 samples determine the offsets as well as that noise allows
+    rough = _judged(0.02, 16.0)
     assert rough.report.status == "MAG_CAL_FAILED_RESIDUALS_HIGH" and rough.report.fitness_mG > 16.0
-    relaxed = judge_fitness(rough, 100.0)
-    assert relaxed.report.ok
-    assert not any("COMPASS_CAL_FIT" in n for n in relaxed.report.notes)
-    # a failure the fitness did not decide stays one, whatever the limit
-    undetermined = _noisy_fit(0.03)
-    assert undetermined.report.status == "MAG_CAL_FAILED"
-    assert judge_fitness(undetermined, 100.0) is undetermined
+    relaxed = _judged(0.02, 100.0)
+    assert relaxed.report.ok, relaxed.report.reason
+    assert relaxed.report.predicted_heading_deg <= relaxed.report.heading_limit_deg
 
 
 # -- orientation confidence and reports ------------------------------------------------

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from helpers import load_calibration
 
+from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG
 from bridge.calibration.coverage import N_SECTIONS
 from bridge.cli import main
 from bridge.link.record import RecordingWriter
@@ -89,9 +90,15 @@ def test_offline_fit_is_saved_where_the_daemon_loads_it_and_plotted(
 def test_every_engine_method_name_is_accepted_and_unknown_ones_refused(
     tumble: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    code = main(["calibrate", "--recording", str(tumble), "--method", "scalar", "--no"])
+    out = capsys.readouterr().out
+    assert code == 0 and "method scalar" in out and "shown, not saved" in out
+    # min/max of a tumble of a unit with non-orthogonal axes: its own |B| scatter condemns
+    # it, so it fails and says why -- and shows no parameters
     code = main(["calibrate", "--recording", str(tumble), "--method", "minmax", "--no"])
     out = capsys.readouterr().out
-    assert code == 0 and "method minmax" in out and "shown, not saved" in out
+    assert code == 1 and "method minmax" in out and "cause         heading error ~" in out
+    assert "COMPASS_OFS" not in out and "nothing to accept" in out
     assert main(["calibrate", "--recording", str(tumble), "--method", "voodoo"]) == 2
     assert "unknown calibration method" in capsys.readouterr().err
 
@@ -185,6 +192,8 @@ def test_a_recording_is_fitted_as_a_frame_series(tumble: Path) -> None:
     # the series fit predicts its own heading error, and the fitness counts it
     assert 0.0 < res.report.heading_error_deg < 0.25
     assert res.report.fitness_mG >= res.report.residual_mG
-    assert herr == pytest.approx(
-        heading_error_estimate_deg(res.report.fitness_mG, 0.2152), rel=0.05
-    )
+    # what the calibration itself is predicted to leave, the hand-held part included,
+    # judged against the limit (the sensor is quiet: the operator's target, not 3x its floor)
+    assert herr == res.report.predicted_heading_deg
+    limit = res.report.heading_limit_deg
+    assert res.report.heading_error_deg <= herr <= limit == DEFAULT_HEADING_MAX_DEG

@@ -37,16 +37,25 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.accel_faces import Face, fit_six_face
+from bridge.calibration.acceptance import Acceptance, accept
 from bridge.calibration.alignment import fit_ellipsoid_aligned, fit_ellipsoid_aligned_series
 from bridge.calibration.ellipsoid import ReferenceField, fit_ellipsoid, reference_total_G
 from bridge.calibration.minmax import fit_minmax
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
-from bridge.calibration.scalar import fit_scalar, fit_scalar_accel
+from bridge.calibration.sanity import SanityLimits
+from bridge.calibration.scalar import fit_scalar, fit_scalar_accel, fit_scalar_mag
 from bridge.calibration.twelve_position import fit_twelve_position
 from bridge.core.wmm import EarthField
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+#: The methods' own checks: structure only (radius, offsets, scaling, rotation). The
+#: fitness (COMPASS_CAL_FIT) and how well the samples determine the result are judged
+#: for every method alike by :func:`bridge.calibration.acceptance.accept`.
+_STRUCTURE_ONLY = SanityLimits(
+    fitness_max_mG=float("inf"), offset_sd_max_mG=float("inf"), matrix_sd_max=float("inf")
+)
 
 
 def _frozen(a: npt.ArrayLike, shape_tail: tuple[int, ...], name: str, n: int | None) -> FloatArray:
@@ -178,10 +187,31 @@ def _need_acc(data: CalibrationData, method: str) -> FloatArray:
 
 
 def _minmax(data: CalibrationData) -> CalibrationResult:
+    """Min/max of the samples a min/max needs: every sample of a tumble (its extremes are
+    where an axis meets the field, at any tilt), or -- for the datasheet's own routine, a
+    level turn and a turn on the side -- the device's level/side gating, which keeps the
+    tilted frames between the turns from inflating x and y. The one that fits better."""
     ok = data.usable_rows()
-    acc = None if data.acc_g is None else data.acc_g[ok]
-    res = fit_minmax(data.mag_G[ok], acc_g=acc)
+    plain = fit_minmax(data.mag_G[ok])
+    res = plain
+    if data.acc_g is not None:
+        gated = fit_minmax(data.mag_G[ok], acc_g=data.acc_g[ok])
+        if gated.report.ok and not (
+            plain.report.ok and plain.report.fitness_mG <= gated.report.fitness_mG
+        ):
+            res = replace_note(
+                gated, "samples gated as the device's MAGCAL (level turn, side turn)"
+            )
+        elif plain.report.ok:
+            res = replace_note(plain, "every sample used (a tumble)")
     return _with_accel(res, *accel_calibration_for(data))
+
+
+def replace_note(result: CalibrationResult, note: str) -> CalibrationResult:
+    """``result`` with ``note`` added to its report."""
+    return CalibrationResult(
+        result.calibration, replace(result.report, notes=(*result.report.notes, note))
+    )
 
 
 def _twelve_position(data: CalibrationData) -> CalibrationResult:
@@ -199,14 +229,30 @@ def _twelve_position(data: CalibrationData) -> CalibrationResult:
 
 
 def _scalar(data: CalibrationData) -> CalibrationResult:
+    """Both sensors from |B| and |g|; when the accelerometer's samples do not determine its
+    fit (a shaken or a still unit), the magnetometer's stands on its own, beside the
+    accelerometer calibration the other methods would use."""
     ok = data.usable_rows()
-    return fit_scalar(data.mag_G[ok], _need_acc(data, "scalar")[ok], data.reference_total_G)
+    acc = _need_acc(data, "scalar")[ok]
+    res = fit_scalar(data.mag_G[ok], acc, data.reference_total_G)
+    if res.report.ok:
+        return res
+    mag = fit_scalar_mag(data.mag_G[ok], data.reference_total_G)
+    if not mag.report.ok:
+        return res
+    why = "; ".join(n.removeprefix("accel: ") for n in res.report.notes if n.startswith("accel:"))
+    accel, source = accel_calibration_for(data)
+    return _with_accel(replace_note(mag, f"accelerometer scalar fit failed ({why})"), accel, source)
 
 
 def _ellipsoid(data: CalibrationData) -> CalibrationResult:
     accel, source = accel_calibration_for(data)
     res = fit_ellipsoid(
-        data.mag_G, reference_field_G=data.reference, saturated=data.saturated, accel=accel
+        data.mag_G,
+        reference_field_G=data.reference,
+        saturated=data.saturated,
+        accel=accel,
+        limits=_STRUCTURE_ONLY,
     )
     return CalibrationResult(
         res.calibration,
@@ -219,7 +265,9 @@ def _ellipsoid_aligned(data: CalibrationData) -> CalibrationResult:
     if data.t_s is not None:
         return _ellipsoid_aligned_series(data, acc)
     accel, source = accel_calibration_for(data)
-    res = fit_ellipsoid_aligned(data.mag_G, acc, accel, data.reference, saturated=data.saturated)
+    res = fit_ellipsoid_aligned(
+        data.mag_G, acc, accel, data.reference, saturated=data.saturated, limits=_STRUCTURE_ONLY
+    )
     return CalibrationResult(
         res.calibration,
         replace(res.report, notes=(*res.report.notes, f"accelerometer: {source}")),
@@ -237,7 +285,13 @@ def _ellipsoid_aligned_series(data: CalibrationData, acc: FloatArray) -> Calibra
     if known is None and data.accel_calibration is not None:
         known, source = data.accel_calibration, "given"
     res = fit_ellipsoid_aligned_series(
-        data.mag_G, acc, data.t_s, known, data.reference, saturated=data.saturated
+        data.mag_G,
+        acc,
+        data.t_s,
+        known,
+        data.reference,
+        saturated=data.saturated,
+        limits=_STRUCTURE_ONLY,
     )
     if not source:
         fitted = res.calibration.accel != AffineCalibration()
@@ -264,6 +318,14 @@ METHOD_NAMES: tuple[str, ...] = (
     "accel_six_face",
 )
 ALIASES: Mapping[str, str] = MappingProxyType({"best": "ellipsoid_aligned"})
+#: Methods whose data only a live unit gives (a recording of frames has neither):
+#: what each needs.
+LIVE_ONLY: Mapping[str, str] = MappingProxyType(
+    {
+        "twelve_position": "the attitudes of twelve known stops",
+        "accel_six_face": "the unit held still on its six faces",
+    }
+)
 BEST = ALIASES["best"]
 
 _CANONICAL: dict[str, Method] = {
@@ -290,15 +352,22 @@ def canonical_name(name: str) -> str:
     return key
 
 
-def calibrate(name: str, data: CalibrationData) -> CalibrationResult:
-    """Run method ``name`` (or an alias such as ``"best"``) on ``data``.
+def calibrate(
+    name: str, data: CalibrationData, acceptance: Acceptance | None = None
+) -> CalibrationResult:
+    """Run method ``name`` (or an alias such as ``"best"``) on ``data`` and judge it.
 
-    The report's ``method`` is the canonical name. Raises ``ValueError`` for an
-    unknown name or when the data lack what the method needs; a fit that runs
-    but fails comes back with a failure status, never an exception.
+    Every method's result goes through the one acceptance rule
+    (:func:`bridge.calibration.acceptance.accept`: the heading error it is
+    predicted to leave, against a limit that scales with the sensor's noise and
+    the number of samples; COMPASS_CAL_FIT as ``acceptance.fitness_max_mG``).
+    The report's ``method`` is the canonical name; a failure's cause is in its
+    ``reason``. Raises ``ValueError`` for an unknown name or when the data lack
+    what the method needs; a fit that runs but fails comes back with a failure
+    status, never an exception.
     """
     key = canonical_name(name)
     res = _CANONICAL[key](data)
     if res.report.method != key:
         res = CalibrationResult(res.calibration, replace(res.report, method=key))
-    return res
+    return accept(res, data, acceptance, check_rotation=key == BEST)

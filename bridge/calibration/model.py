@@ -194,6 +194,12 @@ class CalibrationReport:
     heading_error)^2)`` with ``H`` the horizontal field -- so a fit the shake
     spoiled cannot show a perfect fitness; ``residual_mG`` keeps the
     magnetometer's own residual.
+
+    Spreads, fitness and ``n_samples`` cover the samples the fit kept;
+    ``n_frames`` counts every usable frame and ``field_spread_after_all_nT`` is
+    the spread after over all of them. ``reason`` is the cause of a failure
+    (empty on success); ``predicted_heading_deg`` / ``heading_limit_deg`` the
+    acceptance rule's verdict (:mod:`bridge.calibration.acceptance`).
     """
 
     method: str
@@ -220,6 +226,19 @@ class CalibrationReport:
     tilt_error_deg: float = math.nan
     motion_g: float = math.nan
     window_s: float = math.nan
+    # The acceptance rule's figures (bridge.calibration.acceptance): the cause of a
+    # failure, the frames the figures cover, the sensor's noise, the heading error
+    # predicted and its limit, the sphere sections the raw samples reach.
+    reason: str = ""
+    n_frames: int = 0
+    noise_mG: float = math.nan
+    horizontal_mG: float = math.nan
+    sections_covered: int = 0
+    predicted_heading_deg: float = math.nan
+    heading_floor_deg: float = math.nan
+    heading_limit_deg: float = math.nan
+    field_spread_after_all_nT: float = math.nan
+    field_rms_after_all_nT: float = math.nan
 
     @property
     def ok(self) -> bool:

@@ -28,8 +28,12 @@ The rotation limit is ours: a real mounting misalignment is a few degrees,
 while a wrong COMPASS_ORIENT is at least 45 deg, so 20 deg separates them.
 So is the uncertainty check: ArduPilot ensures spread samples before it fits,
 an offline fit cannot, and samples from a small cap of the sphere fit their
-9 parameters to noise with a perfect-looking residual. 1 mG of offset
-uncertainty is 0.3 deg of heading on a 0.2 G horizontal field.
+9 parameters to noise with a perfect-looking residual. The engine's methods
+(``methods.calibrate``) leave the uncertainty and the fitness out of these
+checks and judge them by the acceptance rule instead
+(:mod:`bridge.calibration.acceptance`: the heading error predicted, against
+a limit that scales with the sensor's noise and sample count); the fixed
+defaults here serve direct callers of the fits.
 """
 
 from __future__ import annotations

@@ -2,11 +2,10 @@
 
 * :class:`MagSession` -- ArduPilot's two-step magnetometer collection
   (:class:`~bridge.calibrator.collect.MagCollector`), step one's sphere and
-  the final fit of every frame in the worker, then the fit is judged against
-  COMPASS_CAL_FIT (:func:`~bridge.calibrator.results.judge_fitness`) and the
-  heading error limit (:func:`~bridge.calibrator.results.judge_accuracy`). A
-  success waits for accept unless ``autosave``; ``retry`` starts a failed fit
-  over (ArduPilot's retry);
+  the final fit of every frame in the worker, judged by the acceptance rule
+  (:mod:`bridge.calibration.acceptance`: the heading error predicted, against
+  the session's COMPASS_CAL_FIT and heading limit). A success waits for accept
+  unless ``autosave``; ``retry`` starts a failed fit over (ArduPilot's retry);
 * :class:`FaceSession` -- PX4's six faces, then the six-face fit (saved at once);
 * :class:`LevelSession` -- one still average, then the level trim (saved at once);
 * :class:`FixedYawSession` -- ArduPilot's ``mag_cal_fixed_yaw``, done when it is made
@@ -23,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.accel_faces import Face, fit_six_face, level_trim
+from bridge.calibration.acceptance import Acceptance
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import (
     AffineCalibration,
@@ -49,8 +49,6 @@ from bridge.calibrator.report import (
 from bridge.calibrator.results import (
     attitude_from_gravity,
     fixed_yaw_calibration,
-    judge_accuracy,
-    judge_fitness,
     orientation_confidence,
 )
 from bridge.calibrator.session import (
@@ -182,7 +180,8 @@ class MagSession(Session):
             data = CalibrationData(
                 mag_all, acc_all, sat_all, reference=ctx.field, accel_calibration=accel, t_s=t
             )
-            res = judge_accuracy(judge_fitness(calibrate(BEST, data), limit), max_err)
+            # The one acceptance rule, with COMPASS_CAL_FIT as the session started with it.
+            res = calibrate(BEST, data, Acceptance(fitness_max_mG=limit, heading_max_deg=max_err))
             conf = math.nan
             if res.report.ok:
                 cal = res.calibration

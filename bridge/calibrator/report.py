@@ -131,8 +131,15 @@ class FitQuality:
     field_spread_before_nT: float = _NAN
     field_spread_after_nT: float = _NAN
     orientation_confidence: float = _NAN
+    predicted_heading_deg: float = _NAN
+    heading_limit_deg: float = _NAN
+    heading_floor_deg: float = _NAN
+    noise_mG: float = _NAN
+    field_spread_after_all_nT: float = _NAN
     n_samples: int = 0
     n_rejected: int = 0
+    n_frames: int = 0
+    sections_covered: int = 0
 
     @classmethod
     def of(cls, report: CalibrationReport, confidence: float = _NAN) -> FitQuality:
@@ -149,8 +156,15 @@ class FitQuality:
             field_spread_before_nT=report.field_spread_before_nT,
             field_spread_after_nT=report.field_spread_after_nT,
             orientation_confidence=confidence,
+            predicted_heading_deg=report.predicted_heading_deg,
+            heading_limit_deg=report.heading_limit_deg,
+            heading_floor_deg=report.heading_floor_deg,
+            noise_mG=report.noise_mG,
+            field_spread_after_all_nT=report.field_spread_after_all_nT,
             n_samples=report.n_samples,
             n_rejected=report.n_rejected,
+            n_frames=report.n_frames,
+            sections_covered=report.sections_covered,
         )
 
 
@@ -165,6 +179,11 @@ _FIT_KEYS = (
     "field_spread_before_nT",
     "field_spread_after_nT",
     "orientation_confidence",
+    "predicted_heading_deg",
+    "heading_limit_deg",
+    "heading_floor_deg",
+    "noise_mG",
+    "field_spread_after_all_nT",
 )
 
 
@@ -273,6 +292,7 @@ class SessionReport:
             out["fitness"] = _json(q.fitness_mG)
             out.update({k: _json(getattr(q, k)) for k in _FIT_KEYS})
             out["n_samples"], out["n_rejected"] = q.n_samples, q.n_rejected
+            out["n_frames"], out["sections_covered"] = q.n_frames, q.sections_covered
         if self.accel is not None:
             c = self.accel
             out["offset_g"] = list(c.offset_g)
@@ -315,6 +335,8 @@ class SessionReport:
                 **{k: _f(d.get(k)) for k in _FIT_KEYS},
                 n_samples=int(_f(d.get("n_samples"), 0.0)),
                 n_rejected=int(_f(d.get("n_rejected"), 0.0)),
+                n_frames=int(_f(d.get("n_frames"), 0.0)),
+                sections_covered=int(_f(d.get("sections_covered"), 0.0)),
             )
         if "offset_g" in d:
             rows = d.get("matrix") or [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
@@ -363,12 +385,14 @@ def fit_report(
     confidence: float = _NAN,
 ) -> SessionReport:
     """A magnetometer fit's report (its verdict, figures and notes); a failure's reason is
-    the first note that is not about the accelerometer (the fit's own words)."""
+    the fit's ``reason`` -- the cause, with what to do -- (else its first own note)."""
     failure = Failure.of_verdict(report.status)
     reason = ""
     if failure is not None:
-        reasons = [n for n in report.notes if not n.startswith("accelerometer:")]
-        reason = reasons[0] if reasons else failure.value
+        reasons = [
+            n for n in report.notes if not n.startswith(("accelerometer:", "no reference field"))
+        ]
+        reason = report.reason or (reasons[0] if reasons else failure.value)
     return SessionReport(
         mode=mode,
         method=report.method,

@@ -3,9 +3,6 @@
 Nothing here does I/O or keeps time; the sessions hand these to the
 controller's worker thread as fits to run, or call them directly.
 
-* :func:`judge_fitness` -- judges a fit's fitness against COMPASS_CAL_FIT (the
-  fits judge it against ArduPilot's default, 16 mG);
-* :func:`judge_accuracy` -- fails a fit whose predicted heading error is too large;
 * :func:`orientation_confidence` -- ArduPilot's ``calculate_orientation`` figure
   of merit: how much better the fitted orientation explains the samples than
   the runner-up among the ArduPilot rotations;
@@ -18,22 +15,17 @@ controller's worker thread as fits to run, or call them directly.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.alignment import motion_failure_reason
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
-    CalibrationResult,
 )
 from bridge.calibration.sanity import (
     MagCalStatus,
-    SanityLimits,
-    SanityResult,
-    check_mag_calibration,
 )
 from bridge.core import sensor
 from bridge.core.geometry import euler_to_dcm
@@ -79,66 +71,6 @@ def orientation_confidence(mag_corrected: npt.ArrayLike, gravity: npt.ArrayLike)
     others = min(float(np.var(np.sum(g * (m @ R.T), axis=1))) for R in _CANDIDATES)
     # A floor keeps a noise-free (simulated) unit finite: 1e-12 is far below any real spread.
     return others / max(best, 1e-12)
-
-
-def judge_accuracy(result: CalibrationResult, max_heading_error_deg: float) -> CalibrationResult:
-    """``result``, failed (MAG_CAL_FAILED_RESIDUALS_HIGH) if it is not accurate enough.
-
-    A successful fit whose predicted heading error (``heading_error_deg``,
-    known for a frame series) exceeds ``max_heading_error_deg`` fails rather
-    than succeeding quietly worse; the reason, first in the notes, tells the
-    operator what to change.
-    """
-    rep = result.report
-    err = rep.heading_error_deg
-    if not (rep.ok and not math.isnan(err) and err > max_heading_error_deg):
-        return result
-    reason = motion_failure_reason(err, max_heading_error_deg)
-    failed = replace(
-        rep, status=MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH.name, notes=(reason, *rep.notes)
-    )
-    return CalibrationResult(result.calibration, failed)
-
-
-def judge_fitness(result: CalibrationResult, limit_mG: float) -> CalibrationResult:
-    """``result`` judged against a fitness limit of ``limit_mG`` (COMPASS_CAL_FIT), as ArduPilot.
-
-    The fits judge the fitness against ArduPilot's default limit (16 mG,
-    :class:`~bridge.calibration.sanity.SanityLimits`); a fit the fitness alone
-    decided -- a success, or a MAG_CAL_FAILED_RESIDUALS_HIGH, which no other
-    bound gives -- is judged again by the same checks with ``limit_mG``: above
-    it fails with MAG_CAL_FAILED_RESIDUALS_HIGH (the reason first in the
-    notes), within it the fit stands unless the mag-to-accel rotation bound
-    fails it. A failure the fitness did not decide is returned unchanged.
-    """
-    rep = result.report
-    default = SanityLimits()
-    if float(limit_mG) == default.fitness_max_mG or rep.status not in (SUCCESS, RESIDUALS_HIGH):
-        return result
-    if not math.isfinite(rep.fitness_mG) or not math.isfinite(rep.radius_G):
-        return result
-    mag = result.calibration.mag
-
-    def check(fitness_mG: float, limits: SanityLimits) -> SanityResult:
-        # The bounds the fit passed already (uncertainty, radius, offsets, scaling: all come
-        # before the fitness in the checks' order) pass again on the same figures.
-        return check_mag_calibration(
-            mag, radius_G=rep.radius_G, fitness_mG=fitness_mG, check_rotation=True, limits=limits
-        )
-
-    judged = check(rep.fitness_mG, replace(default, fitness_max_mG=float(limit_mG)))
-    # What the default limit said, of the fitness and of the magnetometer's own residual
-    # (a hand-held fit's first stage judges that), is no longer the verdict.
-    figures = [f for f in (rep.fitness_mG, rep.residual_mG) if math.isfinite(f)]
-    stale = {r for f in figures for r in check(f, default).reasons} - set(judged.reasons)
-    if judged.status.name != RESIDUALS_HIGH and math.isfinite(rep.heading_error_deg):
-        stale.add(motion_failure_reason(rep.heading_error_deg))  # the series fit's word for it
-    notes = [n for n in rep.notes if n not in stale]
-    notes = [r for r in judged.reasons if r not in notes] + notes
-    if judged.status.name == rep.status and tuple(notes) == rep.notes:
-        return result
-    judged_report = replace(rep, status=judged.status.name, notes=tuple(notes))
-    return CalibrationResult(result.calibration, judged_report)
 
 
 @dataclass(frozen=True, slots=True)

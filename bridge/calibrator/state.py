@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.calibration.acceptance import DEFAULT_FITNESS_MAX_MG, DEFAULT_HEADING_MAX_DEG
+
 
 class Mode(enum.StrEnum):
     """What a session calibrates, and where."""
@@ -105,8 +107,10 @@ class CalibratorSettings:
     onboard_settle_reports: int = 2  #: $PGMRC reports without span growth that end a turn
     motion_limit_g: float = 0.09  #: linear acceleration (g RMS per axis) the operator is told of
     motion_interval_s: float = 5.0  #: at most one "calibration.motion" warning per interval
-    max_heading_error_deg: float = 0.25  #: a fit predicting a larger heading error fails
-    fitness_max_mG: float = 16.0  #: a fit with a larger fitness fails (COMPASS_CAL_FIT)
+    #: a fit predicting a larger heading error fails (or 3x the floor, when that is larger)
+    max_heading_error_deg: float = DEFAULT_HEADING_MAX_DEG
+    #: a fit with a larger fitness fails (COMPASS_CAL_FIT)
+    fitness_max_mG: float = DEFAULT_FITNESS_MAX_MG
 
     def __post_init__(self) -> None:
         if self.capacity < 20:

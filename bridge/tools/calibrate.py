@@ -42,7 +42,8 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.coverage import N_SECTIONS, mask_sections, sections
+from bridge.calibration.acceptance import raw_sections
+from bridge.calibration.coverage import N_SECTIONS, mask_sections
 from bridge.calibration.methods import CalibrationData, calibrate
 from bridge.calibration.model import (
     AffineCalibration,
@@ -60,6 +61,7 @@ from bridge.tools.calreport import (
     heading_error_estimate_deg,
     horizontal_field_G,
     is_motion_warning,
+    offline_lines,
     progress_note,
     report_lines,
 )
@@ -125,27 +127,33 @@ def read_recording(path: str, progress: Callable[[float], None] | None = None) -
     )
 
 
-def fit_recording(
-    vectors: RecordedVectors, method: str, location: tuple[float, float, float] | None
-) -> tuple[CalibrationResult, float]:
-    """Run ``method`` on the recorded vectors; returns the result and the heading error estimate."""
+def recording_data(
+    vectors: RecordedVectors, location: tuple[float, float, float] | None
+) -> CalibrationData:
+    """The recorded frames as the engine's input (the WMM field at ``location``, if given)."""
     from bridge.core.wmm import earth_field
 
     field = earth_field(*location) if location is not None else None
-    data = CalibrationData(
+    return CalibrationData(
         mag_G=vectors.mag_G,
         acc_g=vectors.acc_g,
         saturated=vectors.saturated,
         reference=field,
         t_s=vectors.t_s,
     )
-    res = calibrate(method, data)
-    if field is not None:
-        h = horizontal_field_G(field.total_G, field.inclination_deg)
-    else:
-        # No location: the dip the calibrated samples themselves show, and their mean |B|.
-        h = _measured_horizontal_G(res.calibration, vectors)
-    return res, heading_error_estimate_deg(res.report.fitness_mG, h)
+
+
+def fit_recording(
+    vectors: RecordedVectors, method: str, location: tuple[float, float, float] | None
+) -> tuple[CalibrationResult, float]:
+    """Run ``method`` on the recorded vectors; returns the result and its predicted heading error.
+
+    The result is judged by the engine's acceptance rule (the heading error it
+    is predicted to leave, :mod:`bridge.calibration.acceptance`), the same for
+    every method and the same as a live calibration's.
+    """
+    res = calibrate(method, recording_data(vectors, location))
+    return res, res.report.predicted_heading_deg
 
 
 def _measured_horizontal_G(cal: Calibration, v: RecordedVectors) -> float:
@@ -161,10 +169,14 @@ def _measured_horizontal_G(cal: Calibration, v: RecordedVectors) -> float:
     return horizontal_field_G(float(np.mean(mn[good])), dip)
 
 
-def calibrated_missing(cal: Calibration, v: RecordedVectors) -> frozenset[int]:
-    """Sections of the 80 the calibrated samples never reached."""
-    hit = set(int(s) for s in sections(cal.mag.apply(v.mag_G[~v.saturated])) if s >= 0)
-    return frozenset(range(N_SECTIONS)) - hit
+def raw_missing(data: CalibrationData) -> frozenset[int]:
+    """Sections of the 80 the raw samples never reached, seen from the reference fit's centre.
+
+    Drawn from the samples as recorded (nominal transfer), not from one
+    method's calibrated output, so the map is the same whatever ``--method``.
+    """
+    covered = raw_sections(data)
+    return frozenset(range(N_SECTIONS)) - (covered or frozenset())
 
 
 def offline_report(res: CalibrationResult) -> dict[str, Any]:
@@ -518,16 +530,21 @@ def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = N
     if args.recording:
         with Progress("reading", 1.0, enabled=args.progress) as bar:
             vectors = read_recording(args.recording, lambda f: bar.update(f))
+        data = recording_data(vectors, location)
         with Progress(f"fitting ({args.method})", None, enabled=args.progress, tick=True) as bar:
             bar.update(note=f"{len(vectors.mag_G)} frames")
-            res, herr = fit_recording(vectors, args.method, location)
+            res = calibrate(args.method, data)
         report = offline_report(res)
         out.write(
             f"{args.recording}: {len(vectors.mag_G)} frames "
             f"({int(vectors.saturated.sum())} saturated, {vectors.dropped_lines} bad lines)\n"
         )
-        write_coverage(out, calibrated_missing(res.calibration, vectors))
-        out.write("\n".join(report_lines(report, herr)) + "\n")
+        write_coverage(out, raw_missing(data))
+        out.write("\n".join(offline_lines(report)) + "\n")
+        if not res.report.ok:
+            # A failed fit has no parameters to show, plot or save: only its cause.
+            out.write("calibration failed: nothing to accept\n")
+            return 1
         if args.plot:
             ok = ~vectors.saturated
             _plot(
@@ -537,9 +554,6 @@ def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = N
                 res.calibration.mag.apply(vectors.mag_G[ok]),
                 f"{args.recording}: {res.report.method}",
             )
-        if not res.report.ok:
-            out.write("calibration failed: nothing to accept\n")
-            return 1
         if args.state_dir is None:
             out.write("(no --state-dir: the result is shown, not saved)\n")
             return 0
@@ -645,8 +659,11 @@ __all__ = [
     "heading_error_estimate_deg",
     "horizontal_field_G",
     "is_motion_warning",
+    "offline_lines",
     "progress_note",
+    "raw_missing",
     "read_recording",
+    "recording_data",
     "report_lines",
     "report_mag_calibration",
     "run_mavlink",

@@ -83,13 +83,8 @@ def _fmt(v: Any, spec: str = ".2f") -> str:
     return "n/a"
 
 
-def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
-    """The calibration report for a person (``report`` is a MAG_CAL_REPORT-shaped dict)."""
-    out = [
-        f"status        {report.get('cal_status', '?')}"
-        + (f"  (method {report['method']})" if report.get("method") else ""),
-        f"fitness       {_fmt(report.get('fitness'))} mG RMS"
-        + (f", {report['n_samples']} samples" if report.get("n_samples") else ""),
+def _params_lines(report: dict[str, Any]) -> list[str]:
+    return [
         "offsets       COMPASS_OFS_X/Y/Z  "
         + "  ".join(_fmt(report.get(f"ofs_{a}"), "+.1f") for a in "xyz")
         + " mG",
@@ -99,6 +94,32 @@ def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
         + "  ".join(_fmt(report.get(f"offdiag_{a}"), "+.4f") for a in "xyz"),
         f"scale         COMPASS_SCALE  {_fmt(report.get('scale_factor'), '.4f')}",
     ]
+
+
+def _succeeded(report: dict[str, Any]) -> bool:
+    return report.get("cal_status") == "MAG_CAL_SUCCESS"
+
+
+def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
+    """The calibration report for a person (``report`` is a MAG_CAL_REPORT-shaped dict).
+
+    A failed fit shows no parameters (they belong to nothing): its status, its
+    cause when the report carries one, and the figures that condemned it.
+    """
+    out = [
+        f"status        {report.get('cal_status', '?')}"
+        + (f"  (method {report['method']})" if report.get("method") else ""),
+    ]
+    if report.get("reason") and not _succeeded(report):
+        out.append(f"cause         {report['reason']}")
+    out.append(
+        f"fitness       {_fmt(report.get('fitness'))} mG RMS"
+        + (f", {report['n_samples']} samples" if report.get("n_samples") else "")
+    )
+    if not _succeeded(report):
+        out.append("parameters    none: the fit failed")
+        return out
+    out += _params_lines(report)
     b, a = report.get("field_spread_before_nT"), report.get("field_spread_after_nT")
     if isinstance(b, int | float) or isinstance(a, int | float):
         out.append(f"field spread  ±{_fmt(b, '.0f')} nT before  ->  ±{_fmt(a, '.0f')} nT after")
@@ -113,6 +134,52 @@ def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
             f" (tilt ~{_fmt(report.get('tilt_error_deg'), '.3f')} deg)"
             + (f"; linear acceleration {motion:.3f} g RMS" if isinstance(motion, float) else "")
         )
+    return out
+
+
+def offline_lines(report: dict[str, Any]) -> list[str]:
+    """The report of a fit of a recording: verdict and cause, then -- on success -- the
+    parameters; every figure says which samples it covers (kept by the fit, or all frames)."""
+    ok = _succeeded(report)
+    kept, frames = report.get("n_samples") or 0, report.get("n_frames") or 0
+    over = f"the {kept} samples the fit kept" + (f" (of {frames} frames)" if frames else "")
+    out = [
+        f"status        {report.get('cal_status', '?')}"
+        + (f"  (method {report['method']})" if report.get("method") else "")
+    ]
+    if not ok:
+        out.append(f"cause         {report.get('reason') or report.get('failure') or '?'}")
+    out.append(f"fitness       {_fmt(report.get('fitness'))} mG RMS over {over}")
+    pred, lim = report.get("predicted_heading_deg"), report.get("heading_limit_deg")
+    if isinstance(pred, int | float):
+        floor, noise = report.get("heading_floor_deg"), report.get("noise_mG")
+        out.append(
+            f"heading error ~{_fmt(pred)} deg RMS predicted, limit {_fmt(lim)} deg"
+            + (
+                f" (a perfect fit of these samples: ~{_fmt(floor, '.3f')} deg;"
+                f" sensor noise {_fmt(noise, '.1f')} mG)"
+                if isinstance(floor, int | float)
+                else ""
+            )
+        )
+    cal_err = report.get("heading_error_deg")
+    if isinstance(cal_err, int | float) and math.isfinite(cal_err):
+        motion = report.get("motion_g")
+        out.append(
+            f"  of which   ~{_fmt(cal_err, '.3f')} deg from the accelerometer and alignment"
+            f" (tilt ~{_fmt(report.get('tilt_error_deg'), '.3f')} deg)"
+            + (f"; linear acceleration {motion:.3f} g RMS" if isinstance(motion, float) else "")
+        )
+    if not ok:
+        out.append("parameters    none: the fit failed")
+        return out
+    out += _params_lines(report)
+    b, a = report.get("field_spread_before_nT"), report.get("field_spread_after_nT")
+    every = report.get("field_spread_after_all_nT")
+    out.append(
+        f"field spread  +-{_fmt(b, '.0f')} nT before -> +-{_fmt(a, '.0f')} nT after over {over}"
+        + (f"; +-{_fmt(every, '.0f')} nT after over all {frames} frames" if frames else "")
+    )
     return out
 
 
