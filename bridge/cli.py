@@ -4,7 +4,8 @@ Subcommands::
 
     compass-bridge run --config FILE [--set SECTION.KEY=VALUE ...] [--console]
     compass-bridge run --simulate                  # built-in simulated compass, live console line
-    compass-bridge config [--config FILE] [--set ...]   # validate, print the effective config
+    compass-bridge run --simulate --reset          # the same, from a fresh simulator state
+    compass-bridge config [--config FILE] [--set ...] [--simulate]  # the config in effect
     compass-bridge config --docs                   # the configuration reference (Markdown)
     compass-bridge simulate --link PATH [--seed N] [--shake G]  # serve a simulated compass on a pty
     compass-bridge record --port DEV --out FILE [--duration S]  # raw byte stream, live line
@@ -45,7 +46,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 from bridge import __version__
-from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config, to_toml
+from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config
 
 log = logging.getLogger("bridge.cli")
 
@@ -123,12 +124,25 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--console", action="store_true", help="show the live heading line (implied by --simulate)"
     )
+    run.add_argument(
+        "--reset",
+        action="store_true",
+        help="with --simulate: first delete the simulator's stored calibration and parameters "
+        "(a fresh start)",
+    )
     run.set_defaults(func=cmd_run)
 
     cfg = sub.add_parser(
-        "config", parents=[common], help="validate a configuration and print the effective one"
+        "config",
+        parents=[common],
+        help="validate a configuration; print the one in effect, each value with its origin",
     )
     _config_options(cfg)
+    cfg.add_argument(
+        "--simulate",
+        action="store_true",
+        help="the configuration `run --simulate` (with the same options) would use",
+    )
     cfg.add_argument(
         "--docs",
         action="store_true",
@@ -373,21 +387,43 @@ def simulator_state_dir() -> str:
     return os.path.join(base, "compass-bridge", "sim")
 
 
+def simulate_overrides(overrides: Sequence[str]) -> list[str]:
+    """``run --simulate``'s own settings, before the user's ``--set`` (which win)."""
+    # The simulated compass speaks the GMR protocol, whatever a --config file says.
+    # A first run shows a heading that turns with the unit: it starts calibrated with
+    # its true errors unless a calibration is stored (or --set sim.calibrated=false).
+    own = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
+    if not any(o.partition("=")[0].strip() == "storage.dir" for o in overrides):
+        # The simulated unit must never read or overwrite a real unit's calibration
+        # in the service's state directory: give it a per-user directory of its own.
+        own.append(f"storage.dir={simulator_state_dir()}")
+    return own
+
+
+def reset_state(state_dir: str) -> None:
+    """``run --simulate --reset``: delete the stored documents; say what went."""
+    from bridge.storage import StateStore, StorageError
+
+    try:
+        removed = StateStore(state_dir).clear()
+    except StorageError as e:
+        raise UsageError(f"--reset: {e}") from None
+    what = ", ".join(p.name for p in removed) if removed else "nothing was stored"
+    print(f"reset {state_dir}: {what}", file=sys.stderr)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """``run``: load the configuration, start the daemon, stop on SIGINT/SIGTERM."""
     overrides = list(args.overrides)
     if args.simulate:
-        # The simulated compass speaks the GMR protocol, whatever a --config file says.
-        # A first run shows a heading that turns with the unit: it starts calibrated with
-        # its true errors unless a calibration is stored (or --set sim.calibrated=false).
-        overrides[:0] = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
-        if not any(o.startswith("storage.dir=") for o in overrides):
-            # The simulated unit must never read or overwrite a real unit's calibration
-            # in the service's state directory: give it a per-user directory of its own.
-            overrides.insert(3, f"storage.dir={simulator_state_dir()}")
+        overrides[:0] = simulate_overrides(overrides)
     elif args.config is None:
         raise UsageError("run needs --config FILE (or --simulate for the built-in simulator)")
+    if args.reset and not args.simulate:
+        raise UsageError("--reset goes with --simulate (it clears the simulator's state)")
     cfg = load_config(args.config, overrides)
+    if args.reset:
+        reset_state(cfg.storage.dir)
 
     from bridge.daemon import run_daemon
 
@@ -403,14 +439,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """``config``: validate and print the effective configuration as TOML (or the reference)."""
+    """``config``: the configuration in effect as TOML, each value with its origin (or the
+    reference); warnings (a port that is not there now ...) on stderr."""
     if args.docs:
-        from bridge.config import reference_markdown
+        from bridge.app.paramdocs import reference_markdown
 
         sys.stdout.write(reference_markdown())
         return EXIT_OK
-    cfg = load_config(args.config, args.overrides)
-    sys.stdout.write(to_toml(cfg))
+    from bridge.tools.effective import effective, render, warnings
+
+    own = simulate_overrides(args.overrides) if args.simulate else []
+    result = effective(args.config, args.overrides, simulate=own)
+    sys.stdout.write(render(result))
+    for text in warnings(result):
+        print(f"warning: {text}", file=sys.stderr)
     return EXIT_OK
 
 

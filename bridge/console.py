@@ -1,17 +1,32 @@
-"""The console adapter: a live line of heading, pitch, roll and link health (``run``)."""
+"""The console adapter: a live line of heading, pitch, roll and link health (``run``).
+
+On a terminal the line is rewritten in place, and only while the bridge is the
+terminal's foreground job: started with ``&`` (the README's calibration step)
+it stays quiet, so the calibrate tool's map and bar in the same terminal are not
+overwritten, and comes back on ``fg``. Notes (a calibration saved, a parameter
+stored) are whole lines, written in the foreground or not.
+"""
 
 from __future__ import annotations
 
-import sys
+import io
+import os
+import threading
 from collections.abc import Callable
 from typing import TextIO
 
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
 from bridge.ports import LinkState
 
+#: The simulated truth of a sample's heading, in the sample's own reference (None: unknown).
+TruthFn = Callable[[CompassSample], float | None]
 
-def format_line(sample: CompassSample | None, status: DaemonStatus) -> str:
-    """The console line: heading, pitch, roll, where the heading comes from, link health."""
+
+def format_line(
+    sample: CompassSample | None, status: DaemonStatus, truth_deg: float | None = None
+) -> str:
+    """The console line: heading, pitch, roll, where the heading comes from, the simulated
+    truth and how far the heading is from it (a simulator only), link health."""
     c = status.counters
     health = f"{status.state.value}  frames {c.attitude_frames or c.frames}"
     health += f"  lost {c.lost_frames}  bad {c.bad_lines_total}"
@@ -26,8 +41,12 @@ def format_line(sample: CompassSample | None, status: DaemonStatus) -> str:
     parts.append(f"roll {_deg(sample.roll_deg)}")
     src: str = sample.source
     if sample.device_heading_deg is not None:
-        src += f", device hdg {sample.device_heading_deg:5.1f}"
+        # the compass's own heading is magnetic, whatever the bridge publishes
+        src += f", device hdg {sample.device_heading_deg:5.1f} mag"
     parts.append(f"[{src}]")
+    if truth_deg is not None:
+        off = (sample.heading_deg - truth_deg + 180.0) % 360.0 - 180.0
+        parts.append(f"[sim truth {truth_deg:5.1f} {ref}, off {off:+5.1f}]")
     flags = []
     if sample.saturated:
         flags.append("SATURATED")
@@ -45,12 +64,34 @@ def _deg(v: float | None) -> str:
     return "  n/a" if v is None else f"{v:+6.1f}"
 
 
+def in_foreground(stream: TextIO) -> bool:
+    """Whether this process is the foreground job of the terminal ``stream`` writes to.
+
+    True when that cannot be told (not a terminal, not our controlling terminal).
+    """
+    try:
+        return os.tcgetpgrp(stream.fileno()) == os.getpgrp()
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        return True
+
+
+def terminal_columns(stream: TextIO) -> int | None:
+    """The width of the terminal ``stream`` writes to (None: unknown)."""
+    try:
+        return os.get_terminal_size(stream.fileno()).columns or None
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        return None
+
+
 class ConsoleOutput(LatestSampleWorker):
     """A live line of heading/pitch/roll on a text stream (``run --simulate``).
 
     On a terminal the line is rewritten in place with ``\\r`` ten times a
-    second; otherwise (a pipe, a log) one full line per second, so the output
-    stays readable and testable.
+    second, cut to the terminal's width (a wrapped line cannot be rewritten),
+    and only while the process is the terminal's foreground job; otherwise (a
+    pipe, a log) one full line per second, so the output stays readable and
+    testable. ``truth`` gives a simulated sample's true heading (the line then
+    shows how far the heading is from it); :meth:`note` adds a whole line.
     """
 
     def __init__(
@@ -61,8 +102,10 @@ class ConsoleOutput(LatestSampleWorker):
         tty: bool | None = None,
         interval: float | None = None,
         intro: str = "",
+        truth: TruthFn | None = None,
+        foreground: Callable[[], bool] | None = None,
     ) -> None:
-        self._stream = stream if stream is not None else sys.stdout
+        self._stream = stream if stream is not None else sys_stdout()
         self._intro = intro
         self.tty = self._stream.isatty() if tty is None else tty
         super().__init__(
@@ -71,15 +114,40 @@ class ConsoleOutput(LatestSampleWorker):
             wake_on_publish=False,  # paced by the clock, not by the frame rate
         )
         self._status = status
+        self._truth = truth
+        self._foreground = foreground or (lambda: in_foreground(self._stream))
         self._width = 0
+        self._notes: list[str] = []
+        self._notes_lock = threading.Lock()
+
+    def note(self, text: str) -> None:
+        """A whole line to print at the next update (from any thread)."""
+        with self._notes_lock:
+            self._notes.append(text)
 
     def emit(self, sample: CompassSample | None) -> None:
-        """Write the line for the latest sample (after the intro line, the first time)."""
+        """Write the line for the latest sample (after the intro line and notes, if any)."""
+        with self._notes_lock:
+            notes, self._notes = self._notes, []
         if self._intro:
-            self._stream.write(self._intro + "\n")
+            notes.insert(0, self._intro)
             self._intro = ""
-        line = format_line(sample, self._status())
+        live = not self.tty or self._foreground()
+        if notes:
+            if self._width:  # a live line is drawn: clear it, the notes go above it
+                self._stream.write("\r" + " " * self._width + "\r")
+                self._width = 0
+            self._stream.write("".join(n + "\n" for n in notes))
+        if not live:
+            self._width = 0  # back in the foreground, the line starts afresh
+            self._stream.flush()
+            return
+        truth = self._truth(sample) if self._truth is not None and sample is not None else None
+        line = format_line(sample, self._status(), truth)
         if self.tty:
+            cols = terminal_columns(self._stream)
+            if cols is not None:
+                line = line[: max(20, cols - 1)]
             pad = max(0, self._width - len(line))
             self._width = len(line)
             self._stream.write("\r" + line + " " * pad)
@@ -92,3 +160,10 @@ class ConsoleOutput(LatestSampleWorker):
         if self.tty and self._width:
             self._stream.write("\n")
             self._stream.flush()
+
+
+def sys_stdout() -> TextIO:
+    """The process's stdout (looked up when the output is made, so tests can swap it)."""
+    import sys
+
+    return sys.stdout

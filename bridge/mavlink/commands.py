@@ -190,6 +190,7 @@ class CalibrationRelay:
         self._lock = threading.Lock()
         self._flow: Flow | None = None
         self._last_pct: int | None = None
+        self._last_step = 0  # the last progress step said in a STATUSTEXT (ArduPilot flow)
         self.last_report: MagCalReport | None = None
         self._repeat: Message | None = None  # the MAG_CAL_REPORT repeated until answered
         self._repeat_at = -math.inf
@@ -229,6 +230,18 @@ class CalibrationRelay:
 
     # -- events ---------------------------------------------------------------------
 
+    def _progress_text(self, event: Event) -> list[Message]:
+        """A STATUSTEXT when a progress event passes a new step (20 %, 40 % ...; not 100 %,
+        which the result says), once per step and attempt."""
+        step = calmap.progress_step(event.data)
+        with self._lock:
+            if step is None or not 0 < step < 100 or step <= self._last_step:
+                if step is not None and step < self._last_step:
+                    self._last_step = step  # a retry started over
+                return []
+            self._last_step = step
+        return statustext(int(event.severity), calmap.progress_text(event.data, step))
+
     @property
     def flow(self) -> Flow | None:
         """The flow of the calibration in progress (None: none, or started elsewhere)."""
@@ -240,6 +253,7 @@ class CalibrationRelay:
         with self._lock:
             self._flow = flow
             self._last_pct = None
+            self._last_step = 0
 
     def packets(self, event: Event) -> list[Message]:
         """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
@@ -255,6 +269,7 @@ class CalibrationRelay:
             flow = self._flow
             if event.kind in ("calibration.started", "calibration.cancelled"):
                 self._repeat = None
+                self._last_step = 0
             if event.kind in ("calibration.done", "calibration.failed", "calibration.cancelled"):
                 self._flow = None
             if event.kind == "calibration.progress":
@@ -283,7 +298,9 @@ class CalibrationRelay:
                     out += statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
             return out
         if event.kind == "calibration.progress":
-            return out  # ArduPilot flow: MAG_CAL_PROGRESS carries it
+            # ArduPilot flow: MAG_CAL_PROGRESS carries it, which MAVProxy's console does
+            # not show: a line every PROGRESS_TEXT_STEP per cent says it is working.
+            return out + self._progress_text(event)
         return out + statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
 
 
