@@ -263,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--once",
         action="store_true",
         help="collect for a moment (--duration, default 2.5 s), print one table, exit "
-        "(exit code 1 if no bridge was seen)",
+        "(exit code 1 if no bridge was seen, 3 if one runs uncalibrated)",
     )
     mon.add_argument(
         "--duration", type=_positive, default=None, metavar="S", help="stop after S seconds"
@@ -460,11 +460,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """``simulate``: serve the simulated compass on a pty until SIGINT/SIGTERM."""
     from bridge.sim.pty import run_simulator
 
+    def ready(sim: Any) -> None:
+        what = "a perfect unit" if args.ideal else f"seed {args.seed}"
+        print(
+            f"simulated compass ({what}, motion {args.motion}) serving on {sim.device}, "
+            f"linked at {args.link}\n"
+            f"  a bridge reads it with: compass-bridge run --config FILE "
+            f"--set device.port={args.link}\n"
+            f"  SIGUSR1 unplugs it for {args.unplug_s:g} s, SIGUSR2 sends "
+            f"{args.garbage_bytes} bytes of line noise; Ctrl-C stops it",
+            flush=True,
+        )
+
     # run_simulator stops cleanly on SIGINT/SIGTERM itself.
     return run_simulator(
         args.link,
         args.seed,
         args.location,
+        on_ready=ready,
         motion=args.motion,
         flash_path=args.flash,
         ideal=args.ideal,
@@ -547,8 +560,19 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     st.add_argument(
         "keyexpr", nargs="?", default="fleet/**/status", metavar="KEYEXPR", help="bridges to ask"
     )
-    st.add_argument("--connect", action="append", default=[], type=_zenoh_endpoint)
-    st.add_argument("--json", action="store_true", help="JSON for scripts")
+    st.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        type=_zenoh_endpoint,
+        metavar="ENDPOINT",
+        help="zenoh endpoint to ask (repeatable; default tcp/127.0.0.1:7447, this host's bridge)",
+    )
+    st.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON for scripts (exit 0 all OK, 1 one NOT OK or none, 3 one UNCALIBRATED)",
+    )
     st.add_argument("--timeout", type=_positive, default=3.0, metavar="S")
     st.set_defaults(func=cmd_status)
 

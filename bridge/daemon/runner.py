@@ -43,6 +43,7 @@ from typing import Any
 
 from bridge.app.bridge import location_field
 from bridge.app.sample import CompassSample, Output
+from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
 from bridge.daemon.wiring import Daemon, build_outputs, make_transport
 from bridge.link.observed import ObservedTransport
@@ -222,6 +223,8 @@ class Service:
         text = snap.calibration_source
         if not snap.calibration_saved and not text.startswith("none"):
             text += ", NOT SAVED (storage error)"
+        if magnetometer_calibrated(self.daemon.services) is False:
+            text += ", UNCALIBRATED"
         return text
 
     def status_line(self) -> str:
