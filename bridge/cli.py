@@ -328,13 +328,13 @@ def _hard_iron_change(text: str) -> tuple[tuple[float, float, float], float]:
     return (parts[0], parts[1], parts[2]), t
 
 
-def _setup_logging(args: argparse.Namespace) -> None:
+def _setup_logging(args: argparse.Namespace, stream: Any = None) -> None:
     level = args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
     # One line per record, rate-limited repeats; under systemd (stderr is the journal)
     # with <N> priority prefixes and no timestamps: the journal stamps time and unit itself.
     from bridge.logsetup import setup_logging
 
-    setup_logging(level, sys.stderr)
+    setup_logging(level, sys.stderr if stream is None else stream)
 
 
 @contextmanager
@@ -431,11 +431,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         # SIGHUP: the same file and overrides as at start, read and validated afresh.
         return load_config(args.config, overrides)
 
+    console = args.simulate or args.console
+    gate = None
+    if console and sys.stdout.isatty() and sys.stderr.isatty():
+        # Log lines on the live line's terminal wait, as the line does, while the bridge is
+        # a background job (`run --simulate &`): they would break another tool's display.
+        from bridge.console import TerminalGate
+
+        gate = TerminalGate(sys.stderr)
+        _setup_logging(args, gate)
     stop = threading.Event()
     with stop_on_signals(stop):
-        return run_daemon(
-            cfg, stop, console=args.simulate or args.console, reload_config=reload_config
-        )
+        return run_daemon(cfg, stop, console=console, reload_config=reload_config, gate=gate)
 
 
 def cmd_config(args: argparse.Namespace) -> int:

@@ -1,10 +1,11 @@
 """The console adapter: a live line of heading, pitch, roll and link health (``run``).
 
 On a terminal the line is rewritten in place, and only while the bridge is the
-terminal's foreground job: started with ``&`` (the README's calibration step)
-it stays quiet, so the calibrate tool's map and bar in the same terminal are not
-overwritten, and comes back on ``fg``. Notes (a calibration saved, a parameter
-stored) are whole lines, written in the foreground or not.
+terminal's foreground job. Started with ``&`` (the README's calibration step) it
+says its first lines (the intro, start-up warnings) and then holds everything --
+the live line, notes (a calibration saved, a parameter stored), log lines
+(:class:`TerminalGate` on stderr) -- until ``fg`` or until it stops, so the
+calibrate tool's map and bar in the same terminal are never overwritten.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def format_line(
     parts.append(f"[{src}]")
     if truth_deg is not None:
         off = (sample.heading_deg - truth_deg + 180.0) % 360.0 - 180.0
+        off = 0.0 if abs(off) < 0.05 else off  # no "-0.0"
         parts.append(f"[sim truth {truth_deg:5.1f} {ref}, off {off:+5.1f}]")
     flags = []
     if sample.saturated:
@@ -83,6 +85,78 @@ def terminal_columns(stream: TextIO) -> int | None:
         return None
 
 
+class TerminalGate:
+    """A terminal stream that holds what is written while the process is in the background.
+
+    Open at first (the start-up lines go out at once); after :meth:`close_in_background`
+    a write from a background process is kept (up to ``limit`` characters, then
+    counted) and written, in order, by :meth:`release` once the process is the
+    terminal's foreground job again, or by :meth:`release_all` when it stops. A
+    stand-in for the stream (logging writes to it); anything else is passed through.
+    """
+
+    def __init__(
+        self,
+        stream: TextIO,
+        *,
+        foreground: Callable[[], bool] | None = None,
+        limit: int = 64 * 1024,
+    ) -> None:
+        self._stream = stream
+        self._foreground = foreground or (lambda: in_foreground(stream))
+        self._limit = limit
+        self._held: list[str] = []
+        self._size = 0
+        self._dropped = 0
+        self._gated = False
+        self._lock = threading.RLock()
+
+    def __getattr__(self, attr: str) -> object:
+        return getattr(self._stream, attr)
+
+    def close_in_background(self) -> None:
+        """From now on, hold writes made while in the background."""
+        self._gated = True
+
+    def write(self, text: str) -> int:
+        """Write now (foreground, or not gated yet) or hold."""
+        with self._lock:
+            if not self._gated or self._foreground():
+                self._release_locked()
+                return self._stream.write(text)
+            if self._size + len(text) > self._limit:
+                self._dropped += 1
+            else:
+                self._held.append(text)
+                self._size += len(text)
+            return len(text)
+
+    def flush(self) -> None:
+        """Flush the stream (what is held stays held)."""
+        self._stream.flush()
+
+    def release(self) -> None:
+        """Write what is held if the process is in the foreground now."""
+        with self._lock:
+            if (self._held or self._dropped) and (not self._gated or self._foreground()):
+                self._release_locked()
+                self._stream.flush()
+
+    def release_all(self) -> None:
+        """Write what is held, foreground or not (the bridge is stopping)."""
+        with self._lock:
+            self._release_locked()
+            self._stream.flush()
+
+    def _release_locked(self) -> None:
+        if self._held:
+            self._stream.write("".join(self._held))
+            self._held, self._size = [], 0
+        if self._dropped:
+            self._stream.write(f"({self._dropped} more lines written in the background lost)\n")
+            self._dropped = 0
+
+
 class ConsoleOutput(LatestSampleWorker):
     """A live line of heading/pitch/roll on a text stream (``run --simulate``).
 
@@ -104,6 +178,7 @@ class ConsoleOutput(LatestSampleWorker):
         intro: str = "",
         truth: TruthFn | None = None,
         foreground: Callable[[], bool] | None = None,
+        gate: TerminalGate | None = None,
     ) -> None:
         self._stream = stream if stream is not None else sys_stdout()
         self._intro = intro
@@ -119,6 +194,7 @@ class ConsoleOutput(LatestSampleWorker):
         self._width = 0
         self._notes: list[str] = []
         self._notes_lock = threading.Lock()
+        self._gate = gate
 
     def note(self, text: str) -> None:
         """A whole line to print at the next update (from any thread)."""
@@ -127,17 +203,23 @@ class ConsoleOutput(LatestSampleWorker):
 
     def emit(self, sample: CompassSample | None) -> None:
         """Write the line for the latest sample (after the intro line and notes, if any)."""
-        with self._notes_lock:
-            notes, self._notes = self._notes, []
-        if self._intro:
-            notes.insert(0, self._intro)
-            self._intro = ""
         live = not self.tty or self._foreground()
+        with self._notes_lock:
+            notes = self._notes if live else []  # in the background notes wait for fg
+            if live:
+                self._notes = []
+        if self._intro:
+            notes.insert(0, self._intro)  # the first lines go out in any case
+            self._intro = ""
         if notes:
             if self._width:  # a live line is drawn: clear it, the notes go above it
                 self._stream.write("\r" + " " * self._width + "\r")
                 self._width = 0
             self._stream.write("".join(n + "\n" for n in notes))
+        if self._gate is not None:
+            self._gate.close_in_background()  # the start-up lines are out
+            if live:
+                self._gate.release()
         if not live:
             self._width = 0  # back in the foreground, the line starts afresh
             self._stream.flush()
@@ -156,10 +238,15 @@ class ConsoleOutput(LatestSampleWorker):
         self._stream.flush()
 
     def finish(self) -> None:
-        """End the in-place line so the shell prompt starts on a fresh one."""
+        """End the in-place line so the shell prompt starts on a fresh one; say what waited."""
         if self.tty and self._width:
             self._stream.write("\n")
-            self._stream.flush()
+        with self._notes_lock:
+            notes, self._notes = self._notes, []
+        self._stream.write("".join(n + "\n" for n in notes))
+        self._stream.flush()
+        if self._gate is not None:
+            self._gate.release_all()
 
 
 def sys_stdout() -> TextIO:

@@ -66,9 +66,7 @@ def test_config_keys_exist_and_round_trip() -> None:
 
 @pytest.mark.integration
 @pytest.mark.parametrize("role", ["standalone", "companion"])
-def test_every_parameter_a_ground_station_receives_is_documented(
-    tmp_path: Path, role: str
-) -> None:
+def test_every_parameter_a_ground_station_receives_is_documented(tmp_path: Path, role: str) -> None:
     """PARAM_REQUEST_LIST to a running bridge: each PARAM_VALUE's name has a documented row."""
     target = (1, 1) if role == "standalone" else (1, 200)
     mav = {"role": role} if role == "standalone" else {"role": role, "component_id": 200}
@@ -86,5 +84,7 @@ def test_every_parameter_a_ground_station_receives_is_documented(
     assert len(names) == first.param_count, (len(names), first.param_count)
     rows = _rows(DOC.read_text())
     missing = sorted(n for n in names if n not in rows)
-    assert not missing, f"parameters a ground station shows but docs/configuration.md lacks: {missing}"
+    assert not missing, (
+        f"parameters a ground station shows but docs/configuration.md lacks: {missing}"
+    )
     assert all(rows[n][6] for n in names)

@@ -8,12 +8,22 @@ anything, for the lines that say what a run will start from.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
 from bridge.app.params import PARAMS_DOCUMENT
 from bridge.calibrator.store import CalibrationStore
 from bridge.ports import DocumentStore
+
+
+def home_relative(path: object) -> str:
+    """``path`` with the user's home directory written ``~`` (as a person types it)."""
+    text = str(path)
+    home = os.path.expanduser("~")
+    if home not in ("", "/", "~") and (text == home or text.startswith(home + os.sep)):
+        return "~" + text[len(home) :]
+    return text
 
 
 def value_text(v: object) -> str:
@@ -56,4 +66,10 @@ def state_summary(documents: DocumentStore) -> str:
     return " and ".join(held) if held else "nothing yet"
 
 
-__all__ = ["calibration_summary", "state_summary", "stored_parameters", "value_text"]
+__all__ = [
+    "calibration_summary",
+    "home_relative",
+    "state_summary",
+    "stored_parameters",
+    "value_text",
+]

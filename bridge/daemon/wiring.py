@@ -33,12 +33,12 @@ from bridge.app.paramspec import CAL_PARAMS
 from bridge.app.sample import CompassSample, DaemonStatus, Output
 from bridge.app.services import BridgeServices, magnetometer_calibrated
 from bridge.app.settings import EngineSettings
-from bridge.app.state import state_summary, stored_parameters, value_text
+from bridge.app.state import home_relative, state_summary, stored_parameters, value_text
 from bridge.calibration.model import Calibration
 from bridge.calibrator import CalibrationController, CalibratorSettings
 from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
-from bridge.console import ConsoleOutput
+from bridge.console import ConsoleOutput, TerminalGate
 from bridge.core.attitude import AttitudeEngine
 from bridge.events import Event, EventBus
 from bridge.link.serial_link import CompassLink
@@ -88,16 +88,16 @@ def _simulator_calibration(
     The second line names the state directory, what it holds and how to empty it.
     """
     seed = f"seed {cfg.sim.seed}"
+    where = home_relative(cfg.storage.dir)
     state = (
-        f"State (calibration, parameters set over MAVLink): {cfg.storage.dir}, holding "
+        f"State (calibration, parameters set over MAVLink): {where}, holding "
         f"{state_summary(documents)}. A fresh start: {SIM_RESET_COMMAND}"
     )
     if CalibrationStore(documents).load().stored:
         return (
             None,
             "",
-            f"Simulated compass ({seed}) with the calibration stored in {cfg.storage.dir}.\n"
-            + state,
+            f"Simulated compass ({seed}) with the calibration stored in {where}.\n" + state,
         )
     calibrate = "calibrate it yourself: README, 'Calibrate it'"
     if not cfg.sim.calibrated:
@@ -315,10 +315,10 @@ def _truth(daemon: Daemon) -> Callable[[CompassSample], float | None] | None:
     return truth
 
 
-def _console(daemon: Daemon) -> ConsoleOutput:
+def _console(daemon: Daemon, gate: TerminalGate | None) -> ConsoleOutput:
     """The live line, with notes naming the files a calibration or a parameter goes to."""
-    console = ConsoleOutput(daemon.status, intro=daemon.intro, truth=_truth(daemon))
-    where = Path(daemon.cfg.storage.dir)
+    console = ConsoleOutput(daemon.status, intro=daemon.intro, truth=_truth(daemon), gate=gate)
+    where = Path(home_relative(daemon.cfg.storage.dir))
 
     def on_event(event: Event) -> None:
         if event.kind == "calibration.accepted" and event.data.get("saved"):
@@ -343,6 +343,7 @@ def build_outputs(
     daemon: Daemon,
     *,
     console: bool,
+    gate: TerminalGate | None = None,
 ) -> list[Output]:
     """The outputs the configuration asks for, built on the daemon's services.
 
@@ -353,7 +354,7 @@ def build_outputs(
     services = daemon.bridge.services
     outputs: list[Output] = []
     if console:
-        outputs.append(_console(daemon))
+        outputs.append(_console(daemon, gate))
     if cfg.mavlink.endpoints:
         from bridge.mavlink import MavlinkOutput, MavlinkSettings
 
