@@ -24,7 +24,8 @@ Long operations (record, calibrate, bench) draw a progress bar or spinner with
 an ETA on stderr when it is a terminal; ``--progress/--no-progress`` forces it.
 
 Exit codes: 0 ok (including a stop by SIGINT/SIGTERM), 2 usage or
-configuration error (message on stderr), 1 anything else.
+configuration error (message on stderr), 1 anything else; ``status`` and
+``monitor --once`` 3 when a bridge streams but runs uncalibrated (docs/tools.md).
 
 Heavy imports (numpy, the link, the simulator) happen inside the subcommands
 so ``--version`` and usage errors answer at once.
@@ -376,44 +377,10 @@ def _force_exit() -> None:
 # ---------------------------------------------------------------------------
 
 
-def simulator_state_dir() -> str:
-    """State directory of ``run --simulate``: ``$XDG_STATE_HOME/compass-bridge/sim``.
-
-    Falls back to ``~/.local/state`` (the XDG default) when XDG_STATE_HOME is unset.
-    """
-    base = os.environ.get("XDG_STATE_HOME") or os.path.join(
-        os.path.expanduser("~"), ".local", "state"
-    )
-    return os.path.join(base, "compass-bridge", "sim")
-
-
-def simulate_overrides(overrides: Sequence[str]) -> list[str]:
-    """``run --simulate``'s own settings, before the user's ``--set`` (which win)."""
-    # The simulated compass speaks the GMR protocol, whatever a --config file says.
-    # A first run shows a heading that turns with the unit: it starts calibrated with
-    # its true errors unless a calibration is stored (or --set sim.calibrated=false).
-    own = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
-    if not any(o.partition("=")[0].strip() == "storage.dir" for o in overrides):
-        # The simulated unit must never read or overwrite a real unit's calibration
-        # in the service's state directory: give it a per-user directory of its own.
-        own.append(f"storage.dir={simulator_state_dir()}")
-    return own
-
-
-def reset_state(state_dir: str) -> None:
-    """``run --simulate --reset``: delete the stored documents; say what went."""
-    from bridge.storage import StateStore, StorageError
-
-    try:
-        removed = StateStore(state_dir).clear()
-    except StorageError as e:
-        raise UsageError(f"--reset: {e}") from None
-    what = ", ".join(p.name for p in removed) if removed else "nothing was stored"
-    print(f"reset {state_dir}: {what}", file=sys.stderr)
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     """``run``: load the configuration, start the daemon, stop on SIGINT/SIGTERM."""
+    from bridge.tools.simulator import reset_state, simulate_overrides
+
     overrides = list(args.overrides)
     if args.simulate:
         overrides[:0] = simulate_overrides(overrides)
@@ -423,7 +390,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise UsageError("--reset goes with --simulate (it clears the simulator's state)")
     cfg = load_config(args.config, overrides)
     if args.reset:
-        reset_state(cfg.storage.dir)
+        from bridge.ports import StorageError
+
+        try:
+            print(reset_state(cfg.storage.dir), file=sys.stderr)
+        except StorageError as e:
+            raise UsageError(f"--reset: {e}") from None
 
     from bridge.daemon import run_daemon
 
@@ -454,6 +426,7 @@ def cmd_config(args: argparse.Namespace) -> int:
         sys.stdout.write(reference_markdown())
         return EXIT_OK
     from bridge.tools.effective import effective, render, warnings
+    from bridge.tools.simulator import simulate_overrides
 
     own = simulate_overrides(args.overrides) if args.simulate else []
     result = effective(args.config, args.overrides, simulate=own)
@@ -466,18 +439,10 @@ def cmd_config(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``simulate``: serve the simulated compass on a pty until SIGINT/SIGTERM."""
     from bridge.sim.pty import run_simulator
+    from bridge.tools.simulator import serving_line
 
     def ready(sim: Any) -> None:
-        what = "a perfect unit" if args.ideal else f"seed {args.seed}"
-        print(
-            f"simulated compass ({what}, motion {args.motion}) serving on {sim.device}, "
-            f"linked at {args.link}\n"
-            f"  a bridge reads it with: compass-bridge run --config FILE "
-            f"--set device.port={args.link}\n"
-            f"  SIGUSR1 unplugs it for {args.unplug_s:g} s, SIGUSR2 sends "
-            f"{args.garbage_bytes} bytes of line noise; Ctrl-C stops it",
-            flush=True,
-        )
+        print(serving_line(args, sim.device), flush=True)
 
     # run_simulator stops cleanly on SIGINT/SIGTERM itself.
     return run_simulator(
