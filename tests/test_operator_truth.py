@@ -283,3 +283,50 @@ def test_simulate_says_where_it_serves(tmp_path: Path) -> None:
     assert m is not None, first
     assert m.group(1).startswith("/dev/pts/")
     assert proc.returncode == 0, err
+
+
+def test_config_says_when_it_cannot_read_the_stored_parameters(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    (state / "params.json").mkdir(parents=True)  # unreadable as a document (as a 0750 dir is)
+    res = cli("config", "--set", f"storage.dir={state}", "--set", "device.port=sim")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == (
+        f"warning: {state}: params.json: unreadable (a directory, not a regular file); the "
+        "values shown leave its stored parameters out (run config as the service's user or root)\n"
+    )
+
+
+@pytest.mark.integration
+def test_run_simulate_says_where_a_parameter_set_over_mavlink_is_kept(tmp_path: Path) -> None:
+    from test_mavlink_rig import connect_gcs
+
+    udp = free_port()
+    env = _env(tmp_path)
+    proc = subprocess.Popen(
+        [PROGRAM, "run", "--simulate", "--set", f'mavlink.endpoints=["udpin:127.0.0.1:{udp}"]',
+         "--set", "zenoh.enabled=false"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    g = None
+    try:
+        g = connect_gcs(f"udpout:127.0.0.1:{udp}")
+        end = time.monotonic() + 20.0
+        while not any(m.get_type() == "HEARTBEAT" for m in g.inbox):
+            assert time.monotonic() < end, "no HEARTBEAT from the bridge"
+            g.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            g.pump(0.5)  # until the bridge runs and has heard us
+        assert g.set_param("BRG_SR_HUD", 2.0, M.MAV_PARAM_TYPE_REAL32).param_value == 2.0
+        assert proc.stdout is not None
+        end = time.monotonic() + 20.0
+        lines: list[str] = []
+        while time.monotonic() < end and not any(x.startswith("Parameter") for x in lines):
+            lines.append(proc.stdout.readline().rstrip("\n"))
+    finally:
+        if g is not None:
+            g.close()
+        _stop(proc)
+    where = tmp_path / "xdg" / "compass-bridge" / "sim" / "params.json"
+    assert lines[-1] == (
+        f"Parameter BRG_SR_HUD = 2 stored in {where}: it overrides the configuration from now "
+        "on ('compass-bridge config' shows it)"
+    ), lines

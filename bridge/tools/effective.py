@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bridge.app.params import PARAMS_DOCUMENT
 from bridge.app.paramspec import CONFIG_PARAMS, ParamTable, config_from_param
 from bridge.app.state import calibration_summary, stored_parameters, value_text
 from bridge.config import Config, load_config, read_toml, section_types, settings_of
@@ -102,11 +103,17 @@ def _apply_stored(out: Effective) -> None:
     store = StateStore(out.state_dir)
     params_file = Path(out.state_dir) / "params.json"
     try:
+        loaded = store.load(PARAMS_DOCUMENT)
         stored = stored_parameters(store)
         out.calibration = calibration_summary(store)
     except Exception as e:
         out.problems.append(f"cannot read the state directory {out.state_dir}: {e}")
         return
+    for problem in loaded.problems:  # e.g. not readable by this user: say what is left out
+        out.problems.append(
+            f"{out.state_dir}: {problem}; the values shown leave its stored parameters out "
+            "(run config as the service's user or root)"
+        )
     if not stored:
         return
     out.layers.append(f"parameters stored in {params_file}")
