@@ -281,3 +281,38 @@ def test_the_calibration_step_runs_in_one_terminal(terminal: Terminal) -> None:
     assert "[streaming" in t.out[live:] or t.read_until(r"\[streaming", start=live)
     t.type("\x03")  # now the bridge is in the foreground: Ctrl-C stops it
     t.read_until(r"\$ ", start=live)
+
+
+def test_one_mavproxy_command_line_across_the_docs() -> None:
+    texts = [README, *(p.read_text() for p in sorted((REPO / "docs").glob("*.md")))]
+    lines = {
+        line.strip()
+        for text in texts
+        for line in text.splitlines()
+        if "mavproxy.py --master" in line
+    }
+    assert lines == {".venv/bin/mavproxy.py --master=udpin:127.0.0.1:14550"}, lines
+
+
+def test_the_prompt_the_docs_explain_is_mavproxys_for_each_flavour() -> None:
+    """MAVProxy's prompt is pymavlink's mode string of the bridge's HEARTBEAT."""
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+
+    from bridge.mavlink.telemetry import Identity, heartbeat
+
+    doc = (REPO / "docs" / "mavlink.md").read_text()
+    prompts = {}
+    for flavour in ("generic", "ardupilot", "px4"):
+        hb = heartbeat(Identity(1, 1, "standalone", flavour), 4)  # MAV_STATE_ACTIVE
+        prompts[flavour] = mavutil.mode_string_v10(hb)
+    assert prompts == {
+        "generic": "Mode(0x00000000)",
+        "ardupilot": "Mode(0x00000000)",
+        "px4": "UNKNOWN",
+    }
+    assert (
+        "`Mode(0x00000000)>` with the `generic` and\n`ardupilot` flavours and `UNKNOWN>` with `px4`"
+        in doc
+    )
+    assert "Its prompt reads `Mode(0x00000000)>`" in README
