@@ -168,3 +168,33 @@ def test_piped_progress_lines_and_the_hint() -> None:
     ]
     assert "'udpout:10.0.0.2:14551' in mavlink.endpoints" in no_bridge_hint("udpin:10.0.0.2:14551")
     assert "'tcpin:127.0.0.1:5760' in mavlink.endpoints" in no_bridge_hint("tcp:127.0.0.1:5760")
+
+
+def test_a_calibration_that_does_not_move_on_is_still_said_every_15_s() -> None:
+    """A unit turned level only never reaches 20 %: MAVProxy must not stay silent."""
+    from bridge.calibrator.snapshot import CalibratorSnapshot
+    from bridge.calibrator.state import Phase
+    from bridge.mavlink.commands import PROGRESS_TEXT_REMIND_S
+
+    t = [100.0]
+    relay = CalibrationRelay(clock=lambda: t[0])
+    relay.begin("ardupilot")
+    snap = CalibratorSnapshot(
+        mode="mag", phase=Phase.COLLECTING, step=1, running=True, attempt=1,
+        completion_pct=3.4, completion_mask=bytes(10), direction=(0.0, 0.0, 1.0),
+        onboard=False, faces_done=(), report=None, pending_accept=False,
+        calibration_source="none (identity)", calibration_age_s=None, calibration_saved=False,
+    )  # fmt: skip
+
+    def texts_at(now: float) -> list[str]:
+        t[0] = now
+        msgs = relay.keepalive(now, lambda: snap)
+        assert msgs[0].get_type() == "MAG_CAL_PROGRESS"  # as before, every time
+        return [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
+
+    said = [(now, texts_at(now)) for now in (100.0 + 0.5 * i for i in range(1, 81))]
+    reminders = [now for now, texts in said if texts]
+    assert reminders == [100.0 + PROGRESS_TEXT_REMIND_S, 100.0 + 2 * PROGRESS_TEXT_REMIND_S]
+    assert said[29][1] == ["Mag calibration 3%: keep turning it"]
+    relay.begin("px4")  # QGroundControl has its progress bar from the [cal] lines
+    assert texts_at(200.0) == [] and texts_at(230.0) == []

@@ -165,6 +165,9 @@ def result_code(outcome: Outcome, *, in_progress_is_final: bool = True) -> int:
 PROGRESS_PERIOD_S = 0.5
 #: MAG_CAL_REPORT repeated while a result waits for accept (ArduPilot), every this many seconds.
 REPORT_PERIOD_S = 1.0
+#: Outside the PX4 flow, a progress STATUSTEXT at least this often while a magnetometer
+#: calibration runs, even when it does not move on (a unit turned level only: never silent).
+PROGRESS_TEXT_REMIND_S = 15.0
 
 
 class CalibrationRelay:
@@ -191,6 +194,7 @@ class CalibrationRelay:
         self._flow: Flow | None = None
         self._last_pct: int | None = None
         self._last_step = 0  # the last progress step said in a STATUSTEXT (ArduPilot flow)
+        self._text_at = clock()  # when a progress text last went out (or the flow began)
         self.last_report: MagCalReport | None = None
         self._repeat: Message | None = None  # the MAG_CAL_REPORT repeated until answered
         self._repeat_at = -math.inf
@@ -211,7 +215,15 @@ class CalibrationRelay:
         self._progress_at = now
         snap = snapshot()
         if snap.running and snap.mode in ("mag", "onboard_mag"):
-            return [calmap.progress_message(snap, self.compass_id)]
+            out = [calmap.progress_message(snap, self.compass_id)]
+            with self._lock:
+                remind = self._flow != "px4" and now - self._text_at >= PROGRESS_TEXT_REMIND_S
+                if remind:
+                    self._text_at = now
+            if remind:
+                text = calmap.progress_text({"sensor": "mag"}, int(snap.completion_pct))
+                out += statustext(int(M.MAV_SEVERITY_INFO), text)
+            return out
         with self._lock:
             report = self._repeat
             if report is None or now - self._repeat_at < REPORT_PERIOD_S:
@@ -232,7 +244,8 @@ class CalibrationRelay:
 
     def _progress_text(self, event: Event) -> list[Message]:
         """A STATUSTEXT when a progress event passes a new step (20 %, 40 % ...; not 100 %,
-        which the result says), once per step and attempt."""
+        which the result says), once per step and attempt; :meth:`keepalive` repeats the
+        figure when no step is passed for :data:`PROGRESS_TEXT_REMIND_S`."""
         step = calmap.progress_step(event.data)
         with self._lock:
             if step is None or not 0 < step < 100 or step <= self._last_step:
@@ -240,6 +253,7 @@ class CalibrationRelay:
                     self._last_step = step  # a retry started over
                 return []
             self._last_step = step
+            self._text_at = self._clock()
         return statustext(int(event.severity), calmap.progress_text(event.data, step))
 
     @property
@@ -254,6 +268,7 @@ class CalibrationRelay:
             self._flow = flow
             self._last_pct = None
             self._last_step = 0
+            self._text_at = self._clock()
 
     def packets(self, event: Event) -> list[Message]:
         """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
@@ -270,6 +285,7 @@ class CalibrationRelay:
             if event.kind in ("calibration.started", "calibration.cancelled"):
                 self._repeat = None
                 self._last_step = 0
+                self._text_at = self._clock()
             if event.kind in ("calibration.done", "calibration.failed", "calibration.cancelled"):
                 self._flow = None
             if event.kind == "calibration.progress":
