@@ -160,11 +160,14 @@ def test_piped_progress_lines_and_the_hint() -> None:
     p.text("Too much motion: turn slower / steadier")
     p.text("Too much motion: turn slower / steadier")
     p.text("Mag calibration 60%: keep turning it")
+    p.progress(67, 2)
+    p.again()  # the bridge's reminder: no step passed for a while, still working
     assert out.getvalue().splitlines() == [
         "calibrating: 0% (80 of 80 sphere sections still missing)",
         "calibrating: 20% (40 of 80 sphere sections still missing)",
         "calibrating: 60% (3 of 80 sphere sections still missing)",
         "bridge: Too much motion: turn slower / steadier",
+        "calibrating: 67% (2 of 80 sphere sections still missing)",
     ]
     assert "'udpout:10.0.0.2:14551' in mavlink.endpoints" in no_bridge_hint("udpin:10.0.0.2:14551")
     assert "'tcpin:127.0.0.1:5760' in mavlink.endpoints" in no_bridge_hint("tcp:127.0.0.1:5760")

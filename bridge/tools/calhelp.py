@@ -96,15 +96,24 @@ class PlainProgress:
         self._out = out
         self._step = -1
         self._last_text = ""
+        self._pct, self._missing = 0.0, N_SECTIONS
 
     def progress(self, pct: float, missing: int) -> None:
         """A line when ``pct`` reaches a new :data:`STEP_PCT` step (0 % included)."""
+        self._pct, self._missing = pct, missing
         step = int(max(0.0, min(100.0, pct)) // STEP_PCT) * STEP_PCT
         if step <= self._step:
             return
         self._step = step
+        self._line(step)
+
+    def again(self) -> None:
+        """The progress as it is now, though no step was passed (the calibration goes on)."""
+        self._line(int(max(0.0, min(100.0, self._pct))))
+
+    def _line(self, pct: int) -> None:
         self._write(
-            f"calibrating: {step}% ({missing} of {N_SECTIONS} sphere sections still missing)"
+            f"calibrating: {pct}% ({self._missing} of {N_SECTIONS} sphere sections still missing)"
         )
 
     def text(self, text: str) -> None:

@@ -588,8 +588,10 @@ def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]
         bar.update(pct, note=note, detail=coverage_text(missing))
 
     def on_text(text: str) -> None:
-        if calhelp.is_progress_text(text):
-            return  # the bar (or the lines) already say how far
+        if calhelp.is_progress_text(text):  # the bar (or the lines) already say how far
+            if plain is not None:
+                plain.again()  # the bridge's reminder: it has not moved on for a while
+            return
         if plain is not None:
             plain.text(text)
         if is_motion_warning(text):
