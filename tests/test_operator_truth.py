@@ -160,11 +160,12 @@ def _stop(proc: subprocess.Popen[str]) -> str:
     return err
 
 
-def _status_until(args: list[str], want: int) -> subprocess.CompletedProcess[str]:
-    """``status`` until the bridge answers (its session needs a moment) with ``want``."""
-    end = time.monotonic() + 30.0
+def _until(args: list[str], want: int) -> subprocess.CompletedProcess[str]:
+    """The command again until it exits ``want`` (the bridge's session needs a moment to
+    start and be met; a loaded machine makes that longer), within 60 s."""
+    end = time.monotonic() + 60.0
     while True:
-        res = cli("status", *args, "--timeout", "3")
+        res = cli(*args)
         if res.returncode == want or time.monotonic() > end:
             return res
         time.sleep(0.2)
@@ -176,8 +177,8 @@ def test_status_and_monitor_flag_an_uncalibrated_bridge(tmp_path: Path) -> None:
     where = f"tcp/127.0.0.1:{zport}"
     proc = _start_sim(tmp_path, zport, "--set", "sim.calibrated=false")
     try:
-        res = _status_until(["--connect", where], 3)
-        mon = cli("monitor", "--connect", where, "--once", "--duration", "3")
+        res = _until(["status", "--connect", where, "--timeout", "3"], 3)
+        mon = _until(["monitor", "--connect", where, "--once", "--duration", "3"], 3)
     finally:
         err = _stop(proc)
     assert res.returncode == 3, res.stdout + res.stderr
@@ -198,8 +199,8 @@ def test_status_passes_a_calibrated_bridge_and_says_where_it_asked(tmp_path: Pat
     where = f"tcp/127.0.0.1:{zport}"
     proc = _start_sim(tmp_path, zport)  # calibrated with the unit's true errors
     try:
-        res = _status_until(["--connect", where], 0)
-        mon = cli("monitor", "--connect", where, "--once", "--duration", "3")
+        res = _until(["status", "--connect", where, "--timeout", "3"], 0)
+        mon = _until(["monitor", "--connect", where, "--once", "--duration", "3"], 0)
     finally:
         err = _stop(proc)
     assert res.returncode == 0, res.stdout + res.stderr
