@@ -4,7 +4,8 @@ Subcommands::
 
     compass-bridge run --config FILE [--set SECTION.KEY=VALUE ...] [--console]
     compass-bridge run --simulate                  # built-in simulated compass, live console line
-    compass-bridge config [--config FILE] [--set ...]   # validate, print the effective config
+    compass-bridge run --simulate --reset          # the same, from a fresh simulator state
+    compass-bridge config [--config FILE] [--set ...] [--simulate]  # the config in effect
     compass-bridge config --docs                   # the configuration reference (Markdown)
     compass-bridge simulate --link PATH [--seed N] [--shake G]  # serve a simulated compass on a pty
     compass-bridge record --port DEV --out FILE [--duration S]  # raw byte stream, live line
@@ -23,7 +24,8 @@ Long operations (record, calibrate, bench) draw a progress bar or spinner with
 an ETA on stderr when it is a terminal; ``--progress/--no-progress`` forces it.
 
 Exit codes: 0 ok (including a stop by SIGINT/SIGTERM), 2 usage or
-configuration error (message on stderr), 1 anything else.
+configuration error (message on stderr), 1 anything else; ``status`` and
+``monitor --once`` 3 when a bridge streams but runs uncalibrated (docs/tools.md).
 
 Heavy imports (numpy, the link, the simulator) happen inside the subcommands
 so ``--version`` and usage errors answer at once.
@@ -45,7 +47,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 from bridge import __version__
-from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config, to_toml
+from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config
 
 log = logging.getLogger("bridge.cli")
 
@@ -123,12 +125,25 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--console", action="store_true", help="show the live heading line (implied by --simulate)"
     )
+    run.add_argument(
+        "--reset",
+        action="store_true",
+        help="with --simulate: first delete the simulator's stored calibration and parameters "
+        "(a fresh start)",
+    )
     run.set_defaults(func=cmd_run)
 
     cfg = sub.add_parser(
-        "config", parents=[common], help="validate a configuration and print the effective one"
+        "config",
+        parents=[common],
+        help="validate a configuration; print the one in effect, each value with its origin",
     )
     _config_options(cfg)
+    cfg.add_argument(
+        "--simulate",
+        action="store_true",
+        help="the configuration `run --simulate` (with the same options) would use",
+    )
     cfg.add_argument(
         "--docs",
         action="store_true",
@@ -249,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--once",
         action="store_true",
         help="collect for a moment (--duration, default 2.5 s), print one table, exit "
-        "(exit code 1 if no bridge was seen)",
+        "(exit code 1 if no bridge was seen, 3 if one runs uncalibrated)",
     )
     mon.add_argument(
         "--duration", type=_positive, default=None, metavar="S", help="stop after S seconds"
@@ -314,13 +329,13 @@ def _hard_iron_change(text: str) -> tuple[tuple[float, float, float], float]:
     return (parts[0], parts[1], parts[2]), t
 
 
-def _setup_logging(args: argparse.Namespace) -> None:
+def _setup_logging(args: argparse.Namespace, stream: Any = None) -> None:
     level = args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
     # One line per record, rate-limited repeats; under systemd (stderr is the journal)
     # with <N> priority prefixes and no timestamps: the journal stamps time and unit itself.
     from bridge.logsetup import setup_logging
 
-    setup_logging(level, sys.stderr)
+    setup_logging(level, sys.stderr if stream is None else stream)
 
 
 @contextmanager
@@ -362,32 +377,25 @@ def _force_exit() -> None:
 # ---------------------------------------------------------------------------
 
 
-def simulator_state_dir() -> str:
-    """State directory of ``run --simulate``: ``$XDG_STATE_HOME/compass-bridge/sim``.
-
-    Falls back to ``~/.local/state`` (the XDG default) when XDG_STATE_HOME is unset.
-    """
-    base = os.environ.get("XDG_STATE_HOME") or os.path.join(
-        os.path.expanduser("~"), ".local", "state"
-    )
-    return os.path.join(base, "compass-bridge", "sim")
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     """``run``: load the configuration, start the daemon, stop on SIGINT/SIGTERM."""
+    from bridge.tools.simulator import reset_state, simulate_overrides
+
     overrides = list(args.overrides)
     if args.simulate:
-        # The simulated compass speaks the GMR protocol, whatever a --config file says.
-        # A first run shows a heading that turns with the unit: it starts calibrated with
-        # its true errors unless a calibration is stored (or --set sim.calibrated=false).
-        overrides[:0] = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
-        if not any(o.startswith("storage.dir=") for o in overrides):
-            # The simulated unit must never read or overwrite a real unit's calibration
-            # in the service's state directory: give it a per-user directory of its own.
-            overrides.insert(3, f"storage.dir={simulator_state_dir()}")
+        overrides[:0] = simulate_overrides(overrides)
     elif args.config is None:
         raise UsageError("run needs --config FILE (or --simulate for the built-in simulator)")
+    if args.reset and not args.simulate:
+        raise UsageError("--reset goes with --simulate (it clears the simulator's state)")
     cfg = load_config(args.config, overrides)
+    if args.reset:
+        from bridge.ports import StorageError
+
+        try:
+            print(reset_state(cfg.storage.dir), file=sys.stderr)
+        except StorageError as e:
+            raise UsageError(f"--reset: {e}") from None
 
     from bridge.daemon import run_daemon
 
@@ -395,34 +403,53 @@ def cmd_run(args: argparse.Namespace) -> int:
         # SIGHUP: the same file and overrides as at start, read and validated afresh.
         return load_config(args.config, overrides)
 
+    console = args.simulate or args.console
+    gate = None
+    if console and sys.stdout.isatty() and sys.stderr.isatty():
+        # Log lines on the live line's terminal wait, as the line does, while the bridge is
+        # a background job (`run --simulate &`): they would break another tool's display.
+        from bridge.console import TerminalGate
+
+        gate = TerminalGate(sys.stderr)
+        _setup_logging(args, gate)
     stop = threading.Event()
     with stop_on_signals(stop):
-        return run_daemon(
-            cfg, stop, console=args.simulate or args.console, reload_config=reload_config
-        )
+        return run_daemon(cfg, stop, console=console, reload_config=reload_config, gate=gate)
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """``config``: validate and print the effective configuration as TOML (or the reference)."""
+    """``config``: the configuration in effect as TOML, each value with its origin (or the
+    reference); warnings (a port that is not there now ...) on stderr."""
     if args.docs:
-        from bridge.config import reference_markdown
+        from bridge.app.paramdocs import reference_markdown
 
         sys.stdout.write(reference_markdown())
         return EXIT_OK
-    cfg = load_config(args.config, args.overrides)
-    sys.stdout.write(to_toml(cfg))
+    from bridge.tools.effective import effective, render, warnings
+    from bridge.tools.simulator import simulate_overrides
+
+    own = simulate_overrides(args.overrides) if args.simulate else []
+    result = effective(args.config, args.overrides, simulate=own)
+    sys.stdout.write(render(result))
+    for text in warnings(result):
+        print(f"warning: {text}", file=sys.stderr)
     return EXIT_OK
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``simulate``: serve the simulated compass on a pty until SIGINT/SIGTERM."""
     from bridge.sim.pty import run_simulator
+    from bridge.tools.simulator import serving_line
+
+    def ready(sim: Any) -> None:
+        print(serving_line(args, sim.device), flush=True)
 
     # run_simulator stops cleanly on SIGINT/SIGTERM itself.
     return run_simulator(
         args.link,
         args.seed,
         args.location,
+        on_ready=ready,
         motion=args.motion,
         flash_path=args.flash,
         ideal=args.ideal,
@@ -510,8 +537,19 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     st.add_argument(
         "keyexpr", nargs="?", default="fleet/**/status", metavar="KEYEXPR", help="bridges to ask"
     )
-    st.add_argument("--connect", action="append", default=[], type=_zenoh_endpoint)
-    st.add_argument("--json", action="store_true", help="JSON for scripts")
+    st.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        type=_zenoh_endpoint,
+        metavar="ENDPOINT",
+        help="zenoh endpoint to ask (repeatable; default tcp/127.0.0.1:7447, this host's bridge)",
+    )
+    st.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON for scripts (exit 0 all OK, 1 one NOT OK or none, 3 one UNCALIBRATED)",
+    )
     st.add_argument("--timeout", type=_positive, default=3.0, metavar="S")
     st.set_defaults(func=cmd_status)
 

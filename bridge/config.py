@@ -597,9 +597,10 @@ naming the key (or the file):
 config error: device.baud: must be one of 4800, 9600, 19200, 38400, 57600, 115200, 230400, got 1234
 ```
 
-`compass-bridge config --config FILE` checks a file and prints the effective
-configuration; `config/compass-bridge.toml` is the commented example with
-every key at its default. Relative paths are relative to the working directory
+`compass-bridge config --config FILE` checks a file and prints the configuration
+in effect, each value with where it comes from (a parameter set over MAVLink and
+stored wins over the file: "Parameters" below); `config/compass-bridge.toml` is
+the commented example with every key at its default. Relative paths are relative to the working directory
 (`/` under systemd): use absolute paths. Files the configuration names (the
 signing key, the zenoh base configuration) must be regular files: a device, a
 pipe or a directory is refused, never read. Strings may not hold NUL bytes;

@@ -185,6 +185,39 @@ class StateStore:
         saved_at = env.get("saved_at")
         return payload, "", float(saved_at) if isinstance(saved_at, int | float) else None
 
+    def documents(self) -> list[Path]:
+        """Every file of a document this store keeps (current, previous and leftover
+        temporary copies), sorted; none when the directory does not exist."""
+        try:
+            entries = sorted(self.directory.iterdir())
+        except (FileNotFoundError, NotADirectoryError):
+            return []
+        except OSError as exc:
+            raise StorageError(f"cannot list {self.directory}: {exc.strerror or exc}") from exc
+        out = []
+        for p in entries:
+            stem, dot, rest = p.name.partition(".json")
+            if dot and stem.isidentifier() and rest in ("", ".prev", ".tmp", ".prev.tmp"):
+                out.append(p)
+        return out
+
+    def clear(self) -> list[Path]:
+        """Delete every document (see :meth:`documents`); returns the files removed.
+
+        Only the store's own files go: anything else in the directory stays, and so
+        does the directory. Raises :class:`StorageError` when a file cannot be removed.
+        """
+        removed = []
+        for p in self.documents():
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                continue
+            except OSError as exc:
+                raise StorageError(f"cannot remove {p}: {exc.strerror or exc}") from exc
+            removed.append(p)
+        return removed
+
     def load(self, name: str) -> LoadResult:
         """Load ``name``, falling back to the previous good copy; never raises for bad files."""
         path = self._path(name)

@@ -41,6 +41,7 @@ def _restore_logging() -> Iterator[None]:
 def _env(tmp_path: Path) -> dict[str, str]:
     env = dict(os.environ)
     env["STATE_DIRECTORY"] = str(tmp_path / "state")  # never read the machine's state
+    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")  # nor the user's (run --simulate's)
     env.pop("JOURNAL_STREAM", None)
     return env
 
@@ -230,7 +231,10 @@ def test_config_prints_the_effective_configuration(
     cfg.write_text('[device]\nbaud = 9600\n[zenoh]\nkey_prefix = "v/<hostname>"\n')
     assert main(["config", "--config", str(cfg), "--set", "device.rate_hz=20"]) == 0
     out = capsys.readouterr().out
-    assert "baud = 9600\n" in out and "rate_hz = 20\n" in out
+    # each value with its origin (a TOML comment): the file, --set, or the default
+    assert re.search(rf"^baud = 9600 +# {re.escape(str(cfg))}$", out, re.M), out
+    assert re.search(r"^rate_hz = 20 +# --set$", out, re.M), out
+    assert re.search(r"^protocol = \"gmr\" +# default$", out, re.M), out
     assert "<hostname>" not in out and 'key_prefix = "v/' in out
     assert main(["config", "--set", "sim.motion=spin"]) == 2
     assert "config error: sim.motion: must be one of" in capsys.readouterr().err

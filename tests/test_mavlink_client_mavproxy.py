@@ -13,6 +13,7 @@ for a PX4 one), and run ``magcal start`` to SUCCESS and its automatic accept.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -114,6 +115,14 @@ def test_mavproxy_calibrates_and_sets_every_parameter(
     mp.send("magcal start")
     assert mp.expect(r"Got COMMAND_ACK: DO_START_MAG_CAL: ")[1].endswith("ACCEPTED")
     _, report = mp.expect(r"Calibration of compass \d+ ", timeout=60.0)
+    # MAVProxy's console shows no MAG_CAL_PROGRESS: a STATUSTEXT says every 20 % that it works
+    steps = [
+        int(m.group(1))
+        for _, line in mp.lines
+        if (m := re.search(r"AP: Mag calibration (\d+)%: keep turning it", line))
+    ]
+    assert steps == sorted(set(steps)) and set(steps) <= {20, 40, 60, 80}, mp.text()
+    assert len(steps) >= 3 and steps[-1] >= 60, mp.text()
     assert report.startswith("Calibration of compass 0 SUCCESS: fitness ")
     assert mp.expect(r"Got COMMAND_ACK: DO_ACCEPT_MAG_CAL: ")[1].endswith("ACCEPTED")
     assert rig.daemon.engine.calibration != before

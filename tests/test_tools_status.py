@@ -31,17 +31,23 @@ def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path
     # The simulated unit is uncalibrated and has no [location]: disturbance flag known, not set.
     assert rec["quality"]["disturbed"] is False
     assert isinstance(rec["quality"]["heading_deg"], float)
-    assert code == (0 if rec["healthy"] else 1)
+    # streaming, but with no calibration in use: UNCALIBRATED, exit code 3 (not OK)
+    assert rec["healthy"] is True and rec["calibrated"] is False
+    assert rec["verdict"] == "UNCALIBRATED" and code == 3
+    assert doc["asked"] == f"fleet/**/status via tcp/127.0.0.1:{port}"
     assert rec["drift"]["mode"] == "detect" and rec["drift"]["detected"] is False
     text = human.getvalue()
-    assert text.startswith(f"{b.prefix}: ") and "streaming on" in text and "frames/s" in text
+    assert text.startswith(f"asked fleet/**/status via tcp/127.0.0.1:{port}: 1 bridge answered\n")
+    assert f"{b.prefix}: UNCALIBRATED" in text and "streaming on" in text and "frames/s" in text
 
 
 def test_no_bridge_answering_exits_1(tmp_path: Path) -> None:
     opts = MonitorOptions(keyexpr="fleet/**", connect=(f"tcp/127.0.0.1:{free_port()}",))
     out = io.StringIO()
     assert run_status(opts, out, timeout=0.5) == 1
-    assert "no compass bridge answered" in out.getvalue()
+    assert out.getvalue().startswith(
+        f"no compass bridge answered fleet/**/status via {opts.connect[0]} within 0.5 s"
+    )
 
 
 def test_summary_of_a_stale_link_is_not_healthy() -> None:

@@ -188,9 +188,11 @@ def test_monitor_once_shows_a_running_bridge(tmp_path: Path) -> None:
     with Bridge(tmp_path, "m1", listen=[f"tcp/127.0.0.1:{port}"]) as b:
         wait_until(b.output.connected.is_set, what="the bridge's session")
         proc = monitor("--connect", f"tcp/127.0.0.1:{port}", "--once")
-    assert proc.returncode == 0, proc.stderr
+    # the bridge runs with no calibration (identity): flagged UNCAL, exit code 3
+    assert proc.returncode == 3, proc.stderr
     (row,) = [line for line in proc.stdout.splitlines() if line.startswith(b.prefix)]
     cells = row.split()
+    assert "UNCAL" in cells
     assert cells[1].endswith("M") and 0.0 <= float(cells[1][:-1]) < 360.0
     assert "streaming" in cells
     assert float(cells[4]) == pytest.approx(20.0, rel=0.25)  # HZ: headings received

@@ -20,7 +20,7 @@ from typing import Any
 
 from bridge.app.drift import LEARN_MODES, DriftMonitor
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
-from bridge.app.paramspec import HEADING_FEEDS, STREAM_RATES
+from bridge.app.paramspec import CONFIG_PARAMS, param_from_config
 from bridge.app.pipeline import Pipeline
 from bridge.app.sample import DaemonStatus, HeadingReference, Output
 from bridge.app.services import BridgeServices, MessageTap
@@ -57,21 +57,17 @@ class BridgeOptions:
     @classmethod
     def from_config(cls, cfg: Config) -> BridgeOptions:
         """From a loaded configuration."""
-        m, loc = cfg.mavlink, cfg.location
+        loc = cfg.location
         heading: HeadingReference = "true" if _heading_reference(cfg) == "true" else "magnetic"
         # [calibration] learn (the configuration's owner adds the key; "detect" until then)
         learn = str(getattr(cfg.calibration, "learn", "detect"))
         if learn not in LEARN_MODES:
             raise ValueError(f"calibration.learn must be one of {LEARN_MODES}, got {learn!r}")
-        defaults: dict[str, float] = {
-            "BRG_CAL_ONBOARD": 1.0 if cfg.calibration.onboard else 0.0,
-            "BRG_CAL_LEARN": float(LEARN_MODES.index(learn)),
-            "BRG_HDG_FEED": float(HEADING_FEEDS.index(m.heading_feed)),
-            "BRG_YAW_SIGMA": m.heading_feed_sigma_deg,
-            "BRG_HDG_REF": 1.0 if heading == "true" else 0.0,
+        # Every parameter a configuration key gives the default of (paramspec's config_key).
+        defaults = {
+            spec.name: param_from_config(spec, config_value(cfg, spec.config_key))
+            for spec in CONFIG_PARAMS
         }
-        for r in STREAM_RATES:
-            defaults[r.param] = float(getattr(m, r.config_key))
         return cls(
             location=(loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None,
             onboard=cfg.calibration.onboard,
@@ -80,6 +76,12 @@ class BridgeOptions:
             learn=learn,
             param_defaults=defaults,
         )
+
+
+def config_value(cfg: Config, key: str) -> Any:
+    """The value of ``section.key`` in ``cfg``."""
+    section, _, name = key.partition(".")
+    return getattr(getattr(cfg, section), name)
 
 
 def _heading_reference(cfg: Config) -> str:

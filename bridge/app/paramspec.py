@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
+from bridge.config import CALIBRATION_LEARN_MODES, HEADING_REFERENCES
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation, rotation_matrix
 from bridge.core.quality import QualityLimits
@@ -74,6 +75,10 @@ class ParamSpec:
     group: str = "bridge"
     read_only: bool = False
     choices: tuple[int, ...] | None = None
+    #: The configuration key giving the default ("section.key"; "" = a parameter only).
+    config_key: str = ""
+    #: A string configuration key's values, by parameter value (0, 1, ...).
+    config_choices: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not 0 < len(self.name) <= NAME_MAX or not self.name.isascii():
@@ -116,7 +121,15 @@ STREAM_RATES: tuple[StreamRate, ...] = (
 def _stream_specs() -> list[ParamSpec]:
     return [
         ParamSpec(
-            r.param, REAL32, r.default_hz, 0.0, 50.0, f"{r.message} rate (0 = off)", "Hz", "rates"
+            r.param,
+            REAL32,
+            r.default_hz,
+            0.0,
+            50.0,
+            f"{r.message} rate (0 = off)",
+            "Hz",
+            "rates",
+            config_key=f"mavlink.{r.config_key}",
         )
         for r in STREAM_RATES
     ]
@@ -245,6 +258,8 @@ SPECS: tuple[ParamSpec, ...] = (
         "published heading: 0 magnetic north, 1 true north (needs a declination)",
         "",
         "heading",
+        config_key="heading.reference",
+        config_choices=HEADING_REFERENCES,
     ),
     # -- mounting
     ParamSpec(
@@ -309,6 +324,7 @@ SPECS: tuple[ParamSpec, ...] = (
         "magnetometer/level calibration by the compass itself (1) or the host (0)",
         "",
         "routing",
+        config_key="calibration.onboard",
     ),
     # -- calibration drift (bridge.app.drift)
     ParamSpec(
@@ -320,6 +336,8 @@ SPECS: tuple[ParamSpec, ...] = (
         "hard-iron drift: 0 off, 1 detect and warn, 2 also learn the offsets",
         "",
         "learn",
+        config_key="calibration.learn",
+        config_choices=CALIBRATION_LEARN_MODES,
     ),
     ParamSpec(
         "BRG_CAL_UNDO",
@@ -341,6 +359,8 @@ SPECS: tuple[ParamSpec, ...] = (
         "heading feed: 0 off, 1 PX4 ODOMETRY, 2 ArduPilot VISION_POSITION_ESTIMATE",
         "",
         "feed",
+        config_key="mavlink.heading_feed",
+        config_choices=HEADING_FEEDS,
     ),
     ParamSpec(
         "BRG_YAW_SIGMA",
@@ -351,12 +371,35 @@ SPECS: tuple[ParamSpec, ...] = (
         "heading feed yaw standard deviation",
         "deg",
         "feed",
+        config_key="mavlink.heading_feed_sigma_deg",
     ),
     # -- stream rates
     *_stream_specs(),
 )
 
 CAL_PARAMS: tuple[str, ...] = tuple(s.name for s in SPECS if s.group == "cal")
+#: Parameters whose default a configuration key gives (a value set over MAVLink wins).
+CONFIG_PARAMS: tuple[ParamSpec, ...] = tuple(s for s in SPECS if s.config_key)
+
+
+def param_from_config(spec: ParamSpec, value: Any) -> float:
+    """The parameter value of configuration value ``value`` (``spec.config_key``'s)."""
+    if spec.config_choices is not None:
+        return float(spec.config_choices.index(value))
+    return float(value)
+
+
+def config_from_param(spec: ParamSpec, value: float, like: Any) -> Any:
+    """The configuration value of parameter value ``value``, typed as ``like`` (the
+    configuration's own value of ``spec.config_key``)."""
+    if spec.config_choices is not None:
+        i = int(value)
+        return spec.config_choices[i] if 0 <= i < len(spec.config_choices) else value
+    if isinstance(like, bool):
+        return value != 0
+    if isinstance(like, int):
+        return int(value)
+    return decimal7(value) if spec.ptype == REAL32 else float(value)
 
 
 @dataclass(frozen=True, slots=True)

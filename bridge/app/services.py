@@ -23,6 +23,7 @@ from bridge.app.drift import DriftMonitor
 from bridge.app.params import ParamStore
 from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
+from bridge.calibration.model import corrects_iron
 from bridge.calibrator.controller import CalibrationController
 from bridge.calibrator.store import CalibrationStore
 from bridge.events import EventBus, Subscribers
@@ -99,3 +100,11 @@ class BridgeServices:
     mavlink_tap: MessageTap
     documents: DocumentStore | None = None
     drift: DriftMonitor | None = None
+
+
+def magnetometer_calibrated(svc: BridgeServices) -> bool | None:
+    """Whether the heading is calibrated on the host: None for a heading-only compass
+    (it calibrates itself), False when no hard- or soft-iron correction is in use."""
+    if svc.device.protocol != "gmr":
+        return None
+    return corrects_iron(svc.settings.calibration.mag)

@@ -153,6 +153,19 @@ class AffineCalibration:
         return cls.from_arrays(d["offset"], d["matrix"])
 
 
+def corrects_iron(mag: AffineCalibration, tol: float = 1e-6) -> bool:
+    """Whether a magnetometer calibration corrects anything but the axes' orientation.
+
+    False for the identity and for a pure rotation (a level trim or a mounting
+    folded in): no hard-iron offset and no soft-iron or gain correction, so the
+    heading carries the unit's iron errors in full -- an uncalibrated compass.
+    """
+    m = mag.matrix_array
+    return bool(
+        np.any(np.abs(mag.offset_array) > tol) or not np.allclose(m @ m.T, np.eye(3), atol=tol)
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class Calibration:
     """The complete sensor calibration the attitude engine applies.

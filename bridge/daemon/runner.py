@@ -43,7 +43,9 @@ from typing import Any
 
 from bridge.app.bridge import location_field
 from bridge.app.sample import CompassSample, Output
+from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
+from bridge.console import TerminalGate
 from bridge.daemon.wiring import Daemon, build_outputs, make_transport
 from bridge.link.observed import ObservedTransport
 from bridge.ports import LinkState
@@ -222,6 +224,8 @@ class Service:
         text = snap.calibration_source
         if not snap.calibration_saved and not text.startswith("none"):
             text += ", NOT SAVED (storage error)"
+        if magnetometer_calibrated(self.daemon.services) is False:
+            text += ", UNCALIBRATED"
         return text
 
     def status_line(self) -> str:
@@ -416,11 +420,15 @@ def run_daemon(
     *,
     console: bool = False,
     reload_config: Callable[[], Config] | None = None,
+    gate: TerminalGate | None = None,
 ) -> int:
-    """Run until ``stop`` is set (SIGINT/SIGTERM) or a replay ends; returns the exit code."""
+    """Run until ``stop`` is set (SIGINT/SIGTERM) or a replay ends; returns the exit code.
+
+    ``gate``: the log stream on the console's terminal, held while in the background.
+    """
 
     def make_outputs(c: Config, daemon: Daemon) -> list[Output]:
         # Called at start and again on reload for an output whose section changed.
-        return build_outputs(c, daemon, console=console)
+        return build_outputs(c, daemon, console=console, gate=gate)
 
     return Service(cfg, make_outputs, reload_config=reload_config).run(stop)

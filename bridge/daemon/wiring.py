@@ -25,19 +25,22 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from bridge.app.bridge import Bridge, BridgeOptions
-from bridge.app.params import ParamStore
+from bridge.app.params import PARAMS_DOCUMENT, ParamChange, ParamStore
+from bridge.app.paramspec import CAL_PARAMS
 from bridge.app.sample import CompassSample, DaemonStatus, Output
-from bridge.app.services import BridgeServices
+from bridge.app.services import BridgeServices, magnetometer_calibrated
 from bridge.app.settings import EngineSettings
+from bridge.app.state import home_relative, state_summary, stored_parameters, value_text
 from bridge.calibration.model import Calibration
 from bridge.calibrator import CalibrationController, CalibratorSettings
 from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
-from bridge.console import ConsoleOutput
+from bridge.console import ConsoleOutput, TerminalGate
 from bridge.core.attitude import AttitudeEngine
-from bridge.events import EventBus
+from bridge.events import Event, EventBus
 from bridge.link.serial_link import CompassLink
 from bridge.link.transport import Transport, open_transport
 from bridge.ports import LinkState, Received
@@ -69,22 +72,32 @@ def make_transport(cfg: Config) -> Transport:
     )
 
 
+#: The one command that gives ``run --simulate`` a fresh start (docs/tools.md, README).
+SIM_RESET_COMMAND = "compass-bridge run --simulate --reset"
+
+
 def _simulator_calibration(
     cfg: Config, transport: Transport, documents: StateStore
 ) -> tuple[Calibration | None, str, str]:
-    """The simulated compass's calibration and the console's intro line about it.
+    """The simulated compass's calibration and the console's intro lines about it.
 
     A newcomer's first run shows a heading that turns with the simulated unit: with
     nothing stored, the unit starts with its true calibration (known in simulation,
     what a good calibration gives), unless ``[sim] calibrated = false`` asks for the
     raw unit. A stored calibration (one the user made) is used as for a real compass.
+    The second line names the state directory, what it holds and how to empty it.
     """
     seed = f"seed {cfg.sim.seed}"
+    where = home_relative(cfg.storage.dir)
+    state = (
+        f"State (calibration, parameters set over MAVLink): {where}, holding "
+        f"{state_summary(documents)}. A fresh start: {SIM_RESET_COMMAND}"
+    )
     if CalibrationStore(documents).load().stored:
         return (
             None,
             "",
-            f"Simulated compass ({seed}) with the calibration stored in {cfg.storage.dir}.",
+            f"Simulated compass ({seed}) with the calibration stored in {where}.\n" + state,
         )
     calibrate = "calibrate it yourself: README, 'Calibrate it'"
     if not cfg.sim.calibrated:
@@ -92,7 +105,7 @@ def _simulator_calibration(
             None,
             "",
             f"Simulated compass ({seed}), UNCALIBRATED: its heading carries the unit's "
-            f"hard- and soft-iron errors; {calibrate}.",
+            f"hard- and soft-iron errors; {calibrate}.\n" + state,
         )
     firmware = getattr(transport, "firmware", None)
     errors = getattr(getattr(firmware, "sensor", None), "errors", None)
@@ -102,7 +115,7 @@ def _simulator_calibration(
         errors.true_calibration(),
         "simulator (the unit's true errors)",
         f"Simulated compass ({seed}), calibrated with its true errors. To see it "
-        f"uncalibrated: --set sim.calibrated=false; to {calibrate}.",
+        f"uncalibrated: --set sim.calibrated=false; to {calibrate}.\n" + state,
     )
 
 
@@ -161,7 +174,24 @@ class Daemon:
             calibrator_settings=calibrator_settings,
             clock=clock,
         )
+        self.transport = transport
         log.info("calibration: %s (state directory %s)", self.calibration_source, cfg.storage.dir)
+        if magnetometer_calibrated(self.services) is False:
+            log.warning(
+                "calibration: none in %s: the heading carries the compass's hard- and soft-"
+                "iron errors (often tens of degrees); calibrate it (docs/calibration.md)",
+                cfg.storage.dir,
+            )
+        try:
+            params = stored_parameters(documents)
+        except Exception:  # the stores have logged it
+            params = {}
+        if params:
+            log.info(
+                "parameters stored in %s override the configuration: %s",
+                documents.directory / f"{PARAMS_DOCUMENT}.json",
+                ", ".join(f"{k} = {value_text(v)}" for k, v in sorted(params.items())),
+            )
         link = self.bridge.device
         assert isinstance(link, CompassLink)
         self.link: CompassLink = link
@@ -269,11 +299,51 @@ class Daemon:
             out.close(max(0.1, deadline - time.monotonic()))
 
 
+def _truth(daemon: Daemon) -> Callable[[CompassSample], float | None] | None:
+    """The simulated truth of a sample's heading (a simulated compass only)."""
+    if daemon.cfg.device.port != "sim":
+        return None
+    from bridge.sim.truth import truth_heading_deg
+
+    transport = daemon.transport
+
+    def truth(sample: CompassSample) -> float | None:
+        # Looked up per sample: a reload may have swapped the simulated unit.
+        fw = getattr(transport, "firmware", None)
+        return truth_heading_deg(fw, sample.seq, sample.heading_reference)
+
+    return truth
+
+
+def _console(daemon: Daemon, gate: TerminalGate | None) -> ConsoleOutput:
+    """The live line, with notes naming the files a calibration or a parameter goes to."""
+    console = ConsoleOutput(daemon.status, intro=daemon.intro, truth=_truth(daemon), gate=gate)
+    where = Path(home_relative(daemon.cfg.storage.dir))
+
+    def on_event(event: Event) -> None:
+        if event.kind == "calibration.accepted" and event.data.get("saved"):
+            console.note(f"{event.text}: {where / 'calibration.json'}")
+
+    def on_params(change: ParamChange) -> None:
+        names = [n for n in change.names if n not in CAL_PARAMS]
+        if names and change.source != "start" and daemon.params.saved:
+            values = ", ".join(f"{n} = {daemon.params.get(n):g}" for n in names)
+            console.note(
+                f"Parameter {values} stored in {where / 'params.json'}: it overrides the "
+                "configuration from now on ('compass-bridge config' shows it)"
+            )
+
+    daemon.events.subscribe(on_event)
+    daemon.params.subscribe(on_params)
+    return console
+
+
 def build_outputs(
     cfg: Config,
     daemon: Daemon,
     *,
     console: bool,
+    gate: TerminalGate | None = None,
 ) -> list[Output]:
     """The outputs the configuration asks for, built on the daemon's services.
 
@@ -284,7 +354,7 @@ def build_outputs(
     services = daemon.bridge.services
     outputs: list[Output] = []
     if console:
-        outputs.append(ConsoleOutput(daemon.status, intro=daemon.intro))
+        outputs.append(_console(daemon, gate))
     if cfg.mavlink.endpoints:
         from bridge.mavlink import MavlinkOutput, MavlinkSettings
 

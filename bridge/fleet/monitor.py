@@ -167,6 +167,11 @@ class FleetView:
         with self._lock:
             return self._bridges.get(prefix)
 
+    def uncalibrated(self) -> list[str]:
+        """Prefixes of the bridges whose last status says they run uncalibrated."""
+        with self._lock:
+            return sorted(p for p, b in self._bridges.items() if uncalibrated(b.status))
+
     def rows(self, now: float) -> list[Row]:
         """One row per bridge, sorted by prefix."""
         with self._lock:
@@ -222,6 +227,8 @@ def _row(b: BridgeState, now: float) -> Row:
         cal = _calibration_text(s.get("calibration") or {})
         if schema.drift_detected(s):
             flags.append("DRIFT")
+        if uncalibrated(s):
+            flags.append("UNCAL")
     if b.alive is False:
         age = "gone"
     elif b.last_seen is None:
@@ -240,6 +247,12 @@ def _row(b: BridgeState, now: float) -> Row:
         flags=",".join(flags) or "-",
         age=age,
     )
+
+
+def uncalibrated(status: Mapping[str, Any] | None) -> bool:
+    """A status document says the bridge runs with no calibration (no iron correction)."""
+    cal = status.get("calibration") if status is not None else None
+    return isinstance(cal, Mapping) and cal.get("calibrated") is False
 
 
 _FLAG_SHORT: Final = (
@@ -314,7 +327,8 @@ def run_monitor(
 ) -> int:
     """Run the monitor until ``stop``, ``--duration`` or (``--once``) one table.
 
-    Returns 0, or 1 when ``--once`` saw no bridge at all (scripts can test it).
+    Returns 0; with ``--once`` 1 when it saw no bridge at all and 3 when a bridge it saw
+    runs uncalibrated (``UNCAL``), as ``status`` does (scripts can test it).
     The zenoh session is closed on every exit path.
     """
     import zenoh
@@ -356,7 +370,8 @@ def _show(
     if opts.once:
         stop.wait(max(0.0, end - clock()) if end is not None else 0.0)
         _write_block(out, view, clock(), tty=False)
-        return 0 if view.bridges() else 1
+        # as `status`: 1 none seen, 3 one runs uncalibrated (UNCAL), 0 otherwise
+        return 1 if not view.bridges() else 3 if view.uncalibrated() else 0
     # A terminal shows the (empty) table at once; a log gets its first block after one
     # interval, and a last one when the run ends (so a short --duration still prints).
     next_draw = start if tty else start + opts.interval

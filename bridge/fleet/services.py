@@ -12,6 +12,7 @@ import math
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
+from bridge.app.services import magnetometer_calibrated
 from bridge.fleet.output import CommandOutcome, FleetServices
 
 if TYPE_CHECKING:
@@ -48,6 +49,8 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
         "saved": snap.calibration_saved,
         "fitness_mG": fitness,
+        # False: no hard- or soft-iron correction in use (None: a heading-only compass)
+        "calibrated": magnetometer_calibrated(svc),
         # the drift monitor (bridge.app.drift): mode, state, change left, heading error
         "drift": svc.drift.status().to_dict() if svc.drift is not None else None,
     }

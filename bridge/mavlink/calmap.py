@@ -163,3 +163,23 @@ def px4_text(event: Event) -> str | None:
     if k in ("calibration.instruction", "calibration.motion"):
         return cal_line(event.text)
     return None
+
+
+#: Outside the PX4 flow, a STATUSTEXT says how far a calibration is every this many per cent
+#: (MAVProxy's console shows no MAG_CAL_PROGRESS; PX4 sends its "[cal] progress <N>").
+PROGRESS_TEXT_STEP = 20
+
+
+def progress_step(data: Mapping[str, Any]) -> int | None:
+    """The last whole step of :data:`PROGRESS_TEXT_STEP` a progress event has reached."""
+    pct = data.get("completion_pct")
+    if not isinstance(pct, int | float) or not math.isfinite(pct):
+        return None
+    return int(max(0.0, min(100.0, pct)) // PROGRESS_TEXT_STEP) * PROGRESS_TEXT_STEP
+
+
+def progress_text(data: Mapping[str, Any], step: int) -> str:
+    """The STATUSTEXT for a progress step ("Mag calibration 40%: keep turning it")."""
+    sensor = _px4_sensor(data)
+    text = f"{sensor.capitalize()} calibration {step}%"
+    return text + ": keep turning it" if sensor == "mag" else text

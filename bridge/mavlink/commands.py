@@ -165,6 +165,9 @@ def result_code(outcome: Outcome, *, in_progress_is_final: bool = True) -> int:
 PROGRESS_PERIOD_S = 0.5
 #: MAG_CAL_REPORT repeated while a result waits for accept (ArduPilot), every this many seconds.
 REPORT_PERIOD_S = 1.0
+#: Outside the PX4 flow, a progress STATUSTEXT at least this often while a magnetometer
+#: calibration runs, even when it does not move on (a unit turned level only: never silent).
+PROGRESS_TEXT_REMIND_S = 15.0
 
 
 class CalibrationRelay:
@@ -190,6 +193,8 @@ class CalibrationRelay:
         self._lock = threading.Lock()
         self._flow: Flow | None = None
         self._last_pct: int | None = None
+        self._last_step = 0  # the last progress step said in a STATUSTEXT (ArduPilot flow)
+        self._text_at = clock()  # when a progress text last went out (or the flow began)
         self.last_report: MagCalReport | None = None
         self._repeat: Message | None = None  # the MAG_CAL_REPORT repeated until answered
         self._repeat_at = -math.inf
@@ -210,7 +215,15 @@ class CalibrationRelay:
         self._progress_at = now
         snap = snapshot()
         if snap.running and snap.mode in ("mag", "onboard_mag"):
-            return [calmap.progress_message(snap, self.compass_id)]
+            out = [calmap.progress_message(snap, self.compass_id)]
+            with self._lock:
+                remind = self._flow != "px4" and now - self._text_at >= PROGRESS_TEXT_REMIND_S
+                if remind:
+                    self._text_at = now
+            if remind:
+                text = calmap.progress_text({"sensor": "mag"}, int(snap.completion_pct))
+                out += statustext(int(M.MAV_SEVERITY_INFO), text)
+            return out
         with self._lock:
             report = self._repeat
             if report is None or now - self._repeat_at < REPORT_PERIOD_S:
@@ -229,6 +242,20 @@ class CalibrationRelay:
 
     # -- events ---------------------------------------------------------------------
 
+    def _progress_text(self, event: Event) -> list[Message]:
+        """A STATUSTEXT when a progress event passes a new step (20 %, 40 % ...; not 100 %,
+        which the result says), once per step and attempt; :meth:`keepalive` repeats the
+        figure when no step is passed for :data:`PROGRESS_TEXT_REMIND_S`."""
+        step = calmap.progress_step(event.data)
+        with self._lock:
+            if step is None or not 0 < step < 100 or step <= self._last_step:
+                if step is not None and step < self._last_step:
+                    self._last_step = step  # a retry started over
+                return []
+            self._last_step = step
+            self._text_at = self._clock()
+        return statustext(int(event.severity), calmap.progress_text(event.data, step))
+
     @property
     def flow(self) -> Flow | None:
         """The flow of the calibration in progress (None: none, or started elsewhere)."""
@@ -240,6 +267,8 @@ class CalibrationRelay:
         with self._lock:
             self._flow = flow
             self._last_pct = None
+            self._last_step = 0
+            self._text_at = self._clock()
 
     def packets(self, event: Event) -> list[Message]:
         """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
@@ -255,6 +284,8 @@ class CalibrationRelay:
             flow = self._flow
             if event.kind in ("calibration.started", "calibration.cancelled"):
                 self._repeat = None
+                self._last_step = 0
+                self._text_at = self._clock()
             if event.kind in ("calibration.done", "calibration.failed", "calibration.cancelled"):
                 self._flow = None
             if event.kind == "calibration.progress":
@@ -283,7 +314,9 @@ class CalibrationRelay:
                     out += statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
             return out
         if event.kind == "calibration.progress":
-            return out  # ArduPilot flow: MAG_CAL_PROGRESS carries it
+            # ArduPilot flow: MAG_CAL_PROGRESS carries it, which MAVProxy's console does
+            # not show: a line every PROGRESS_TEXT_STEP per cent says it is working.
+            return out + self._progress_text(event)
         return out + statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
 
 

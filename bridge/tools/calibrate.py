@@ -52,6 +52,7 @@ from bridge.calibration.model import (
     CalibrationResult,
 )
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
+from bridge.tools import calhelp
 from bridge.tools.calreport import (
     MOTION_NOTE_S,
     StatusTextChunks,
@@ -350,12 +351,14 @@ def run_mavlink(
     accept: Callable[[dict[str, Any], RawImuCollector], bool],
     on_progress: Callable[[float, frozenset[int]], None],
     on_text: Callable[[str], None] | None = None,
+    on_linked: Callable[[Any], None] | None = None,
     source_system: int = 255,
     raw_imu_hz: float = RAW_IMU_RATE_HZ,
 ) -> LiveOutcome:
     """The ArduPilot magcal flow against a bridge at ``url`` (a pymavlink connection string).
 
-    HEARTBEAT from the target first (so a udpin link knows where to send), and
+    HEARTBEAT from the target first (so a udpin link knows where to send; then
+    ``on_linked(heartbeat)``, before anything is asked of anyone), and
     ours every second while the calibration runs (so it does not forget us);
     RAW_IMU raised to ``raw_imu_hz``; ``DO_START_MAG_CAL`` (all compasses, no
     retry, no autosave: the person decides); ``MAG_CAL_PROGRESS`` ->
@@ -415,6 +418,8 @@ def run_mavlink(
                 samples,
             )
         linked = True
+        if on_linked is not None:
+            on_linked(hb)
         command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_RAW_IMU, round(1e6 / raw_imu_hz))
         result = command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0)
         if result != M.MAV_RESULT_ACCEPTED:
@@ -572,12 +577,15 @@ def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]
     if getattr(args, "method", "best") not in (None, "best"):
         out.write("note: --method applies offline; the bridge fits with its configured method\n")
     bar = Progress("calibrating", 100.0, enabled=args.progress)
+    plain = None if bar.enabled else calhelp.PlainProgress(out)  # piped: whole lines instead
     last_missing: list[frozenset[int]] = []
     shown: list[bool] = []
-    out.write(
-        "turn the compass slowly through every direction (a tumble: over, round, on its side)\n"
-    )
-    out.flush()
+    found: list[bool] = []
+    calhelp.say(out, calhelp.looking_line(args.mavlink, args.target_system, args.target_component))
+
+    def on_linked(heartbeat: Any) -> None:
+        found.append(True)  # only now, with a bridge there, is anyone asked to turn anything
+        calhelp.say(out, calhelp.found_line(heartbeat, args.mavlink), calhelp.TURN)
 
     warning: list[tuple[float, str]] = []  # the last motion warning and when it came
 
@@ -588,10 +596,18 @@ def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]
 
     def on_progress(pct: float, missing: frozenset[int]) -> None:
         last_missing[:] = [missing]
+        if plain is not None:
+            plain.progress(pct, len(missing))
         note = progress_note(len(missing), recent_warning())
         bar.update(pct, note=note, detail=coverage_text(missing))
 
     def on_text(text: str) -> None:
+        if calhelp.is_progress_text(text):  # the bar (or the lines) already say how far
+            if plain is not None:
+                plain.again()  # the bridge's reminder: it has not moved on for a while
+            return
+        if plain is not None:
+            plain.text(text)
         if is_motion_warning(text):
             warning[:] = [(time.monotonic(), text)]
             n = len(last_missing[0]) if last_missing else N_SECTIONS
@@ -635,12 +651,15 @@ def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]
             accept=accept,
             on_progress=on_progress,
             on_text=on_text,
+            on_linked=on_linked,
         )
     finally:
         bar.close()
     if outcome.report is not None and not shown:
         show(outcome.report, outcome.samples)  # a failed fit: its figures say why
     out.write(outcome.message + "\n")
+    if not found:
+        calhelp.say(out, calhelp.no_bridge_hint(args.mavlink))
     return 0 if outcome.accepted else 1
 
 

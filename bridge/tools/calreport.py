@@ -122,7 +122,9 @@ def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
     out += _params_lines(report)
     b, a = report.get("field_spread_before_nT"), report.get("field_spread_after_nT")
     if isinstance(b, int | float) or isinstance(a, int | float):
-        out.append(f"field spread  ±{_fmt(b, '.0f')} nT before  ->  ±{_fmt(a, '.0f')} nT after")
+        # in mG, as the fitness and the offsets (the report's nT / 100): one unit system
+        b, a = (v / 100.0 if isinstance(v, int | float) else v for v in (b, a))
+        out.append(f"field spread  ±{_fmt(b, '.1f')} mG before  ->  ±{_fmt(a, '.1f')} mG after")
     else:
         out.append("field spread  not reported over this path (see the fitness)")
     out.append(f"heading error ~{_fmt(heading_error_deg)} deg RMS (estimated from the fitness)")

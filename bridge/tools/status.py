@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any, TextIO
 
 from bridge.core.quality import heading_usable
-from bridge.fleet.monitor import MonitorOptions, monitor_config
+from bridge.fleet.monitor import DEFAULT_CONNECT, MonitorOptions, monitor_config
 
 #: What ``status`` asks when no key expression is given: every bridge's status.
 DEFAULT_STATUS_KEYEXPR = "fleet/**/status"
@@ -100,6 +100,9 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
             "method": report.get("method"),
             "status": report.get("cal_status", report.get("status")),
             "fitness_mG": cal_state.get("fitness_mG", report.get("fitness_mG")),
+            # False: no hard- or soft-iron correction in use; None: not said (a heading-only
+            # compass calibrates itself, or the bridge is older)
+            "calibrated": cal_state.get("calibrated"),
             "field_spread_before_nT": report.get("field_spread_before_nT"),
             "field_spread_after_nT": report.get("field_spread_after_nT"),
         },
@@ -117,13 +120,36 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
     # but is said on its own line, as `monitor` flags it DRIFT.
     drift = cal_state.get("drift")
     rec["drift"] = dict(drift) if isinstance(drift, dict) else None
+    rec["calibrated"] = cal_state.get("calibrated")
     rec["healthy"] = bool(
         state == "streaming"
         and isinstance(rate, int | float)
         and rate > 0
         and heading_usable(bool(flags.get("saturated")), bool(disturbed))
     )
+    rec["verdict"] = verdict(rec)
     return rec
+
+
+#: Exit codes of ``status`` (and ``monitor --once``), for scripts (docs/tools.md).
+EXIT_OK = 0  #: every bridge answering streams a usable, calibrated heading
+EXIT_NOT_OK = 1  #: a bridge does not stream a usable heading, or none answered
+EXIT_UNCALIBRATED = 3  #: every bridge streams, but one runs without a calibration
+
+
+def verdict(rec: dict[str, Any]) -> str:
+    """``OK``, ``NOT OK`` or ``UNCALIBRATED`` (streams, but carries the iron errors). PURE."""
+    if not rec.get("healthy"):
+        return "NOT OK"
+    return "UNCALIBRATED" if rec.get("calibrated") is False else "OK"
+
+
+def exit_code(records: list[dict[str, Any]]) -> int:
+    """The worst verdict among ``records`` as an exit code (none answering: 1). PURE."""
+    verdicts = {r.get("verdict") or verdict(r) for r in records}
+    if not records or "NOT OK" in verdicts:
+        return EXIT_NOT_OK
+    return EXIT_UNCALIBRATED if "UNCALIBRATED" in verdicts else EXIT_OK
 
 
 def _drift_text(d: dict[str, Any]) -> str:
@@ -150,7 +176,9 @@ def format_human(records: list[dict[str, Any]]) -> str:
     out: list[str] = []
     for r in records:
         link, c, cal, q = r["link"], r["counters"], r["calibration"], r["quality"]
-        out.append(f"{r['bridge']}: {'OK' if r['healthy'] else 'NOT OK'}")
+        v = r.get("verdict") or verdict(r)
+        why = ": no calibration in use, the heading carries the compass's iron errors"
+        out.append(f"{r['bridge']}: {v}{why if v == 'UNCALIBRATED' else ''}")
         rate = link.get("frame_rate_hz")
         rate_s = f"{rate:.1f} frames/s" if isinstance(rate, int | float) else "rate unknown"
         out.append(f"  link         {link.get('state')} on {link.get('port')}, {rate_s}")
@@ -170,9 +198,11 @@ def format_human(records: list[dict[str, Any]]) -> str:
             parts.append(f"fitness {cal['fitness_mG']:.2f} mG")
         b, a = cal.get("field_spread_before_nT"), cal.get("field_spread_after_nT")
         if isinstance(b, int | float) and isinstance(a, int | float):
-            parts.append(f"field spread ±{b:.0f} -> ±{a:.0f} nT")
+            parts.append(f"field spread ±{b / 100:.1f} -> ±{a / 100:.1f} mG")
         if cal.get("state") and cal["state"] != "idle":
             parts.append(f"calibration {cal['state']}")
+        if cal.get("calibrated") is False:
+            parts.append("UNCALIBRATED (calibrate it: docs/calibration.md)")
         out.append("  calibration  " + ", ".join(parts))
         drift = r.get("drift")
         if drift:
@@ -253,26 +283,47 @@ def query(opts: MonitorOptions, keyexpr: str, *, timeout: float = 2.0) -> list[B
         session.close()
 
 
+def where_text(opts: MonitorOptions, keyexpr: str) -> str:
+    """Where ``status`` looks: the key expression and the zenoh endpoints."""
+    connect = opts.connect or (() if opts.config_file or opts.listen else DEFAULT_CONNECT)
+    via = ", ".join(connect) if connect else "the zenoh configuration's endpoints"
+    return f"{keyexpr} via {via}"
+
+
 def run_status(
     opts: MonitorOptions, out: TextIO, *, as_json: bool = False, timeout: float = 2.0
 ) -> int:
-    """Print the health of every answering bridge; 0 if all are healthy, 1 otherwise/none."""
+    """Print the health of every answering bridge; the exit code is :func:`exit_code`'s."""
     keyexpr = opts.keyexpr
     if not keyexpr.endswith("/status"):
         keyexpr = keyexpr.rstrip("/") + "/status"
     records = [summarise(a) for a in query(opts, keyexpr, timeout=timeout)]
+    where = where_text(opts, keyexpr)
     if as_json:
-        out.write(json.dumps({"bridges": records}, indent=2) + "\n")
+        out.write(json.dumps({"asked": where, "bridges": records}, indent=2) + "\n")
+    elif not records:
+        out.write(
+            f"no compass bridge answered {where} within {timeout:g} s: is one running, with "
+            "[zenoh] enabled and reachable there? (--connect tcp/HOST:7447 asks another host)\n"
+        )
     else:
+        n = len(records)
+        out.write(f"asked {where}: {n} bridge{'' if n == 1 else 's'} answered\n")
         out.write(format_human(records) + "\n")
-    return 0 if records and all(r["healthy"] for r in records) else 1
+    return exit_code(records)
 
 
 __all__ = [
     "DEFAULT_STATUS_KEYEXPR",
+    "EXIT_NOT_OK",
+    "EXIT_OK",
+    "EXIT_UNCALIBRATED",
     "BridgeAnswers",
+    "exit_code",
     "format_human",
     "query",
     "run_status",
     "summarise",
+    "verdict",
+    "where_text",
 ]
