@@ -45,7 +45,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 from bridge import __version__
-from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config, to_toml
+from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config, read_toml, to_toml
 
 log = logging.getLogger("bridge.cli")
 
@@ -288,6 +288,36 @@ def _positive(text: str) -> float:
 # ---------------------------------------------------------------------------
 
 
+#: Options whose value may start with a minus sign (a southern latitude, a western longitude).
+_SIGNED_VALUE_OPTIONS = frozenset({"--location"})
+
+
+def _glue_negative_values(argv: list[str]) -> list[str]:
+    """``--location -35.36,149.16`` as ``--location=-35.36,149.16``: argparse takes a word
+    starting with ``-`` for an option unless it is a plain negative number, and
+    ``-35.36,149.16`` (a southern latitude) is not one."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else ""
+        if (
+            a in _SIGNED_VALUE_OPTIONS
+            and len(nxt) > 1
+            and nxt[0] == "-"
+            and nxt[1] in "0123456789."
+        ):
+            out.append(f"{a}={nxt}")
+            i += 2
+            continue
+        if a == "--":
+            out.extend(argv[i:])
+            break
+        out.append(a)
+        i += 1
+    return out
+
+
 def _location(text: str) -> tuple[float, float, float]:
     """``LAT,LON[,ALT]`` for ``simulate --location``."""
     try:
@@ -381,13 +411,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         # A first run shows a heading that turns with the unit: it starts calibrated with
         # its true errors unless a calibration is stored (or --set sim.calibrated=false).
         overrides[:0] = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
-        if not any(o.startswith("storage.dir=") for o in overrides):
+        if not any(o.startswith("storage.dir=") for o in overrides) and not _file_sets(
+            args.config, "storage", "dir"
+        ):
             # The simulated unit must never read or overwrite a real unit's calibration
-            # in the service's state directory: give it a per-user directory of its own.
+            # in the service's state directory: give it a per-user directory of its own --
+            # unless the user named one (--set storage.dir=, or the --config file's).
             overrides.insert(3, f"storage.dir={simulator_state_dir()}")
     elif args.config is None:
         raise UsageError("run needs --config FILE (or --simulate for the built-in simulator)")
     cfg = load_config(args.config, overrides)
+    if args.simulate:
+        log.info("simulated compass: state directory %s", cfg.storage.dir)
 
     from bridge.daemon import run_daemon
 
@@ -400,6 +435,19 @@ def cmd_run(args: argparse.Namespace) -> int:
         return run_daemon(
             cfg, stop, console=args.simulate or args.console, reload_config=reload_config
         )
+
+
+def _file_sets(path: str | None, section: str, key: str) -> bool:
+    """Whether the configuration file at ``path`` sets ``[section] key`` (False without a
+    file; a file that cannot be read is reported by the load that follows)."""
+    if path is None:
+        return False
+    try:
+        raw = read_toml(path)
+    except ConfigError:
+        return False
+    table = raw.get(section)
+    return isinstance(table, dict) and key in table
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -589,6 +637,7 @@ def _end_process(code: int) -> NoReturn:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console-script entry point; returns the exit code."""
     parser = build_parser()
+    argv = _glue_negative_values(list(sys.argv[1:] if argv is None else argv))
     try:
         args, rest = parser.parse_known_args(argv)
         if rest and not getattr(args, "passthrough", False):

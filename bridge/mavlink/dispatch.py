@@ -29,7 +29,7 @@ from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices
 from bridge.calibration.model import Calibration
 from bridge.calibrator import CalibratorSnapshot, Outcome, Result
-from bridge.events import Event, Severity
+from bridge.events import ChangeRefusedError, Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
@@ -558,6 +558,8 @@ class CommandDispatcher:
             return
         try:
             field = self.svc.settings.set_position(lat, lon, alt, "autopilot position")
+        except ChangeRefusedError:
+            return  # the guard said why (an armed ArduPilot); the next position tries again
         except ValueError as e:
             log.warning("mavlink: autopilot position %.5f, %.5f unusable: %s", lat, lon, e)
             return

@@ -50,10 +50,10 @@ from typing import Any
 from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
-from bridge.app.settings import SettingsChange
 from bridge.calibrator import CalibratorSnapshot
 from bridge.config import Config
 from bridge.events import Event
+from bridge.mavlink import autopilot as AP  # noqa: N812 - short
 from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
@@ -62,6 +62,7 @@ from bridge.mavlink.dialect import Message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.mavlink.dispatch import CommandDispatcher
 from bridge.mavlink.endpoints import Endpoint, EndpointCounters, Link, open_endpoint
+from bridge.mavlink.feed import HeadingFeed
 from bridge.mavlink.paramproto import FLAVOURS, Flavour, ParamEncoding, ParamProtocol
 from bridge.mavlink.signing import Signing, Verdict
 from bridge.ports import StorageError
@@ -200,8 +201,16 @@ class MavlinkOutput:
         self._inbox_cond = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._unsubscribe: list[Callable[[], None]] = []
-        self._reset_counter = 0
-        self._warned_magnetic_feed = False
+        # The feed's clock is the wall clock (Unix epoch), so its time stamps continue across
+        # restarts; the output's own clock (monotonic) plus this offset.
+        self._epoch_offset = time.time() - clock()
+        self.autopilot = AP.AutopilotWatch(
+            (self.identity.system_id, self.identity.component_id),
+            lambda: int(services.params.get("BRG_HDG_FEED")),
+            services.events,
+            clock,
+        )
+        self.feed = HeadingFeed(self)
         # Schedule id -> encoder of the per-sample stream in that slot (the heading feed's
         # slot holds the feed BRG_HDG_FEED chooses): see _apply_rates.
         self._sample_encoders: dict[int, Callable[[CompassSample], Message | None]] = {}
@@ -216,8 +225,8 @@ class MavlinkOutput:
             S.SCALED_IMU: lambda s: T.scaled_imu(s, self.time_boot_ms(s.t)),
             S.RAW_IMU: lambda s: T.raw_imu(s, self._us(s.t)),
             S.HIGHRES_IMU: lambda s: T.highres_imu(s, self._us(s.t)),
-            S.ODOMETRY: self._odometry,
-            S.VISION_POSITION_ESTIMATE: self._vision_position_estimate,
+            S.ODOMETRY: self.feed.odometry,
+            S.VISION_POSITION_ESTIMATE: self.feed.vision_position_estimate,
         }
 
     # ------------------------------------------------------------------ roles
@@ -308,8 +317,13 @@ class MavlinkOutput:
         self._unsubscribe = [
             svc.events.subscribe(self._on_event),
             svc.params.subscribe(self._on_params),
-            svc.settings.subscribe(self._on_settings),
+            svc.settings.subscribe(self.feed.on_settings),
         ]
+        if self.companion:
+            self._unsubscribe.append(svc.settings.add_guard(self.autopilot.guard))
+            if svc.settings.field is None:  # no [location]: the autopilot's position is needed
+                p = AP.POSITION
+                self.autopilot.requests.want(p.msgid, p.hz, p.ardupilot_stream)
         for target, name in (
             (self._telemetry_loop, "telemetry"),
             (self._dispatch_loop, "dispatch"),
@@ -365,6 +379,10 @@ class MavlinkOutput:
 
     def _us(self, t: float) -> int:
         return max(0, int((t - self._t0) * 1e6))
+
+    def epoch_us(self, t: float) -> int:
+        """``t`` on the output's clock as Unix-epoch microseconds (the feed's time stamps)."""
+        return int((t + self._epoch_offset) * 1e6)
 
     def _guard(self, fn: Callable[[], None], name: str) -> Callable[[], None]:
         def run() -> None:
@@ -447,29 +465,6 @@ class MavlinkOutput:
         enc = self._stream_encoders.get(msgid)
         return enc(s) if enc is not None else None
 
-    def _feed_ok(self, s: CompassSample) -> bool:
-        if self.services.params.get("COMPASS_USE") == 0 or not T.feed_usable(s):
-            return False
-        if s.heading_true_deg is None and not self._warned_magnetic_feed:
-            self._warned_magnetic_feed = True
-            log.warning(
-                "mavlink: heading feed sends the MAGNETIC heading: no declination known "
-                "(set [location], or COMPASS_AUTODEC=0 and COMPASS_DEC)"
-            )
-        return True
-
-    def _odometry(self, s: CompassSample) -> Message | None:
-        if not self._feed_ok(s):
-            return None
-        sigma = self.services.params.get("BRG_YAW_SIGMA")
-        return T.odometry(s, self._us(s.t), sigma, self._reset_counter)
-
-    def _vision_position_estimate(self, s: CompassSample) -> Message | None:
-        if not self._feed_ok(s):
-            return None
-        sigma = self.services.params.get("BRG_YAW_SIGMA")
-        return T.vision_position_estimate(s, self._us(s.t), sigma, self._reset_counter)
-
     def _apply_rates(self) -> None:
         """BRG_SR_* into the schedule's rates; BRG_HDG_FEED into its set of sample streams."""
         params = self.services.params
@@ -512,6 +507,8 @@ class MavlinkOutput:
             if out:
                 self.broadcast(out)
             self.dispatcher.pending.expire(now)
+            if self.companion:
+                self.autopilot.tick(now)
             if self._signing_dirty and now - self._signing_saved_at >= _SIGNING_SAVE_S:
                 self._save_signing()
 
@@ -538,22 +535,22 @@ class MavlinkOutput:
             return  # the SET's echo is already on its way
         self.broadcast([self.params.value_of(n) for n in change.names])
 
-    def _on_settings(self, change: SettingsChange) -> None:
-        """The engine's calibration, mounting or reference changed: the heading feed's
-        estimator must treat the next sample as a reset (ODOMETRY.reset_counter)."""
-        if change.aspect in ("calibration", "mounting", "reference"):
-            self._reset_counter += 1
-
     # ------------------------------------------------------------------ inbound
 
     def _on_message(self, msg: Any, link: Link) -> None:
-        """Endpoint threads: answer TIMESYNC at once, queue what the dispatcher handles."""
+        """Endpoint threads: answer TIMESYNC at once, tell the autopilot watch what the
+        autopilot says, queue what the dispatcher handles."""
         kind = msg.get_type()
         if kind == "TIMESYNC":
-            if int(msg.tc1) == 0:  # a request: answer with our time, echo theirs
-                now_ns = int((self.clock() - self._t0) * 1e9)
-                link.send(T.timesync_reply(now_ns, int(msg.ts1)))
+            if int(msg.tc1) == 0:  # a request: answer with our (feed's) time, echo theirs
+                now_ns = int((self.clock() + self._epoch_offset) * 1e9)
+                link.send(
+                    T.timesync_reply(
+                        now_ns, int(msg.ts1), msg.get_srcSystem(), msg.get_srcComponent()
+                    )
+                )
             return
+        self.autopilot.heard(msg, link.send)
         if kind not in _INBOX_TYPES:
             return
         with self._inbox_cond:
