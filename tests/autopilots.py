@@ -481,3 +481,143 @@ def ulog(path: Path, topics: Sequence[str]) -> dict[str, dict[str, Any]]:
         if d.multi_id == 0 and d.name not in out:
             out[d.name] = d.data
     return out
+
+
+# ------------------------------------------------------------------------------ the bridge
+
+
+class HeadingRecorder:
+    """An output that keeps every sample's true heading with its wall-clock time: the
+    bridge's heading to compare the autopilot's yaw with."""
+
+    name = "recorder"
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.samples: list[tuple[float, float]] = []  #: (unix time, true heading deg)
+
+    def start(self) -> None:
+        """Nothing to start."""
+
+    def publish(self, sample: Any) -> None:
+        """Keep the sample's true heading (never blocks)."""
+        h = sample.heading_true_deg
+        if h is not None:
+            with self._lock:
+                self.samples.append((time.time(), float(h)))
+
+    def close(self, timeout: float) -> None:
+        """Nothing to stop."""
+
+    def heading_at(self, t_unix: float) -> float | None:
+        """The last heading published at or before ``t_unix``."""
+        with self._lock:
+            found = None
+            for t, h in self.samples:
+                if t > t_unix:
+                    break
+                found = h
+        return found
+
+    def latest(self) -> float | None:
+        """The newest heading."""
+        with self._lock:
+            return self.samples[-1][1] if self.samples else None
+
+
+@dataclass
+class Bridge:
+    """A bridge daemon in this process (simulated compass in real time) beside an autopilot."""
+
+    daemon: Any
+    out: Any  #: its MavlinkOutput
+    recorder: HeadingRecorder
+    log: list[str]  #: the ``bridge`` loggers' lines (INFO and up) while it ran
+    _restore: Callable[[], None] = lambda: None
+
+    def stop(self) -> None:
+        """Stop the daemon (and the log capture)."""
+        try:
+            self.daemon.stop(timeout=5.0)
+        finally:
+            self._restore()
+            self._restore = lambda: None
+
+
+def start_bridge(
+    workdir: Path,
+    endpoint: str,
+    *,
+    feed: str,
+    location: tuple[float, float, float] | None,
+    compass_at: tuple[float, float, float],
+    yaw_deg: float,
+    system_id: int = 1,
+    mavlink: Mapping[str, Any] | None = None,
+) -> Bridge:
+    """A companion bridge (component 200) whose simulated compass lies still at
+    ``yaw_deg`` (true) at ``compass_at``, feeding ``feed`` on ``endpoint``; ``location``
+    None leaves ``[location]`` out (the position must come from the autopilot)."""
+    import logging
+
+    from bridge.config import config_from_mapping
+    from bridge.daemon import Daemon
+    from bridge.link.serial_link import LinkState
+    from bridge.link.transport import SimTransport
+    from bridge.mavlink import MavlinkOutput, MavlinkSettings
+    from bridge.sim.firmware import make_firmware
+    from bridge.sim.motion import Still
+
+    raw: dict[str, Any] = {
+        "device": {"port": "sim", "stale_after": 5.0},
+        "storage": {"dir": str(workdir)},
+        "zenoh": {"enabled": False},
+        "mavlink": {
+            "endpoints": [endpoint],
+            "role": "companion",
+            "heading_feed": feed,
+            "system_id": system_id,
+            **dict(mavlink or {}),
+        },
+    }
+    if location is not None:
+        raw["location"] = dict(zip(("latitude", "longitude", "altitude_m"), location, strict=True))
+    cfg = config_from_mapping(raw, env={}, hostname="test")
+    # A real unit's errors and noise, calibrated with its true errors (what a good
+    # calibration gives: `run --simulate`'s default).
+    fw = make_firmware(3, motion=Still.from_deg(yaw_deg=yaw_deg), location=compass_at)
+    daemon = Daemon(cfg, transport=SimTransport(fw))
+    daemon.settings.update_calibration(fw.sensor.errors.true_calibration(), "simulator")
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services)
+    recorder = HeadingRecorder()
+    lines: list[str] = []
+
+    class _Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            lines.append(record.getMessage())
+
+    handler = _Keep(logging.INFO)
+    logger = logging.getLogger("bridge")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+
+    def restore() -> None:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+    daemon.set_outputs([out, recorder])
+    daemon.start()
+    bridge = Bridge(daemon, out, recorder, lines, restore)
+    deadline = time.monotonic() + DEADLINE_S
+    while daemon.link.state is not LinkState.STREAMING or daemon.samples < 3:
+        if time.monotonic() > deadline:
+            bridge.stop()
+            pytest.fail("the simulated compass does not stream")
+        time.sleep(0.02)
+    return bridge
+
+
+def angle_diff(a: float, b: float) -> float:
+    """``a - b`` in degrees, wrapped to [-180, 180)."""
+    return (a - b + 180.0) % 360.0 - 180.0

@@ -24,9 +24,9 @@ through :meth:`AutopilotWatch.tick`, which returns what to send and where):
   ``alignYawAngle``). So for an ArduPilot fed by ``ardupilot_vision``: a change
   that steps the heading is refused while it is armed (the guard); when it is
   disarmed the change is applied and the bridge switches ArduPilot's EKF to
-  source set 2 and back to 1 (MAV_CMD_SET_EKF_SOURCE_SET), with a pause in the
-  feed between, so EKF3 realigns its yaw to the new heading at once. Figures
-  and sources: docs/mavlink.md, "Heading changes and the autopilot".
+  source set 2 and, :data:`RESET_HOLD_S` later, back to 1
+  (MAV_CMD_SET_EKF_SOURCE_SET), so EKF3 realigns its yaw to the new heading.
+  Figures and sources: docs/mavlink.md, "Heading changes and the autopilot".
 """
 
 from __future__ import annotations
@@ -51,12 +51,12 @@ REQUEST_EVERY_S = 5.0
 REQUEST_TRIES = 5
 #: The autopilot counts as gone (not armed, not known) after this long without a HEARTBEAT.
 AUTOPILOT_TIMEOUT_S = 5.0
-#: ArduPilot's yaw reset: the feed pauses this long after the switch to source set 2 ...
-RESET_PAUSE_S = 0.3
-#: ... and the switch back to set 1 comes this long after the feed resumed: longer than
-#: EKF3's fusion horizon lags (its largest sensor delay, ~0.25 s in SITL), so the first
-#: sample it recalls after the switch already carries the new heading.
-RESET_RESUME_S = 0.6
+#: ArduPilot's yaw reset: the switch back to source set 1 comes this long after the switch
+#: to set 2 (and the heading step). Longer than EKF3's fusion horizon lags behind the
+#: samples it receives (its largest sensor delay), so every sample that arrived before
+#: the step is recalled -- and not fused -- while set 2 is active, and the first one
+#: recalled after the switch back carries the new heading: EKF3 realigns to it.
+RESET_HOLD_S = 0.4
 #: Refusal events at most this often (a learned step is retried every block).
 _REFUSAL_EVENT_S = 30.0
 
@@ -298,11 +298,6 @@ class AutopilotWatch:
         """The autopilot has our system *and* component id (it drops what we send)."""
         return self.target == self.identity
 
-    def feed_paused(self, now: float) -> bool:
-        """The heading feed holds back (between ArduPilot's two source switches)."""
-        r = self._reset
-        return r is not None and r.started <= now < r.started + RESET_PAUSE_S
-
     # -- heading changes ---------------------------------------------------------------
 
     def _fed_ardupilot(self) -> bool:
@@ -360,7 +355,7 @@ class AutopilotWatch:
             send, target, r = self._send, self.target, self._reset
         if send is None or target is None:
             return
-        if r is not None and not r.back_sent and now >= r.started + RESET_PAUSE_S + RESET_RESUME_S:
+        if r is not None and not r.back_sent and now >= r.started + RESET_HOLD_S:
             r.back_sent = True
             self._reset = None
             send(command_long(target, SET_EKF_SOURCE_SET, 1))

@@ -4,8 +4,7 @@
 chooses (the message layouts are :func:`bridge.mavlink.telemetry.odometry` and
 :func:`~bridge.mavlink.telemetry.vision_position_estimate`), withholds it when
 the heading is not fit for an estimator (disturbed, saturated, COMPASS_USE 0),
-when the autopilot would drop it (it has our own system and component id) or
-while ArduPilot's yaw reset pauses it, and turns a heading *step* -- a new
+when the autopilot would drop it (it has our own system and component id), and turns a heading *step* -- a new
 calibration, mounting or declination -- into the reset each autopilot honours:
 PX4 a new ``reset_counter``, ArduPilot a yaw source switch
 (:meth:`~bridge.mavlink.autopilot.AutopilotWatch.heading_stepped`).
@@ -64,8 +63,8 @@ class HeadingFeed:
         if o.services.params.get("COMPASS_USE") == 0 or not T.feed_usable(s):
             return False
         watch = o.autopilot
-        if watch.same_identity or watch.feed_paused(o.clock()):
-            return False  # it would drop it / between ArduPilot's two source switches
+        if watch.same_identity:
+            return False  # it would drop it
         if s.heading_true_deg is None and not self._warned_magnetic:
             self._warned_magnetic = True
             log.warning(
