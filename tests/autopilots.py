@@ -396,8 +396,8 @@ def start_ardupilot(
 
 def _px4_ports(n: int) -> list[tuple[int, int]]:
     # px4-rc.mavlink's local UDP ports for instance n (the GCS, onboard, payload, gimbal
-    # and SIH display links); the ones it sends to are listened on by nobody but us.
-    return [(p + n, socket.SOCK_DGRAM) for p in (18570, 14580, 14280, 13030, 19450, 14540)]
+    # and SIH display links) and those it sends to that tests listen on (onboard, gimbal).
+    return [(p + n, socket.SOCK_DGRAM) for p in (18570, 14580, 14280, 13030, 19450, 14540, 13280)]
 
 
 def start_px4(

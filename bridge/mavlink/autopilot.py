@@ -38,6 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.app.settings import EngineSettings
 from bridge.events import Event, EventBus, Severity
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
@@ -232,6 +233,8 @@ class AutopilotWatch:
         self.target: tuple[int, int] | None = None  #: the autopilot's (system, component)
         self.flavour = 0  #: its HEARTBEAT.autopilot (MAV_AUTOPILOT)
         self._armed = False
+        self._calibrating = False  # its HEARTBEAT says MAV_STATE_CALIBRATING
+        self._magcal_at = -math.inf  # its last MAG_CAL_PROGRESS (ArduPilot's compass calibration)
         self._heard_at = -math.inf
         self._first_heard = -math.inf
         self._send: Send | None = None  # to the link the autopilot was last heard on
@@ -241,6 +244,13 @@ class AutopilotWatch:
         self.resets = 0  #: yaw resets asked of ArduPilot
         self.refusals = 0  #: heading changes refused
         self.acks: list[tuple[int, int]] = []  #: (command, result) of the autopilot's answers
+
+    def attach(self, settings: EngineSettings) -> Callable[[], None]:
+        """Guard the heading's settings (:meth:`guard`); without ``[location]`` ask the
+        autopilot for its position (:data:`POSITION`). Returns the remover of the guard."""
+        if settings.field is None:
+            self.requests.want(POSITION.msgid, POSITION.hz, POSITION.ardupilot_stream)
+        return settings.add_guard(self.guard)
 
     # -- what the autopilot says (endpoint threads) ------------------------------------
 
@@ -259,6 +269,7 @@ class AutopilotWatch:
                 self.target = (msg.get_srcSystem(), msg.get_srcComponent())
                 self.flavour = int(msg.autopilot)
                 self._armed = bool(int(msg.base_mode) & _ARMED)
+                self._calibrating = int(msg.system_status) == int(M.MAV_STATE_CALIBRATING)
                 self._heard_at = now
                 self._send = send
             if self.same_identity:
@@ -274,6 +285,8 @@ class AutopilotWatch:
                 if int(msg.command) == SET_EKF_SOURCE_SET and int(msg.result) != 0:
                     log.warning("mavlink: the autopilot refused the EKF source set switch")
         else:
+            if kind == "MAG_CAL_PROGRESS" and msg.get_srcComponent() != self.identity[1]:
+                self._magcal_at = now
             self.requests.heard(msg.get_msgId(), now)
 
     # -- state -----------------------------------------------------------------------
@@ -292,6 +305,13 @@ class AutopilotWatch:
     def armed(self) -> bool:
         """The autopilot is present and armed."""
         return self.present and self._armed
+
+    @property
+    def calibrating(self) -> bool:
+        """The autopilot runs a sensor calibration of its own: its HEARTBEAT says
+        CALIBRATING (PX4, every sensor) or it sent MAG_CAL_PROGRESS within 2 s (ArduPilot's
+        compass calibration, which does not change its HEARTBEAT)."""
+        return self.present and (self._calibrating or self._clock() - self._magcal_at < 2.0)
 
     @property
     def same_identity(self) -> bool:
