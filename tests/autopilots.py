@@ -283,6 +283,8 @@ class Autopilot:
     #: The UDP port the bridge listens on for the autopilot's companion link
     #: (``udpin:127.0.0.1:<port>``).
     companion_port: int
+    #: ArduPilot's SERIAL2 (``gcs2=True``): a second ground station's ``udpin`` port.
+    gcs2_port: int = 0
     cleanup: list[Callable[[], None]] = field(default_factory=list)
 
     @property
@@ -340,17 +342,22 @@ def start_ardupilot(
     *,
     home: tuple[float, float, float, float] = ARDUPILOT_HOME,
     instances: Sequence[int] = tuple(range(10, 40)),
+    gcs2: bool = False,
 ) -> Autopilot:
     """ArduPilot Rover SITL in ``workdir`` at real-time speed.
 
     ``params`` (applied after the stock ``rover.parm``, on a wiped parameter store)
     default to :data:`ARDUPILOT_FEED_PARAMS`. SERIAL0 goes to the returned
     :class:`Observer` (a ground station), SERIAL1 to ``companion_port`` (the
-    bridge's ``udpin``). Returns once the observer has its first HEARTBEAT.
+    bridge's ``udpin``), SERIAL2 with ``gcs2`` to ``gcs2_port`` (MAVLink 2).
+    Returns once the observer has its first HEARTBEAT.
     """
     home_dir = autopilot_dir("ardupilot")
     workdir.mkdir(parents=True, exist_ok=True)
     values = dict(ARDUPILOT_FEED_PARAMS if params is None else params)
+    gcs2_port = free_udp_port() if gcs2 else 0
+    if gcs2:
+        values["SERIAL2_PROTOCOL"] = 2
     extra = workdir / "extra.parm"
     extra.write_text("".join(f"{k} {v:g}\n" for k, v in values.items()))
     claim = claim_instance("ardupilot", instances, _ardupilot_ports)
@@ -376,7 +383,9 @@ def start_ardupilot(
                 f"udpclient:127.0.0.1:{gcs_port}",
                 "--serial1",
                 f"udpclient:127.0.0.1:{companion_port}",
-                *[a for k in (2, 5, 6, 7, 8) for a in (f"--serial{k}", "none")],
+                "--serial2",
+                f"udpclient:127.0.0.1:{gcs2_port}" if gcs2 else "none",
+                *[a for k in (5, 6, 7, 8) for a in (f"--serial{k}", "none")],
             ],
             cwd=workdir,
             stdin=subprocess.DEVNULL,
@@ -384,7 +393,9 @@ def start_ardupilot(
             stderr=subprocess.STDOUT,
             start_new_session=True,
         )
-    ap = Autopilot("ardupilot", proc, claim, workdir, console, 1, observer, companion_port)
+    ap = Autopilot(
+        "ardupilot", proc, claim, workdir, console, 1, observer, companion_port, gcs2_port
+    )
     try:
         observer.wait("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
         observer.send_heartbeat()
