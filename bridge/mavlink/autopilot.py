@@ -285,8 +285,11 @@ class AutopilotWatch:
                 if int(msg.command) == SET_EKF_SOURCE_SET and int(msg.result) != 0:
                     log.warning("mavlink: the autopilot refused the EKF source set switch")
         else:
-            if kind == "MAG_CAL_PROGRESS" and msg.get_srcComponent() != self.identity[1]:
-                self._magcal_at = now
+            if msg.get_srcComponent() != self.identity[1]:
+                if kind == "MAG_CAL_PROGRESS":
+                    self._magcal_at = now
+                elif kind == "MAG_CAL_REPORT":  # finished: a result (waiting for accept)
+                    self._magcal_at = -math.inf
             self.requests.heard(msg.get_msgId(), now)
 
     # -- state -----------------------------------------------------------------------
@@ -309,8 +312,9 @@ class AutopilotWatch:
     @property
     def calibrating(self) -> bool:
         """The autopilot runs a sensor calibration of its own: its HEARTBEAT says
-        CALIBRATING (PX4, every sensor) or it sent MAG_CAL_PROGRESS within 2 s (ArduPilot's
-        compass calibration, which does not change its HEARTBEAT)."""
+        CALIBRATING (PX4, every sensor) or it sent MAG_CAL_PROGRESS within 2 s and no
+        MAG_CAL_REPORT since (ArduPilot's compass calibration, which does not change its
+        HEARTBEAT)."""
         return self.present and (self._calibrating or self._clock() - self._magcal_at < 2.0)
 
     @property
