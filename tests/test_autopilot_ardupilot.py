@@ -76,6 +76,7 @@ SILENT_COMPANION = {
     )
 }
 BRIDGE = (1, 200)
+RESTART_SIGMA_DEG = 8.0
 
 
 @dataclass
@@ -93,6 +94,7 @@ class Timeline:
     mount_at: float = 0.0
     mount_from: float = 0.0
     mount_to: float = 0.0
+    noise_at: float = 0.0  #: VISO_YAW_M_NSE lowered
     restart_at: float = 0.0
     position_at: float | None = None  #: the restarted bridge learned the position
     request_lines: list[str] = field(default_factory=list)
@@ -195,9 +197,13 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         tl.mount_to = a.recorder.latest() or 0.0
         time.sleep(4.0)
         tl.bridge_heading = list(a.recorder.samples)
-        # 5. the bridge restarts, without [location]
+        # 5. the bridge restarts, without [location], with a yaw sigma of 8 deg, and
+        # VISO_YAW_M_NSE lowered to 0.05 rad: what ArduPilot then logs is the bridge's sigma
         a.stop()
         bridges.remove(a)
+        tl.noise_at = time.time()
+        obs.mav.param_set_send(1, 1, b"VISO_YAW_M_NSE", 0.05, M.MAV_PARAM_TYPE_REAL32)
+        obs.wait("PARAM_VALUE", lambda m: m.param_id == "VISO_YAW_M_NSE")
         tl.restart_at = time.time()
         b = start_bridge(
             work / "bridge-b",
@@ -206,6 +212,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
             location=None,
             compass_at=location,
             yaw_deg=COMPASS_YAW,
+            mavlink={"heading_feed_sigma_deg": RESTART_SIGMA_DEG},
         )
         bridges.append(b)
         _wait(lambda: b.daemon.settings.field is not None, 20.0, "a position from ArduPilot")
@@ -316,10 +323,18 @@ def test_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m
     run: Timeline,
 ) -> None:
     """VISP.AErr is the angErr ArduPilot computed from the covariance and floored at
-    VISO_YAW_M_NSE (0.2 rad by default): the bridge's 2 deg is below that floor."""
-    aerr = {round(m.AErr, 4) for m in run.log["VISP"]}
-    print(f"ArduPilot VISP.AErr values: {sorted(aerr)}")
-    assert aerr == {0.2}
+    VISO_YAW_M_NSE: 0.2 rad (the default) for the bridge's 2 deg, below that floor; the
+    bridge's 8 deg itself once VISO_YAW_M_NSE is 0.05 rad."""
+    # RTimeUS is the bridge's own time stamp of the sample: the wall clock
+    visp = run.log["VISP"]
+    before = {round(m.AErr, 4) for m in visp if m.RTimeUS / 1e6 < run.noise_at - 0.5}
+    after = {round(m.AErr, 4) for m in visp if m.RTimeUS / 1e6 > run.restart_at}
+    print(
+        f"ArduPilot VISP.AErr: {sorted(before)} with BRG_YAW_SIGMA 2 and VISO_YAW_M_NSE 0.2; "
+        f"{sorted(after)} with 8 and 0.05 (8 deg = {math.radians(RESTART_SIGMA_DEG):.4f} rad)"
+    )
+    assert before == {0.2}
+    assert after == {round(math.radians(RESTART_SIGMA_DEG), 4)}
 
 
 def test_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_its_gyro_bias(
