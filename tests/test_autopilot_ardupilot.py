@@ -327,6 +327,7 @@ def test_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m
     bridge's 8 deg itself once VISO_YAW_M_NSE is 0.05 rad."""
     # RTimeUS is the bridge's own time stamp of the sample: the wall clock
     visp = run.log["VISP"]
+    # (the old bridge's last sample may reach ArduPilot in the loop that applies the SET)
     before = {round(m.AErr, 4) for m in visp if m.RTimeUS / 1e6 < run.noise_at - 0.5}
     after = {round(m.AErr, 4) for m in visp if m.RTimeUS / 1e6 > run.restart_at}
     print(
