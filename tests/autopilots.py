@@ -632,3 +632,22 @@ def start_bridge(
 def angle_diff(a: float, b: float) -> float:
     """``a - b`` in degrees, wrapped to [-180, 180)."""
     return (a - b + 180.0) % 360.0 - 180.0
+
+
+def check_all(subject: Any, checks: Sequence[Callable[[Any], None]]) -> None:
+    """Run every check on one autopilot run and fail with all that failed.
+
+    A module's scenario runs once, in one test: pytest-xdist (work stealing) would start
+    a module-scoped fixture again on every worker that took one of its tests. Each check
+    still reports on its own (its name and its assertion), and they all run.
+    """
+    failed: list[str] = []
+    for check in checks:
+        try:
+            check(subject)
+        except AssertionError as e:
+            failed.append(f"{check.__name__}: {e}")
+        except pytest.fail.Exception as e:
+            failed.append(f"{check.__name__}: {e}")
+    if failed:
+        pytest.fail("\n\n".join(failed), pytrace=False)

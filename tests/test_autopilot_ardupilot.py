@@ -44,6 +44,7 @@ from autopilots import (
     Bridge,
     M,
     angle_diff,
+    check_all,
     dataflash,
     start_ardupilot,
     start_bridge,
@@ -286,7 +287,7 @@ def _window(series: list[tuple[float, float, float]], t0: float, t1: float) -> l
 # ------------------------------------------------------------------------------ the tests
 
 
-def test_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
+def check_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     """Within 2 s of the first packet EKF3's yaw is on the fed heading; over the next 30 s
     it stays within 0.3 deg RMS of it; every sample the bridge sent is logged as used."""
     fed = _fed(run)
@@ -319,7 +320,7 @@ def test_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     assert gaps.max() < 0.25
 
 
-def test_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m_nse(
+def check_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m_nse(
     run: Timeline,
 ) -> None:
     """VISP.AErr is the angErr ArduPilot computed from the covariance and floored at
@@ -338,7 +339,7 @@ def test_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m
     assert after == {round(math.radians(RESTART_SIGMA_DEG), 4)}
 
 
-def test_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_its_gyro_bias(
+def check_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_its_gyro_bias(
     run: Timeline,
 ) -> None:
     step = angle_diff(run.learned_to, run.learned_from)
@@ -363,7 +364,7 @@ def test_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_it
     assert any("yaw reset" in s for s in run.statustexts)
 
 
-def test_heading_changes_are_refused_while_ardupilot_is_armed(run: Timeline) -> None:
+def check_heading_changes_are_refused_while_ardupilot_is_armed(run: Timeline) -> None:
     echo = run.refused_mount
     assert echo.param_value == 0.0, echo  # the SET is answered with the unchanged value
     assert "armed" in run.refused_learned
@@ -377,7 +378,7 @@ def test_heading_changes_are_refused_while_ardupilot_is_armed(run: Timeline) -> 
     assert worst < 1.0
 
 
-def test_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Timeline) -> None:
+def check_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Timeline) -> None:
     step = angle_diff(run.mount_to, run.mount_from)
     assert abs(abs(step) - 45.0) < 1.0, step
     series = _yaw_series(run)
@@ -394,7 +395,7 @@ def test_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Tim
     assert overshoot < 1.0
 
 
-def test_a_restarted_bridge_keeps_ardupilots_lag_and_asks_for_the_position(
+def check_a_restarted_bridge_keeps_ardupilots_lag_and_asks_for_the_position(
     run: Timeline,
 ) -> None:
     visp = run.log["VISP"]
@@ -423,3 +424,18 @@ def test_a_restarted_bridge_keeps_ardupilots_lag_and_asks_for_the_position(
     )
     decl = earth_field(*HOME[:3]).declination_deg
     assert decl != 0.0
+
+
+def test_the_heading_feed_inside_ardupilot(run: Any) -> None:
+    """One run of the scenario, every check on it (see :func:`autopilots.check_all`)."""
+    check_all(
+        run,
+        [
+            check_ardupilot_fuses_the_feed_at_once_and_holds_it,
+            check_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m_nse,
+            check_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_its_gyro_bias,
+            check_heading_changes_are_refused_while_ardupilot_is_armed,
+            check_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds,
+            check_a_restarted_bridge_keeps_ardupilots_lag_and_asks_for_the_position,
+        ],
+    )

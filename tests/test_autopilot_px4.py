@@ -34,6 +34,7 @@ from autopilots import (
     Bridge,
     M,
     angle_diff,
+    check_all,
     start_bridge,
     start_px4,
     ulog,
@@ -206,7 +207,7 @@ def _follow(tl: Timeline, t0: float, t1: float, step: float, tol: float) -> tupl
     return (max(late) - t0 if late else 0.0), overshoot
 
 
-def test_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
+def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     vo = run.log["vehicle_visual_odometry"]
     ev = run.log["estimator_aid_src_ev_yaw"]
     first = float(min(_t(run, vo["timestamp"][0]), _t(run, ev["timestamp"][0])))
@@ -243,7 +244,7 @@ def test_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     assert np.all(fused[span]) and abs(int(np.sum(span)) - n_fed) <= 1
 
 
-def test_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Timeline) -> None:
+def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Timeline) -> None:
     step = angle_diff(run.learned_to, run.learned_from)
     assert abs(step - 5.0) < 0.3, step
     took, over = _follow(run, run.learned_at, run.mount_at, step, 1.0)
@@ -263,7 +264,7 @@ def test_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Ti
     assert took < 0.5 and over < 1.0
 
 
-def test_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
+def check_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
     assert "time jump" not in run.console, run.console[-3000:]
     vo = run.log["vehicle_visual_odometry"]
     ev = run.log["estimator_aid_src_ev_yaw"]
@@ -292,7 +293,7 @@ def test_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
     assert jump < 0.1
 
 
-def test_px4_uses_the_bridges_variance_above_ekf2_eva_noise(run: Timeline) -> None:
+def check_px4_uses_the_bridges_variance_above_ekf2_eva_noise(run: Timeline) -> None:
     ev = run.log["estimator_aid_src_ev_yaw"]
     t = _t(run, ev["timestamp"])
     var = ev["observation_variance"]
@@ -304,3 +305,16 @@ def test_px4_uses_the_bridges_variance_above_ekf2_eva_noise(run: Timeline) -> No
     )
     assert list(default) == [0.1]
     assert list(lowered) == [round(math.radians(SIGMA_DEG) ** 2, 6)]
+
+
+def test_the_heading_feed_inside_px4(run: Any) -> None:
+    """One run of the scenario, every check on it (see :func:`autopilots.check_all`)."""
+    check_all(
+        run,
+        [
+            check_px4_fuses_the_feed_at_once_and_holds_it,
+            check_a_learned_correction_and_an_operator_change_are_followed_by_px4,
+            check_a_restarted_bridge_is_no_time_jump_for_px4,
+            check_px4_uses_the_bridges_variance_above_ekf2_eva_noise,
+        ],
+    )

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
-from autopilots import ARDUPILOT_HOME, Bridge, M, start_ardupilot, start_bridge
+from autopilots import ARDUPILOT_HOME, Bridge, M, check_all, start_ardupilot, start_bridge
 from mavlink_clients import MavProxy
 
 from bridge.events import Event, Severity
@@ -170,7 +170,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
     yield s
 
 
-def test_the_bridges_parameters_come_through_ardupilot_for_every_component(seen: Seen) -> None:
+def check_the_bridges_parameters_come_through_ardupilot_for_every_component(seen: Seen) -> None:
     print(
         f"through ArduPilot: PARAM_REQUEST_LIST to component 0 -> {len(seen.list_first_round)} "
         f"of {seen.list_count} bridge parameters in the first round, the last after "
@@ -186,7 +186,7 @@ def test_the_bridges_parameters_come_through_ardupilot_for_every_component(seen:
     assert seen.mavproxy_set == 2.0
 
 
-def test_every_burst_arrives_whole_through_ardupilot(seen: Seen) -> None:
+def check_every_burst_arrives_whole_through_ardupilot(seen: Seen) -> None:
     print(
         f"through ArduPilot: MESSAGE_INTERVAL storm {seen.storm_acks} ACKs and "
         f"{seen.storm_intervals} answers of 30; status text chunks {len(seen.text_chunks)}"
@@ -198,12 +198,25 @@ def test_every_burst_arrives_whole_through_ardupilot(seen: Seen) -> None:
     assert text.rstrip(b"\0").decode() == LONG_TEXT
 
 
-def test_mavproxy_starts_and_cancels_the_bridges_calibration_through_ardupilot(
+def check_mavproxy_starts_and_cancels_the_bridges_calibration_through_ardupilot(
     seen: Seen,
 ) -> None:
     assert seen.magcal_started and seen.magcal_cancelled
 
 
-def test_a_calibration_asked_while_ardupilot_calibrates_is_answered_busy(seen: Seen) -> None:
+def check_a_calibration_asked_while_ardupilot_calibrates_is_answered_busy(seen: Seen) -> None:
     assert seen.busy.result == M.MAV_RESULT_TEMPORARILY_REJECTED, seen.busy
     assert not seen.busy_started
+
+
+def test_the_companion_through_ardupilot(seen: Any) -> None:
+    """One run of the scenario, every check on it (see :func:`autopilots.check_all`)."""
+    check_all(
+        seen,
+        [
+            check_the_bridges_parameters_come_through_ardupilot_for_every_component,
+            check_every_burst_arrives_whole_through_ardupilot,
+            check_mavproxy_starts_and_cancels_the_bridges_calibration_through_ardupilot,
+            check_a_calibration_asked_while_ardupilot_calibrates_is_answered_busy,
+        ],
+    )

@@ -29,7 +29,7 @@ from typing import Any
 
 import mavsdk
 import pytest
-from autopilots import Autopilot, Bridge, M, start_bridge, start_px4
+from autopilots import Autopilot, Bridge, M, check_all, start_bridge, start_px4
 from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult, ProtocolVersion
 
@@ -192,7 +192,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
     yield s
 
 
-def test_a_parameter_load_for_every_component_brings_the_bridges_list_in_one_round(
+def check_a_parameter_load_for_every_component_brings_the_bridges_list_in_one_round(
     seen: Seen,
 ) -> None:
     print(
@@ -206,7 +206,7 @@ def test_a_parameter_load_for_every_component_brings_the_bridges_list_in_one_rou
     assert seen.px4_params > 100
 
 
-def test_every_burst_arrives_whole_and_px4_forwards_without_error(seen: Seen) -> None:
+def check_every_burst_arrives_whole_and_px4_forwards_without_error(seen: Seen) -> None:
     print(
         f"PX4 forwarding errors: {seen.errors_before} before, {seen.errors_after} after; "
         f"MESSAGE_INTERVAL storm: {seen.storm_acks} ACKs and {seen.storm_intervals} answers "
@@ -220,7 +220,7 @@ def test_every_burst_arrives_whole_and_px4_forwards_without_error(seen: Seen) ->
     assert text.rstrip(b"\0").decode() == LONG_TEXT
 
 
-def test_reads_for_every_component_are_answered_and_commands_keep_their_rule(seen: Seen) -> None:
+def check_reads_for_every_component_are_answered_and_commands_keep_their_rule(seen: Seen) -> None:
     assert (200, "BRG_YAW_SIGMA") in seen.read_answers
     assert seen.fetch_all == set(range(seen.bridge_params))
     assert not seen.broadcast_command_acks  # a broadcast command is PX4's business
@@ -251,11 +251,25 @@ def _mavsdk_params(port: int) -> set[str]:
         mavsdk.log_unsubscribe()
 
 
-def test_mavsdk_gets_the_companions_parameters_through_px4(seen: Seen) -> None:
+def check_mavsdk_gets_the_companions_parameters_through_px4(seen: Seen) -> None:
     assert len(seen.mavsdk_names) == seen.bridge_params, sorted(seen.mavsdk_names)
     assert "BRG_YAW_SIGMA" in seen.mavsdk_names
 
 
-def test_a_calibration_asked_while_px4_calibrates_is_answered_busy(seen: Seen) -> None:
+def check_a_calibration_asked_while_px4_calibrates_is_answered_busy(seen: Seen) -> None:
     assert seen.busy.result == M.MAV_RESULT_TEMPORARILY_REJECTED, seen.busy
     assert not seen.busy_started
+
+
+def test_the_companion_through_px4(seen: Any) -> None:
+    """One run of the scenario, every check on it (see :func:`autopilots.check_all`)."""
+    check_all(
+        seen,
+        [
+            check_a_parameter_load_for_every_component_brings_the_bridges_list_in_one_round,
+            check_every_burst_arrives_whole_and_px4_forwards_without_error,
+            check_reads_for_every_component_are_answered_and_commands_keep_their_rule,
+            check_mavsdk_gets_the_companions_parameters_through_px4,
+            check_a_calibration_asked_while_px4_calibrates_is_answered_busy,
+        ],
+    )
