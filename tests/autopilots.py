@@ -544,6 +544,8 @@ class Bridge:
     out: Any  #: its MavlinkOutput
     recorder: HeadingRecorder
     log: list[str]  #: the ``bridge`` loggers' lines (INFO and up) while it ran
+    #: The time stamp (us) of every heading-feed message it sent (the MAVLink tap's view).
+    sent_feed: list[int] = field(default_factory=list)
     _restore: Callable[[], None] = lambda: None
 
     def stop(self) -> None:
@@ -617,9 +619,24 @@ def start_bridge(
         logger.removeHandler(handler)
         logger.setLevel(level)
 
+    sent: list[int] = []
+
+    def tap(m: Any) -> None:
+        kind = m.message.get_type()
+        if kind == "VISION_POSITION_ESTIMATE":
+            sent.append(int(m.message.usec))
+        elif kind == "ODOMETRY":
+            sent.append(int(m.message.time_usec))
+
+    unsubscribe = daemon.services.mavlink_tap.subscribe(tap)
+
+    def restore_all() -> None:
+        unsubscribe()
+        restore()
+
     daemon.set_outputs([out, recorder])
     daemon.start()
-    bridge = Bridge(daemon, out, recorder, lines, restore)
+    bridge = Bridge(daemon, out, recorder, lines, sent, restore_all)
     deadline = time.monotonic() + DEADLINE_S
     while daemon.link.state is not LinkState.STREAMING or daemon.samples < 3:
         if time.monotonic() > deadline:

@@ -102,6 +102,7 @@ class Timeline:
     end: float = 0.0
     statustexts: list[str] = field(default_factory=list)
     bridge_heading: list[tuple[float, float]] = field(default_factory=list)
+    sent_feed: list[int] = field(default_factory=list)  #: the first bridge's feed stamps
     attitude: list[tuple[float, float]] = field(default_factory=list)  #: (unix, yaw deg)
     log: dict[str, list[Any]] = field(default_factory=dict)
 
@@ -198,6 +199,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         tl.mount_to = a.recorder.latest() or 0.0
         time.sleep(4.0)
         tl.bridge_heading = list(a.recorder.samples)
+        tl.sent_feed = list(a.sent_feed)
         # 5. the bridge restarts, without [location], with a yaw sigma of 8 deg, and
         # VISO_YAW_M_NSE lowered to 0.05 rad: what ArduPilot then logs is the bridge's sigma
         a.stop()
@@ -312,12 +314,19 @@ def check_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
         f"max {max(abs(e) for e in errs):.3f} deg"
     )
     assert len(errs) > 300 and rms < 0.3
-    used = [m for m in run.log["VISP"] if m.TimeUS / 1e6 + _ap_time(run)[0] < run.learned_at]
-    assert used and all(m.Ign == 0 for m in used)
-    # every sample sent arrived and was logged: 10 Hz without a gap
-    gaps = np.diff([m.TimeUS / 1e6 for m in used])
-    print(f"ArduPilot: {len(used)} VISP before the learned step, largest gap {gaps.max():.3f} s")
-    assert gaps.max() < 0.25
+    # every sample the first bridge sent arrived, and ArduPilot used it (VISP.Ign 0)
+    visp = {m.RTimeUS: m for m in run.log["VISP"]}
+    # (before ArduPilot's first datagram the bridge's udpin has no peer to send to)
+    sent = [u for u in run.sent_feed if u >= min(visp)]
+    missing = [u for u in sent if u not in visp]
+    ignored = [u for u in sent if u in visp and visp[u].Ign != 0]
+    print(
+        f"ArduPilot: {len(sent) - len(missing)} of {len(sent)} samples the bridge sent logged, "
+        f"{len(ignored)} ignored"
+    )
+    assert sent and not missing and not ignored, [
+        round(u / 1e6 - run.bridge_start, 2) for u in missing
+    ]
 
 
 def check_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_m_nse(
@@ -415,7 +424,9 @@ def check_a_restarted_bridge_keeps_ardupilots_lag_and_asks_for_the_position(
         f"(max {max(fresh):.1f}); after the restart median {statistics.median(again):.1f} ms "
         f"(max {max(again):.1f})"
     )
-    assert max(again) < statistics.median(fresh) + 100.0
+    # within 100 ms of the fresh link's, and none at JitterCorrection's 500 ms clamp
+    assert abs(statistics.median(again) - statistics.median(fresh)) < 100.0
+    assert max(again) < 400.0
     assert run.request_lines, "the bridge did not say it asked for the position"
     assert run.position_at is not None and run.position_at - run.restart_at < 10.0
     print(

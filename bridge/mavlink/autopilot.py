@@ -244,6 +244,7 @@ class AutopilotWatch:
         self.resets = 0  #: yaw resets asked of ArduPilot
         self.refusals = 0  #: heading changes refused
         self.acks: list[tuple[int, int]] = []  #: (command, result) of the autopilot's answers
+        self.on_due: Callable[[], None] | None = None  #: told when :attr:`due_at` moved earlier
 
     def attach(self, settings: EngineSettings) -> Callable[[], None]:
         """Guard the heading's settings (:meth:`guard`); without ``[location]`` ask the
@@ -365,6 +366,8 @@ class AutopilotWatch:
             return
         self.resets += 1
         send(command_long(target, SET_EKF_SOURCE_SET, 2))
+        if self.on_due is not None:
+            self.on_due()  # the telemetry thread: sleep no longer than RESET_HOLD_S
         log.info(
             "mavlink: %s changed: resetting ArduPilot's yaw to the new heading "
             "(EKF source set 2, then 1)",
@@ -372,6 +375,13 @@ class AutopilotWatch:
         )
 
     # -- the clock (telemetry thread) ----------------------------------------------------
+
+    @property
+    def due_at(self) -> float:
+        """When :meth:`tick` next has something to send at a set time (a yaw reset's second
+        switch), on the output's clock; +inf when nothing waits."""
+        r = self._reset
+        return r.started + RESET_HOLD_S if r is not None and not r.back_sent else math.inf
 
     def tick(self, now: float) -> None:
         """Finish a yaw reset; ask for missing messages."""

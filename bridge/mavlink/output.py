@@ -207,6 +207,7 @@ class MavlinkOutput:
             services.events,
             clock,
         )
+        self.autopilot.on_due = self._wake.set
         self.feed = HeadingFeed(self)
         #: Every burst (answers, lists, status texts, reports) leaves through it:
         #: routers in between forward through small buffers (bridge.mavlink.pacing).
@@ -498,7 +499,9 @@ class MavlinkOutput:
         # sample streams go out from publish().
         while not self._stop.is_set():
             now = self.clock()
-            due_at = min(self.schedule.next_clock_due(now), self.relay.keepalive_due)
+            due_at = min(
+                self.schedule.next_clock_due(now), self.relay.keepalive_due, self.autopilot.due_at
+            )
             self._wake.wait(min(0.5, max(0.0, due_at - now)))
             self._wake.clear()
             if self._stop.is_set():
