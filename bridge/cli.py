@@ -303,6 +303,36 @@ def _positive(text: str) -> float:
 # ---------------------------------------------------------------------------
 
 
+#: Options whose value may start with a minus sign (a southern latitude, a western longitude).
+_SIGNED_VALUE_OPTIONS = frozenset({"--location"})
+
+
+def _glue_negative_values(argv: list[str]) -> list[str]:
+    """``--location -35.36,149.16`` as ``--location=-35.36,149.16``: argparse takes a word
+    starting with ``-`` for an option unless it is a plain negative number, and
+    ``-35.36,149.16`` (a southern latitude) is not one."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else ""
+        if (
+            a in _SIGNED_VALUE_OPTIONS
+            and len(nxt) > 1
+            and nxt[0] == "-"
+            and nxt[1] in "0123456789."
+        ):
+            out.append(f"{a}={nxt}")
+            i += 2
+            continue
+        if a == "--":
+            out.extend(argv[i:])
+            break
+        out.append(a)
+        i += 1
+    return out
+
+
 def _location(text: str) -> tuple[float, float, float]:
     """``LAT,LON[,ALT]`` for ``simulate --location``."""
     try:
@@ -383,7 +413,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     overrides = list(args.overrides)
     if args.simulate:
-        overrides[:0] = simulate_overrides(overrides)
+        overrides[:0] = simulate_overrides(overrides, args.config)
     elif args.config is None:
         raise UsageError("run needs --config FILE (or --simulate for the built-in simulator)")
     if args.reset and not args.simulate:
@@ -396,6 +426,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(reset_state(cfg.storage.dir), file=sys.stderr)
         except StorageError as e:
             raise UsageError(f"--reset: {e}") from None
+    if args.simulate:
+        log.info("simulated compass: state directory %s", cfg.storage.dir)
 
     from bridge.daemon import run_daemon
 
@@ -428,7 +460,7 @@ def cmd_config(args: argparse.Namespace) -> int:
     from bridge.tools.effective import effective, render, warnings
     from bridge.tools.simulator import simulate_overrides
 
-    own = simulate_overrides(args.overrides) if args.simulate else []
+    own = simulate_overrides(args.overrides, args.config) if args.simulate else []
     result = effective(args.config, args.overrides, simulate=own)
     sys.stdout.write(render(result))
     for text in warnings(result):
@@ -637,6 +669,7 @@ def _end_process(code: int) -> NoReturn:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console-script entry point; returns the exit code."""
     parser = build_parser()
+    argv = _glue_negative_values(list(sys.argv[1:] if argv is None else argv))
     try:
         args, rest = parser.parse_known_args(argv)
         if rest and not getattr(args, "passthrough", False):

@@ -496,30 +496,9 @@ def _check_paths(cfg: Config) -> Config:
             path_rule(getattr(getattr(cfg, section), name))
         except ValueError as e:
             raise ConfigError(f"{section}.{name}", str(e)) from None
-    return _check_feed_identity(cfg)
-
-
-def feed_identity_problem(role: str, component_id: int) -> str:
-    """Why a heading feed sent from this identity would never reach the autopilot ("" if not).
-
-    Standalone with component 1 the bridge sends as (system_id, 1): the autopilot's
-    own ids, and ArduPilot drops every message carrying its own system *and* component
-    id (``MAVLink_routing::check_and_forward``). The companion role sends as 200.
-    """
-    if role == "standalone" and component_id == 1:
-        return (
-            "a heading feed from component 1 carries the autopilot's own ids, which it "
-            'drops: use mavlink.role = "companion" (component 200) or another component_id'
-        )
-    return ""
-
-
-def _check_feed_identity(cfg: Config) -> Config:
-    m = cfg.mavlink
-    if m.heading_feed != "off":
-        problem = feed_identity_problem(m.role, m.component_id)
-        if problem:
-            raise ConfigError("mavlink.heading_feed", problem)
+    # A heading feed sent with the autopilot's own system *and* component id is dropped by
+    # ArduPilot; which ids the autopilot has is known only when it is heard, so the MAVLink
+    # output checks it then (bridge.mavlink.autopilot) and withholds the feed.
     return cfg
 
 

@@ -49,6 +49,12 @@ class Event:
 
 Subscriber = Callable[[Event], None]
 
+
+class ChangeRefusedError(RuntimeError):
+    """A change of the heading's settings was refused by a guard (the message says why and
+    what to do); raised by the application's settings writer, caught by whoever asked."""
+
+
 _T = TypeVar("_T")
 
 

@@ -333,3 +333,51 @@ def test_simulate_takes_a_hard_iron_change_and_bench_drift_is_there() -> None:
         with pytest.raises(SystemExit):
             p.parse_args(["simulate", "--link", "/tmp/x", "--hard-iron-change", bad])
     assert p.parse_args(["bench", "drift"]).bench == "drift"
+
+
+def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None:
+    """A --config file's [storage] dir is the simulator's state directory (said in the log);
+    without one the simulator keeps its own per-user directory."""
+    mine = tmp_path / "mine"
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text(f'[storage]\ndir = "{mine}"\n\n[zenoh]\nenabled = false\n')
+    env = _env(tmp_path)
+    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bridge", "run", "--simulate", "--config", str(cfg), "-v"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+    )
+    try:
+        read_lines(proc, want=1, deadline_s=20)
+    finally:
+        code, _, err = stop(proc, signal.SIGTERM)
+    assert code == 0, err
+    assert f"simulated compass: state directory {mine}" in err
+    assert str(tmp_path / "xdg") not in err
+
+
+def test_a_southern_latitude_parses_as_a_location(tmp_path: Path) -> None:
+    """``--location -35.36,149.16``: a value starting with a minus sign is not an option."""
+    from bridge.cli import build_parser
+
+    link = tmp_path / "compass"
+    sim = spawn(tmp_path, "simulate", "--link", str(link), "--location", "-35.36,149.16")
+    try:
+        end = time.monotonic() + 20
+        while not link.exists() and time.monotonic() < end and sim.poll() is None:
+            time.sleep(0.05)
+        assert link.exists(), sim.stderr.read() if sim.stderr and sim.poll() is not None else ""
+    finally:
+        code, _, err = stop(sim, signal.SIGTERM)
+    assert code == 0, err
+    # and the parser gets the numbers (the glued form, too)
+    from bridge.cli import _glue_negative_values
+
+    argv = _glue_negative_values(["simulate", "--link", "x", "--location", "-35.36,-149.16,5"])
+    args = build_parser().parse_args(argv)
+    assert args.location == (-35.36, -149.16, 5.0)
+    assert _glue_negative_values(["run", "--set", "-x"]) == ["run", "--set", "-x"]

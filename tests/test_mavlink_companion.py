@@ -32,6 +32,7 @@ from bridge.sim.motion import Still
 AP = (1, 1)
 BRIDGE = (1, 200)
 ACCEPTED, FAILED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_FAILED
+TEMPORARILY_REJECTED = M.MAV_RESULT_TEMPORARILY_REJECTED
 NOT_STARTED, RUNNING, SUCCESS = (
     M.MAG_CAL_NOT_STARTED,
     M.MAG_CAL_RUNNING_STEP_ONE,
@@ -51,7 +52,7 @@ def source(m: Any) -> tuple[int, int]:
 class StandInAutopilot:
     """ArduPilot's compass-calibration behaviour for its compass 0, nothing else."""
 
-    STEP_S = 0.25  #: progress +25 % per step: a calibration takes about a second
+    STEP_S = 0.6  #: progress +25 % per step: a calibration takes 2.4 s (two report repeats)
 
     def __init__(self, peer: Gcs, hub: Hub) -> None:
         self.peer, self.hub = peer, hub
@@ -212,18 +213,22 @@ def test_ground_station_calibrating_the_autopilot_and_the_bridge_never_cross(
     cal = rig.daemon.calibrator
     hub.wait(lambda: hub.from_bridge("HEARTBEAT"))
 
-    # MAVProxy's `magcal start` is a broadcast: the autopilot's, not ours
-    hub.gcs_command((1, 0), M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 1, 0)
-    assert hub.ack(AP, M.MAV_CMD_DO_START_MAG_CAL).result == ACCEPTED
-    assert hub.ap.status == RUNNING
     # the bridge's own calibration, addressed to it: a result at once (a known true yaw)
     hub.gcs_command(BRIDGE, M.MAV_CMD_FIXED_MAG_CAL_YAW, 40.0, 0, 0, 0)
     assert hub.ack(BRIDGE, M.MAV_CMD_FIXED_MAG_CAL_YAW).result == ACCEPTED
     report = hub.wait(lambda: hub.from_bridge("MAG_CAL_REPORT"))[0]
     assert report.compass_id == COMPANION_COMPASS_ID and report.cal_status == SUCCESS
     assert report.cal_mask == 1 << COMPANION_COMPASS_ID
-    # The ground station accepted the bridge's report by itself (mask 1 << 7, to component 0):
-    # the autopilot's compass 0 is not in that mask, so its calibration runs on ...
+    # MAVProxy's `magcal start` is a broadcast: the autopilot's, not ours
+    hub.gcs_command((1, 0), M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 1, 0)
+    assert hub.ack(AP, M.MAV_CMD_DO_START_MAG_CAL).result == ACCEPTED
+    assert hub.ap.status == RUNNING
+    # while the autopilot calibrates, a calibration asked of the bridge is busy
+    hub.wait(lambda: rig.out.autopilot.calibrating)
+    hub.gcs_command(BRIDGE, M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0)
+    assert hub.ack(BRIDGE, M.MAV_CMD_DO_START_MAG_CAL).result == TEMPORARILY_REJECTED
+    # The ground station accepts the bridge's repeated report by itself (mask 1 << 7, to
+    # component 0): the autopilot's compass 0 is not in that mask, so its calibration runs on
     hub.wait(lambda: ((1 << COMPANION_COMPASS_ID), RUNNING) in hub.auto_accepts)
     # ... to its own report, which the ground station accepts (mask 1): saved by the autopilot
     # (had that first accept stopped it, it would never have succeeded)

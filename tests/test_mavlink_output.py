@@ -162,6 +162,11 @@ def test_command_addressing(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     g.mav.timesync_send(0, 123_456_789)
     ts = g.wait("TIMESYNC")
     assert ts.ts1 == 123_456_789 and ts.tc1 > 0
+    # addressed to the asker (MAVLink 2's extension fields, after tc1 and ts1)
+    raw = bytes(ts.get_msgbuf())
+    assert raw[10 + 16 : 10 + 18] == bytes([GCS_SYSID, GCS_COMPID]), raw.hex()
+    # our time is the feed's: the wall clock (Unix epoch), not seconds since start
+    assert abs(ts.tc1 / 1e9 - time.time()) < 5.0
     g.mav.timesync_send(ts.tc1, 5)  # an answer (tc1 != 0) is not answered again
     g.nothing("TIMESYNC", lambda m: m.ts1 == 5, 0.5)
 
@@ -441,12 +446,17 @@ def test_heading_feed_for_the_autopilot(
     assert 7.0 <= rate(msgs, mtype, 2.0) <= 11.5
     decl = earth_field(LAT, LON).declination_deg
     atts = {m.time_boot_ms: m for m in msgs if m.get_type() == "ATTITUDE"}
+    # The feed's time stamps are wall-clock (Unix epoch) microseconds, ATTITUDE's are
+    # milliseconds since start: the same sample is (epoch of the start) apart.
+    start_ms = rig.out.epoch_us(rig.out.clock() - rig.out.time_boot_ms(rig.out.clock()) / 1000.0)
     pairs = 0
     for m in msgs:
         if m.get_type() != mtype:
             continue
         t_us = m.time_usec if mtype == "ODOMETRY" else m.usec
-        a = atts.get(t_us // 1000)
+        assert abs(t_us / 1e6 - time.time()) < 5.0  # the wall clock
+        k = round((t_us - start_ms) / 1000)
+        a = atts.get(k) or atts.get(k - 1) or atts.get(k + 1)
         if a is None:
             continue  # from a sample ATTITUDE did not go out with
         if mtype == "ODOMETRY":
@@ -456,6 +466,10 @@ def test_heading_feed_for_the_autopilot(
             assert (m.x, m.y, m.z) == (0.0, 0.0, 0.0)
         else:
             yaw = m.yaw
+            # ArduPilot's angErr = cbrt(c15^2 + c18^2 + c20^2) is the sigma itself
+            c = m.covariance
+            ang_err = (c[15] ** 2 + c[18] ** 2 + c[20] ** 2) ** (1.0 / 3.0)
+            assert ang_err == pytest.approx(math.radians(2.0), rel=1e-5)
         # ATTITUDE is magnetic (what the daemon publishes); the feed is true: + declination
         diff = (math.degrees(yaw - a.yaw) + 180.0) % 360.0 - 180.0
         assert diff == pytest.approx(decl, abs=0.01)

@@ -112,7 +112,12 @@ def test_heading_feed_messages() -> None:
     assert math.isnan(od.velocity_covariance[0]) and math.isnan(od.vx)
     vpe = decode(T.vision_position_estimate(s, 123_000, sigma_deg=2.0))
     assert math.degrees(vpe.yaw) == pytest.approx(100.0 + DECL, abs=1e-4)
-    assert vpe.covariance[20] == pytest.approx(math.radians(2.0) ** 2, rel=1e-6)
+    # ArduPilot reads angErr = cbrt(c15^2 + c18^2 + c20^2) as the yaw sigma (GCS_Common.cpp)
+    c = vpe.covariance
+    ang_err = (c[15] ** 2 + c[18] ** 2 + c[20] ** 2) ** (1.0 / 3.0)
+    assert ang_err == pytest.approx(math.radians(2.0), rel=1e-5)
+    pos_err = (c[0] ** 2 + c[6] ** 2 + c[11] ** 2) ** (1.0 / 3.0)
+    assert pos_err > 100.0  # ArduPilot's cap: no position information
     # no declination: the magnetic heading, flagged as such
     nodecl = make_sample(yaw_deg=100.0, declination=None)
     assert T.feed_euler(nodecl)[3] is False and T.feed_euler(s)[3] is True

@@ -37,7 +37,7 @@ from bridge.app.paramspec import (
 )
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
-from bridge.events import Subscribers
+from bridge.events import ChangeRefusedError, Subscribers
 from bridge.ports import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)
@@ -230,10 +230,14 @@ class ParamStore:
             if problem:
                 self._own_calibration = None
                 return problem
-        elif group == "dec":
-            self._apply_declination(PARAMETERS)
-        elif group == "mount":
-            settings.set_mounting(mounting_from_values(values), PARAMETERS)
+        elif group in ("dec", "mount"):
+            try:
+                if group == "dec":
+                    self._apply_declination(PARAMETERS)
+                else:
+                    settings.set_mounting(mounting_from_values(values), PARAMETERS)
+            except ChangeRefusedError as e:  # a heading guard (an armed autopilot fed by us)
+                return str(e)
         elif group == "limits":
             try:
                 limits = limits_from_values(values, settings.limits)
@@ -266,10 +270,16 @@ class ParamStore:
         """Bring the engine in line with every parameter (at start, after a reset or reload)."""
         values = self._table.values()
         s = self._settings
-        s.set_mounting(mounting_from_values(values), source)
+        try:
+            s.set_mounting(mounting_from_values(values), source)
+        except ChangeRefusedError as e:
+            log.warning("parameters: mounting not changed: %s", e)
         s.set_limits(limits_from_values(values, s.limits), source)
         s.set_heading_reference("true" if values["BRG_HDG_REF"] else "magnetic", source)
-        self._apply_declination(source)
+        try:
+            self._apply_declination(source)
+        except ChangeRefusedError as e:
+            log.warning("parameters: declination not changed: %s", e)
 
     def _on_settings(self, change: SettingsChange) -> None:
         """A change made elsewhere (a fit, a position): show it in the parameters."""

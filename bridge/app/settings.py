@@ -8,6 +8,12 @@ which applies the change to the :class:`~bridge.core.attitude.AttitudeEngine`
 (one reference swap each: the pipeline never sees half a change) and tells its
 subscribers what changed and who changed it, in order. Nobody polls.
 
+Guards (:meth:`EngineSettings.add_guard`) may refuse a change that would step
+the heading -- a calibration, a mounting, a declination moved by at least
+:data:`REFERENCE_STEP_DEG` -- with :class:`~bridge.events.ChangeRefusedError`; the
+MAVLink adapter refuses them while an armed ArduPilot takes its yaw from the
+bridge (docs/mavlink.md, "Heading changes and the autopilot").
+
 The declination rule (ArduPilot's COMPASS_AUTODEC / COMPASS_DEC) lives here
 too: the published declination is the World Magnetic Model's at the known
 position unless a fixed one is set; the expected field strength and dip always
@@ -27,11 +33,14 @@ from bridge.core.attitude import AttitudeEngine, FieldReference, HeadingReferenc
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits
 from bridge.core.wmm import EarthField, earth_field
-from bridge.events import Subscribers
+from bridge.events import ChangeRefusedError, Subscribers
 
 log = logging.getLogger(__name__)
 
 Aspect = Literal["calibration", "mounting", "reference", "limits", "heading_reference"]
+#: A declination change smaller than this (a moving vehicle's position updates) is not a
+#: heading step: guards are not asked about it.
+REFERENCE_STEP_DEG = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,6 +52,8 @@ class SettingsChange:
 
 
 Listener = Callable[[SettingsChange], None]
+#: ``(aspect, source) -> reason`` ("" lets the change through; see :meth:`EngineSettings.add_guard`).
+Guard = Callable[[Aspect, str], str]
 
 
 class EngineSettings:
@@ -58,6 +69,7 @@ class EngineSettings:
         self._lock = threading.RLock()
         self._emit_lock = threading.Lock()
         self._listeners: Subscribers[SettingsChange] = Subscribers()
+        self._guards: tuple[Guard, ...] = ()  # replaced, never changed in place
         self._field = field
         self._declination_deg: float | None = None  # a fixed declination (COMPASS_AUTODEC=0)
         self._pending: list[SettingsChange] = []
@@ -112,6 +124,27 @@ class EngineSettings:
         """
         return self._listeners.add(fn)
 
+    def add_guard(self, fn: Guard) -> Callable[[], None]:
+        """Ask ``fn(aspect, source)`` before every change that steps the heading (a
+        calibration, a mounting, a declination step of :data:`REFERENCE_STEP_DEG` or
+        more); a non-empty answer refuses it (:class:`~bridge.events.ChangeRefusedError`
+        with that text). Returns the remover. A guard must be quick and must not change
+        the settings itself."""
+        with self._lock:
+            self._guards = (*self._guards, fn)
+
+        def remove() -> None:
+            with self._lock:
+                self._guards = tuple(g for g in self._guards if g is not fn)
+
+        return remove
+
+    def _guard(self, aspect: Aspect, source: str) -> None:
+        for fn in self._guards:
+            reason = fn(aspect, source)
+            if reason:
+                raise ChangeRefusedError(reason)
+
     def _changed(self, aspect: Aspect, source: str) -> None:
         """Deliver a change to every listener, one change at a time and in order.
 
@@ -141,16 +174,20 @@ class EngineSettings:
     # -- writing -------------------------------------------------------------------
 
     def update_calibration(self, calibration: Calibration, source: str = "calibration") -> None:
-        """Use ``calibration`` from now on."""
+        """Use ``calibration`` from now on (:class:`~bridge.events.ChangeRefusedError` if a guard
+        says no)."""
         with self._lock:
+            if calibration != self.engine.calibration:
+                self._guard("calibration", source)
             self.engine.update_calibration(calibration)
         self._changed("calibration", source)
 
     def set_mounting(self, mounting: Mounting, source: str) -> None:
-        """Use ``mounting`` (AHRS_ORIENTATION) from now on."""
+        """Use ``mounting`` (AHRS_ORIENTATION) from now on (guarded)."""
         with self._lock:
             if mounting == self.engine.mounting:
                 return
+            self._guard("mounting", source)
             self.engine.update_mounting(mounting)
         self._changed("mounting", source)
 
@@ -171,18 +208,29 @@ class EngineSettings:
         self._changed("heading_reference", source)
 
     def set_declination(self, declination_deg: float | None, source: str) -> None:
-        """A fixed declination (COMPASS_AUTODEC = 0), or None for the model's."""
+        """A fixed declination (COMPASS_AUTODEC = 0), or None for the model's (guarded)."""
         with self._lock:
+            before = self._declination_deg
             self._declination_deg = declination_deg
-            changed = self._apply_reference(source)
+            try:
+                changed = self._apply_reference(source)
+            except ChangeRefusedError:
+                self._declination_deg = before
+                raise
         if changed:
             self._changed("reference", source)
 
     def set_field(self, field: EarthField | None, source: str) -> None:
-        """A new position's Earth field (a reload's ``[location]``), None when unknown."""
+        """A new position's Earth field (a reload's ``[location]``), None when unknown
+        (guarded)."""
         with self._lock:
+            before = self._field
             self._field = field
-            changed = self._apply_reference(source)
+            try:
+                changed = self._apply_reference(source)
+            except ChangeRefusedError:
+                self._field = before
+                raise
         if changed:
             self._changed("reference", source)
 
@@ -207,5 +255,14 @@ class EngineSettings:
             )
         if ref == self.engine.reference:
             return False
+        old = self.engine.reference
+        old_dec = old.declination_deg if old is not None else None
+        new_dec = ref.declination_deg if ref is not None else None
+        if old_dec != new_dec and (
+            old_dec is None
+            or new_dec is None
+            or abs((new_dec - old_dec + 180.0) % 360.0 - 180.0) >= REFERENCE_STEP_DEG
+        ):
+            self._guard("reference", source)
         self.engine.update_reference(ref)
         return True

@@ -87,7 +87,7 @@ from bridge.calibrator.state import (
 )
 from bridge.calibrator.store import CalibrationStore
 from bridge.core.wmm import EarthField
-from bridge.events import Event, EventBus, Severity
+from bridge.events import ChangeRefusedError, Event, EventBus, Severity
 from bridge.ports import (
     CommandError,
     DevicePort,
@@ -616,7 +616,10 @@ class CalibrationController:
         write_device: bool,
         view: dict[str, float] | None = None,
     ) -> Outcome:
-        self._engine.update_calibration(cal)
+        try:
+            self._engine.update_calibration(cal)
+        except ChangeRefusedError as e:  # a guard of the heading (an armed autopilot fed by us)
+            return Outcome(Result.DENIED, str(e))
         now = self._wall()
         saved = True
         error = ""

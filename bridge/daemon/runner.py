@@ -47,6 +47,7 @@ from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
 from bridge.console import TerminalGate
 from bridge.daemon.wiring import Daemon, build_outputs, make_transport
+from bridge.events import ChangeRefusedError
 from bridge.link.observed import ObservedTransport
 from bridge.ports import LinkState
 from bridge.sdnotify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
@@ -374,7 +375,10 @@ class Service:
             if o not in keep_new:
                 o.close(0.1)  # built but never started
         if plan.location:
-            d.settings.set_field(field, "reload")
+            try:
+                d.settings.set_field(field, "reload")
+            except ChangeRefusedError as e:
+                log.warning("reload: [location] not applied: %s", e)
         if transport is not None:
             log.info("reload: reopening the compass port with the new settings")
             d.link.rate_hz = new.device.rate_hz if new.device.protocol == "gmr" else None

@@ -29,11 +29,12 @@ from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices
 from bridge.calibration.model import Calibration
 from bridge.calibrator import CalibratorSnapshot, Outcome, Result
-from bridge.events import Event, Severity
+from bridge.events import ChangeRefusedError, Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.autopilot import AutopilotWatch
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.endpoints import Link
 from bridge.mavlink.paramproto import ParamProtocol
@@ -190,6 +191,7 @@ class Sender(Protocol):
     """What the dispatcher uses of the MAVLink output (:class:`~bridge.mavlink.output.MavlinkOutput`)."""
 
     services: BridgeServices
+    autopilot: AutopilotWatch
     clock: Callable[[], float]
     relay: C.CalibrationRelay
     schedule: S.StreamSchedule
@@ -294,10 +296,23 @@ class CommandDispatcher:
         MAVLink compass id differs beside an autopilot); a mask without ours names none."""
         return 0 if self._for_our_compass(mask) else 0xFE
 
+    def _autopilot_busy(self, cmd: C.Command) -> bool:
+        """Beside an autopilot that runs its own sensor calibration a calibration of ours is
+        refused (TEMPORARILY_REJECTED, what both autopilots answer when busy): two at once
+        would mix their STATUSTEXT on ground-station pages that ignore the component."""
+        if not (self.out.companion and self.out.autopilot.calibrating):
+            return False
+        log.warning(
+            "mavlink: calibration command %d refused: the autopilot is calibrating", cmd.command
+        )
+        return True
+
     def _start_mag_cal(self, cmd: C.Command, link: Link) -> int | None:
         mask = _mask(cmd.p(1))
         if mask is None:
             return C.FAILED
+        if self._autopilot_busy(cmd):
+            return C.TEMPORARILY_REJECTED
         delay = cmd.p(4) if given(cmd.p(4)) and math.isfinite(cmd.p(4)) else 0.0
         self.out.relay.begin("ardupilot")
         result = self.svc.calibrator.start_mag(
@@ -346,6 +361,8 @@ class CommandDispatcher:
         yaw = cmd.p(1)
         if mask is None:
             return C.FAILED
+        if self._autopilot_busy(cmd):
+            return C.TEMPORARILY_REJECTED
         lat, lon = cmd.p(3), cmd.p(4)
         have_position = given(lat) and given(lon) and (lat != 0.0 or lon != 0.0)
         self.out.relay.begin("ardupilot")
@@ -370,6 +387,8 @@ class CommandDispatcher:
             cal.cancel()  # PX4: params 1-6 all zero cancel ("[cal] calibration cancelled")
             return C.ACCEPTED
         requests = [i for i, v in enumerate(p[:6], start=1) if v != 0]
+        if requests in ([2], [5]) and self._autopilot_busy(cmd):
+            return C.TEMPORARILY_REJECTED
         if requests == [2] and p[1] == 1:
             self.out.relay.begin("px4")
             out = cal.start_mag(autosave=True)  # PX4 has no accept step: a success is saved
@@ -558,6 +577,8 @@ class CommandDispatcher:
             return
         try:
             field = self.svc.settings.set_position(lat, lon, alt, "autopilot position")
+        except ChangeRefusedError:
+            return  # the guard said why (an armed ArduPilot); the next position tries again
         except ValueError as e:
             log.warning("mavlink: autopilot position %.5f, %.5f unusable: %s", lat, lon, e)
             return

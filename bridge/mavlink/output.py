@@ -15,25 +15,21 @@ It is an :class:`~bridge.app.sample.Output` built on the application's
   (:mod:`~bridge.mavlink.dispatch`), the autopilot's position;
 * one thread per **endpoint** (:mod:`bridge.mavlink.endpoints`) does the I/O.
 
-Changes made elsewhere reach it as notifications, never by polling: a
-parameter changed (by a SET on another link, a reset, a new calibration's
-view) goes out as PARAM_VALUE on every link; operator events become
-STATUSTEXT, and calibration events MAG_CAL_PROGRESS / MAG_CAL_REPORT or PX4's
-``[cal]`` lines (:class:`~bridge.mavlink.commands.CalibrationRelay`).
+Changes made elsewhere reach it as notifications, never by polling: parameter
+changes go out as PARAM_VALUE on every link, events as STATUSTEXT or the
+calibration flows' messages (:class:`~bridge.mavlink.commands.CalibrationRelay`).
 
 Roles: **standalone** -- component 1, HEARTBEAT type GENERIC and the
 ``[mavlink] autopilot`` flavour; answers what is addressed to its system (any
 component); **companion** -- component 200 (MAV_COMP_ID_IMU), type IMU,
-autopilot INVALID, beside an autopilot with the same system id: it acts only on
-what is addressed to its own component, reports its calibration as a compass
-id no autopilot has (:data:`COMPANION_COMPASS_ID`), and takes the position
-for declination from the autopilot's GLOBAL_POSITION_INT / GPS_RAW_INT.
+autopilot INVALID, beside an autopilot with the same system id: it obeys only
+what names its own component (reads of parameters addressed to every component
+are answered too), reports its calibration as compass :data:`COMPANION_COMPASS_ID`,
+and takes the position for declination from the autopilot
+(:mod:`~bridge.mavlink.autopilot`).
 
-Security: with a signing key every packet we send is signed, and COMMAND_LONG,
-COMMAND_INT, PARAM_SET and position messages must carry a valid, fresh
-signature (see :mod:`bridge.mavlink.signing`); others are refused, logged
-and counted. Reads (PARAM_REQUEST_*) stay open so a ground station without
-the key can still watch.
+Security: with a signing key what we send is signed and COMMAND_*, PARAM_SET and
+position messages must be validly signed (:mod:`bridge.mavlink.signing`).
 """
 
 from __future__ import annotations
@@ -45,12 +41,11 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
-from bridge.app.settings import SettingsChange
 from bridge.calibrator import CalibratorSnapshot
 from bridge.config import Config
 from bridge.events import Event
@@ -58,10 +53,13 @@ from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.autopilot import AutopilotWatch
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.mavlink.dispatch import CommandDispatcher
 from bridge.mavlink.endpoints import Endpoint, EndpointCounters, Link, open_endpoint
+from bridge.mavlink.feed import HeadingFeed
+from bridge.mavlink.pacing import PacedLink, Pacer
 from bridge.mavlink.paramproto import FLAVOURS, Flavour, ParamEncoding, ParamProtocol
 from bridge.mavlink.signing import Signing, Verdict
 from bridge.ports import StorageError
@@ -200,8 +198,20 @@ class MavlinkOutput:
         self._inbox_cond = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._unsubscribe: list[Callable[[], None]] = []
-        self._reset_counter = 0
-        self._warned_magnetic_feed = False
+        # The feed's clock is the wall clock (Unix epoch), so its time stamps continue across
+        # restarts; the output's own clock (monotonic) plus this offset.
+        self._epoch_offset = time.time() - clock()
+        self.autopilot = AutopilotWatch(
+            (self.identity.system_id, self.identity.component_id),
+            lambda: int(services.params.get("BRG_HDG_FEED")),
+            services.events,
+            clock,
+        )
+        self.autopilot.on_due = self._wake.set
+        self.feed = HeadingFeed(self)
+        #: Every burst (answers, lists, status texts, reports) leaves through it:
+        #: routers in between forward through small buffers (bridge.mavlink.pacing).
+        self.pacer = Pacer()
         # Schedule id -> encoder of the per-sample stream in that slot (the heading feed's
         # slot holds the feed BRG_HDG_FEED chooses): see _apply_rates.
         self._sample_encoders: dict[int, Callable[[CompassSample], Message | None]] = {}
@@ -216,8 +226,8 @@ class MavlinkOutput:
             S.SCALED_IMU: lambda s: T.scaled_imu(s, self.time_boot_ms(s.t)),
             S.RAW_IMU: lambda s: T.raw_imu(s, self._us(s.t)),
             S.HIGHRES_IMU: lambda s: T.highres_imu(s, self._us(s.t)),
-            S.ODOMETRY: self._odometry,
-            S.VISION_POSITION_ESTIMATE: self._vision_position_estimate,
+            S.ODOMETRY: self.feed.odometry,
+            S.VISION_POSITION_ESTIMATE: self.feed.vision_position_estimate,
         }
 
     # ------------------------------------------------------------------ roles
@@ -251,6 +261,11 @@ class MavlinkOutput:
             return target_component == self.identity.component_id
         return target_component in (0, self.identity.component_id)
 
+    def _reading_for_us(self, msg: Any) -> bool:
+        """A parameter read for us: to component 0 it is for every component (a companion's too)."""
+        t = (msg.target_system, msg.target_component)
+        return self.addressed_to_us(*t) or (t[0] in (0, self.identity.system_id) and t[1] == 0)
+
     # ------------------------------------------------------------------ Output protocol
 
     def publish(self, sample: CompassSample) -> None:
@@ -277,7 +292,7 @@ class MavlinkOutput:
                     if p is not None:
                         packets.append(p)
             finally:  # a stream that fails to encode does not hold back those before it
-                self.broadcast(packets)
+                self.broadcast_now(packets)
         except Exception:
             self.counters.publish_errors += 1
             if self.counters.publish_errors == 1:
@@ -304,19 +319,17 @@ class MavlinkOutput:
             )
         for ep in self.endpoints:
             ep.start()
+        self.pacer.start()
         self._running = True
         self._unsubscribe = [
             svc.events.subscribe(self._on_event),
             svc.params.subscribe(self._on_params),
-            svc.settings.subscribe(self._on_settings),
+            svc.settings.subscribe(self.feed.on_settings),
         ]
-        for target, name in (
-            (self._telemetry_loop, "telemetry"),
-            (self._dispatch_loop, "dispatch"),
-        ):
-            t = threading.Thread(
-                target=self._guard(target, name), name=f"mavlink-{name}", daemon=True
-            )
+        if self.companion:
+            self._unsubscribe.append(self.autopilot.attach(svc.settings))
+        for fn, name in ((self._telemetry_loop, "telemetry"), (self._dispatch_loop, "dispatch")):
+            t = threading.Thread(target=self._guard(fn, name), name=f"mavlink-{name}", daemon=True)
             self._threads.append(t)
             t.start()
         log.info(
@@ -348,6 +361,7 @@ class MavlinkOutput:
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(max(0.05, deadline - self.clock()))
+        self.pacer.close(max(0.05, deadline - self.clock()))
         for ep in self.endpoints:
             ep.close(max(0.05, deadline - self.clock()))
         if self._signing_dirty:
@@ -366,6 +380,10 @@ class MavlinkOutput:
     def _us(self, t: float) -> int:
         return max(0, int((t - self._t0) * 1e6))
 
+    def epoch_us(self, t: float) -> int:
+        """``t`` on the output's clock as Unix-epoch microseconds (the feed's time stamps)."""
+        return int((t + self._epoch_offset) * 1e6)
+
     def _guard(self, fn: Callable[[], None], name: str) -> Callable[[], None]:
         def run() -> None:
             try:
@@ -376,7 +394,18 @@ class MavlinkOutput:
         return run
 
     def broadcast(self, packets: list[Message] | Message) -> None:
-        """Send to every peer of every endpoint; a list goes out together, in order (one
+        """To every peer of every endpoint, in order, paced (:mod:`bridge.mavlink.pacing`)."""
+        if not isinstance(packets, list):
+            packets = [packets]
+        if packets:
+            self.pacer.submit(self._broadcast_one, packets)
+
+    def _broadcast_one(self, packet: Message) -> None:
+        self.broadcast_now([packet])
+
+    def broadcast_now(self, packets: list[Message] | Message) -> None:
+        """Send to every peer of every endpoint at once, not paced (the sample and clock
+        streams, whose schedule is their pace); a list goes out together, in order (one
         datagram per UDP peer while it fits). Every message is also offered to the
         application's MAVLink tap (the Zenoh mirror)."""
         if not isinstance(packets, list):
@@ -447,29 +476,6 @@ class MavlinkOutput:
         enc = self._stream_encoders.get(msgid)
         return enc(s) if enc is not None else None
 
-    def _feed_ok(self, s: CompassSample) -> bool:
-        if self.services.params.get("COMPASS_USE") == 0 or not T.feed_usable(s):
-            return False
-        if s.heading_true_deg is None and not self._warned_magnetic_feed:
-            self._warned_magnetic_feed = True
-            log.warning(
-                "mavlink: heading feed sends the MAGNETIC heading: no declination known "
-                "(set [location], or COMPASS_AUTODEC=0 and COMPASS_DEC)"
-            )
-        return True
-
-    def _odometry(self, s: CompassSample) -> Message | None:
-        if not self._feed_ok(s):
-            return None
-        sigma = self.services.params.get("BRG_YAW_SIGMA")
-        return T.odometry(s, self._us(s.t), sigma, self._reset_counter)
-
-    def _vision_position_estimate(self, s: CompassSample) -> Message | None:
-        if not self._feed_ok(s):
-            return None
-        sigma = self.services.params.get("BRG_YAW_SIGMA")
-        return T.vision_position_estimate(s, self._us(s.t), sigma, self._reset_counter)
-
     def _apply_rates(self) -> None:
         """BRG_SR_* into the schedule's rates; BRG_HDG_FEED into its set of sample streams."""
         params = self.services.params
@@ -493,7 +499,9 @@ class MavlinkOutput:
         # sample streams go out from publish().
         while not self._stop.is_set():
             now = self.clock()
-            due_at = min(self.schedule.next_clock_due(now), self.relay.keepalive_due)
+            due_at = min(
+                self.schedule.next_clock_due(now), self.relay.keepalive_due, self.autopilot.due_at
+            )
             self._wake.wait(min(0.5, max(0.0, due_at - now)))
             self._wake.clear()
             if self._stop.is_set():
@@ -508,10 +516,14 @@ class MavlinkOutput:
                         out.append(T.heartbeat(self.identity, T.system_status(h)))
                     elif msgid == S.SYS_STATUS:
                         out.append(T.sys_status(h))
-            out += self.relay.keepalive(now, self.services.calibrator.snapshot)
             if out:
-                self.broadcast(out)
+                self.broadcast_now(out)
+            keepalive = self.relay.keepalive(now, self.services.calibrator.snapshot)
+            if keepalive:
+                self.broadcast(keepalive)
             self.dispatcher.pending.expire(now)
+            if self.companion:
+                self.autopilot.tick(now)
             if self._signing_dirty and now - self._signing_saved_at >= _SIGNING_SAVE_S:
                 self._save_signing()
 
@@ -538,22 +550,22 @@ class MavlinkOutput:
             return  # the SET's echo is already on its way
         self.broadcast([self.params.value_of(n) for n in change.names])
 
-    def _on_settings(self, change: SettingsChange) -> None:
-        """The engine's calibration, mounting or reference changed: the heading feed's
-        estimator must treat the next sample as a reset (ODOMETRY.reset_counter)."""
-        if change.aspect in ("calibration", "mounting", "reference"):
-            self._reset_counter += 1
-
     # ------------------------------------------------------------------ inbound
 
     def _on_message(self, msg: Any, link: Link) -> None:
-        """Endpoint threads: answer TIMESYNC at once, queue what the dispatcher handles."""
+        """Endpoint threads: answer TIMESYNC at once, tell the autopilot watch what the
+        autopilot says, queue what the dispatcher handles."""
         kind = msg.get_type()
         if kind == "TIMESYNC":
-            if int(msg.tc1) == 0:  # a request: answer with our time, echo theirs
-                now_ns = int((self.clock() - self._t0) * 1e9)
-                link.send(T.timesync_reply(now_ns, int(msg.ts1)))
+            if int(msg.tc1) == 0:  # a request: answer with our (feed's) time, echo theirs
+                now_ns = int((self.clock() + self._epoch_offset) * 1e9)
+                link.send(
+                    T.timesync_reply(
+                        now_ns, int(msg.ts1), msg.get_srcSystem(), msg.get_srcComponent()
+                    )
+                )
             return
+        self.autopilot.heard(msg, link.send)
         if kind not in _INBOX_TYPES:
             return
         with self._inbox_cond:
@@ -573,7 +585,8 @@ class MavlinkOutput:
                 continue
             msg, link = item
             try:
-                self._handle(msg, link)
+                # Duck-typed: send() is all the handlers use of a link.
+                self._handle(msg, cast(Link, PacedLink(link, self.pacer)))
             except Exception:
                 self.counters.handler_errors += 1
                 if self.counters.handler_errors == 1:
@@ -621,18 +634,14 @@ class MavlinkOutput:
             self.dispatcher.handle(C.command_from_message(msg), link)
         elif kind in ("GLOBAL_POSITION_INT", "GPS_RAW_INT"):
             self.dispatcher.position(msg)
+        elif kind.startswith("PARAM_REQUEST_") and self._reading_for_us(msg):
+            answers = self.params.answer_read(msg, link)
+            if answers is None:
+                self.counters.param_lists_refused += 1
+            for a in answers or ():
+                link.send(a)
         elif not self.addressed_to_us(msg.target_system, msg.target_component):
             return
-        elif kind == "PARAM_REQUEST_LIST":
-            values = self.params.request_list(link)
-            if not values:
-                self.counters.param_lists_refused += 1
-            for v in values:
-                link.send(v)
-        elif kind == "PARAM_REQUEST_READ":
-            answer = self.params.request_read(msg)
-            if answer is not None:
-                link.send(answer)
         elif kind == "PARAM_SET":
             self._param_set(msg)
         elif kind == "FILE_TRANSFER_PROTOCOL":

@@ -221,6 +221,14 @@ class ParamProtocol:
         """The answer to PARAM_REQUEST_LIST from ``peer`` (empty when rate-limited)."""
         return self.all_values() if self.lists.allow(peer) else []
 
+    def answer_read(self, msg: Any, peer: Any) -> list[Message] | None:
+        """The answer to PARAM_REQUEST_LIST or PARAM_REQUEST_READ from ``peer`` (None: a list
+        refused by the rate limit; empty: an unknown name or index)."""
+        if msg.get_type() == "PARAM_REQUEST_LIST":
+            return self.request_list(peer) or None
+        answer = self.request_read(msg)
+        return [answer] if answer is not None else []
+
     def request_read(self, msg: Any) -> Message | None:
         """The answer to PARAM_REQUEST_READ (None for an unknown name or index)."""
         idx = int(msg.param_index)

@@ -17,8 +17,13 @@ Every function here turns bridge state into a pymavlink message object
   position when known (companion role), else 0.
 * Autopilot heading feed: PX4 ODOMETRY (frame LOCAL_NED, child BODY_FRD,
   estimator VISION, q from the *true* heading, finite zero position with a
-  large variance, yaw variance at pose_covariance[20]); ArduPilot
-  VISION_POSITION_ESTIMATE (roll, pitch, true yaw; same covariance layout).
+  large variance, the yaw variance sigma^2 at pose_covariance[20], which PX4's
+  receiver reads as the yaw variance); ArduPilot VISION_POSITION_ESTIMATE (roll,
+  pitch, true yaw), whose covariance is encoded for the way ArduPilot reads it:
+  ``angErr = cbrt(c15^2 + c18^2 + c20^2)`` (``GCS_MAVLINK::handle_vision_position_estimate``)
+  is taken as the yaw *standard deviation*, so c20 = sigma^1.5 and c15 = c18 = 0
+  make ``angErr`` exactly sigma (:func:`ardupilot_covariance`). Time stamps are
+  wall-clock (Unix epoch) microseconds, so they continue across bridge restarts.
   Both need true north: without a declination the magnetic heading is sent and
   the output warns once.
 """
@@ -26,9 +31,10 @@ Every function here turns bridge state into a pymavlink message object
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from bridge.app.sample import CompassSample
 from bridge.core.geometry import euler_to_quaternion, wrap_radians_pi
@@ -338,7 +344,8 @@ def feed_usable(sample: CompassSample) -> bool:
 
 
 def feed_yaw_sigma_rad(sample: CompassSample, sigma_deg: float) -> float:
-    """Yaw standard deviation: ``sigma_deg``, five times that while accelerating or degraded."""
+    """Yaw standard deviation: ``sigma_deg``, five times that (25 times the variance) while
+    accelerating or degraded."""
     a = sample.attitude
     k = 5.0 if a is not None and (a.accelerating or a.degraded) else 1.0
     return math.radians(k * sigma_deg)
@@ -359,6 +366,23 @@ def _pose_covariance(yaw_var: float) -> list[float]:
     cov = [0.0] * 21
     cov[0] = cov[6] = cov[11] = FEED_POSITION_VARIANCE  # x, y, z: unknown (placeholder)
     cov[15] = cov[18] = cov[20] = yaw_var  # roll, pitch, yaw
+    return cov
+
+
+def ardupilot_covariance(sigma_rad: float) -> list[float]:
+    """VISION_POSITION_ESTIMATE.covariance for ArduPilot, whose yaw noise is
+    ``angErr = cbrtf(sq(c[15]) + sq(c[18]) + sq(c[20]))`` (GCS_Common.cpp,
+    ``handle_vision_position_estimate``; ``posErr`` likewise from c[0], c[6], c[11]) and
+    is used as a standard deviation (``AP_VisualOdom_MAV::handle_pose_estimate`` floors it
+    at VISO_YAW_M_NSE, EKF3's ``writeExtNavData`` at 5 deg). With c[20] = sigma^1.5 and
+    c[15] = c[18] = 0, ``angErr`` is sigma itself; the variance in all three slots would
+    give ``cbrt(3 sigma^4)`` (2 deg arrived as 0.94 deg). Roll and pitch are not fused
+    from this message, so their slots carry nothing. The position slots keep
+    :data:`FEED_POSITION_VARIANCE` (``posErr`` 669 m, floored to ArduPilot's 100 m cap).
+    """
+    cov = [0.0] * 21
+    cov[0] = cov[6] = cov[11] = FEED_POSITION_VARIANCE
+    cov[20] = sigma_rad**1.5
     return cov
 
 
@@ -399,7 +423,7 @@ def vision_position_estimate(
 ) -> Message:
     """ArduPilot VISION_POSITION_ESTIMATE for ExternalNav yaw (EK3_SRC1_YAW = 6)."""
     roll, pitch, yaw, _true = feed_euler(sample)
-    var = feed_yaw_sigma_rad(sample, sigma_deg) ** 2
+    sigma = feed_yaw_sigma_rad(sample, sigma_deg)
     return message(
         VISION_POSITION_ESTIMATE,
         usec=max(0, int(time_usec)),
@@ -409,7 +433,7 @@ def vision_position_estimate(
         roll=roll,
         pitch=pitch,
         yaw=yaw,
-        covariance=_pose_covariance(var),
+        covariance=ardupilot_covariance(sigma),
         reset_counter=reset_counter & 0xFF,
     )
 
@@ -466,9 +490,33 @@ def message_interval(msgid: int, interval_us: int) -> Message:
     return message(M.MAVLINK_MSG_ID_MESSAGE_INTERVAL, message_id=msgid, interval_us=interval_us)
 
 
-def timesync_reply(tc1_ns: int, ts1: int) -> Message:
-    """TIMESYNC answer: our time (ns) in tc1, the request's ts1 echoed."""
-    return message(M.MAVLINK_MSG_ID_TIMESYNC, tc1=int(tc1_ns), ts1=int(ts1))
+class _TimesyncWithTarget(M.MAVLink_timesync_message):
+    """TIMESYNC with MAVLink 2's extension fields ``target_system`` / ``target_component``,
+    which pymavlink's ardupilotmega dialect (2.4.50) does not know yet: packed after tc1
+    and ts1 as the current common.xml defines them (a parser without the extension reads
+    tc1 and ts1 and ignores the rest)."""
+
+    def __init__(self, tc1: int, ts1: int, target_system: int, target_component: int) -> None:
+        super().__init__(tc1, ts1)
+        self.target_system = target_system
+        self.target_component = target_component
+
+    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
+        payload = struct.pack(
+            "<qqBB", self.tc1, self.ts1, self.target_system, self.target_component
+        )
+        data: bytes = self._pack(mav, self.crc_extra, payload, force_mavlink1=force_mavlink1)
+        return data
+
+
+def timesync_reply(
+    tc1_ns: int, ts1: int, target_system: int = 0, target_component: int = 0
+) -> Message:
+    """TIMESYNC answer: our time (ns) in tc1, the request's ts1 echoed, addressed to the
+    requester (MAVLink 2's target fields; 0 = every system / component)."""
+    return _TimesyncWithTarget(
+        int(tc1_ns), int(ts1), int(target_system) & 0xFF, int(target_component) & 0xFF
+    )
 
 
 def encode_version(text: str, release_type: int = 255) -> int:

@@ -13,6 +13,7 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
+from bridge.config import ConfigError, read_toml
 from bridge.storage import StateStore
 
 
@@ -27,17 +28,35 @@ def simulator_state_dir() -> str:
     return os.path.join(base, "compass-bridge", "sim")
 
 
-def simulate_overrides(overrides: Sequence[str]) -> list[str]:
-    """``run --simulate``'s own settings, before the user's ``--set`` (which win)."""
+def simulate_overrides(overrides: Sequence[str], config_path: str | None = None) -> list[str]:
+    """``run --simulate``'s own settings, before the user's ``--set`` (which win).
+
+    ``config_path`` is the ``--config`` file, if any: a ``storage.dir`` it sets is kept.
+    """
     # The simulated compass speaks the GMR protocol, whatever a --config file says.
     # A first run shows a heading that turns with the unit: it starts calibrated with
     # its true errors unless a calibration is stored (or --set sim.calibrated=false).
     own = ["device.port=sim", "device.protocol=gmr", "sim.calibrated=true"]
-    if not any(o.partition("=")[0].strip() == "storage.dir" for o in overrides):
+    named = any(o.partition("=")[0].strip() == "storage.dir" for o in overrides)
+    if not named and not _file_sets(config_path, "storage", "dir"):
         # The simulated unit must never read or overwrite a real unit's calibration
-        # in the service's state directory: give it a per-user directory of its own.
+        # in the service's state directory: give it a per-user directory of its own --
+        # unless the user named one (--set storage.dir=, or the --config file's).
         own.append(f"storage.dir={simulator_state_dir()}")
     return own
+
+
+def _file_sets(path: str | None, section: str, key: str) -> bool:
+    """Whether the configuration file at ``path`` sets ``[section] key`` (False without a
+    file; a file that cannot be read is reported by the load that follows)."""
+    if path is None:
+        return False
+    try:
+        raw = read_toml(path)
+    except ConfigError:
+        return False
+    table = raw.get(section)
+    return isinstance(table, dict) and key in table
 
 
 def reset_state(state_dir: str) -> str:

@@ -1,0 +1,320 @@
+"""The heading feed inside the real PX4: EKF2 of PX4 v1.16 SITL (SIH) takes its yaw from the bridge.
+
+One PX4 run serves the module: PX4 from ``../shared/autopilots/px4`` with
+``EKF2_EV_CTRL = 8`` (yaw from external vision only), ``EKF2_MAG_TYPE = 5`` and
+``SYS_HAS_MAG = 0`` (given as ``PX4_PARAM_*`` at start); the bridge in the
+companion role on PX4's onboard link, its simulated compass lying still at a
+true heading different from the simulated vehicle's. On one timeline:
+
+1. steady state: 30 s of EKF2's yaw against the fed heading;
+2. a learned drift correction of 5 deg: ``reset_counter`` moves, EKF2 resets;
+3. an operator's mounting change (AHRS_ORIENTATION yaw 45 from the ground station,
+   forwarded by PX4 to component 200): EKF2 follows;
+4. the bridge restarts against the running PX4 (its clock continues: wall time);
+5. ``EKF2_EVA_NOISE`` lowered to 0.001 over MAVLink: the variance EKF2 then uses is
+   the bridge's sigma^2.
+
+Measured from PX4's own ulog (``vehicle_attitude``, ``vehicle_visual_odometry``,
+``estimator_aid_src_ev_yaw``) and its console.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+from autopilots import (
+    Autopilot,
+    Bridge,
+    M,
+    angle_diff,
+    check_all,
+    start_bridge,
+    start_px4,
+    ulog,
+)
+
+from bridge.calibration.drift import with_offset_change
+from bridge.calibrator.store import LEARNED_SOURCE
+
+pytestmark = pytest.mark.integration
+
+HOME = (47.397742, 8.545594, 488.0)  #: SIH's default home (Zurich)
+COMPASS_YAW = 200.0
+MOUNT_PARAM, MOUNT_YAW45 = "AHRS_ORIENTATION", 1.0
+SIGMA_DEG = 2.0
+TOPICS = (
+    "vehicle_attitude",
+    "vehicle_visual_odometry",
+    "estimator_aid_src_ev_yaw",
+    "timesync_status",
+)
+
+
+@dataclass
+class Timeline:
+    """What happened when (Unix time) and what was seen."""
+
+    bridge_start: float = 0.0
+    learned_at: float = 0.0
+    learned_from: float = 0.0
+    learned_to: float = 0.0
+    mount_at: float = 0.0
+    mount_from: float = 0.0
+    mount_to: float = 0.0
+    restart_at: float = 0.0
+    noise_at: float = 0.0
+    end: float = 0.0
+    offset: float = 0.0  #: Unix time = PX4 time (s) + offset
+    console: str = ""
+    bridge_heading: list[tuple[float, float]] = field(default_factory=list)
+    log: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def _yaw_of(q0: Any, q1: Any, q2: Any, q3: Any) -> Any:
+    return np.degrees(np.arctan2(2 * (q0 * q3 + q1 * q2), 1 - 2 * (q2 * q2 + q3 * q3)))
+
+
+def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
+    h = np.asarray(bridge.out.latest.attitude.mag_G, dtype=float)
+    c, s = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
+    turned = np.array([c * h[0] - s * h[1], s * h[0] + c * h[1], h[2]])
+    st = bridge.daemon.settings
+    return with_offset_change(st.calibration, st.mounting.matrix(), tuple(h - turned))
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
+    work = tmp_path_factory.mktemp("px4")
+    ap: Autopilot = start_px4(work / "px4", home=HOME)
+    tl = Timeline()
+    bridges: list[Bridge] = []
+    try:
+        obs = ap.observer
+        endpoint = f"udpin:127.0.0.1:{ap.companion_port}"
+
+        def bridge(name: str) -> Bridge:
+            b = start_bridge(
+                work / name,
+                endpoint,
+                feed="px4_odometry",
+                location=HOME,
+                compass_at=HOME,
+                yaw_deg=COMPASS_YAW,
+                system_id=ap.system_id,
+                mavlink={"heading_feed_sigma_deg": SIGMA_DEG},
+            )
+            bridges.append(b)
+            return b
+
+        tl.bridge_start = time.time()
+        a = bridge("bridge-a")
+        time.sleep(32.0)
+        # a learned drift correction of 5 deg
+        tl.learned_from = a.recorder.latest() or 0.0
+        tl.learned_at = time.time()
+        out = a.daemon.calibrator.apply_calibration(
+            _learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
+        )
+        assert out.ok, out
+        time.sleep(0.3)
+        tl.learned_to = a.recorder.latest() or 0.0
+        time.sleep(3.0)
+        # an operator's mounting change, from the ground station through PX4
+        tl.mount_from = a.recorder.latest() or 0.0
+        tl.mount_at = time.time()
+        since = time.monotonic()
+        obs.mav.param_set_send(
+            ap.system_id, 200, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32
+        )
+        echo = obs.wait(
+            "PARAM_VALUE",
+            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
+            since=since,
+        )
+        assert echo.param_value == MOUNT_YAW45, echo
+        time.sleep(0.3)
+        tl.mount_to = a.recorder.latest() or 0.0
+        time.sleep(3.0)
+        tl.bridge_heading = list(a.recorder.samples)
+        # the bridge restarts
+        a.stop()
+        bridges.remove(a)
+        tl.restart_at = time.time()
+        b = bridge("bridge-b")
+        b.daemon.params.set(MOUNT_PARAM, MOUNT_YAW45, source="test")  # as the first one ended
+        time.sleep(5.0)
+        # EKF2_EVA_NOISE lowered: the variance EKF2 uses is then the bridge's
+        tl.noise_at = time.time()
+        since = time.monotonic()
+        obs.mav.param_set_send(ap.system_id, 1, b"EKF2_EVA_NOISE", 0.001, M.MAV_PARAM_TYPE_REAL32)
+        obs.wait(
+            "PARAM_VALUE",
+            lambda m: m.param_id == "EKF2_EVA_NOISE" and m.get_srcComponent() == 1,
+            since=since,
+        )
+        time.sleep(3.0)
+        tl.end = time.time()
+        tl.bridge_heading += list(b.recorder.samples)
+        arrivals = obs.history("ATTITUDE", lambda m: m.get_srcComponent() == 1)
+        now_mono, now_unix = time.monotonic(), time.time()
+        tl.offset = min(t - now_mono + now_unix - m.time_boot_ms / 1000.0 for t, m in arrivals)
+    finally:
+        for br in bridges:
+            br.stop()
+        ap.stop()
+    tl.console = ap.console_text()
+    logs = ap.logs("rootfs/log/*/*.ulg")
+    assert logs, f"no ulog in {ap.workdir}:\n{tl.console[-2000:]}"
+    tl.log = ulog(logs[-1], TOPICS)
+    yield tl
+
+
+def _t(tl: Timeline, us: Any) -> Any:
+    return np.asarray(us, dtype=float) / 1e6 + tl.offset
+
+
+def _attitude(tl: Timeline) -> tuple[Any, Any]:
+    a = tl.log["vehicle_attitude"]
+    return _t(tl, a["timestamp"]), _yaw_of(a["q[0]"], a["q[1]"], a["q[2]"], a["q[3]"])
+
+
+def _bridge_at(tl: Timeline, t: float) -> float | None:
+    last = None
+    for tb, h in tl.bridge_heading:
+        if tb > t:
+            break
+        last = h
+    return last
+
+
+def _follow(tl: Timeline, t0: float, t1: float, step: float, tol: float) -> tuple[float, float]:
+    """(seconds until PX4's yaw stays within ``tol`` of the bridge's heading, overshoot)."""
+    ts, yaw = _attitude(tl)
+    errs = [
+        (t, angle_diff(y, b))
+        for t, y in zip(ts, yaw, strict=True)
+        if t0 <= t < t1 and (b := _bridge_at(tl, t)) is not None
+    ]
+    late = [t for t, e in errs if abs(e) > tol]
+    overshoot = max(e * math.copysign(1.0, step) for _, e in errs)
+    return (max(late) - t0 if late else 0.0), overshoot
+
+
+def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
+    vo = run.log["vehicle_visual_odometry"]
+    ev = run.log["estimator_aid_src_ev_yaw"]
+    first = float(min(_t(run, vo["timestamp"][0]), _t(run, ev["timestamp"][0])))
+    fused_t = _t(run, ev["timestamp"])[ev["fused"].astype(bool)]
+    print(
+        f"PX4: first ODOMETRY {first - run.bridge_start:.2f} s after the bridge started, "
+        f"first fused {max(0.0, fused_t[0] - first):.2f} s after it"
+    )
+    assert fused_t[0] - first < 2.0
+    ts, yaw = _attitude(run)
+    fed_t = _t(run, vo["timestamp"])
+    fed = _yaw_of(vo["q[0]"], vo["q[1]"], vo["q[2]"], vo["q[3]"])
+    t0 = fused_t[0] + 1.0
+    sel = (ts >= t0) & (ts < t0 + 30.0)
+    idx = np.searchsorted(fed_t, ts[sel], side="right") - 1
+    errs = [angle_diff(y, fed[i]) for y, i in zip(yaw[sel], idx, strict=True) if i >= 0]
+    rms = math.sqrt(statistics.fmean(e * e for e in errs))
+    print(
+        f"PX4 steady state: {len(errs)} attitudes, yaw - fed RMS {rms:.3f} deg, "
+        f"max {max(abs(e) for e in errs):.3f} deg"
+    )
+    assert len(errs) > 300 and rms < 0.3
+    # Every sample from the first fused one to the learned step is fused (the few before it
+    # are rejected by the innovation gate until EKF2 has reset its yaw to the feed).
+    t_ev = _t(run, ev["timestamp"])
+    fused = ev["fused"].astype(bool)
+    span = (t_ev >= fused_t[0]) & (t_ev < run.learned_at)
+    n_fed = int(np.sum((fed_t >= fused_t[0]) & (fed_t < run.learned_at)))
+    rejected_first = int(np.sum(~fused[t_ev < fused_t[0]]))
+    print(
+        f"PX4: {int(np.sum(fused[span]))} of {n_fed} ODOMETRY samples fused from the first "
+        f"fused one to the learned step; {rejected_first} rejected before EKF2's yaw reset"
+    )
+    assert np.all(fused[span]) and abs(int(np.sum(span)) - n_fed) <= 1
+
+
+def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Timeline) -> None:
+    step = angle_diff(run.learned_to, run.learned_from)
+    assert abs(step - 5.0) < 0.3, step
+    took, over = _follow(run, run.learned_at, run.mount_at, step, 1.0)
+    print(
+        f"PX4 after a learned {step:.2f} deg step: within 1 deg after {took:.2f} s, "
+        f"overshoot {over:.2f} deg"
+    )
+    assert took < 0.5 and over < 1.0
+    step = angle_diff(run.mount_to, run.mount_from)
+    assert abs(abs(step) - 45.0) < 1.0, step
+    took, over = _follow(run, run.mount_at, run.restart_at, step, 5.0)
+    took1, _ = _follow(run, run.mount_at, run.restart_at, step, 1.0)
+    print(
+        f"PX4 after a {step:.1f} deg mounting change: within 5 deg after {took:.2f} s, "
+        f"within 1 deg after {took1:.2f} s, overshoot {over:.2f} deg"
+    )
+    assert took < 0.5 and over < 1.0
+
+
+def check_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
+    assert "time jump" not in run.console, run.console[-3000:]
+    vo = run.log["vehicle_visual_odometry"]
+    ev = run.log["estimator_aid_src_ev_yaw"]
+    t_vo = _t(run, vo["timestamp"])
+    after = t_vo > run.restart_at
+    age_ms = (vo["timestamp"] - vo["timestamp_sample"])[after] / 1000.0
+    t_ev = _t(run, ev["timestamp"])
+    fused_after = t_ev[(t_ev > run.restart_at) & ev["fused"].astype(bool)]
+    first_after = t_vo[after][0]
+    print(
+        f"PX4 after the bridge restarted: samples {age_ms.max():.1f} ms old at most, "
+        f"first fused {fused_after[0] - first_after:.2f} s after the first sample"
+    )
+    assert age_ms.max() < 100.0
+    assert fused_after[0] - first_after < 0.5
+    # PX4's time sync (Timesync::update) resets itself when 5 round trips in a row deviate
+    # from its estimate by more than MAX_DEVIATION_SAMPLE ("Time jump detected"): the
+    # restarted bridge's clock continues, so the offset PX4 observes does not move.
+    ts = run.log["timesync_status"]
+    t_ts = _t(run, ts["timestamp"])
+    observed = ts["observed_offset"].astype(float) / 1e6
+    before = observed[(t_ts < run.restart_at) & (t_ts > run.restart_at - 10.0)]
+    after = observed[t_ts > run.restart_at + 1.0]
+    jump = float(np.max(np.abs(after - np.median(before))))
+    print(f"PX4 time sync: observed offset moved by {jump * 1000:.1f} ms across the restart")
+    assert jump < 0.1
+
+
+def check_px4_uses_the_bridges_variance_above_ekf2_eva_noise(run: Timeline) -> None:
+    ev = run.log["estimator_aid_src_ev_yaw"]
+    t = _t(run, ev["timestamp"])
+    var = ev["observation_variance"]
+    default = np.unique(np.round(var[t < run.restart_at], 6))
+    lowered = np.unique(np.round(var[t > run.noise_at + 1.0], 6))
+    print(
+        f"PX4 yaw observation variance: EKF2_EVA_NOISE 0.1 -> {default}, "
+        f"0.001 -> {lowered} (the bridge's sigma^2 = {math.radians(SIGMA_DEG) ** 2:.6f})"
+    )
+    assert list(default) == [0.1]
+    assert list(lowered) == [round(math.radians(SIGMA_DEG) ** 2, 6)]
+
+
+def test_the_heading_feed_inside_px4(run: Any) -> None:
+    """One run of the scenario, every check on it (see :func:`autopilots.check_all`)."""
+    check_all(
+        run,
+        [
+            check_px4_fuses_the_feed_at_once_and_holds_it,
+            check_a_learned_correction_and_an_operator_change_are_followed_by_px4,
+            check_a_restarted_bridge_is_no_time_jump_for_px4,
+            check_px4_uses_the_bridges_variance_above_ekf2_eva_noise,
+        ],
+    )
