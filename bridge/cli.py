@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import math
 import os
 import signal
 import sys
@@ -48,6 +47,7 @@ from typing import Any, NoReturn
 
 from bridge import __version__
 from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config
+from bridge.tools import argtypes
 
 log = logging.getLogger("bridge.cli")
 
@@ -170,13 +170,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--flash", metavar="FILE", help="keep the unit's flash in FILE across runs")
     sim.add_argument(
         "--location",
-        type=_location,
+        type=argtypes.location,
         metavar="LAT,LON[,ALT]",
         help="where the unit is (degrees, metres; default Zurich)",
     )
     sim.add_argument(
         "--hard-iron-change",
-        type=_hard_iron_change,
+        type=argtypes.hard_iron_change,
         metavar="X,Y,Z@S",
         help="the unit's hard iron changes by X,Y,Z mG (sensor axes) S seconds after "
         "power-up (a bracket bolted on: drift for the bridge to find)",
@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--connect",
         action="append",
         default=[],
-        type=_zenoh_endpoint,
+        type=argtypes.zenoh_endpoint,
         metavar="ENDPOINT",
         help="zenoh endpoint to connect to (repeatable; default tcp/127.0.0.1:7447, "
         "this host's bridge, unless --listen or --zenoh-config is given)",
@@ -246,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--listen",
         action="append",
         default=[],
-        type=_zenoh_endpoint,
+        type=argtypes.zenoh_endpoint,
         metavar="ENDPOINT",
         help="zenoh endpoint to listen on (repeatable; default none)",
     )
@@ -258,7 +258,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--multicast-scouting", action="store_true", help="find bridges by multicast scouting"
     )
     mon.add_argument(
-        "--interval", type=_positive, default=1.0, metavar="S", help="refresh every S seconds"
+        "--interval",
+        type=argtypes.positive_seconds,
+        default=1.0,
+        metavar="S",
+        help="refresh every S seconds",
     )
     mon.add_argument(
         "--once",
@@ -267,7 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
         "(exit code 1 if no bridge was seen, 3 if one runs uncalibrated)",
     )
     mon.add_argument(
-        "--duration", type=_positive, default=None, metavar="S", help="stop after S seconds"
+        "--duration",
+        type=argtypes.positive_seconds,
+        default=None,
+        metavar="S",
+        help="stop after S seconds",
     )
     mon.add_argument(
         "--plain",
@@ -276,87 +284,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     mon.set_defaults(func=cmd_monitor)
     return parser
-
-
-def _zenoh_endpoint(text: str) -> str:
-    """``--connect``/``--listen`` value: a zenoh endpoint (same rule as the config)."""
-    from bridge.config import zenoh_endpoint
-
-    try:
-        return str(zenoh_endpoint(text))
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not v > 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
-    return v
-
-
-# ---------------------------------------------------------------------------
-# Helpers
-# ---------------------------------------------------------------------------
-
-
-#: Options whose value may start with a minus sign (a southern latitude, a western longitude).
-_SIGNED_VALUE_OPTIONS = frozenset({"--location"})
-
-
-def _glue_negative_values(argv: list[str]) -> list[str]:
-    """``--location -35.36,149.16`` as ``--location=-35.36,149.16``: argparse takes a word
-    starting with ``-`` for an option unless it is a plain negative number, and
-    ``-35.36,149.16`` (a southern latitude) is not one."""
-    out: list[str] = []
-    i = 0
-    while i < len(argv):
-        a = argv[i]
-        nxt = argv[i + 1] if i + 1 < len(argv) else ""
-        if (
-            a in _SIGNED_VALUE_OPTIONS
-            and len(nxt) > 1
-            and nxt[0] == "-"
-            and nxt[1] in "0123456789."
-        ):
-            out.append(f"{a}={nxt}")
-            i += 2
-            continue
-        if a == "--":
-            out.extend(argv[i:])
-            break
-        out.append(a)
-        i += 1
-    return out
-
-
-def _location(text: str) -> tuple[float, float, float]:
-    """``LAT,LON[,ALT]`` for ``simulate --location``."""
-    try:
-        parts = [float(p) for p in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not numbers: {text!r}") from None
-    if len(parts) not in (2, 3) or not (-90 <= parts[0] <= 90 and -180 <= parts[1] <= 180):
-        raise argparse.ArgumentTypeError(
-            f"want LAT,LON[,ALT] in degrees (and metres), got {text!r}"
-        )
-    return (parts[0], parts[1], parts[2] if len(parts) == 3 else 0.0)
-
-
-def _hard_iron_change(text: str) -> tuple[tuple[float, float, float], float]:
-    """``X,Y,Z@S`` (mG, seconds) for ``simulate --hard-iron-change``: (gauss vector, time)."""
-    vec, at, when = text.partition("@")
-    try:
-        parts = [float(p) / 1000.0 for p in vec.split(",")]
-        t = float(when) if at else 0.0
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"want X,Y,Z@S (mG, seconds), got {text!r}") from None
-    if len(parts) != 3 or not all(math.isfinite(v) for v in (*parts, t)) or t < 0.0:
-        raise argparse.ArgumentTypeError(f"want X,Y,Z@S (mG, seconds), got {text!r}")
-    return (parts[0], parts[1], parts[2]), t
 
 
 def _setup_logging(args: argparse.Namespace, stream: Any = None) -> None:
@@ -542,7 +469,9 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
         help="engine method (offline; default best): minmax, scalar, ellipsoid, best "
         "(twelve_position and accel_six_face need a live unit)",
     )
-    cal.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="for the WMM")
+    cal.add_argument(
+        "--location", type=argtypes.location, metavar="LAT,LON[,ALT]", help="for the WMM"
+    )
     cal.add_argument("--state-dir", metavar="DIR", help="offline: save an accepted result here")
     cal.add_argument(
         "--plot",
@@ -551,7 +480,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     )
     cal.add_argument("--target-system", type=int, default=1, metavar="ID")
     cal.add_argument("--target-component", type=int, default=1, metavar="ID")
-    cal.add_argument("--timeout", type=_positive, default=180.0, metavar="S")
+    cal.add_argument("--timeout", type=argtypes.positive_seconds, default=180.0, metavar="S")
     yn = cal.add_mutually_exclusive_group()
     yn.add_argument("--yes", action="store_true", help="accept without asking")
     yn.add_argument("--no", action="store_true", help="show the result, never accept")
@@ -573,7 +502,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
         "--connect",
         action="append",
         default=[],
-        type=_zenoh_endpoint,
+        type=argtypes.zenoh_endpoint,
         metavar="ENDPOINT",
         help="zenoh endpoint to ask (repeatable; default tcp/127.0.0.1:7447, this host's bridge)",
     )
@@ -582,7 +511,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
         action="store_true",
         help="JSON for scripts (exit 0 all OK, 1 one NOT OK or none, 3 one UNCALIBRATED)",
     )
-    st.add_argument("--timeout", type=_positive, default=3.0, metavar="S")
+    st.add_argument("--timeout", type=argtypes.positive_seconds, default=3.0, metavar="S")
     st.set_defaults(func=cmd_status)
 
 
@@ -669,9 +598,10 @@ def _end_process(code: int) -> NoReturn:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console-script entry point; returns the exit code."""
     parser = build_parser()
-    argv = _glue_negative_values(list(sys.argv[1:] if argv is None else argv))
+    in_process = argv is not None  # a caller in this process, not the program itself
+    words = argtypes.glue_negative_values(list(sys.argv[1:] if argv is None else argv))
     try:
-        args, rest = parser.parse_known_args(argv)
+        args, rest = parser.parse_known_args(words)
         if rest and not getattr(args, "passthrough", False):
             parser.error(f"unrecognized arguments: {' '.join(rest)}")
     except SystemExit as e:  # argparse: --help/--version (0) or usage error (2)
@@ -681,7 +611,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         code = func(args)
-        if argv is None and args.command == "run":
+        if not in_process and args.command == "run":
             _end_process(code)  # the program itself (not a caller in-process): see there
         return code
     except SystemExit as e:  # a passed-through parser (bench) exiting on --help or bad usage

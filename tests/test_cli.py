@@ -375,9 +375,9 @@ def test_a_southern_latitude_parses_as_a_location(tmp_path: Path) -> None:
         code, _, err = stop(sim, signal.SIGTERM)
     assert code == 0, err
     # and the parser gets the numbers (the glued form, too)
-    from bridge.cli import _glue_negative_values
+    from bridge.tools.argtypes import glue_negative_values
 
-    argv = _glue_negative_values(["simulate", "--link", "x", "--location", "-35.36,-149.16,5"])
+    argv = glue_negative_values(["simulate", "--link", "x", "--location", "-35.36,-149.16,5"])
     args = build_parser().parse_args(argv)
     assert args.location == (-35.36, -149.16, 5.0)
-    assert _glue_negative_values(["run", "--set", "-x"]) == ["run", "--set", "-x"]
+    assert glue_negative_values(["run", "--set", "-x"]) == ["run", "--set", "-x"]
