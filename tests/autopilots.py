@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import math
 import os
 import random
 import signal
@@ -649,6 +650,39 @@ def start_bridge(
 def angle_diff(a: float, b: float) -> float:
     """``a - b`` in degrees, wrapped to [-180, 180)."""
     return (a - b + 180.0) % 360.0 - 180.0
+
+
+def heading_at(record: Sequence[tuple[float, float]], t: float) -> float | None:
+    """The bridge's heading in force at ``t`` (a record of (time, heading)), None before it."""
+    last = None
+    for tb, h in record:
+        if tb > t:
+            break
+        last = h
+    return last
+
+
+def overshoot_deg(
+    yaw: Iterable[tuple[float, float]],
+    record: Sequence[tuple[float, float]],
+    settled_at: float,
+    step: float,
+) -> float:
+    """How far the autopilot's yaw went past the bridge's new heading, in the step's direction.
+
+    ``yaw`` is the autopilot's (time, yaw) after a change, ``record`` the bridge's
+    headings; from ``settled_at`` on the record holds the new heading. Each yaw is
+    compared with the heading at ``max(t, settled_at)``: a yaw that already shows the
+    change is never compared with the old heading, so a few milliseconds of error in
+    mapping the autopilot's clock onto ours cannot pass for an overshoot of the whole step.
+    """
+    sign = math.copysign(1.0, step)
+    worst = -math.inf
+    for t, y in yaw:
+        b = heading_at(record, max(t, settled_at))
+        if b is not None:
+            worst = max(worst, angle_diff(y, b) * sign)
+    return worst
 
 
 def check_all(subject: Any, checks: Sequence[Callable[[Any], None]]) -> None:

@@ -46,6 +46,8 @@ from autopilots import (
     angle_diff,
     check_all,
     dataflash,
+    heading_at,
+    overshoot_deg,
     start_ardupilot,
     start_bridge,
 )
@@ -79,6 +81,9 @@ SILENT_COMPANION = {
 BRIDGE = (1, 200)
 RESTART_SIGMA_DEG = 8.0
 
+#: How long after a change the test reads the bridge's new heading (it is in force by then).
+SETTLE_S = 0.3
+
 
 @dataclass
 class Timeline:
@@ -88,6 +93,7 @@ class Timeline:
     learned_at: float = 0.0
     learned_from: float = 0.0  #: the bridge's heading before / after the learned step
     learned_to: float = 0.0
+    learned_settled: float = 0.0  #: from here the bridge's record holds learned_to
     armed_at: float = 0.0
     refused_mount: Any = None  #: PARAM_VALUE echo of the refused mounting change
     refused_learned: str = ""  #: the learned step's refusal
@@ -95,6 +101,7 @@ class Timeline:
     mount_at: float = 0.0
     mount_from: float = 0.0
     mount_to: float = 0.0
+    mount_settled: float = 0.0  #: from here the bridge's record holds mount_to
     noise_at: float = 0.0  #: VISO_YAW_M_NSE lowered
     restart_at: float = 0.0
     position_at: float | None = None  #: the restarted bridge learned the position
@@ -159,7 +166,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         tl.learned_at = time.time()
         out = a.daemon.calibrator.apply_calibration(cal, source=LEARNED_SOURCE, write_device=False)
         assert out.ok, out
-        time.sleep(0.3)
+        time.sleep(SETTLE_S)
+        tl.learned_settled = time.time()
         tl.learned_to = a.recorder.latest() or 0.0
         time.sleep(3.0)
         # 3. armed: a mounting change and a learned step are refused
@@ -195,7 +203,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
             since=since,
         )
         assert echo.param_value == MOUNT_YAW45, echo
-        time.sleep(0.3)
+        time.sleep(SETTLE_S)
+        tl.mount_settled = time.time()
         tl.mount_to = a.recorder.latest() or 0.0
         time.sleep(4.0)
         tl.bridge_heading = list(a.recorder.samples)
@@ -274,12 +283,7 @@ def _fed_at(fed: list[tuple[float, float]], t: float) -> float | None:
 
 
 def _bridge_at(tl: Timeline, t: float) -> float | None:
-    last = None
-    for tb, h in tl.bridge_heading:
-        if tb > t:
-            break
-        last = h
-    return last
+    return heading_at(tl.bridge_heading, t)
 
 
 def _window(series: list[tuple[float, float, float]], t0: float, t1: float) -> list[Any]:
@@ -360,7 +364,9 @@ def check_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_i
     errs = [(t, angle_diff(y, b)) for t, y, _ in after if (b := _bridge_at(run, t)) is not None]
     late = [(t, e) for t, e in errs if abs(e) > 1.0]
     followed = max((t for t, _ in late), default=run.learned_at) - run.learned_at
-    overshoot = max(e * math.copysign(1.0, step) for _, e in errs)
+    overshoot = overshoot_deg(
+        [(t, y) for t, y, _ in after], run.bridge_heading, run.learned_settled, step
+    )
     bias_move = max(abs(g - bias0) for *_, g in after)
     print(
         f"ArduPilot after a learned {step:.2f} deg step (disarmed, yaw reset): within 1 deg "
@@ -395,7 +401,9 @@ def check_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Ti
     errs = [(t, angle_diff(y, b)) for t, y, _ in after if (b := _bridge_at(run, t)) is not None]
     late = [t for t, e in errs if abs(e) > 5.0]
     within5 = (max(late) - run.mount_at) if late else 0.0
-    overshoot = max(e * math.copysign(1.0, step) for _, e in errs)
+    overshoot = overshoot_deg(
+        [(t, y) for t, y, _ in after], run.bridge_heading, run.mount_settled, step
+    )
     print("ArduPilot yaw after a 45 deg mounting change (t s: yaw - bridge deg):")
     for t, e in errs[:: max(1, len(errs) // 40)]:
         print(f"  {t - run.mount_at:5.2f}: {e:+7.2f}")
