@@ -13,7 +13,7 @@ from bridge.ports import LinkState
 def format_line(sample: CompassSample | None, status: DaemonStatus) -> str:
     """The console line: heading, pitch, roll, where the heading comes from, link health."""
     c = status.counters
-    health = f"{status.state.value}  frames {c.attitude_frames or c.frames}"
+    health = f"{status.state.value}  frames {c.attitude_frames}"
     health += f"  lost {c.lost_frames}  bad {c.bad_lines_total}"
     if sample is None or status.state is not LinkState.STREAMING:
         what = "waiting for the compass" if sample is None else "no fresh data"

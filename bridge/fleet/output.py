@@ -504,7 +504,7 @@ class ZenohOutput:
         status = self.services.status()
         c = status.counters
         with self._rate_lock:  # fed at every look, so the frame rate is over the whole window
-            self._rate.add(self._clock(), c.attitude_frames or c.frames)
+            self._rate.add(self._clock(), c.attitude_frames)
         cal = self._safe(self.services.calibration_state, {})
         return (status.state.value, cal.get("state"), cal.get("source"))
 
@@ -515,7 +515,7 @@ class ZenohOutput:
         now = self._clock()
         with self._rate_lock:  # queries read it from zenoh's threads
             if sample_rate:
-                self._rate.add(now, c.attitude_frames or c.frames)
+                self._rate.add(now, c.attitude_frames)
             frame_rate = self._rate.rate()
         return schema.status_doc(
             status,

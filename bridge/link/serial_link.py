@@ -20,11 +20,12 @@ a compass that answers commands but streams nothing is not streaming.
   the link closes and reopens it (with backoff) and stays STALE until frames come back
 * ``ABSENT``    -- the port cannot be opened or went away; reopened with backoff, quietly
 
-Hysteresis, so the state never flaps: the link becomes STREAMING only once
-attitude frames have kept coming for a while (``stale_after / 4`` at first);
-each STREAMING spell that ends stale within ``10 * stale_after`` doubles that
-while (up to 16 times), and a spell that lasts resets it. A compass that
-streams in short bursts stays STALE instead of going lost / restored forever.
+Hysteresis, so the state never flaps: the link becomes STREAMING on the
+second attitude frame of a run; but once a STREAMING spell has ended stale
+within ``10 * stale_after``, frames must keep coming for ``stale_after / 2``
+first, and that while doubles with each further short spell (up to
+``4 * stale_after``); a spell that lasts resets it. A compass that streams in
+short bursts stays STALE instead of going lost / restored forever.
 
 A device reset is what the datasheet says it looks like: a ``$PGMRV`` nobody
 asked for *and* frames starting again at ``seq`` 0 (or ``seq`` 0 alone, when
@@ -115,12 +116,12 @@ _WRAP_LOSS_WINDOW = 64
 #: How long after its deadline a command's answer may still come (a device slower than
 #: its datasheet): no retry meanwhile, and an answer that late is a time-out, not news.
 DEFAULT_LATE_ANSWER_WINDOW_S = 2.0
-#: STREAMING needs attitude frames for ``stale_after / _CONFIRM_DIVISOR`` at first ...
-_CONFIRM_DIVISOR = 4.0
-#: ... doubled for each spell that ended stale sooner than ``_FLAP_SPELLS * stale_after``,
+#: After a short spell, STREAMING needs attitude frames for ``stale_after / _CONFIRM_DIVISOR``
+_CONFIRM_DIVISOR = 2.0
+#: (a spell is short when it ended stale sooner than ``_FLAP_SPELLS * stale_after``),
 _FLAP_SPELLS = 10.0
-#: up to this many times the first while.
-_CONFIRM_MAX_FACTOR = 16.0
+#: doubled for each further short spell, up to this many times.
+_CONFIRM_MAX_FACTOR = 8.0
 
 _READ_TIMEOUT_S = 0.05  # bounds how late the reader notices close() and staleness
 _READ_CHUNK = 4096
@@ -225,8 +226,9 @@ class CompassLink:
         # Sequence tracking (reader only).
         self._last_seq: int | None = None
         self._restart_expected = False  # an unasked $PGMRV came: the next seq tells
-        # Hysteresis (reader only): how long attitude frames must keep coming for STREAMING.
-        self._confirm_factor = 1.0
+        # Hysteresis (reader only): 0 -- two frames make a stream; else how many times
+        # stale_after / _CONFIRM_DIVISOR attitude frames must keep coming (after short spells).
+        self._confirm_factor = 0.0
 
         # Handshake hand-off: the reader bumps the generation, the worker follows it.
         self._gen_cond = threading.Condition()
@@ -456,6 +458,7 @@ class CompassLink:
         last_attitude = 0.0  # when the last attitude frame came (or the port opened)
         last_frame = -float("inf")  # when the last frame of any kind came
         run_start: float | None = None  # first attitude frame of the current run
+        run_frames = 0
         streaming_since = 0.0
         c = self._c
         while not self._stop.is_set():
@@ -513,8 +516,9 @@ class CompassLink:
                         # Only this thread writes the state: a plain read, not the lock.
                         if self._state is not LinkState.STREAMING:
                             if run_start is None:
-                                run_start = now
-                            if now - run_start >= self._confirm_s():
+                                run_start, run_frames = now, 0
+                            run_frames += c["attitude_frames"] - before
+                            if run_frames >= 2 and now - run_start >= self._confirm_s():
                                 self._set_state(LinkState.STREAMING)
                                 streaming_since = now
                                 backoff = self._backoff_initial
@@ -523,9 +527,8 @@ class CompassLink:
                 if self._state is LinkState.STREAMING:
                     # A short spell between two silences: the next one must last longer.
                     short = now - streaming_since < _FLAP_SPELLS * self.stale_after
-                    self._confirm_factor = (
-                        min(2.0 * self._confirm_factor, _CONFIRM_MAX_FACTOR) if short else 1.0
-                    )
+                    factor = min(2.0 * self._confirm_factor, _CONFIRM_MAX_FACTOR)
+                    self._confirm_factor = max(1.0, factor) if short else 0.0
                 what = "attitude frame" if self.protocol == "gmr" else "heading sentence"
                 why = f"no {what} for {self.stale_after:g} s"
                 if now - last_frame <= self.stale_after:
