@@ -171,7 +171,7 @@ ONBOARD_REPORTS = 3
 #: Event STATUSTEXTs (progress lines aside) are paced by a token bucket: a burst of this many,
 #: then this many a second -- a flood of commands (start, cancel, start ...) or of failing
 #: saves must not become a flood to every ground station; a calibration's own lines fit.
-TEXT_BURST = 10
+TEXT_BURST = 30
 TEXT_RATE_HZ = 2.0
 
 
