@@ -222,6 +222,8 @@ class Service:
         text = snap.calibration_source
         if not snap.calibration_saved and not text.startswith("none"):
             text += ", NOT SAVED (storage error)"
+        if self.daemon.params.last_error:
+            text += "; parameters NOT SAVED"
         return text
 
     def status_line(self) -> str:
