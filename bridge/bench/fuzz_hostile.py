@@ -19,6 +19,9 @@ run``) on the simulated compass, served on a pseudo-terminal by this process:
 * **late** -- the compass answers 1.5 s late (its datasheet: 200 ms), then 0.6 s late with an
   on-board MAGCAL asked for. Figures: device resets read into it (0), commands sent again
   (0), left in calibration mode after the failed MAGCAL (0).
+* **params** -- a storm of PARAM_SETs (``--set-rate`` a second) from a ground station.
+  Figures: ``params.json`` writes a second (each a new inode: temp file, fsync, rename;
+  <= 1.5), and a value set a moment before SIGTERM missing from the file after it (0).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from bridge.bench.pipeline import Figure, _proc_rss_mb
 
 log = logging.getLogger(__name__)
 
-ANGLES = ("crowd", "zenoh", "silent", "late")
+ANGLES = ("crowd", "zenoh", "silent", "late", "params")
 _KEY = bytes.fromhex("c0" * 32)
 _ATT_HZ = 10.0  #: BRG_SR_ATT's default
 _SIGNING_EPOCH = 1420070400
@@ -452,7 +455,8 @@ def add_arguments(ap: Any) -> None:
     ap.add_argument("--junk-rate", type=int, default=1000, help="crowd: datagrams/s, one port each")
     ap.add_argument("--tcp-crowd", type=int, default=50, help="crowd: idle TCP clients")
     ap.add_argument("--oversized", type=int, default=100, help="zenoh: oversized queries")
-    ap.add_argument("--angle-seconds", type=float, default=8.0, help="crowd/silent/late: seconds")
+    ap.add_argument("--angle-seconds", type=float, default=8.0, help="each angle's seconds")
+    ap.add_argument("--set-rate", type=int, default=3000, help="params: PARAM_SETs a second")
 
 
 def from_args(args: Any, step: Callable[[float, str], None] | None = None) -> list[Figure]:
@@ -466,8 +470,70 @@ def from_args(args: Any, step: Callable[[float, str], None] | None = None) -> li
         tcp_crowd=args.tcp_crowd,
         oversized=args.oversized,
         seconds=args.angle_seconds,
+        set_rate=args.set_rate,
         step=step,
     )
+
+
+def params_storm(tmp: Path, set_rate: int, seconds: float) -> list[Figure]:
+    """A PARAM_SET storm; params.json writes counted by its inode (module docstring)."""
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    udp = _free_port()
+    config = f'[mavlink]\nendpoints = ["udpin:127.0.0.1:{udp}"]\n[zenoh]\nenabled = false\n'
+    doc = tmp / "params-state" / "params.json"
+    inodes: list[int] = []
+    final = math.nan
+    with _daemon(tmp, "params", config) as (proc, _fw, errlog):
+        gcs = _Gcs(udp, None)
+        stop = threading.Event()
+
+        def watch() -> None:  # a rename is a new inode: one per write
+            while not stop.is_set():
+                with contextlib.suppress(OSError):
+                    ino = doc.stat().st_ino
+                    if not inodes or inodes[-1] != ino:
+                        inodes.append(ino)
+                stop.wait(0.005)
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        try:
+            if not _wait(lambda: len(gcs.of("HEARTBEAT")) >= 2, 30.0):
+                raise RuntimeError(f"the daemon did not answer (log: {errlog})")
+            mav = apm.MAVLink(None, 255, 190)
+            real32 = apm.MAV_PARAM_TYPE_REAL32
+            watcher.start()
+            t0, n = time.monotonic(), 0
+            while time.monotonic() - t0 < seconds:
+                for _ in range(max(1, set_rate // 100)):
+                    msg = mav.param_set_encode(1, 1, b"BRG_SR_HUD", float(1 + n % 30), real32)
+                    gcs.sock.sendto(bytes(msg.pack(mav)), gcs.addr)
+                    n += 1
+                time.sleep(max(0.0, t0 + n / set_rate - time.monotonic()))
+            storm_s = time.monotonic() - t0
+            writes = max(0, len(inodes) - 1)  # the first inode may be the file from before
+            time.sleep(0.5)
+            msg = mav.param_set_encode(1, 1, b"BRG_SR_HUD", 37.0, real32)  # the last word
+            gcs.sock.sendto(bytes(msg.pack(mav)), gcs.addr)
+            time.sleep(0.3)  # in force (echoed), not yet written: then the bridge stops
+            proc.terminate()
+            proc.wait(10.0)
+            payload = json.loads(doc.read_text())["payload"]["set"]
+            final = float(payload.get("BRG_SR_HUD", math.nan))
+        finally:
+            stop.set()
+            if watcher.is_alive():
+                watcher.join(2.0)
+            gcs.close()
+        tracebacks = _tracebacks(errlog)
+    return [
+        Figure("params_writes_per_s", writes / storm_s, "writes/s", 1.5, detail={
+            "sets_sent": n, "sets_per_s": round(n / storm_s), "seconds": round(storm_s, 1),
+            "writes": writes}),
+        Figure("params_lost_at_shutdown", int(final != 37.0), "", 0.0, detail={
+            "stored_after_sigterm": final, "set_before_sigterm": 37.0}),
+        Figure("params_tracebacks", tracebacks, "", 0.0),
+    ]  # fmt: skip
 
 
 def run_angles(
@@ -477,6 +543,7 @@ def run_angles(
     tcp_crowd: int = 50,
     oversized: int = 100,
     seconds: float = 8.0,
+    set_rate: int = 3000,
     step: Callable[[float, str], None] | None = None,
 ) -> list[Figure]:
     """The angles asked for, each against its own daemon; their figures."""
@@ -494,6 +561,8 @@ def run_angles(
                 figures += silent_device(tmp, seconds)
             elif angle == "late":
                 figures += late_device(tmp, seconds)
+            elif angle == "params":
+                figures += params_storm(tmp, set_rate, seconds)
             else:
                 raise ValueError(f"unknown angle {angle!r} (one of {', '.join(ANGLES)})")
     return figures
