@@ -36,6 +36,7 @@ from test_zenoh_output import (
 from bridge.fleet import schema
 from bridge.fleet.commands import MAX_ARGUMENT_BYTES, parse_command_args
 from bridge.fleet.monitor import MonitorOptions, run_monitor
+from bridge.tools.status import run_status
 
 pytestmark = pytest.mark.integration
 
@@ -187,6 +188,9 @@ def test_two_bridges_on_one_key_prefix(tmp_path: Path) -> None:
             assert run_monitor(opts, out) == 0
             (row,) = [ln for ln in out.getvalue().splitlines() if ln.startswith(first.prefix)]
             assert "DUP2" in row, out.getvalue()
+            said = io.StringIO()
+            run_status(opts, said, timeout=3.0)
+            assert "key prefix shared with 1 other bridge" in said.getvalue(), said.getvalue()
             # The first bridge goes: the second has the prefix and publishes.
             first.stop()
             wait_until(second.output.connected.is_set, what="the second to take over")

@@ -9,9 +9,10 @@ run``) on the simulated compass, served on a pseudo-terminal by this process:
   the ground station's packets), and ``--tcp-crowd`` TCP clients connect and never send
   nor read. Figures: the ground station's ATTITUDE as a percentage of its set rate (>= 95),
   how long a new TCP client waits to be served (<= 5 s).
-* **zenoh** -- remote calibration on: ``--oversized`` queries with payloads of 2 MB (over
-  zenoh's 1 MiB bound: dropped by zenoh) and 64 kB (answered ``bad arguments``), deep
-  nesting, integers beyond a float. Figures: malformed queries answered anything but
+* **zenoh** -- remote calibration on: ``--oversized`` queries, half with a 2 MB payload,
+  half malformed (64 kB, deep nesting, integers beyond a float, a long text), all to be
+  answered ``bad arguments``; then four of 100 MB (over zenoh's 1 MiB bound: dropped by
+  zenoh, unanswered). Figures: malformed queries answered anything but
   ``bad arguments`` (0), the daemon's RSS growth (MB), tracebacks (0).
 * **silent** -- the compass answers every command and streams no ``$PGMRA``. Figures:
   Zenoh status documents and HEARTBEATs that said it streams (0), link lost / restored
@@ -331,6 +332,14 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
                 doc = json.loads(ok[0].payload.to_bytes())
                 if doc.get("ok") or not str(doc.get("message", "")).startswith("bad arguments"):
                     wrong += 1
+            giant = b"z" * (100 << 20)  # the 24 x 100 MB, in short
+            giants = sum(
+                1
+                for _ in range(4)
+                for r in session.get(key, payload=giant, timeout=1.5)
+                if r.ok is not None
+            )
+            del giant
             time.sleep(1.0)
             rss1 = _proc_rss_mb(proc.pid)[0]
         finally:
@@ -344,6 +353,7 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
         Figure("zenoh_memory_growth", rss1 - rss_warm, "MB RSS", 16.0, detail={
             "rss_before_mb": round(rss0, 1), "rss_after_warmup_mb": round(rss_warm, 1),
             "rss_after_mb": round(rss1, 1), "payloads": "half 2 MB, half malformed <= 64 kB",
+            "then_4x100MB_answered": giants,
             "measured": "from the 20th query to the last (the first ones fill the allocator)"}),
         Figure("zenoh_tracebacks", tracebacks, "", 0.0),
     ]  # fmt: skip

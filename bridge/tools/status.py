@@ -117,6 +117,9 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
     # but is said on its own line, as `monitor` flags it DRIFT.
     drift = cal_state.get("drift")
     rec["drift"] = dict(drift) if isinstance(drift, dict) else None
+    shared = (st.get("zenoh") or {}).get("duplicate_prefix")
+    if shared:  # bridge.fleet.instances: the key prefix is not this bridge's alone
+        rec["errors"].append(f"key prefix shared with {len(shared)} other bridge(s): {shared}")
     rec["healthy"] = bool(
         state == "streaming"
         and isinstance(rate, int | float)
