@@ -339,7 +339,10 @@ class CompassLink:
         the datasheet's deadline for the command (200 ms; MAGCAL,END and
         PAR,SET 500 ms; ACCCAL 1.5 s) plus the time a command and an answer
         line take on the wire at the port's baud -- and is resent up to
-        ``retries`` times. Raises :class:`CommandRejected` on ``ERR``,
+        ``retries`` times, each time only once the previous attempt's answer can
+        no longer come (``late_answer_window`` after its deadline). Raises
+        :class:`CommandRejected` on ``ERR``, :class:`CommandLate` (a
+        :class:`CommandTimeout`) when the answer came after the deadline,
         :class:`CommandTimeout` when nothing matching came, :class:`LinkDown`
         when the port is not open, :class:`CommandNotSupported` for
         heading-only protocols, ValueError for a malformed command. Frames
