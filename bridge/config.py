@@ -178,7 +178,7 @@ class DeviceConfig(Section):
     stale_after: float = setting(
         2.0,
         between(0.0, 60.0, lo_open=True),
-        "no valid frame for this long -> stale, reconnect; for gmr at least 2 / rate_hz",
+        "no attitude frame for this long -> stale, reconnect; for gmr at least 2 / rate_hz",
         "s",
     )
     replay_realtime: bool = setting(

@@ -29,7 +29,7 @@ def format_line(
     """The console line: heading, pitch, roll, where the heading comes from, the simulated
     truth and how far the heading is from it (a simulator only), link health."""
     c = status.counters
-    health = f"{status.state.value}  frames {c.attitude_frames or c.frames}"
+    health = f"{status.state.value}  frames {c.attitude_frames}"
     health += f"  lost {c.lost_frames}  bad {c.bad_lines_total}"
     if sample is None or status.state is not LinkState.STREAMING:
         what = "waiting for the compass" if sample is None else "no fresh data"

@@ -125,7 +125,14 @@ class EventBus:
 
     def emit(self, event: Event) -> None:
         """Deliver ``event`` to every subscriber; log it once."""
-        log.log(_LOG_LEVEL[event.severity], "%s: %s", event.kind, event.text)
+        # rate_key: the log's rate limit counts each kind of event on its own (bridge.logsetup)
+        log.log(
+            _LOG_LEVEL[event.severity],
+            "%s: %s",
+            event.kind,
+            event.text,
+            extra={"rate_key": event.kind},
+        )
         with self._lock:
             self._history.append(event)
             del self._history[: -self._history_len]

@@ -10,12 +10,15 @@
   (``SyslogLevelPrefix=`` defaults to on), and carries no timestamp (the
   journal adds its own). Checking the inode, not just the variable, keeps a
   child whose stderr was redirected elsewhere from writing ``<4>`` into a file.
-* **Repeats are rate-limited.** A record from the same call site (logger,
-  level, file, line, message template) is let through ``burst`` times per
-  ``interval_s``; the rest are counted and summarised in one line when the
-  window ends ("... N similar messages suppressed"). A port that fails 20
-  times a second must not flood the journal (or its rate limit, which would
-  then drop *other* messages).
+* **Repeats are rate-limited, per kind.** A record from the same call site
+  (logger, level, file, line, message template) *and of the same kind* is let
+  through ``burst`` times per ``interval_s``; the rest are counted and
+  summarised in one line when the window ends ("... N similar messages
+  suppressed"). The kind is the record's ``rate_key`` when the caller gives
+  one (``extra={"rate_key": ...}``: the event bus logs every event through one
+  call site, so it names the event kind), so a flood of one event does not
+  hide another. A port that fails 20 times a second must not flood the journal
+  (or its rate limit, which would then drop *other* messages).
 """
 
 from __future__ import annotations
@@ -193,7 +196,14 @@ class ServiceLogHandler(logging.StreamHandler):
         try:
             now = self._clock()
             summaries = self.limiter.expired(now)
-            key = (record.name, record.levelno, record.pathname, record.lineno, record.msg)
+            key = (
+                record.name,
+                record.levelno,
+                record.pathname,
+                record.lineno,
+                record.msg,
+                getattr(record, "rate_key", None),
+            )
             admitted = self.limiter.admit(key, now, record.getMessage(), record)
             for _, w in summaries:
                 self._summary(w)

@@ -79,6 +79,24 @@ class CommandTimeout(CommandError):  # noqa: N818 - named by the link interface
     """No answer after all attempts."""
 
 
+class CommandLate(CommandTimeout):
+    """The device answered, but after its datasheet deadline: a time-out all the same.
+
+    The command was not sent again (its answer could still come), so it ran on the
+    device once; ``answer`` is what the device said (an OK or an ERR frame) and
+    ``late_s`` how long after the deadline it came.
+    """
+
+    def __init__(self, command: str, answer: Any, late_s: float, deadline_s: float) -> None:
+        super().__init__(
+            f"{command} answered {late_s:.2f} s after its {deadline_s:.2f} s deadline "
+            "(the compass is slower than its datasheet)"
+        )
+        self.command = command
+        self.answer = answer
+        self.late_s = late_s
+
+
 class CommandRejected(CommandError):  # noqa: N818 - named by the link interface
     """The device answered ``$PGMRK,<command>,ERR,<reason>``."""
 

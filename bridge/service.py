@@ -25,16 +25,19 @@ class StatusText:
 
     def __init__(self, window_s: float = 3.0) -> None:
         self.window_s = window_s
-        self._hist: deque[tuple[float, int, int]] = deque()
+        self._hist: deque[tuple[float, int, int, int]] = deque()
 
-    def _rates(self, now: float, frames: int, nbytes: int) -> tuple[float | None, int, int]:
-        self._hist.append((now, frames, nbytes))
+    def _rates(
+        self, now: float, frames: int, answers: int, nbytes: int
+    ) -> tuple[float | None, int, int, int]:
+        """(attitude frame rate, new attitude frames, new other sentences, new bytes)."""
+        self._hist.append((now, frames, answers, nbytes))
         while len(self._hist) > 2 and now - self._hist[1][0] >= self.window_s:
             self._hist.popleft()
-        t0, f0, b0 = self._hist[0]
+        t0, f0, a0, b0 = self._hist[0]
         span = now - t0
         rate = (frames - f0) / span if span >= 0.5 else None
-        return rate, frames - f0, nbytes - b0
+        return rate, frames - f0, answers - a0, nbytes - b0
 
     def render(
         self,
@@ -45,8 +48,11 @@ class StatusText:
     ) -> str:
         """The STATUS text for this moment."""
         c = status.counters
-        frames = c.attitude_frames or c.frames
-        rate, new_frames, new_bytes = self._rates(now, frames, c.bytes_read)
+        # Only attitude frames are a stream (command answers are not: bridge.link).
+        frames = c.attitude_frames
+        rate, new_frames, new_answers, new_bytes = self._rates(
+            now, frames, c.frames - frames, c.bytes_read
+        )
         port, state = status.port, status.state
         bad = c.bad_lines_total
         if state is LinkState.STREAMING:
@@ -58,6 +64,12 @@ class StatusText:
                 head += f"; hdg {sample.heading_deg:.1f} {ref}"
                 if sample.heading_reference == "magnetic" and sample.heading_true_deg is not None:
                     head += f" (true {sample.heading_true_deg:.1f})"
+        elif new_answers > 0 and new_frames == 0:
+            # It answers commands but sends no attitude frame: alive, and not streaming.
+            head = (
+                f"NOT STREAMING: {port} answers commands but sends no attitude frame "
+                f"({new_answers} answers in {self.window_s:g} s); reopening"
+            )
         elif new_bytes > 0 and new_frames == 0:
             # Bytes arrive but nothing decodes: the classic wrong-baud / wrong-device case.
             head = (
@@ -67,7 +79,7 @@ class StatusText:
         elif state is LinkState.ABSENT:
             head = f"waiting for {port} (absent)"
         elif state is LinkState.STALE:
-            head = f"no valid frame from {port}; reopening"
+            head = f"no attitude frame from {port}; reopening"
         else:
             head = f"opening {port}"
         parts = [head, f"calibration {calibration}"]

@@ -20,7 +20,10 @@ def test_small_run_against_the_daemon_finds_nothing(tmp_path: Path) -> None:
     """A daemon that crashed, leaked a traceback, decoded a false frame, changed state no
     message asked for or grew by 16 MB fails this run (each is a figure that must be 0)."""
     out = tmp_path / "fuzz.json"
-    code = main(["--chunks", "4000", "--messages", "600", "--json", str(out), "--no-progress"])
+    code = main(
+        ["--chunks", "4000", "--messages", "600", "--json", str(out), "--no-progress",
+         "--angles", "none"]
+    )  # fmt: skip
     doc = json.loads(out.read_text())
     figs = {f["name"]: f for f in doc["figures"]}
     assert set(figs) == {"false_frames", "crashes", "tracebacks", "state_changes", "memory_growth"}
@@ -31,6 +34,33 @@ def test_small_run_against_the_daemon_finds_nothing(tmp_path: Path) -> None:
         assert figs[name]["value"] == 0, figs[name]
     assert figs["memory_growth"]["passed"] is True, figs["memory_growth"]
     assert code == 0 and doc["passed"] is True
+
+
+@pytest.mark.integration
+def test_the_round_two_angles_print_their_figures(tmp_path: Path) -> None:
+    """Many-peer junk with a TCP crowd, oversized Zenoh arguments, a silent and a late
+    compass, a PARAM_SET storm: each against its own daemon, each a figure (small sizes here;
+    the defaults are the issue's: 1000 datagrams/s, 50 clients, 100 queries, 3000 sets/s)."""
+    out = tmp_path / "fuzz2.json"
+    main(
+        ["--chunks", "10", "--messages", "10", "--angles", "crowd,zenoh,silent,late,params",
+         "--junk-rate", "300", "--tcp-crowd", "10", "--oversized", "30", "--angle-seconds", "3", "--set-rate", "1000",
+         "--json", str(out), "--no-progress"]
+    )  # fmt: skip
+    figs = {f["name"]: f for f in json.loads(out.read_text())["figures"]}
+    for name in (
+        "crowd_tracebacks", "zenoh_not_bad_arguments", "zenoh_tracebacks",
+        "silent_said_streaming", "silent_flaps", "silent_tracebacks", "late_device_resets",
+        "late_commands_resent", "late_left_calibrating", "late_tracebacks",
+        "params_lost_at_shutdown", "params_tracebacks",
+    ):  # fmt: skip
+        assert figs[name]["value"] == 0, figs[name]
+    assert figs["crowd_gcs_attitude"]["value"] is not None  # measured (its bound: a test of
+    assert figs["crowd_tcp_newcomer_wait"]["value"] is not None  # its own, without load)
+    assert figs["zenoh_not_bad_arguments"]["detail"]["answered_bad_arguments"] > 0
+    assert figs["silent_said_streaming"]["detail"]["zenoh_status_docs"] > 0
+    assert figs["late_device_resets"]["detail"]["late_answers"] >= 1
+    assert figs["params_writes_per_s"]["passed"] is True, figs["params_writes_per_s"]
 
 
 def test_false_frame_judge_counts_what_was_never_sent() -> None:

@@ -363,7 +363,9 @@ def test_the_fitness_limit_follows_compass_cal_fit(
     assert rig.ctl.fitness_limit_mG == 100.0
     assert rig.daemon.params.set("COMPASS_CAL_FIT", 8.0).accepted
     assert rig.ctl.fitness_limit_mG == 8.0
-    # a stored value is the limit of a bridge that starts with it
+    # a stored value is the limit of a bridge that starts with it (after this one stopped:
+    # parameter writes are coalesced, the last one lands at the latest when it stops)
+    rig.daemon.stop()
     again = rigs(tmp_path, Still(), fast=False)
     assert again.ctl.fitness_limit_mG == 8.0
 

@@ -125,7 +125,9 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     assert d.params.get("COMPASS_OFS_X") == np.float32(-1000.0 * learned.mag.offset[0])
     assert not schema.drift_detected(status_doc(d))
 
-    # a restart keeps the learned calibration and the learning mode (a user's setting)
+    # a restart keeps the learned calibration and the learning mode (a user's setting);
+    # the first bridge stops first (its parameter writes are coalesced: they land by then)
+    d.params.close()
     d2, log2 = daemon(state)
     assert d2.engine.calibration == learned
     assert d2.bridge.calibrations.load().source == LEARNED
@@ -145,6 +147,7 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     res = run_calibration_command(d2.calibrator, "undo", {}, undo=d2.bridge.drift.undo)
     assert not res.ok and "Nothing learned" in res.message
     # the undone calibration is what a third start finds
+    d2.params.close()
     d3, _ = daemon(state)
     assert d3.engine.calibration == good and d3.params.get("BRG_CAL_LEARN") == 1
 

@@ -53,7 +53,7 @@ def test_usb_unplug_and_return(tmp_path: Path, manager: FakeServiceManager) -> N
             i, _ = manager.wait_for(lambda m: 8.0 <= streaming_rate(m) <= 12.0, proc=d)
             sim.unplug(2.5)  # the pty vanishes, the symlink too; a new one after 2.5 s
             j, _ = manager.wait_for(
-                lambda m: "waiting for" in status_text(m) or "no valid frame" in status_text(m),
+                lambda m: "waiting for" in status_text(m) or "no attitude frame" in status_text(m),
                 after=i,
                 proc=d,
             )

@@ -107,6 +107,40 @@ def test_repeats_are_rate_limited_and_summarised() -> None:
     assert out.getvalue().splitlines()[-1].endswith("port lost: 99")
 
 
+def test_the_rate_limit_is_per_event_kind() -> None:
+    """Every event is logged by one call site (the bus): a flood of one kind must not hide
+    another kind (it did: "5685 similar messages suppressed (first: calibration.accepted)")."""
+    from bridge.events import Event, EventBus, Severity
+
+    out, clock = io.StringIO(), ManualClock()
+    handler = ServiceLogHandler(out, journal=True, burst=3, interval_s=10.0, clock=clock)
+    bus_log = logging.getLogger("bridge.events")
+    saved = bus_log.handlers[:], bus_log.propagate, bus_log.level
+    _logger(handler, "bridge.events")
+    try:
+        bus = EventBus()
+        for i in range(200):
+            bus.emit(Event("calibration.accepted", f"accepted {i}", Severity.INFO))
+            if i % 50 == 0:
+                bus.emit(Event("link.lost", f"lost {i}", Severity.ERROR))
+            clock.t += 0.01
+        lines = out.getvalue().splitlines()
+        assert sum("calibration.accepted" in ln for ln in lines) == 3
+        assert [ln for ln in lines if "link.lost" in ln] == [
+            f"<3>ERROR bridge.events: link.lost: lost {i}" for i in (0, 50, 100)
+        ]
+        clock.t += 10.0
+        bus.emit(Event("link.restored", "back", Severity.NOTICE))
+        tail = out.getvalue().splitlines()[len(lines) :]
+        summaries = [ln for ln in tail if "suppressed" in ln]
+        assert len(summaries) == 2  # one per kind, each naming its own
+        assert any("197 similar" in ln and "calibration.accepted" in ln for ln in summaries)
+        assert any("1 similar" in ln and "link.lost: lost 150" in ln for ln in summaries)
+    finally:
+        bus_log.handlers[:], bus_log.propagate = saved[0], saved[1]
+        bus_log.setLevel(saved[2])
+
+
 def test_suppressed_counts_are_flushed_at_close() -> None:
     out, clock = io.StringIO(), ManualClock()
     handler = ServiceLogHandler(out, journal=False, burst=1, interval_s=60.0, clock=clock)

@@ -9,11 +9,11 @@ import pytest
 from test_mavlink_telemetry import decode, wire_text
 
 from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import Failure, Mode, Phase, SessionReport
+from bridge.calibrator import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
 from bridge.calibrator.report import DeviceOutcome, FitQuality, MagParams
 from bridge.events import Event, Severity
 from bridge.mavlink import calmap
-from bridge.mavlink.commands import CalibrationRelay
+from bridge.mavlink.commands import ONBOARD_REPORTS, TEXT_BURST, TEXT_RATE_HZ, CalibrationRelay
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 
 
@@ -136,3 +136,57 @@ def test_px4_lines_for_each_event() -> None:
     )
     assert line("calibration.cancelled") == "[cal] calibration cancelled"
     assert line("calibration.accepted") is None
+
+
+def _started() -> Event:
+    data = {"mode": "mag", "sensor": "mag", "onboard": False, "attempt": 1}
+    return Event("calibration.started", "Calibration started: mag", Severity.INFO, data)
+
+
+def test_event_statustexts_of_a_command_flood_are_paced() -> None:
+    """Every calibration command sent its STATUSTEXTs to every ground station, unthrottled:
+    1000 start/cancel pairs were 2000 STATUSTEXTs. A token bucket keeps a burst, then 2 a
+    second; progress lines (once per percent anyway) are not counted."""
+    now = [100.0]
+    relay = CalibrationRelay(clock=lambda: now[0])
+    cancelled = Event("calibration.cancelled", "Calibration cancelled", Severity.NOTICE, {})
+    sent = 0
+    for _ in range(1000):
+        for e in (_started(), cancelled):
+            sent += sum(p.get_msgId() == M.MAVLINK_MSG_ID_STATUSTEXT for p in relay.packets(e))
+    assert sent == TEXT_BURST and relay.throttled == 2000 - TEXT_BURST
+    now[0] += 5.0  # five seconds later: ten more
+    more = sum(len(relay.packets(_started())) for _ in range(50))
+    assert more == int(5 * TEXT_RATE_HZ)
+    relay.begin("px4")
+    progress = Event("calibration.progress", "", Severity.INFO, {"completion_pct": 42.0})
+    assert relay.packets(progress)  # the bucket is empty; progress still goes
+
+
+def _onboard_done() -> Event:
+    rep = SessionReport(
+        Mode.ONBOARD_MAG, "device MAGCAL", autosaved=True, mag=MagParams((1.0, 2.0, 3.0))
+    )
+    data = {"mode": "onboard_mag", "sensor": "mag", "onboard": True, "autosaved": True,
+            "report": rep.to_dict()}  # fmt: skip
+    return Event("calibration.done", "Calibration done: mag", Severity.INFO, data)
+
+
+def test_the_compass_own_magcal_report_is_sent_three_times_not_forever() -> None:
+    now = [0.0]
+    relay = CalibrationRelay(clock=lambda: now[0])
+    relay.begin("ardupilot")
+    first = [
+        p
+        for p in relay.packets(_onboard_done())
+        if p.get_msgId() == M.MAVLINK_MSG_ID_MAG_CAL_REPORT
+    ]
+    assert len(first) == 1  # MAG_CAL_REPORT
+    snapshot = CalibratorSnapshot.of(
+        None, onboard=True, calibration_source="", calibration_age_s=None, calibration_saved=True
+    )
+    repeats = 0
+    for _ in range(20):  # 20 s of keep-alive ticks
+        now[0] += 1.0
+        repeats += len(relay.keepalive(now[0], lambda: snapshot))
+    assert 1 + repeats == ONBOARD_REPORTS

@@ -83,9 +83,10 @@ def test_unsigned_and_wrongly_signed_commands_are_refused(
 ) -> None:
     rig = signed_rig(tmp_path, rigs)
     for key in (None, WRONG_KEY):
-        g = gcs_with_key(rig, key)
+        g = gcs_with_key(rig, key, "tcp")
         g.flush()
-        # reads stay open: a ground station without the key can still watch
+        # reads stay open: a ground station without the key can still watch (over tcpin:
+        # on udpin only a validly signed packet makes its sender a peer)
         assert g.param("BRG_SR_HUD").param_value == 4.0
         g.mav.command_long_send(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ATT, -1, 0, 0, 0, 0, 0)
         g.mav.command_int_send(1, 1, 0, M.MAV_CMD_PREFLIGHT_STORAGE, 0, 0, 3, 0, 0, 0, 0, 0, 0)
@@ -114,12 +115,15 @@ def test_replayed_and_stale_commands_are_refused(tmp_path: Path, rigs: Callable[
         )
         return bytes(msg.pack(mav))
 
+    def ack() -> Any:  # SET_MESSAGE_INTERVAL's own (interval_of's GET leaves one too)
+        return g.wait("COMMAND_ACK", lambda m: m.command == M.MAV_CMD_SET_MESSAGE_INTERVAL)
+
     first = packed(500_000)  # captured off the air by an attacker
     g.conn.write(first)
-    assert g.wait("COMMAND_ACK").result == M.MAV_RESULT_ACCEPTED
+    assert ack().result == M.MAV_RESULT_ACCEPTED
     assert interval_of(g, ATT) == 500_000
     g.conn.write(packed(0))  # the operator goes back to the default rate
-    assert g.wait("COMMAND_ACK").result == M.MAV_RESULT_ACCEPTED
+    assert ack().result == M.MAV_RESULT_ACCEPTED
     g.flush()
     g.conn.write(first)  # the replay
     g.nothing("COMMAND_ACK", None, 1.0)
@@ -216,7 +220,7 @@ def test_a_packet_captured_before_a_restart_is_still_a_replay_after_it(
 
     again = signed_rig(tmp_path, rigs)
     assert again.daemon.params.get("BRG_SR_HUD") == 16.0  # persisted
-    attacker = gcs_with_key(again, None)
+    attacker = gcs_with_key(again, None, "tcp")
     attacker.conn.write(fifteen)  # the exact bytes, well within a minute
     attacker.nothing("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD", 1.0)
     assert again.daemon.params.get("BRG_SR_HUD") == 16.0

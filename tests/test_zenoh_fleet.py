@@ -30,7 +30,7 @@ from test_zenoh_output import (
 )
 
 from bridge.fleet import schema
-from bridge.fleet.monitor import FleetView, MonitorOptions, run_monitor
+from bridge.fleet.monitor import FleetView, MonitorOptions, document_keys, run_monitor
 
 # ---------------------------------------------------------------------------
 # The fleet test
@@ -158,6 +158,21 @@ def test_fleet_view_refuses_bad_documents_and_tracks_liveliness() -> None:
     v.liveliness("fleet/b/compass", False, 3.0)
     assert v.rows(3.0)[0].age == "gone"
     assert v.render(3.0)[1].split()[0] == "fleet/b/compass"
+
+
+def test_fleet_view_flags_a_shared_key_prefix_and_follows_an_exact_one() -> None:
+    v = FleetView()
+    v.update("fleet/a/compass/heading", _doc(schema.HEADING, **HEADING), 1.0)
+    v.instance("fleet/a/compass/@bridge/0000000000001-aaaa", True, 1.0)
+    assert "DUP" not in v.rows(1.0)[0].flags
+    v.instance("fleet/a/compass/@bridge/0000000000002-bbbb", True, 1.5)
+    assert v.rows(1.5)[0].flags.startswith("DUP2")
+    v.instance("fleet/a/compass/@bridge/0000000000002-bbbb", False, 2.0)
+    assert "DUP" not in v.rows(2.0)[0].flags
+    assert v.seen_documents() == 1
+    # An exact prefix selects a bridge whose documents are one chunk below it.
+    assert document_keys("fleet/boat7/compass") == ("fleet/boat7/compass", "fleet/boat7/compass/*")
+    assert document_keys("fleet/**") == ("fleet/**",)
 
 
 def test_fleet_view_shows_a_running_calibration() -> None:

@@ -127,6 +127,7 @@ class Bridge:
         seed: int = 1,
         overrides: Sequence[tuple[str, str]] = NO_SCOUTING,
         mavlink_port: int | None = None,
+        config: Sequence[str] = (),
         **settings: Any,
     ) -> None:
         self.name = name
@@ -149,6 +150,7 @@ class Bridge:
                 f"mavlink.endpoints=['udpout:127.0.0.1:{mavlink_port}']"
                 if mavlink_port
                 else "mavlink.endpoints=[]",
+                *config,
             ],
             env={},
             hostname=name,

@@ -31,7 +31,7 @@ from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
-from bridge.events import Event, EventBus, Severity
+from bridge.events import EventBus
 from bridge.ports import DevicePort, DocumentStore, LinkState, Received
 
 log = logging.getLogger(__name__)
@@ -184,6 +184,7 @@ class Bridge:
             defaults=options.param_defaults,
             apply_calibration=self._calibration_from_params,
             stored_view=stored.view if stored.calibration == calibration else None,
+            events=self.events,
         )
         self.mavlink_tap = MessageTap()
         self.services = BridgeServices(
@@ -221,6 +222,7 @@ class Bridge:
         # calibration worker, which may be waiting on the device, keeps the rest.
         self.drift.close(timeout=0.25 * timeout)
         self.calibrator.close(timeout=max(0.1, deadline - time.monotonic()))
+        self.params.close()  # a parameter set a moment ago is written now
 
     def set_outputs(self, outputs: Sequence[Output]) -> None:
         """The outputs every sample goes to, in order."""
@@ -302,12 +304,3 @@ class Bridge:
             # nothing): it reads back 1, as every ground station checks a SET's echo, until
             # set to 0 (or a restart); a repeated request finds nothing learned to undo.
             self.undo_learned()
-        if self.calibrations.documents is not None and self.params.last_error:
-            self.events.emit(
-                Event(
-                    "params.storage_error",
-                    "Parameters NOT saved",
-                    Severity.ERROR,
-                    {"error": self.params.last_error},
-                )
-            )

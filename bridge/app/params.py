@@ -13,6 +13,16 @@ Persistence: ``<storage.dir>/params.json`` holds only the values set by a user
 charge of everything else. The calibration group is not stored there: it is a
 view of the calibration, which lives in the calibration store (with the
 values as a user set them, so they read back as written).
+
+Writes are **coalesced**: a value set is in force at once and saved by the
+store's saver thread at most once per :data:`SAVE_INTERVAL_S` (a storm of
+PARAM_SETs is one write a second, not one fsync per SET: an SD card's wear);
+an explicit :meth:`ParamStore.save` (PREFLIGHT_STORAGE) writes at once if the
+last write is older than that, else waits for it. A write that fails is tried
+again every interval until it succeeds -- said once when it fails
+(``params.storage_error``) and once when it works again (``params.saved``) --
+and :meth:`ParamStore.close` (the bridge stopping) writes what is pending, so
+nothing set is lost.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -37,7 +48,7 @@ from bridge.app.paramspec import (
 )
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
-from bridge.events import ChangeRefusedError, Subscribers
+from bridge.events import ChangeRefusedError, Event, EventBus, Severity, Subscribers
 from bridge.ports import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)
@@ -46,6 +57,8 @@ log = logging.getLogger(__name__)
 PARAMS_DOCUMENT = "params"
 #: ``source`` of a calibration made from the calibration group's parameters.
 PARAMETERS = "parameters"
+#: Parameter writes at most this often (seconds): see the module docstring.
+SAVE_INTERVAL_S = 1.0
 
 #: Applies a calibration made from parameters: (calibration, the values as set) -> a
 #: problem text ("" when applied; it is then saved by the calibration store).
@@ -70,7 +83,8 @@ class ParamStore:
     ``apply_calibration`` applies a calibration built from the calibration
     group (the calibration controller's ``apply_calibration``: engine,
     calibration store, events); ``stored_view`` the calibration group as last
-    set by a user, when it still describes the calibration in use.
+    set by a user, when it still describes the calibration in use; ``events``
+    hears of a save that failed and of the one that worked again.
     """
 
     def __init__(
@@ -81,8 +95,19 @@ class ParamStore:
         defaults: Mapping[str, float] | None = None,
         apply_calibration: ApplyCalibration | None = None,
         stored_view: Mapping[str, float] | None = None,
+        events: EventBus | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._settings = settings
+        self._events = events
+        self._clock = clock
+        self._save_lock = threading.Lock()  # one write at a time (the saver or save())
+        self._wake = threading.Condition()
+        self._dirty = False  # values in use that params.json does not hold yet
+        self._last_write = -math.inf
+        self._saver: threading.Thread | None = None
+        self._closed = False
+        self.writes = 0  #: params.json writes attempted
         self._documents = documents
         self._defaults = dict(defaults or {})
         self._apply_calibration = apply_calibration
@@ -91,8 +116,8 @@ class ParamStore:
         self._table = ParamTable(overrides=self._defaults)
         self._user_set: set[str] = set()
         self._own_calibration: Calibration | None = None  # the last one made from parameters
-        self.saved = documents is not None  #: the stored values match the values in use
-        self.last_error = ""  #: why the last save failed ("" after a good one)
+        #: why the last save failed ("" after a good one)
+        self.last_error = "" if documents is not None else "no state directory configured"
         self._load(stored_view)
         settings.subscribe(self._on_settings)
 
@@ -155,7 +180,7 @@ class ParamStore:
                 return SetOutcome(False, outcome.spec, outcome.index, old, reason)
             if name not in CAL_PARAMS:
                 self._user_set.add(name)
-            self.save()
+                self._changed()
         self._notify((name,), source)
         return outcome
 
@@ -172,12 +197,15 @@ class ParamStore:
                     changed.append(spec.name)
             self._user_set.clear()
             self._apply_all(source)
-            self.save()
+            self._dirty = True
+        self.save()  # (paced) its caller answers by the result
         if changed:
             self._notify(tuple(changed), source)
 
     def reload(self, source: str = "reload") -> None:
         """Back to the stored values (what PREFLIGHT_STORAGE "read" means)."""
+        if self._dirty:
+            self.save()  # what was set is what is stored: write it before reading back
         with self._lock:
             before = self._table.values()
             self._table = ParamTable(overrides=self._defaults)
@@ -189,24 +217,93 @@ class ParamStore:
         if changed:
             self._notify(changed, source)
 
+    @property
+    def saved(self) -> bool:
+        """The stored values are the values in use (nothing pending, the last write worked)."""
+        return not self._dirty and not self.last_error
+
     def save(self) -> bool:
-        """Write the values set by users now; False (and :attr:`last_error`) if it failed."""
+        """Write the values set by users (at once, or when the interval since the last write
+        is over); False (and :attr:`last_error`) if it failed."""
+        with self._save_lock:
+            wait = self._last_write + SAVE_INTERVAL_S - self._clock()
+            if wait > 0:
+                time.sleep(wait)
+            return self._write()
+
+    def close(self) -> None:
+        """Stop the saver; what is pending is written now (the bridge stops)."""
+        with self._wake:
+            self._closed = True
+            self._wake.notify_all()
+        saver = self._saver
+        if saver is not None and saver is not threading.current_thread():
+            saver.join(5.0)
+        if self._dirty:
+            with self._save_lock:
+                self._write()
+
+    def _changed(self) -> None:
+        """A value to store: the saver writes it within :data:`SAVE_INTERVAL_S` (lock held)."""
+        self._dirty = True
+        if self._documents is None:
+            return
+        with self._wake:
+            if self._saver is None and not self._closed:
+                self._saver = threading.Thread(
+                    target=self._save_loop, name="params-saver", daemon=True
+                )
+                self._saver.start()
+            self._wake.notify_all()
+
+    def _save_loop(self) -> None:
+        while True:
+            with self._wake:
+                self._wake.wait_for(lambda: self._dirty or self._closed)
+                if self._closed:
+                    return
+                # Coalesce: whatever more is set until the interval is over goes in this write.
+                left = self._last_write + SAVE_INTERVAL_S - self._clock()
+                if left > 0 and self._wake.wait_for(lambda: self._closed, left):
+                    return
+            with self._save_lock:  # a save() may have written meanwhile: paced all the same
+                if self._dirty and self._clock() - self._last_write >= SAVE_INTERVAL_S:
+                    self._write()
+
+    def _write(self) -> bool:
+        """One write of params.json (the save lock held)."""
         with self._lock:
             if self._documents is None:
-                self.saved, self.last_error = False, "no state directory configured"
+                self.last_error = "no state directory configured"
                 return False
             values = self._table.values()
             payload: dict[str, Any] = {
                 "set": {n: values[n] for n in sorted(self._user_set) if n not in CAL_PARAMS}
             }
+            self._dirty = False
+            self._last_write = self._clock()
+            self.writes += 1
+            failing = bool(self.last_error)
             try:
                 self._documents.save(PARAMS_DOCUMENT, payload)
             except StorageError as e:
-                self.saved, self.last_error = False, str(e)
-                log.error("parameters not saved: %s", e)
+                self._dirty, self.last_error = True, str(e)  # tried again next interval
+                if not failing:
+                    log.error(
+                        "parameters not saved: %s (tried again every %g s)", e, SAVE_INTERVAL_S
+                    )
+                    self._emit("params.storage_error", "Parameters NOT saved", Severity.ERROR, e)
                 return False
-            self.saved, self.last_error = True, ""
-            return True
+            self.last_error = ""
+        if failing:
+            log.warning("parameters saved: the state directory takes them again")
+            self._emit("params.saved", "Parameters saved (storage is back)", Severity.NOTICE)
+        return True
+
+    def _emit(self, kind: str, text: str, severity: Severity, error: object = None) -> None:
+        if self._events is not None:
+            data = {"error": str(error)} if error is not None else {}
+            self._events.emit(Event(kind, text, severity, data))
 
     # -- effects -------------------------------------------------------------------
 

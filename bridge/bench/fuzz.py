@@ -1,4 +1,6 @@
-"""Hostile input against a running daemon: ``compass-bridge bench fuzz`` (issue 15).
+"""Hostile input against a running daemon: ``compass-bridge bench fuzz`` (issue 15; the
+round-two angles -- many-peer junk, a TCP crowd, oversized Zenoh arguments, a silent or a
+late compass -- are :mod:`bridge.bench.fuzz_hostile`, run after these unless ``--angles none``).
 
 A real daemon (a child ``compass-bridge run``) reads a pseudo-terminal this
 process serves as the compass, speaks MAVLink on ``udpin:127.0.0.1`` and keeps
@@ -49,6 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bridge.bench import fuzz_hostile
 from bridge.bench.pipeline import Figure, _proc_rss_mb, report
 
 log = logging.getLogger(__name__)
@@ -670,6 +673,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+    fuzz_hostile.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.chunks < 1 or args.messages < 1:
         ap.error("--chunks and --messages must be >= 1")
@@ -681,6 +685,7 @@ def main(argv: list[str] | None = None) -> int:
             max_growth_mb=args.max_growth_mb,
             step=lambda f, n: bar.update(f, note=n),
         )
+        figures += fuzz_hostile.from_args(args, lambda f, n: bar.update(f, note=n))
     return report(figures, args.json)
 
 

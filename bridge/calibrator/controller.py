@@ -49,6 +49,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 import queue
 import threading
 import time
@@ -63,9 +64,10 @@ from bridge.calibrator.host import (
     FixedYawSession,
     LevelSession,
     MagSession,
-    fixed_yaw_field,
+    fixed_yaw_inputs,
     fixed_yaw_result,
 )
+from bridge.calibrator.keeper import CalibrationKeeper, StrayCalibration
 from bridge.calibrator.onboard import OnboardLevelSession, OnboardMagSession
 from bridge.calibrator.report import SessionReport
 from bridge.calibrator.session import (
@@ -81,8 +83,10 @@ from bridge.calibrator.session import (
 from bridge.calibrator.snapshot import CalibrationTarget, CalibratorSnapshot
 from bridge.calibrator.state import (
     CalibratorSettings,
+    Mode,
     Outcome,
     Result,
+    mask_refusal,
     number,
 )
 from bridge.calibrator.store import CalibrationStore
@@ -92,11 +96,12 @@ from bridge.ports import (
     CommandError,
     DevicePort,
     DocumentStore,
-    StorageError,
 )
-from bridge.protocol.gmr import AttitudeFrame, CalProgressFrame
+from bridge.protocol.gmr import AttitudeFrame, CalProgressFrame, Flags
 
 log = logging.getLogger(__name__)
+
+_CAL = int(Flags.CAL)
 
 
 class CalibrationController:
@@ -147,14 +152,8 @@ class CalibrationController:
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
         self.errors = 0  #: unexpected exceptions caught (logged once)
-        self._calibration_source = calibration_source
-        self._calibration_time: float | None = None
-        self._calibration_saved = False
-        if self._store is not None:
-            stored = self._store.load()  # never raises
-            if stored.stored:
-                self._calibration_time = stored.accepted_unix
-                self._calibration_saved = True
+        self._keeper = CalibrationKeeper(self._store, calibration_source)
+        self._stray = StrayCalibration()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -173,6 +172,8 @@ class CalibrationController:
         with self._lock:
             s = self._session
             aborts = s.shutdown() if s is not None else []
+            if not aborts and self._stray.calibrating(self._clock()):
+                aborts = [Device("MAGCAL", ("ABORT",), retries=0, purpose="abort")]
             self._changed.notify_all()
         if self._link is not None:
             for d in aborts:
@@ -250,6 +251,8 @@ class CalibrationController:
         """
         if type(frame) is AttitudeFrame:
             s = self._session
+            if int(frame.flags) & _CAL or self._stray.last_cal_at > -math.inf:
+                self._watch_stray(frame, s)
             if s is None or not s.running:
                 # Nearly every frame: no session collects. Only the fixed-yaw history
                 # wants it, and that needs no lock: deque.append is atomic, and
@@ -274,6 +277,13 @@ class CalibrationController:
             self._internal_error("feed")
         self._flush()
 
+    def _watch_stray(self, frame: AttitudeFrame, s: Session | None) -> None:
+        """The CAL flag with no MAGCAL of ours: the device was left calibrating; abort it."""
+        ours = s is not None and s.mode is Mode.ONBOARD_MAG and (s.running or s.busy)
+        if self._stray.frame(bool(int(frame.flags) & _CAL), ours, self._clock()):
+            self._jobs.put(functools.partial(self._stray.abort, self._command))
+            self.start()
+
     # ------------------------------------------------------------------ commands
 
     def start_mag(
@@ -292,8 +302,8 @@ class CalibrationController:
         once; ``delay_s`` waits before collecting. ``onboard`` overrides the
         default route (None: :attr:`onboard`).
         """
-        if not self._mask_ok(mask):
-            return Outcome(Result.FAILED, f"compass mask {mask} does not include compass 0")
+        if (refused := mask_refusal(mask)) is not None:
+            return refused
         delay = number(delay_s)
         if delay is None or not 0.0 <= delay <= 3600.0:
             return Outcome(Result.FAILED, f"delay {delay_s!r} s outside 0-3600")
@@ -335,8 +345,8 @@ class CalibrationController:
         to accept the answer is ACCEPTED (as ArduPilot does); after a failure
         it is FAILED.
         """
-        if not self._mask_ok(mask):
-            return Outcome(Result.FAILED, f"compass mask {mask} does not include compass 0")
+        if (refused := mask_refusal(mask)) is not None:
+            return refused
         with self._lock:
             s = self._session
             if s is None:
@@ -353,8 +363,8 @@ class CalibrationController:
         aborted (``MAGCAL,ABORT``, flash unchanged). A device ACCCAL already
         averaging cannot be stopped: its result is ignored.
         """
-        if not self._mask_ok(mask):
-            return Outcome(Result.FAILED, f"compass mask {mask} does not include compass 0")
+        if (refused := mask_refusal(mask)) is not None:
+            return refused
         with self._lock:
             s = self._session
             actions = s.cancel() if s is not None else None
@@ -376,21 +386,19 @@ class CalibrationController:
 
         ``yaw_deg`` is the vehicle's true yaw; the position is
         ``latitude_deg``/``longitude_deg`` when given (0, 0 = unset, as the
-        MAVLink command says), else the configured field. The unit must be
-        still; the last ``fixed_yaw_window_s`` of frames are averaged. The new
-        offsets are applied, persisted and written to the device at once.
+        MAVLink command says), else the configured field. Every input and the
+        result are checked for plausibility (:func:`~bridge.calibrator.host.fixed_yaw_inputs`).
+        The unit must be still; the last ``fixed_yaw_window_s`` of frames are
+        averaged. The new offsets are applied, persisted and written to the
+        device at once.
         """
-        if not self._mask_ok(mask):
-            return Outcome(Result.FAILED, f"compass mask {mask} does not include compass 0")
-        yaw = number(yaw_deg)
-        if yaw is None:
-            return Outcome(Result.FAILED, f"yaw {yaw_deg!r} is not a number")
+        if (refused := mask_refusal(mask)) is not None:
+            return refused
         problem = self._link_problem(need_device=False)
-        if problem:
-            return Outcome(Result.FAILED, problem)
-        ef = fixed_yaw_field(self._field, latitude_deg, longitude_deg)
-        if isinstance(ef, str):
-            return Outcome(Result.FAILED, ef)
+        inputs = problem or fixed_yaw_inputs(yaw_deg, self._field, latitude_deg, longitude_deg)
+        if isinstance(inputs, str):
+            return Outcome(Result.FAILED, inputs)
+        yaw, ef = inputs
         with self._lock:
             denied = self._busy_reason()
             if denied:
@@ -445,15 +453,14 @@ class CalibrationController:
     def snapshot(self) -> CalibratorSnapshot:
         """The current state (thread-safe, cheap)."""
         with self._lock:
-            age = None
-            if self._calibration_time is not None:
-                age = max(0.0, self._wall() - self._calibration_time)
+            k = self._keeper
+            age = None if k.accepted_unix is None else max(0.0, self._wall() - k.accepted_unix)
             return CalibratorSnapshot.of(
                 self._session,
                 onboard=self._onboard,
-                calibration_source=self._calibration_source,
+                calibration_source=k.source,
                 calibration_age_s=age,
-                calibration_saved=self._calibration_saved,
+                calibration_saved=k.saved,
             )
 
     def wait_for(
@@ -473,14 +480,6 @@ class CalibrationController:
                 self._changed.wait(min(left, 0.1))
 
     # ------------------------------------------------------------------ running sessions
-
-    @staticmethod
-    def _mask_ok(mask: float) -> bool:
-        """MAVLink carries the mask as a float param: 0 (all) or a byte that includes compass 0."""
-        m = number(mask)
-        if m is None or m != int(m) or not 0 <= m <= 255:
-            return False
-        return int(m) == 0 or bool(int(m) & 1)
 
     def _link_problem(self, *, need_device: bool) -> str:
         link = self._link
@@ -579,8 +578,11 @@ class CalibrationController:
             # Time-outs and delayed starts need a tick every 0.1 s while a session runs;
             # otherwise the worker sleeps until a job (or a new session, or close()) comes.
             s = self._session
+            wait = self._keeper.retry_due(self._clock()) - self._clock()  # an unsaved one
+            if s is not None and s.running:
+                wait = min(wait, 0.1)
             try:
-                job = self._jobs.get(timeout=0.1 if s is not None and s.running else None)
+                job = self._jobs.get(timeout=max(0.0, wait) if wait < math.inf else None)
             except queue.Empty:
                 job = None
             if job is None and self._stop.is_set():
@@ -592,6 +594,7 @@ class CalibrationController:
                     self._internal_error("worker job")
             try:
                 self._tick()
+                self._retry_save()
             except Exception:
                 self._internal_error("tick")
             self._flush()
@@ -604,6 +607,13 @@ class CalibrationController:
                 return
             applies = self._queue(s, s.tick(self._clock()))
         self._after(applies)
+
+    def _retry_save(self) -> None:
+        """Worker: a calibration in use that could not be saved, saved once storage takes it."""
+        k = self._keeper
+        if k.pending and k.retry(self._clock()):
+            text = "Calibration saved (storage is back)"
+            self._emit(Emit("calibration.saved", text, Severity.NOTICE, {"source": k.source}))
 
     # ------------------------------------------------------------------ applying
 
@@ -620,21 +630,12 @@ class CalibrationController:
             self._engine.update_calibration(cal)
         except ChangeRefusedError as e:  # a guard of the heading (an armed autopilot fed by us)
             return Outcome(Result.DENIED, str(e))
-        now = self._wall()
-        saved = True
-        error = ""
-        if self._store is not None:
-            try:
-                self._store.save(cal, source=source, accepted_unix=now, report=report, view=view)
-            except StorageError as e:
-                saved, error = False, str(e)
-        else:
-            saved, error = False, "no state directory configured"
+        error = self._keeper.keep(
+            cal, source=source, accepted_unix=self._wall(), report=report, view=view,
+            now=self._clock(),
+        )  # fmt: skip
         with self._lock:
-            self._calibration_source = source
-            self._calibration_time = now
-            self._calibration_saved = saved
-            data: dict[str, Any] = {"source": source, "saved": saved}
+            data: dict[str, Any] = {"source": source, "saved": (saved := not error)}
             if saved:
                 text, severity = "Calibration accepted and saved", Severity.INFO
             else:
@@ -655,9 +656,8 @@ class CalibrationController:
             self._jobs.put(functools.partial(self._write_device, cal))
             self.start()
         self._flush()
-        if saved:
-            return Outcome(Result.ACCEPTED, "calibration applied and saved")
-        return Outcome(Result.ACCEPTED, f"calibration applied but not saved: {error}")
+        how = "and saved" if saved else f"but not saved: {error}"
+        return Outcome(Result.ACCEPTED, f"calibration applied {how}")
 
     def _write_device(self, cal: Calibration) -> None:
         """Worker: the magnetometer part of a host calibration into the compass flash."""

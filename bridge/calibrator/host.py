@@ -411,21 +411,59 @@ def _level(
 # ---------------------------------------------------------------------------
 
 
-def fixed_yaw_field(
-    field: EarthField | None, latitude_deg: float | None, longitude_deg: float | None
-) -> EarthField | str:
-    """The field a fixed-yaw calibration uses: the WMM's at the position given (0, 0 = unset,
-    as the MAVLink command says), else ``field``; a str says why there is none."""
-    if latitude_deg is not None or longitude_deg is not None:
-        lat, lon = number(latitude_deg), number(longitude_deg)
-        if lat is None or lon is None:
-            return "bad position: latitude and longitude, in degrees"
-        if lat or lon:
-            try:
-                return earth_field(lat, lon)
-            except ValueError as e:
-                return f"bad position: {e}"
-    return field if field is not None else "no position: set [location] or give one"
+#: A fixed-yaw position whose WMM field differs from the one this bridge knows by more than
+#: this fraction of it (as a vector: 0.15 is about 9 deg of direction or 15 % of strength,
+#: some hundreds of km) is refused: one wrong query must not move the heading by 100 deg.
+FIXED_YAW_MAX_FIELD_CHANGE = 0.15
+#: Offsets a fixed-yaw calibration may produce, mG: ArduPilot's COMPASS_OFFS_MAX default.
+FIXED_YAW_MAX_OFFSET_MG = 1800.0
+
+
+def fixed_yaw_inputs(
+    yaw_deg: object,
+    field: EarthField | None,
+    latitude_deg: object | None,
+    longitude_deg: object | None,
+) -> tuple[float, EarthField] | str:
+    """The yaw and the field a fixed-yaw calibration uses, or why they are refused.
+
+    The field is the WMM's at the position given (0, 0 = unset, as the MAVLink
+    command says), else ``field`` (the configured or the autopilot's position).
+    Refused: a yaw that is not a finite number within +-360 deg, a latitude or
+    longitude out of range, and -- when the bridge knows where it is -- a
+    position whose field differs from the known one by more than
+    :data:`FIXED_YAW_MAX_FIELD_CHANGE` (ArduPilot's ``mag_cal_fixed_yaw`` checks
+    none of this; one wrong value would store offsets of a whole gauss).
+    """
+    yaw = number(yaw_deg)
+    if yaw is None or not -360.0 <= yaw <= 360.0:
+        return f"bad yaw {_short(yaw_deg)}: degrees, -360 to 360"
+    if latitude_deg is None and longitude_deg is None:
+        return (yaw, field) if field is not None else "no position: set [location] or give one"
+    lat, lon = number(latitude_deg), number(longitude_deg)
+    if lat is None or lon is None or not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+        return (
+            f"bad position {_short(latitude_deg)}, {_short(longitude_deg)}: latitude -90 to 90, "
+            "longitude -180 to 180, in degrees"
+        )
+    if not (lat or lon):
+        return (yaw, field) if field is not None else "no position: set [location] or give one"
+    given = earth_field(lat, lon)
+    if field is not None:
+        change = float(np.linalg.norm(given.ned_G - field.ned_G)) / max(field.total_G, 1e-9)
+        if change > FIXED_YAW_MAX_FIELD_CHANGE:
+            return (
+                f"position {lat:.4f}, {lon:.4f} is implausible: its field differs by "
+                f"{100 * change:.0f} % from the field where this bridge is (configured "
+                "[location] or the autopilot's); send 0, 0 to use that one, or correct [location]"
+            )
+    return yaw, given
+
+
+def _short(v: object) -> str:
+    """``repr(v)`` cut to a few characters (an argument may be anything)."""
+    text = repr(v)
+    return text if len(text) <= 24 else text[:21] + "..."
 
 
 def fixed_yaw_result(
@@ -451,6 +489,12 @@ def fixed_yaw_result(
         )
     except ValueError as e:
         return f"fixed-yaw calibration failed: {e}"
+    offset_mG = 1000.0 * float(np.linalg.norm(cal.mag.offset_array))
+    if offset_mG > FIXED_YAW_MAX_OFFSET_MG:
+        return (
+            f"implausible: the offsets would be {offset_mG:.0f} mG (more than "
+            f"{FIXED_YAW_MAX_OFFSET_MG:.0f}); check the yaw and the position"
+        )
     fit = CalibrationReport(method="fixed_yaw", n_samples=len(frames))
     report = fit_report(Mode.FIXED_YAW, cal.mag, fit, autosaved=True)
     return cal, replace(report, yaw_deg=float(yaw_deg))

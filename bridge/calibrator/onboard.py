@@ -49,7 +49,7 @@ from bridge.calibrator.report import (
 from bridge.calibrator.session import Action, Device, Job, Progress, Session, device_error
 from bridge.calibrator.state import CalibratorSettings, Mode, Outcome, Phase, Result
 from bridge.core import sensor
-from bridge.ports import CommandError, CommandRejected, CommandTimeout
+from bridge.ports import CommandError, CommandLate, CommandRejected, CommandTimeout, LinkDown
 from bridge.protocol.gmr import AckFrame, AttitudeFrame, CalProgressFrame, Flags, ParamsFrame
 
 #: The device's two-step rotation, as the operator is told.
@@ -229,6 +229,8 @@ def device_reason(e: CommandError) -> str:
             "FLASH": "flash write failed (FLASH)",
         }.get(e.reason, e.reason)
         return f"{e.command}: {text}"
+    if isinstance(e, CommandLate):
+        return f"the compass answered too late ({e})"
     if isinstance(e, CommandTimeout):
         return f"no answer from the compass ({e})"
     return f"device command failed: {e}"
@@ -236,6 +238,14 @@ def device_reason(e: CommandError) -> str:
 
 def abort_problem(answer: object) -> str:
     """What is worth telling about a ``MAGCAL,ABORT``'s answer ("" when it did its job)."""
+    if isinstance(answer, CommandLate) and isinstance(answer.answer, AckFrame):
+        answer = (
+            answer.answer
+            if answer.answer.ok
+            else CommandRejected(
+                "MAGCAL", answer.answer.fields[0] if answer.answer.fields else "?", answer.answer
+            )
+        )  # late, but it did its job (or said why not)
     if isinstance(answer, CommandRejected):
         # STATE: not calibrating any more, which is the goal
         return "" if answer.reason == "STATE" else f"MAGCAL,ABORT refused: {answer.reason}"
@@ -355,6 +365,7 @@ class OnboardMagSession(_DeviceSession):
         self._without_cal += 1
         if self._without_cal < FRAMES_WITHOUT_CAL:
             return []
+        self.device_started = False  # nothing to abort: it left by itself
         return self.fail("the compass left calibration mode (reset?)", retry_ok=False, now=now)
 
     def _report(self, f: CalProgressFrame) -> list[Action]:
@@ -405,8 +416,12 @@ class OnboardMagSession(_DeviceSession):
         return [*self.collect(now), self.instruction(INSTRUCTION_LEVEL_TURN, step=1)]
 
     def _start_failed(self, e: CommandError, now: float) -> list[Action]:
+        # A START that timed out (or answered late) may have started the routine: the
+        # device is told to leave it, so it is left as found. A port that is down cannot
+        # hear it; the controller aborts a left-over CAL mode once frames show it.
+        aborts = [] if isinstance(e, LinkDown) else self._abort()
         self._starting = False
-        return self.fail(device_reason(e), now=now)
+        return [*self.fail(device_reason(e), now=now), *aborts]
 
     def _late(self, job: Job, value: Any) -> list[Action]:
         if isinstance(job, Device) and job.purpose == "abort":

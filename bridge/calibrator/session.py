@@ -51,6 +51,7 @@ EVENT_KINDS: tuple[str, ...] = (
     "calibration.failed",
     "calibration.cancelled",
     "calibration.accepted",
+    "calibration.saved",
     "calibration.storage_error",
     "calibration.device_updated",
     "calibration.device_error",
@@ -216,11 +217,12 @@ class Session:
         return self._resolved(job, value, now)
 
     def crashed(self, job: Job, error: Exception, now: float) -> list[Action]:
-        """A job raised: the session fails rather than hangs."""
+        """A job raised: the session fails rather than hangs (the device told to stop)."""
         if job is not self.pending or not self.running:
             return []
         self.pending = None
-        return self.fail(f"internal error: {error}", retry_ok=False, now=now)
+        aborts: list[Action] = list(self._abort())
+        return [*self.fail(f"internal error: {error}", retry_ok=False, now=now), *aborts]
 
     def accept(self) -> tuple[Outcome, list[Action]]:
         """MAV_CMD_DO_ACCEPT_MAG_CAL: with nothing to accept ACCEPTED (as ArduPilot)."""

@@ -139,8 +139,21 @@ class CalibratorSettings:
 
 
 def number(v: object) -> float | None:
-    """``v`` as a finite float, or None (bools, strings, NaN and infinities are not numbers here)."""
+    """``v`` as a finite float, or None (bools, strings, NaN and infinities are not numbers
+    here, nor an integer too large for a float)."""
     if isinstance(v, bool) or not isinstance(v, int | float):
         return None
-    f = float(v)
+    try:
+        f = float(v)
+    except OverflowError:  # an int beyond 1.8e308
+        return None
     return f if math.isfinite(f) else None
+
+
+def mask_refusal(mask: float) -> Outcome | None:
+    """FAILED unless ``mask`` selects compass 0: MAVLink carries it as a float param, 0 (all)
+    or a byte that includes compass 0. None when it does."""
+    m = number(mask)
+    if m is not None and m == int(m) and 0 <= m <= 255 and (int(m) == 0 or int(m) & 1):
+        return None
+    return Outcome(Result.FAILED, f"compass mask {mask} does not include compass 0")

@@ -227,6 +227,8 @@ class Service:
             text += ", NOT SAVED (storage error)"
         if magnetometer_calibrated(self.daemon.services) is False:
             text += ", UNCALIBRATED"
+        if self.daemon.params.last_error:
+            text += "; parameters NOT SAVED"
         return text
 
     def status_line(self) -> str:

@@ -8,6 +8,13 @@ calibration has drifted) and how old its data is. Bridges are found by their
 publications and by their liveliness token; a bridge whose token vanishes is
 shown as ``gone`` until it comes back.
 
+``KEYEXPR`` selects bridges by their key prefix: ``fleet/**`` (every one),
+``fleet/*/compass``, or one exact prefix (``fleet/boat7/compass``); the
+documents under each prefix (``<prefix>/heading`` ...) are what is shown.
+Two bridges on one prefix (each declares a liveliness token
+``<prefix>/@bridge/<zid>``, see :mod:`bridge.fleet.instances`) are flagged
+``DUP``: their documents are interleaved and a command reaches both.
+
 On a terminal the table is redrawn in place; otherwise (a pipe, a log, a
 test) a plain block of lines is printed every ``interval`` seconds, or once
 with ``--once``. ``--duration`` bounds the run.
@@ -29,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final, TextIO
 
 from bridge.fleet import schema
+from bridge.fleet.instances import INSTANCE_CHUNK, instance_keyexpr
 
 if TYPE_CHECKING:
     import zenoh
@@ -65,6 +73,13 @@ class BridgeState:
     alive: bool | None = None  #: liveliness token: True present, False vanished, None unknown
     heading_times: deque[float] = field(default_factory=deque)
     documents: int = 0
+    instances: set[str] = field(default_factory=set)  #: zenoh ids of bridges on this prefix
+
+    @property
+    def duplicated(self) -> bool:
+        """More than one bridge publishes under this prefix (it says so, or we see two)."""
+        zen = ((self.status or {}).get("zenoh") or {}) if self.status else {}
+        return len(self.instances) > 1 or bool(zen.get("duplicate_prefix"))
 
     def rx_rate(self, now: float) -> float | None:
         """Headings received per second over the last couple of seconds."""
@@ -149,6 +164,23 @@ class FleetView:
             if alive and b.last_seen is None:
                 b.last_seen = now
 
+    def instance(self, key: str, alive: bool, now: float) -> None:
+        """A bridge's instance token ``<prefix>/@bridge/<zid>`` appeared or vanished."""
+        prefix, sep, zid = key.rpartition(INSTANCE_CHUNK)
+        if not sep or not prefix or not zid:
+            return
+        with self._lock:
+            b = self._bridge(prefix)
+            if alive:
+                b.instances.add(zid)
+            else:
+                b.instances.discard(zid)
+
+    def seen_documents(self) -> int:
+        """Bridges with at least one valid document."""
+        with self._lock:
+            return sum(1 for b in self._bridges.values() if b.documents)
+
     def _bridge(self, prefix: str) -> BridgeState:
         b = self._bridges.get(prefix)
         if b is None:
@@ -229,6 +261,8 @@ def _row(b: BridgeState, now: float) -> Row:
             flags.append("DRIFT")
         if uncalibrated(s):
             flags.append("UNCAL")
+    if b.duplicated:
+        flags.insert(0, f"DUP{max(2, len(b.instances))}")
     if b.alive is False:
         age = "gone"
     elif b.last_seen is None:
@@ -300,6 +334,19 @@ class MonitorOptions:
     overrides: tuple[tuple[str, str], ...] = ()
 
 
+def document_keys(keyexpr: str) -> tuple[str, ...]:
+    """What to subscribe to for the documents of the bridges ``keyexpr`` selects.
+
+    A bridge publishes ``<prefix>/<stream>``: an expression ending in ``**`` covers
+    them already; any other (an exact prefix, ``fleet/*/compass``) names prefixes,
+    so their streams are one chunk below (the expression itself is kept too, for a
+    user who names one stream).
+    """
+    if keyexpr == "**" or keyexpr.endswith("/**"):
+        return (keyexpr,)
+    return (keyexpr, f"{keyexpr}/*")
+
+
 def monitor_config(opts: MonitorOptions) -> zenoh.Config:
     """The monitor's zenoh configuration: a peer (or client) that listens nowhere by default."""
     import zenoh
@@ -345,10 +392,16 @@ def run_monitor(
         def on_token(sample: zenoh.Sample) -> None:
             view.liveliness(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, clock())
 
+        def on_instance(sample: zenoh.Sample) -> None:
+            view.instance(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, clock())
+
         # Held until the session closes: a dropped subscriber is undeclared.
         _subscribers = [
-            session.declare_subscriber(opts.keyexpr, on_sample),
+            *(session.declare_subscriber(k, on_sample) for k in document_keys(opts.keyexpr)),
             session.liveliness().declare_subscriber(opts.keyexpr, on_token, history=True),
+            session.liveliness().declare_subscriber(
+                instance_keyexpr(opts.keyexpr), on_instance, history=True
+            ),
         ]
         return _show(view, opts, out, tty, stop, clock)
     finally:
@@ -370,8 +423,15 @@ def _show(
     if opts.once:
         stop.wait(max(0.0, end - clock()) if end is not None else 0.0)
         _write_block(out, view, clock(), tty=False)
-        # as `status`: 1 none seen, 3 one runs uncalibrated (UNCAL), 0 otherwise
-        return 1 if not view.bridges() else 3 if view.uncalibrated() else 0
+        # as `status`: 0 all seen calibrated, 3 one runs uncalibrated (UNCAL), 1 none seen
+        if view.seen_documents():
+            return 3 if view.uncalibrated() else 0
+        if view.bridges():  # a token, and not one document: say what was (not) seen
+            out.write(
+                f"no document from {', '.join(view.bridges())} in {duration:g} s "
+                f"(a bridge's liveliness token only: is it publishing?)\n"
+            )
+        return 1
     # A terminal shows the (empty) table at once; a log gets its first block after one
     # interval, and a last one when the run ends (so a short --duration still prints).
     next_draw = start if tty else start + opts.interval

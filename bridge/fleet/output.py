@@ -37,11 +37,13 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
 
 from bridge.app.services import SentMessage
 from bridge.fleet import schema
+from bridge.fleet.commands import check_sizes, parse_command_args
+from bridge.fleet.contract import CommandOutcome, FleetServices, ZenohCounters, no_unsubscribe
+from bridge.fleet.instances import Instances, instance_id, instance_key, instance_keyexpr
 from bridge.fleet.mirror import MirrorMessage, mirror_key
 from bridge.fleet.pacing import Decimator, RateMeter
 from bridge.fleet.session import ZenohSettings, describe_error, endpoints_text, open_session
@@ -49,7 +51,7 @@ from bridge.fleet.session import ZenohSettings, describe_error, endpoints_text, 
 if TYPE_CHECKING:
     import zenoh
 
-    from bridge.app.sample import CompassSample, DaemonStatus
+    from bridge.app.sample import CompassSample
     from bridge.events import Event
 
 log = logging.getLogger(__name__)
@@ -67,86 +69,8 @@ REOPEN_INTERVAL_S: Final = 0.5
 #: frame-rate meter (2 s window). A look wakes the thread and reads two snapshots: at
 #: 0.5 s that is about 0.1 % of a core less than at 0.25 s (measured on the bench daemon).
 _CHANGE_POLL_S: Final = 0.5
-
-
-@dataclass(frozen=True, slots=True)
-class CommandOutcome:
-    """What a remote calibration command did: ``ok``, a sentence, and details (JSON-ready)."""
-
-    ok: bool
-    message: str
-    detail: Mapping[str, Any] | None = None
-
-
-def _no_state() -> Mapping[str, Any]:
-    return {}
-
-
-def _nothing() -> None:
-    """An unsubscribe that has nothing to undo."""
-
-
-@dataclass(slots=True)
-class FleetServices:
-    """What the Zenoh output asks of the rest of the bridge; every part but ``status`` optional.
-
-    All callables are called from the output's or zenoh's threads and must be
-    quick and thread-safe, except ``run_command`` (its own thread).
-
-    * ``status`` -- the daemon's :class:`~bridge.daemon.DaemonStatus`.
-    * ``calibration_state`` -- a small JSON-ready dict for ``<prefix>/status``
-      (``state``, ``source``, ``percent``, ``fitness_mG`` ...).
-    * ``calibration`` -- ``{"calibration", "source", "report", "state"}`` for
-      the ``<prefix>/calibration`` query.
-    * ``params`` -- the parameter table (name -> value), or None without one.
-    * ``run_command`` -- ``(name, args) -> CommandOutcome`` for remote calibration.
-    * ``subscribe_events`` / ``subscribe_mavlink`` -- register a callback,
-      return the function that unregisters it (the MAVLink messages the bridge
-      sends, whichever MAVLink output sends them: a reload does not detach it).
-    """
-
-    status: Callable[[], DaemonStatus]
-    calibration_state: Callable[[], Mapping[str, Any]] = _no_state
-    calibration: Callable[[], Mapping[str, Any]] | None = None
-    params: Callable[[], Mapping[str, float]] | None = None
-    run_command: Callable[[str, Mapping[str, Any]], CommandOutcome] | None = None
-    subscribe_events: Callable[[Callable[[Event], None]], Callable[[], None]] | None = None
-    subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
-
-
-@dataclass(slots=True)
-class ZenohCounters:
-    """The output's own counters (also published in ``<prefix>/status`` under ``zenoh``)."""
-
-    published: dict[str, int] = field(default_factory=dict)
-    unsent: int = 0  #: samples that came while no session was open
-    decimated: int = 0  #: samples not published because of a rate cap
-    put_errors: int = 0
-    open_failures: int = 0
-    sessions_opened: int = 0
-    queries: int = 0
-    query_errors: int = 0
-    commands: int = 0
-    commands_refused: int = 0
-    events_dropped: int = 0
-    mirror_dropped: int = 0
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-ready copy."""
-        return {
-            "published": dict(self.published),
-            "unsent": self.unsent,
-            "decimated": self.decimated,
-            "put_errors": self.put_errors,
-            "open_failures": self.open_failures,
-            "sessions_opened": self.sessions_opened,
-            "queries": self.queries,
-            "query_errors": self.query_errors,
-            "commands": self.commands,
-            "commands_refused": self.commands_refused,
-            "events_dropped": self.events_dropped,
-            "mirror_dropped": self.mirror_dropped,
-        }
+#: After declaring our instance token: how long the others' (already there) take to arrive.
+_CLAIM_SETTLE_S: Final = 0.3
 
 
 class ZenohOutput:
@@ -174,14 +98,20 @@ class ZenohOutput:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._cmd_thread: threading.Thread | None = None
-        self._commands: queue.Queue[tuple[str, Any] | None] = queue.Queue(maxsize=8)
+        self._commands: queue.Queue[tuple[str, Any, dict[str, Any]] | None] = queue.Queue(maxsize=8)
         self._session: zenoh.Session | None = None
         self._session_lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._mirror_publishers: dict[str, zenoh.Publisher] = {}
         self._keep: list[Any] = []  # queryables, token: undeclared when dropped, so kept here
+        self._keep_claim: list[Any] = []  # our instance token and the others' subscriber
+        self._claim: Instances | None = None
+        self._claim_version = -1
+        self._declared = False
+        self._shared_with: list[str] = []  # the other bridges on our prefix, as last reported
+        self._started_unix = wall()
         self._unsubscribe: list[Callable[[], None]] = []
-        self._mirror_detach: Callable[[], None] = _nothing
+        self._mirror_detach: Callable[[], None] = no_unsubscribe
         self._decimators = {
             "heading": Decimator(settings.heading_rate_hz),
             "attitude": Decimator(settings.attitude_rate_hz),
@@ -208,6 +138,7 @@ class ZenohOutput:
         if self._thread is not None:
             raise RuntimeError("zenoh output already started")
         self._started_at = self._clock()
+        self._started_unix = self._wall()
         s = self.services
         if s.subscribe_events is not None:
             self._unsubscribe.append(s.subscribe_events(self._on_event))
@@ -270,7 +201,7 @@ class ZenohOutput:
         s = self.services
         if not self.settings.mavlink_mirror or s.subscribe_mavlink is None:
             return
-        if self._mirror_detach is _nothing:
+        if self._mirror_detach is no_unsubscribe:
             self._mirror_detach = s.subscribe_mavlink(self._on_mavlink)
 
     # -- callbacks from other threads -----------------------------------------------
@@ -300,9 +231,8 @@ class ZenohOutput:
         try:
             if not self._open():
                 return
-            self._declare()
-            # Only now: publish() puts on the declared publishers from the pipeline thread.
-            self.connected.set()
+            self._claim_prefix()
+            self._follow_claim()  # declares everything, unless another bridge has the prefix
             self._loop()
         except Exception:
             log.exception("zenoh output failed; zenoh publishing stops (the bridge carries on)")
@@ -397,6 +327,13 @@ class ZenohOutput:
             if self._stop.is_set():
                 break
             self._wake.clear()
+            claim = self._claim
+            if claim is not None and claim.version != self._claim_version:
+                self._follow_claim()
+            if not self._declared:  # yielded to a bridge with our key prefix: nothing goes out
+                self._events.clear()
+                self._mirror.clear()
+                continue
             evented = self._drain_events()
             self._drain_mirror()
             now = self._clock()
@@ -409,6 +346,80 @@ class ZenohOutput:
                     last_key = key
                     next_status = now + self.settings.status_period_s
                     self._attach_mirror()  # a reload may have replaced the MAVLink output
+
+    # -- one bridge per key prefix (bridge.fleet.instances) -------------------------------
+
+    def _claim_prefix(self) -> None:
+        """Declare our instance token and watch the others' (before anything else)."""
+        session, st = self._session, self.settings
+        assert session is not None
+        ident = instance_id(int(self._started_unix * 1000), str(session.zid()))
+        self._claim = Instances(st.key_prefix, ident)
+        live = session.liveliness()
+        self._keep_claim = [
+            live.declare_subscriber(
+                instance_keyexpr(st.key_prefix), self._on_instance, history=True
+            ),
+            live.declare_token(instance_key(st.key_prefix, ident)),
+        ]
+        # The tokens already there arrive moments after the subscriber's declaration.
+        self._stop.wait(_CLAIM_SETTLE_S)
+
+    def _on_instance(self, sample: zenoh.Sample) -> None:
+        import zenoh
+
+        claim = self._claim
+        alive = sample.kind == zenoh.SampleKind.PUT
+        if claim is not None and claim.update(str(sample.key_expr), alive):
+            self._wake.set()
+
+    def _follow_claim(self) -> None:
+        """Publish under the prefix if we keep it, yield it if not; say so when it changes."""
+        claim = self._claim
+        assert claim is not None
+        self._claim_version = claim.version
+        others, prefix = claim.others(), self.settings.key_prefix
+        if claim.holds and not self._declared:
+            self._declare()
+            self._declared = True
+            # Only now: publish() puts on the declared publishers from the pipeline thread.
+            self.connected.set()
+        elif not claim.holds and self._declared:
+            self.connected.clear()
+            self._undeclare()
+            self._declared = False
+        if others == self._shared_with:
+            return
+        self._shared_with = others
+        if not others:
+            log.warning("zenoh: key prefix %s is this bridge's alone again", prefix)
+            return
+        what = (
+            "this bridge started first and keeps it; the other publishes nothing"
+            if claim.holds
+            else "another bridge started first: this one publishes nothing and takes no "
+            "command on Zenoh until it is gone"
+        )
+        text = (
+            f"Zenoh key prefix {prefix} is used by {len(others)} other bridge(s) too: {what}; "
+            "give each bridge its own [zenoh] key_prefix"
+        )
+        log.error("zenoh: %s (instances %s)", text, ", ".join(others))
+        emit = self.services.emit_event
+        if emit is not None:
+            from bridge.events import Event, Severity
+
+            data = {"prefix": prefix, "others": others, "keeps": claim.holds}
+            emit(Event("zenoh.duplicate_prefix", text, Severity.ERROR, data))
+
+    def _undeclare(self) -> None:
+        """Everything under the prefix withdrawn (publishers, queryables, its token)."""
+        for obj in [*self._publishers.values(), *self._mirror_publishers.values(), *self._keep]:
+            with contextlib.suppress(Exception):
+                obj.undeclare()
+        self._publishers.clear()
+        self._mirror_publishers.clear()
+        self._keep.clear()
 
     def _publish_sample(self, sample: CompassSample, wanted: tuple[str, ...]) -> None:
         session = self._session
@@ -504,7 +515,7 @@ class ZenohOutput:
         status = self.services.status()
         c = status.counters
         with self._rate_lock:  # fed at every look, so the frame rate is over the whole window
-            self._rate.add(self._clock(), c.attitude_frames or c.frames)
+            self._rate.add(self._clock(), c.attitude_frames)
         cal = self._safe(self.services.calibration_state, {})
         return (status.state.value, cal.get("state"), cal.get("source"))
 
@@ -515,13 +526,13 @@ class ZenohOutput:
         now = self._clock()
         with self._rate_lock:  # queries read it from zenoh's threads
             if sample_rate:
-                self._rate.add(now, c.attitude_frames or c.frames)
+                self._rate.add(now, c.attitude_frames)
             frame_rate = self._rate.rate()
         return schema.status_doc(
             status,
             frame_rate_hz=frame_rate,
             calibration=self._safe(self.services.calibration_state, {}),
-            publisher=self.counters.as_dict(),
+            publisher={**self.counters.as_dict(), "duplicate_prefix": list(self._shared_with)},
             t_unix=self._wall(),
             uptime_s=now - self._started_at,
         )
@@ -540,6 +551,8 @@ class ZenohOutput:
         with self._session_lock:
             session, self._session = self._session, None
         self._keep.clear()
+        self._keep_claim.clear()
+        self._declared = False
         self._publishers.clear()
         self._mirror_publishers.clear()
         if session is not None:
@@ -600,7 +613,23 @@ class ZenohOutput:
             if str(query.key_expr) != key:
                 return
             try:
-                self._commands.put_nowait((cmd, query))
+                # Here, in zenoh's thread: bounded and quick (bridge.fleet.commands).
+                args = _command_args(query)
+            except ValueError as e:
+                self.counters.bad_arguments += 1
+                log.warning("zenoh: %s refused: bad arguments: %s", key, e)
+                self._reply_command(query, key, cmd, CommandOutcome(False, f"bad arguments: {e}"))
+                return
+            shared = self._claim.others() if self._claim is not None else []
+            if shared:
+                self.counters.commands_refused += 1
+                why = (
+                    f"refused: key prefix {self.settings.key_prefix} is shared with another bridge"
+                )
+                self._reply_command(query, key, cmd, CommandOutcome(False, why))
+                return
+            try:
+                self._commands.put_nowait((cmd, query, args))
             except queue.Full:
                 self.counters.commands_refused += 1
                 outcome = CommandOutcome(False, "busy: too many commands pending")
@@ -613,21 +642,20 @@ class ZenohOutput:
             item = self._commands.get()
             if item is None or self._stop.is_set():
                 return
-            cmd, query = item
-            self._execute(cmd, query)
+            self._execute(*item)
 
-    def _execute(self, cmd: str, query: zenoh.Query) -> None:
+    def _execute(self, cmd: str, query: zenoh.Query, args: dict[str, Any]) -> None:
         key = self.settings.key("cmd", "calibration", cmd)
         self.counters.commands += 1
         run = self.services.run_command
         try:
-            args = _command_args(query)
             if run is None:
                 outcome = CommandOutcome(False, "calibration is not available on this bridge")
             else:
-                log.info("zenoh: remote calibration command %s %s", cmd, dict(args) or "")
+                log.info("zenoh: remote calibration command %s %s", cmd, args or "")
                 outcome = run(cmd, args)
         except ValueError as e:
+            self.counters.bad_arguments += 1
             outcome = CommandOutcome(False, f"bad arguments: {e}")
         except Exception as e:
             log.exception("zenoh: calibration command %s failed", cmd)
@@ -654,25 +682,13 @@ class ZenohOutput:
 
 
 def _command_args(query: zenoh.Query) -> dict[str, Any]:
-    """Arguments from the query's JSON payload (an object) and its selector parameters.
-
-    Selector parameters (``...start?onboard=true``) are strings, parsed as
-    JSON where they can be (``true``, ``1``), else kept as text.
-    """
-    args: dict[str, Any] = {}
-    pairs: list[tuple[str, str]] = list(query.parameters)  # type: ignore[call-overload]  # stub: __iter__ -> list
-    for k, v in pairs:
-        try:
-            args[k] = json.loads(v)
-        except ValueError:
-            args[k] = v
+    """Arguments from the query's JSON payload (an object) and its selector parameters,
+    bounded (:func:`bridge.fleet.commands.parse_command_args`); ValueError says why not."""
+    params = query.parameters
+    text = str(params)
     payload = query.payload
-    if payload is not None and len(payload) > 0:
-        try:
-            body = json.loads(payload.to_bytes())
-        except ValueError as e:
-            raise ValueError(f"payload is not JSON: {e}") from None
-        if not isinstance(body, dict):
-            raise ValueError("payload must be a JSON object")
-        args.update(body)
-    return args
+    size = len(payload) if payload is not None else 0
+    check_sizes(size, len(text))  # refused unread
+    data = payload.to_bytes() if payload is not None and size else None
+    pairs: list[tuple[str, str]] = list(params)  # type: ignore[call-overload]  # stub: __iter__ -> list
+    return parse_command_args(data, text, pairs)

@@ -13,7 +13,9 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from bridge.app.services import magnetometer_calibrated
-from bridge.fleet.output import CommandOutcome, FleetServices
+from bridge.calibrator.state import number
+from bridge.fleet.commands import quote
+from bridge.fleet.contract import CommandOutcome, FleetServices
 
 if TYPE_CHECKING:
     from bridge.app.services import BridgeServices, SentMessage
@@ -77,16 +79,17 @@ def _flag(args: Mapping[str, Any], name: str, default: bool | None = None) -> bo
         return v
     if v in (0, 1):
         return bool(v)
-    raise ValueError(f"{name} must be true or false, got {v!r}")
+    raise ValueError(f"{name} must be true or false, got {quote(v)}")
 
 
 def _number(args: Mapping[str, Any], name: str, default: float | None = None) -> float | None:
     v = args.get(name, default)
     if v is None:
         return None
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise ValueError(f"{name} must be a number, got {v!r}")
-    return float(v)
+    f = number(v)  # no bool, no NaN or infinity, no integer beyond a float
+    if f is None:
+        raise ValueError(f"{name} must be a number, got {quote(v)}")
+    return f
 
 
 def run_calibration_command(
@@ -117,7 +120,7 @@ def run_calibration_command(
     elif command == "start":
         what = args.get("what", "mag")
         if what not in START_KINDS:
-            raise ValueError(f"what must be one of {', '.join(START_KINDS)}, got {what!r}")
+            raise ValueError(f"what must be one of {', '.join(START_KINDS)}, got {quote(what)}")
         onboard = _flag(args, "onboard")
         if what == "mag":
             outcome = cal.start_mag(
@@ -140,7 +143,7 @@ def run_calibration_command(
                 longitude_deg=_number(args, "longitude_deg"),
             )
     else:
-        raise ValueError(f"unknown command {command!r}")
+        raise ValueError(f"unknown command {quote(command)}")
     detail = {"result": outcome.result.value, "state": cal.snapshot().to_dict()}
     return CommandOutcome(outcome.ok, outcome.message, detail)
 
@@ -165,4 +168,5 @@ def fleet_services(svc: BridgeServices) -> FleetServices:
         run_command=run_command,
         subscribe_events=svc.events.subscribe,
         subscribe_mavlink=subscribe_mavlink,
+        emit_event=svc.events.emit,
     )

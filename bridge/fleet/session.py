@@ -14,6 +14,8 @@ conservative:
 * **Fast re-join.** Zenoh retries a lost ``connect`` endpoint after 1 s, then
   backs off to 4 s; the bridge retries after 250 ms, backing off to 1 s, so a
   peer or router that comes back is re-joined in about a second.
+* **Bounded input.** A message larger than 1 MiB (``transport/link/rx/max_message_size``,
+  zenoh's own bound, 1 GiB by default) is dropped by zenoh before it is assembled.
 * **Never fatal.** ``connect/exit_on_failure`` is off: an absent peer is
   retried in the background; a client's ``open`` gives up after
   ``connect/timeout_ms`` (1 s) and the output retries it itself.
@@ -48,6 +50,11 @@ CONNECT_RETRY: Final[Mapping[str, int]] = {
 }
 #: How long ``open`` waits for a connect endpoint (a client needs its router).
 CONNECT_TIMEOUT_MS: Final = 1000
+#: The largest message the bridge's session takes in (zenoh's own bound, 1 GiB by default):
+#: the bridge receives queries (remote commands, a few hundred bytes) and liveliness
+#: tokens, so 1 MiB leaves room; a flood of huge queries then costs no memory
+#: (:mod:`bridge.fleet.commands` answers "bad arguments" below it).
+MAX_MESSAGE_BYTES: Final = 1 << 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,6 +146,8 @@ def config_items(
         items.append(("connect/timeout_ms", _json(CONNECT_TIMEOUT_MS)))
     if "connect/exit_on_failure" not in file_sets:
         items.append(("connect/exit_on_failure", _json(False)))
+    if "transport/link/rx/max_message_size" not in file_sets:
+        items.append(("transport/link/rx/max_message_size", _json(MAX_MESSAGE_BYTES)))
     if settings.mode == "client":
         # A client never listens; zenoh's client default is already no listener.
         pass
@@ -158,6 +167,7 @@ def config_items(
 
 #: Keys whose presence in a base file changes what :func:`config_items` inserts.
 _FILE_KEYS: Final = (
+    "transport/link/rx/max_message_size",
     "connect/retry",
     "connect/timeout_ms",
     "connect/exit_on_failure",

@@ -17,6 +17,7 @@ from bridge.link.record import (
 from bridge.link.recorder import RecordSummary, record
 from bridge.link.serial_link import (
     CommandError,
+    CommandLate,
     CommandNotSupported,
     CommandRejected,
     CommandTimeout,
@@ -38,6 +39,7 @@ from bridge.link.transport import (
 
 __all__ = [
     "CommandError",
+    "CommandLate",
     "CommandNotSupported",
     "CommandRejected",
     "CommandTimeout",

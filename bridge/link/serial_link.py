@@ -10,13 +10,27 @@ Threads (and why there are two):
   every (re)connect and after a detected device reset. It must be a separate
   thread because the answers it waits for arrive through the reader.
 
-Link states (:class:`LinkState`), each change logged once:
+Link states (:class:`LinkState`), each change logged once. Only **attitude
+frames** count (``$PGMRA``; for a heading-only compass its heading sentences):
+a compass that answers commands but streams nothing is not streaming.
 
-* ``OPENING``   -- opening the port, or open and waiting for the first valid frame
-* ``STREAMING`` -- valid frames arrive
-* ``STALE``     -- the port is open but no valid frame came for ``stale_after`` s; the link
-  closes and reopens it (with backoff) and stays STALE until frames come back
+* ``OPENING``   -- opening the port, or open and waiting for attitude frames
+* ``STREAMING`` -- attitude frames arrive
+* ``STALE``     -- the port is open but no attitude frame came for ``stale_after`` s;
+  the link closes and reopens it (with backoff) and stays STALE until frames come back
 * ``ABSENT``    -- the port cannot be opened or went away; reopened with backoff, quietly
+
+Hysteresis, so the state never flaps: the link becomes STREAMING on the
+second attitude frame of a run; but once a STREAMING spell has ended stale
+within ``10 * stale_after``, frames must keep coming for ``stale_after / 2``
+first, and that while doubles with each further short spell (up to
+``4 * stale_after``); a spell that lasts resets it. A compass that streams in
+short bursts stays STALE instead of going lost / restored forever.
+
+A device reset is what the datasheet says it looks like: a ``$PGMRV`` nobody
+asked for *and* frames starting again at ``seq`` 0 (or ``seq`` 0 alone, when
+the ``$PGMRV`` was lost). A ``$PGMRV`` after which the frames carry on is a
+late or stray answer, not a reset.
 
 Command transactions (GMR protocol only) are serialised; how an answer is matched
 to its command, and a late answer kept from passing for a later command's, is
@@ -42,6 +56,7 @@ from bridge.link.transactions import (
 from bridge.link.transport import EndOfRecording, Transport
 from bridge.ports import (
     CommandError,
+    CommandLate,
     CommandNotSupported,
     CommandRejected,
     CommandTimeout,
@@ -65,7 +80,9 @@ from bridge.protocol.gmr import (
 __all__ = [
     "COMMAND_DEADLINES_S",
     "DEFAULT_DEADLINE_S",
+    "DEFAULT_LATE_ANSWER_WINDOW_S",
     "CommandError",
+    "CommandLate",
     "CommandNotSupported",
     "CommandRejected",
     "CommandTimeout",
@@ -95,6 +112,16 @@ _MAX_PLAUSIBLE_GAP = SEQ_MODULUS // 2
 #: 64 frames: 0.64 s at 100 Hz, longer than any loss that keeps a 100 Hz link streaming
 #: within the default stale_after.
 _WRAP_LOSS_WINDOW = 64
+
+#: How long after its deadline a command's answer may still come (a device slower than
+#: its datasheet): no retry meanwhile, and an answer that late is a time-out, not news.
+DEFAULT_LATE_ANSWER_WINDOW_S = 2.0
+#: After a short spell, STREAMING needs attitude frames for ``stale_after / _CONFIRM_DIVISOR``
+_CONFIRM_DIVISOR = 2.0
+#: (a spell is short when it ended stale sooner than ``_FLAP_SPELLS * stale_after``),
+_FLAP_SPELLS = 10.0
+#: doubled for each further short spell, up to this many times.
+_CONFIRM_MAX_FACTOR = 8.0
 
 _READ_TIMEOUT_S = 0.05  # bounds how late the reader notices close() and staleness
 _READ_CHUNK = 4096
@@ -133,7 +160,7 @@ class CompassLink:
         on_state: Callable[[LinkState, LinkState], None] | None = None,
         backoff_initial: float = 0.1,
         backoff_max: float = 2.0,
-        late_answer_window: float = 1.0,
+        late_answer_window: float = DEFAULT_LATE_ANSWER_WINDOW_S,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if protocol not in ("gmr", "nmea", "os5000"):
@@ -198,7 +225,10 @@ class CompassLink:
 
         # Sequence tracking (reader only).
         self._last_seq: int | None = None
-        self._restart_expected = False
+        self._restart_expected = False  # an unasked $PGMRV came: the next seq tells
+        # Hysteresis (reader only): 0 -- two frames make a stream; else how many times
+        # stale_after / _CONFIRM_DIVISOR attitude frames must keep coming (after short spells).
+        self._confirm_factor = 0.0
 
         # Handshake hand-off: the reader bumps the generation, the worker follows it.
         self._gen_cond = threading.Condition()
@@ -309,7 +339,10 @@ class CompassLink:
         the datasheet's deadline for the command (200 ms; MAGCAL,END and
         PAR,SET 500 ms; ACCCAL 1.5 s) plus the time a command and an answer
         line take on the wire at the port's baud -- and is resent up to
-        ``retries`` times. Raises :class:`CommandRejected` on ``ERR``,
+        ``retries`` times, each time only once the previous attempt's answer can
+        no longer come (``late_answer_window`` after its deadline). Raises
+        :class:`CommandRejected` on ``ERR``, :class:`CommandLate` (a
+        :class:`CommandTimeout`) when the answer came after the deadline,
         :class:`CommandTimeout` when nothing matching came, :class:`LinkDown`
         when the port is not open, :class:`CommandNotSupported` for
         heading-only protocols, ValueError for a malformed command. Frames
@@ -361,9 +394,10 @@ class CompassLink:
     def _route_answer(self, frame: GmrFrame, now: float) -> None:
         """Reader side: an answer-type frame to the transactions; a reboot's $PGMRV to us."""
         # Only a version nobody asked for lately, from a device already seen streaming on
-        # this connection, is a reset (a power-up announcement is not one we saw).
+        # this connection, may be a reset (a power-up announcement is not one we saw); the
+        # next attitude frame's seq decides (see _track_seq).
         if self._txns.route(frame, now) is Routed.VERSION and self._last_seq is not None:
-            self._device_reset("unasked $PGMRV")
+            self._restart_expected = True
 
     # ------------------------------------------------------------------ reader
 
@@ -424,7 +458,12 @@ class CompassLink:
         backoff = self._backoff_initial
         opened_before = False
         is_open = False
-        last_valid = 0.0
+        last_attitude = 0.0  # when the last attitude frame came (or the port opened)
+        last_frame = -float("inf")  # when the last frame of any kind came
+        run_start: float | None = None  # first attitude frame of the current run
+        run_frames = 0
+        streaming_since = 0.0
+        c = self._c
         while not self._stop.is_set():
             if not is_open:
                 try:
@@ -448,7 +487,8 @@ class CompassLink:
                     reset()  # a partial line from the old connection is not a bad line
                 self._last_seq = None
                 self._restart_expected = False
-                last_valid = self._clock()
+                last_attitude = self._clock()
+                run_start = None
                 if self.state is LinkState.ABSENT:
                     self._set_state(LinkState.OPENING, "port open")
                 self._bump_generation()
@@ -467,24 +507,45 @@ class CompassLink:
                 continue
             now = self._clock()
             if data:
-                self._c["bytes_read"] += len(data)  # reader-only key: no lock (see __init__)
+                c["bytes_read"] += len(data)  # reader-only key: no lock (see __init__)
                 frames = self._decoder.feed(data)
                 if frames:
-                    last_valid = now
+                    last_frame = now
+                    before = c["attitude_frames"]
                     self._handle(frames, now)
-                    # Only this thread writes the state: a plain read, not the lock, per frame.
-                    if self._state is not LinkState.STREAMING:
-                        self._set_state(LinkState.STREAMING)
-                        backoff = self._backoff_initial
-            if now - last_valid > self.stale_after:
+                    # Only attitude frames make a stream: command answers do not.
+                    if c["attitude_frames"] != before:
+                        last_attitude = now
+                        # Only this thread writes the state: a plain read, not the lock.
+                        if self._state is not LinkState.STREAMING:
+                            if run_start is None:
+                                run_start, run_frames = now, 0
+                            run_frames += c["attitude_frames"] - before
+                            if run_frames >= 2 and now - run_start >= self._confirm_s():
+                                self._set_state(LinkState.STREAMING)
+                                streaming_since = now
+                                backoff = self._backoff_initial
+            if now - last_attitude > self.stale_after:
                 self._count("stale_events")
-                self._set_state(
-                    LinkState.STALE, f"no valid frame for {self.stale_after:g} s; reopening"
-                )
+                if self._state is LinkState.STREAMING:
+                    # A short spell between two silences: the next one must last longer.
+                    short = now - streaming_since < _FLAP_SPELLS * self.stale_after
+                    factor = min(2.0 * self._confirm_factor, _CONFIRM_MAX_FACTOR)
+                    self._confirm_factor = max(1.0, factor) if short else 0.0
+                what = "attitude frame" if self.protocol == "gmr" else "heading sentence"
+                why = f"no {what} for {self.stale_after:g} s"
+                if now - last_frame <= self.stale_after:
+                    why += " (the compass answers, but streams nothing)"
+                self._set_state(LinkState.STALE, f"{why}; reopening")
                 self._close_port()
                 is_open = False
+                run_start = None
                 self._stop.wait(backoff)
                 backoff = min(2 * backoff, self._backoff_max)
+
+    def _confirm_s(self) -> float:
+        """How long attitude frames must keep coming before the link says STREAMING."""
+        return self.stale_after / _CONFIRM_DIVISOR * self._confirm_factor
 
     def _end_of_recording(self, why: str) -> None:
         self._ended.set()
@@ -502,6 +563,8 @@ class CompassLink:
                     self._last_seq = frame.seq
                 else:
                     self._track_seq(frame.seq)
+            elif type(frame) is HeadingFrame:
+                c["attitude_frames"] += 1  # a heading-only compass's stream
             elif isinstance(frame, VersionFrame | ParamsFrame | AckFrame):
                 if isinstance(frame, VersionFrame):
                     self._version = frame
@@ -523,12 +586,18 @@ class CompassLink:
         """A $PGMRA frame's sequence number (counted in attitude_frames by the caller)."""
         last = self._last_seq
         self._last_seq = seq
-        if last is None or self._restart_expected:
-            # First frame of a connection, or a reset announced by $PGMRV: the sequence
-            # starts afresh, there is no gap to count.
-            self._restart_expected = False
-            return
+        if last is None:
+            return  # the first frame of a connection: no gap to count
         expected = (last + 1) % SEQ_MODULUS
+        if self._restart_expected:
+            # An unasked $PGMRV came: a reboot restarts the sequence, anything else does not.
+            self._restart_expected = False
+            if seq == expected:
+                self._count("unsolicited_answers")
+                log.debug("compass %s: a $PGMRV nobody asked for; frames went on", self.name)
+            else:
+                self._device_reset("$PGMRV unasked, seq restarted")
+            return
         if seq == expected:
             return
         gap = (seq - expected) % SEQ_MODULUS
@@ -536,7 +605,6 @@ class CompassLink:
             # The datasheet's RESET restarts the counter at 0 (its $PGMRV, which normally
             # announces it, may have been lost on the line).
             self._device_reset("seq restarted at 0")
-            self._restart_expected = False
             return
         if gap < _MAX_PLAUSIBLE_GAP:
             self._count("lost_frames", gap)
@@ -545,11 +613,11 @@ class CompassLink:
             log.debug("compass %s: seq jumped from %d to %d", self.name, last, seq)
 
     def _device_reset(self, why: str) -> None:
+        """A reboot seen in the stream: this frame starts its new sequence."""
         self._count("device_resets")
         log.warning("compass %s: device reset detected (%s)", self.name, why)
-        # The next frame starts a new sequence; a rebooted device runs at 10 Hz again,
-        # so the handshake (VER, RATE, PAR,GET) is run again as after a reconnect.
-        self._restart_expected = True
+        # A rebooted device runs at 10 Hz again: the handshake (VER, RATE, PAR,GET) runs
+        # again as after a reconnect.
         self._bump_generation()
 
     def _enqueue(self, item: Received) -> None:

@@ -2,13 +2,21 @@
 
 The device's answers carry no transaction id, so an answer is matched on its
 command word (``$PGMRK,<word>``, ``$PGMRV`` for VER, ``$PGMRP`` for PAR,GET)
-and its shape. To keep a *late* answer to a timed-out attempt from being taken
-for the answer to a later command, every attempt leaves an "expected answer"
-slot that lives for the command's deadline plus ``late_window``; an answer
-that matches no current transaction consumes a slot and is counted as late,
-and a new command waits (bounded) until no slot of its command word is
-outstanding -- only then can the next ``$PGMRK,<word>`` be its own answer.
-The device answers commands in order, so slots are consumed oldest first.
+and its shape. Every attempt leaves an "expected answer" slot that lives for
+the command's deadline plus ``late_window``: the time its answer may still
+come from a device slower than its datasheet. Three rules follow:
+
+* **An answer after the deadline is a time-out**, never a success and never
+  news of something else (a reset): the caller gets :class:`~bridge.ports.CommandLate`
+  (a :class:`~bridge.ports.CommandTimeout` carrying the answer), the link counts
+  a time-out and a late answer.
+* **No command is sent again while its answer may still come**: a retry goes
+  out only once the previous attempt's slot has expired with no answer (the
+  line was lost), so a late device never runs a command twice.
+* **A late answer never passes for a later command's**: an answer that matches
+  no current transaction consumes a slot and is counted as late, and a new
+  command waits (bounded) until no slot of its command word is outstanding.
+  The device answers commands in order, so slots are consumed oldest first.
 
 :class:`Transactions` holds that bookkeeping; :class:`~bridge.link.serial_link.CompassLink`
 owns the port, writes for it and hands it every answer-type frame its reader sees.
@@ -23,6 +31,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from bridge.ports import (
+    CommandLate,
     CommandTimeout,
     LinkDown,
 )
@@ -56,6 +65,8 @@ class _Slot:
 class _Txn:
     cmd: CommandFrame
     answer: GmrFrame | None = None
+    answered_at: float = 0.0
+    deadline: float = float("inf")  #: the current attempt's deadline (clock seconds)
 
 
 def answer_word(frame: object) -> str | None:
@@ -129,7 +140,8 @@ class Transactions:
     def run(self, cmd: CommandFrame, line: bytes, per_try: float, retries: int) -> GmrFrame:
         """Send ``line`` (``cmd`` encoded) until a matching answer comes; that answer.
 
-        Raises :class:`CommandTimeout` after ``retries + 1`` unanswered attempts and
+        Raises :class:`CommandTimeout` after ``retries + 1`` unanswered attempts,
+        :class:`CommandLate` when the answer came after the deadline (not resent), and
         :class:`LinkDown` when the port is not open or the link closes meanwhile.
         """
         with self._cmd_lock:
@@ -161,12 +173,14 @@ class Transactions:
             if attempt:
                 self._count("command_retries")
                 log.debug("%s: no answer to %s, resending", self._name, txn.cmd.key)
-            slot = _Slot(word, self._clock() + per_try + self._late_window)
+            sent = self._clock()
+            slot = _Slot(word, sent + per_try + self._late_window)
             with self._cond:
                 # Registered before writing: the answer may beat the return of write().
                 self._slots.append(slot)
+                txn.deadline = sent + per_try
                 if word == "VER":
-                    self._last_ver_sent = self._clock()
+                    self._last_ver_sent = sent
             try:
                 self._write(line)
             except LinkDown:
@@ -175,19 +189,51 @@ class Transactions:
                         self._slots.remove(slot)
                 raise
             self._count("commands_sent")
-            with self._cond:
-                end = self._clock() + per_try
-                while txn.answer is None:
-                    if self._stop.is_set():
-                        raise LinkDown("link closed while waiting for an answer")
-                    left = end - self._clock()
-                    if left <= 0:
-                        break
-                    self._cond.wait(left)
-                if txn.answer is not None:
-                    return txn.answer
+            # On time: an answer by the deadline.
+            if self._wait(txn, txn.deadline):
+                return self._answered(txn, per_try)
+            if attempt == retries:
+                break
+            # Timed out. Its answer may still come until the slot expires: wait for that
+            # before sending the command again (a late device must not run it twice).
+            if self._wait(txn, slot.expires, until_gone=slot):
+                return self._answered(txn, per_try)
         self._count("command_timeouts")
         raise CommandTimeout(f"no answer to {txn.cmd.key} after {retries + 1} attempt(s)")
+
+    def _wait(self, txn: _Txn, end: float, until_gone: _Slot | None = None) -> bool:
+        """Wait for ``txn``'s answer until ``end`` (or ``until_gone`` leaves the slots);
+        True if it came. :class:`LinkDown` if the link closes meanwhile."""
+        with self._cond:
+            while txn.answer is None:
+                if self._stop.is_set():
+                    raise LinkDown("link closed while waiting for an answer")
+                now = self._clock()
+                if until_gone is not None:
+                    self._expire_slots(now)
+                    if until_gone not in self._slots:
+                        break
+                left = end - now
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            return txn.answer is not None
+
+    def _answered(self, txn: _Txn, per_try: float) -> GmrFrame:
+        """``txn``'s answer if it came by the deadline; :class:`CommandLate` otherwise."""
+        assert txn.answer is not None
+        late = txn.answered_at - txn.deadline
+        if late <= 0:
+            return txn.answer
+        self._count("command_timeouts")
+        log.warning(
+            "%s: %s answered %.2f s late (deadline %.2f s): taken as a time-out",
+            self._name,
+            txn.cmd.key,
+            late,
+            per_try,
+        )
+        raise CommandLate(txn.cmd.key, txn.answer, late, per_try)
 
     def _expire_slots(self, now: float) -> None:
         if self._slots:
@@ -209,9 +255,12 @@ class Transactions:
             self._expire_slots(now)
             txn = self._current
             if txn is not None and txn.answer is None and matches(txn.cmd, frame):
-                txn.answer = frame
+                txn.answer, txn.answered_at = frame, now
                 self._take_slot(word)
                 self._cond.notify_all()
+                if now > txn.deadline:
+                    self._count("late_answers")
+                    return Routed.LATE
                 return Routed.ANSWER
             if self._take_slot(word):
                 self._count("late_answers")

@@ -168,6 +168,14 @@ REPORT_PERIOD_S = 1.0
 #: Outside the PX4 flow, a progress STATUSTEXT at least this often while a magnetometer
 #: calibration runs, even when it does not move on (a unit turned level only: never silent).
 PROGRESS_TEXT_REMIND_S = 15.0
+#: The compass's own MAGCAL is in its flash when reported -- nothing to accept or cancel: its
+#: MAG_CAL_REPORT goes out this many times in all (one lost datagram is no loss), not forever.
+ONBOARD_REPORTS = 3
+#: Event STATUSTEXTs (progress lines aside) are paced by a token bucket: a burst of this many,
+#: then this many a second -- a flood of commands (start, cancel, start ...) or of failing
+#: saves must not become a flood to every ground station; a calibration's own lines fit.
+TEXT_BURST = 30
+TEXT_RATE_HZ = 2.0
 
 
 class CalibrationRelay:
@@ -184,7 +192,11 @@ class CalibrationRelay:
     DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL answers it (:meth:`answered`) or
     another calibration starts: one lost datagram must not leave a ground
     station waiting (QGroundControl waits for the report and never accepts,
-    MAVProxy accepts on every report). The PX4 flow has no report to wait for.
+    MAVProxy accepts on every report). The PX4 flow has no report to wait for,
+    and the compass's own MAGCAL (saved in its flash) none to accept: its report
+    goes out :data:`ONBOARD_REPORTS` times. Event STATUSTEXTs other than progress go
+    through a token bucket (:data:`TEXT_BURST`, :data:`TEXT_RATE_HZ`); the rest are
+    counted in :attr:`throttled`.
     """
 
     def __init__(self, compass_id: int = 0, clock: Callable[[], float] = time.monotonic) -> None:
@@ -197,8 +209,12 @@ class CalibrationRelay:
         self._text_at = clock()  # when a progress text last went out (or the flow began)
         self.last_report: MagCalReport | None = None
         self._repeat: Message | None = None  # the MAG_CAL_REPORT repeated until answered
+        self._repeat_left: int | None = None  # repeats still to go (None: until answered)
         self._repeat_at = -math.inf
         self._progress_at = -math.inf
+        self._tokens = float(TEXT_BURST)
+        self._tokens_at = clock()
+        self.throttled = 0  #: event STATUSTEXTs not sent (over the bucket's rate)
 
     # -- the keep-alive -------------------------------------------------------------
 
@@ -229,6 +245,10 @@ class CalibrationRelay:
             if report is None or now - self._repeat_at < REPORT_PERIOD_S:
                 return []
             self._repeat_at = now
+            if self._repeat_left is not None:
+                self._repeat_left -= 1
+                if self._repeat_left <= 0:
+                    self._repeat = None
         return [report]
 
     def hurry(self) -> None:
@@ -270,10 +290,27 @@ class CalibrationRelay:
             self._last_step = 0
             self._text_at = self._clock()
 
+    def _text(self, event: Event, text: str | None = None) -> list[Message]:
+        """``event``'s STATUSTEXT (``text``: another line for it) if the bucket allows one
+        (progress lines always: they go out once per percent anyway)."""
+        if event.kind != "calibration.progress":
+            now = self._clock()
+            with self._lock:
+                elapsed = max(0.0, now - self._tokens_at)
+                self._tokens = min(float(TEXT_BURST), self._tokens + elapsed * TEXT_RATE_HZ)
+                self._tokens_at = now
+                if self._tokens < 1.0:
+                    self.throttled += 1
+                    return []
+                self._tokens -= 1.0
+        if text is not None:
+            return statustext(int(event.severity), text)
+        return statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
+
     def packets(self, event: Event) -> list[Message]:
         """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
         if not event.kind.startswith("calibration."):
-            return statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
+            return self._text(event)
         if (
             event.kind == "calibration.accepted"
             and event.data.get("source") == "parameters"
@@ -303,13 +340,17 @@ class CalibrationRelay:
                 if flow != "px4":
                     with self._lock:
                         self._repeat, self._repeat_at = out[-1], self._clock()
+                        saved = bool(event.data.get("onboard") and event.data.get("autosaved"))
+                        self._repeat_left = ONBOARD_REPORTS - 1 if saved else None
         # The calibrator's texts are whole sentences: they go out chunked when longer than
         # one STATUSTEXT ("Calibration failed: MAGCAL,END: too little rotation (RANGE)").
         if flow == "px4":
             line = calmap.px4_text(event)
             if line is not None:
-                out += statustext(int(event.severity), line)
-                if event.kind == "calibration.failed" and len(line.encode()) >= STATUSTEXT_LEN:
+                text = self._text(event, line)
+                out += text
+                cut = len(line.encode()) >= STATUSTEXT_LEN
+                if text and cut and event.kind == "calibration.failed":
                     # the [cal] line had to be cut: the whole reason follows for the log
                     out += statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
             return out
@@ -317,7 +358,7 @@ class CalibrationRelay:
             # ArduPilot flow: MAG_CAL_PROGRESS carries it, which MAVProxy's console does
             # not show: a line every PROGRESS_TEXT_STEP per cent says it is working.
             return out + self._progress_text(event)
-        return out + statustext(int(event.severity), event.text, chunk_id=_chunk_id(event))
+        return out + self._text(event)
 
 
 def _chunk_id(event: Event) -> int:

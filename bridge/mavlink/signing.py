@@ -27,6 +27,12 @@ every endpoint:
   must increase; a stream seen for the first time must not be more than
   :data:`NEW_STREAM_WINDOW_S` older than our own timestamp. Only a valid
   packet updates the table and advances our own timestamp.
+* **peers**: :meth:`Signing.fresh` is the endpoints' question "may this packet make
+  (or keep) its sender a peer?": a valid signature, newer than the last one seen
+  from that stream *as a peer* (a table of its own, so it never spends the
+  timestamp :meth:`Signing.verify` will check when the packet is obeyed) and than
+  the last one obeyed, and not more than a minute older than our own clock for a
+  stream not seen before. A replayed or forged packet makes nobody a peer.
 * **restart**: the table lives on in the state directory (:meth:`Signing.snapshot`,
   :meth:`Signing.restore`; the MAVLink output writes it before it obeys a signed
   command or parameter set), so a packet captured before a restart is still a
@@ -85,6 +91,7 @@ class Signing:
         self._lock = threading.Lock()
         self._timestamp = 0
         self._streams: OrderedDict[tuple[int, int, int], int] = OrderedDict()
+        self._peers: OrderedDict[tuple[int, int, int], int] = OrderedDict()  # see fresh()
         self.accepted = 0
         self.rejected: dict[Verdict, int] = {v: 0 for v in Verdict if v is not Verdict.OK}
 
@@ -135,6 +142,33 @@ class Signing:
             self._timestamp = max(self._timestamp, ts)
             self.accepted += 1
         return Verdict.OK
+
+    def fresh(self, packet: bytes | bytearray, src_system: int, src_component: int) -> bool:
+        """A packet that may make its sender a peer (see the module docstring); no side
+        effect on :meth:`verify`'s replay table."""
+        if not is_signed(packet) or len(packet) < 12 + SIGNATURE_LEN:
+            return False
+        data = bytes(packet)
+        if not hmac.compare_digest(hashlib.sha256(self._key + data[:-6]).digest()[:6], data[-6:]):
+            return False
+        ts = int.from_bytes(data[-12:-6], "little")
+        key = (data[-SIGNATURE_LEN], src_system, src_component)
+        with self._lock:
+            last = self._peers.get(key)
+            obeyed = self._streams.get(key)  # a packet obeyed before (a restart) is no news
+            if obeyed is not None and ts <= obeyed:
+                return False
+            if last is None:
+                ours = max(self._timestamp, unix_to_ticks(self._clock()))
+                if ts + NEW_STREAM_WINDOW_S * TICKS_PER_SECOND < ours:
+                    return False
+            elif ts <= last:
+                return False
+            self._peers[key] = ts
+            self._peers.move_to_end(key)
+            if len(self._peers) > _MAX_STREAMS:
+                self._peers.popitem(last=False)
+        return True
 
     def snapshot(self) -> dict[str, Any]:
         """The replay table and our timestamp, JSON-ready (what survives a restart)."""

@@ -231,6 +231,10 @@ class Firmware:
         self._acc_gen = 0
         # hard-iron changes still to come: (motion time, delta gauss), in time order
         self._iron_steps: list[tuple[float, FloatArray]] = []
+        #: Faults out of the datasheet (tests, ``bench fuzz``): every command handled this
+        #: much later than the datasheet allows; no ``$PGMRA`` at all while False.
+        self.answer_delay_s = 0.0
+        self.streaming = True
         self.frames_sent = 0
         self.frames_skipped = 0  #: ticks lost to flash writes
         self.commands_dropped = 0  #: lines that arrived while the device was not listening
@@ -265,7 +269,8 @@ class Firmware:
         for frame in self.decoder.feed(data):
             if not isinstance(frame, CommandFrame):  # the device decoder yields only these
                 continue
-            t = max(self._now + float(self._rng_timing.uniform(*CMD_LATENCY_S)), self._last_cmd_t)
+            latency = float(self._rng_timing.uniform(*CMD_LATENCY_S)) + self.answer_delay_s
+            t = max(self._now + latency, self._last_cmd_t)
             self._last_cmd_t = t
             self._schedule(t, *self._bind_command(frame, self._gen))
 
@@ -409,6 +414,8 @@ class Firmware:
             return
         if t < self._busy_until:
             self.frames_skipped += 1  # flash write: not sampled, not sent, no seq step
+        elif not self.streaming:
+            pass  # the fault: its sampling stopped, its main loop still answers
         else:
             self._send_frame(t)
         self._schedule_frame()

@@ -121,6 +121,9 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
     drift = cal_state.get("drift")
     rec["drift"] = dict(drift) if isinstance(drift, dict) else None
     rec["calibrated"] = cal_state.get("calibrated")
+    shared = (st.get("zenoh") or {}).get("duplicate_prefix")
+    if shared:  # bridge.fleet.instances: the key prefix is not this bridge's alone
+        rec["errors"].append(f"key prefix shared with {len(shared)} other bridge(s): {shared}")
     rec["healthy"] = bool(
         state == "streaming"
         and isinstance(rate, int | float)

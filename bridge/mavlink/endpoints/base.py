@@ -24,14 +24,24 @@ So a dead or slow peer costs only its own queue: a TCP client that stops
 reading fills its socket buffer, then its queue, then drops; a serial radio
 at 57600 baud drops what it cannot carry; nothing waits on them.
 
+**Who is a peer.** Only a valid MAVLink frame -- with a valid, fresh signature
+when signing is on (:meth:`~bridge.mavlink.signing.Signing.fresh`) -- makes its
+sender a ``udpin`` peer or keeps any peer alive (``last_heard``): junk, frames
+that fail their CRC and unsigned or replayed frames count for nothing. A peer
+whose valid HEARTBEATs keep coming (one within :data:`PEER_PROTECT_S`) is never
+dropped to make room for a stranger; a ``tcpin`` client that sends nothing
+valid, or stops reading, is (see each kind).
+
 Kinds (as pymavlink spells them):
 
 =================  ===================================================================
 ``udpout:H:P``     send to H:P from an ephemeral port; answers come back to that port
-``udpin:H:P``      listen on H:P; every address heard from (last 60 s, up to 16) is a peer
+``udpin:H:P``      listen on H:P; every address a valid frame came from (last 60 s, up to
+                   16) is a peer; the port is its alone (no SO_REUSEADDR sharing)
 ``udp:H:P``        same as ``udpin`` (pymavlink's historical spelling)
 ``tcp:H:P``        connect to H:P; reconnect with backoff (0.5 s doubling to 5 s)
-``tcpin:H:P``      listen on H:P; up to 8 clients, each its own link
+``tcpin:H:P``      listen on H:P; up to 8 clients, each its own link; when full, an idle
+                   or non-reading one makes room for a newcomer
 ``/dev/X[,BAUD]``  serial port (default 57600 baud, telemetry radios); reopened if it goes
 =================  ===================================================================
 """
@@ -64,6 +74,8 @@ DEFAULT_QUEUE_PACKETS = 64
 UDP_PEER_TIMEOUT_S = 60.0
 MAX_UDP_PEERS = 16
 MAX_TCP_CLIENTS = 8
+#: A peer whose last valid HEARTBEAT is this recent is never dropped for a newcomer.
+PEER_PROTECT_S = 5.0
 CONNECT_TIMEOUT_S = 5.0
 BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 5.0
@@ -96,6 +108,9 @@ class EndpointCounters:
     bad_packets: int = 0  #: CRC / framing errors on input
     connects: int = 0  #: successful opens / connections / accepted clients
     errors: int = 0  #: socket or port errors
+    strangers_dropped: int = 0  #: datagrams from no peer that held no valid (signed) frame
+    peers_refused: int = 0  #: newcomers turned away: every peer was protected
+    peers_evicted: int = 0  #: peers dropped to make room (idle, not reading, no HEARTBEAT)
 
     def snapshot(self) -> EndpointCounters:
         """A copy."""
@@ -114,13 +129,16 @@ class Link:
         "closed",
         "endpoint",
         "last_heard",
+        "last_heartbeat",
         "limit",
         "mav",
         "name",
+        "opened_at",
         "parser",
         "pending",
         "queue",
         "sock",
+        "stalled_since",
     )
 
     def __init__(
@@ -141,7 +159,9 @@ class Link:
         self.queue: deque[Message] = deque()
         self.limit = endpoint.queue_packets
         self.pending = bytearray()
-        self.last_heard = time.monotonic()
+        self.opened_at = self.last_heard = time.monotonic()  #: last valid (signed) frame
+        self.last_heartbeat = -float("inf")  #: last valid (signed) HEARTBEAT
+        self.stalled_since: float | None = None  #: bytes waiting for the peer to read since
         self.closed = False
 
     def frame(self, message: Message) -> bytes:
@@ -423,25 +443,55 @@ class Endpoint:
         self._retry_at = time.monotonic() + self._backoff
         self._backoff = min(2 * self._backoff, BACKOFF_MAX_S)
 
-    def _deliver(self, link: Link, data: bytes) -> None:
-        """Parse bytes from ``link``'s peer and hand each message on."""
-        link.last_heard = time.monotonic()
+    def _authentic(self, msg: Any) -> bool:
+        """A valid frame that may make (or keep) its sender a peer: any, or with signing on
+        one with a valid, fresh signature (see the module docstring)."""
+        s = self.signing
+        return s is None or s.fresh(msg.get_msgbuf(), msg.get_srcSystem(), msg.get_srcComponent())
+
+    def _parse(self, parser: Any, data: bytes) -> list[tuple[Any, bool]] | None:
+        """The valid messages in ``data`` with their authenticity (None: the parser broke)."""
         try:
-            msgs = link.parser.parse_buffer(data) or []
+            msgs = parser.parse_buffer(data) or []
         except Exception:  # a parser bug must not kill the endpoint
             self._count("bad_packets")
-            link.parser = mavlink.MAVLink(None)
-            link.parser.robust_parsing = True
-            return
+            return None
+        out = []
         for msg in msgs:
             if msg.get_type() == "BAD_DATA":
                 self._count("bad_packets")
-                continue
+            else:
+                out.append((msg, self._authentic(msg)))
+        return out
+
+    def _deliver(
+        self, link: Link, data: bytes, parsed: list[tuple[Any, bool]] | None = None
+    ) -> None:
+        """Hand every message from ``link``'s peer on; only authentic ones keep it a peer."""
+        if parsed is None:
+            parsed = self._parse(link.parser, data)
+            if parsed is None:
+                link.parser = mavlink.MAVLink(None)
+                link.parser.robust_parsing = True
+                return
+        now = time.monotonic()
+        for msg, authentic in parsed:
             self._count("packets_received")
+            if authentic:
+                link.last_heard = now
+                if msg.get_type() == "HEARTBEAT":
+                    link.last_heartbeat = now
             try:
                 self.on_message(msg, link)
             except Exception:
                 log.exception("mavlink %s: message handler failed", self.name)
+
+    def _evictable(self, link: Link, now: float) -> bool:
+        """``link`` may be dropped for a newcomer: no valid HEARTBEAT lately, or its peer has
+        left bytes unread for a while (it does not read what it is sent)."""
+        if link.stalled_since is not None and now - link.stalled_since > PEER_PROTECT_S / 2:
+            return True
+        return now - link.last_heartbeat > PEER_PROTECT_S
 
     def _drop_link(self, link: Link) -> None:
         link.closed = True

@@ -16,6 +16,7 @@ from bridge.mavlink.endpoints.base import (
     CONNECT_TIMEOUT_S,
     DEFAULT_SERIAL_BAUD,
     MAX_TCP_CLIENTS,
+    PEER_PROTECT_S,
     Endpoint,
     Link,
     _resolve,
@@ -140,8 +141,26 @@ class TcpClientEndpoint(Endpoint):
 # ---------------------------------------------------------------------------- TCP server
 
 
+#: A client this freshly accepted is not dropped for a newcomer yet (time for its first
+#: HEARTBEAT); with every place held and nobody droppable, newcomers wait in the backlog.
+TCP_GRACE_S = 0.5
+#: Connections the kernel holds for us while every place is taken (their SYNs are not lost).
+_LISTEN_BACKLOG = 64
+_ACCEPTS_PER_ROUND = 16
+_CLIENT_SNDBUF = 64 * 1024
+
+
 class TcpServerEndpoint(Endpoint):
-    """``tcpin:HOST:PORT``: listen; every client is its own link."""
+    """``tcpin:HOST:PORT``: listen; every client is its own link.
+
+    At most :data:`~bridge.mavlink.endpoints.base.MAX_TCP_CLIENTS` clients. When
+    they are all there, a newcomer takes the place of the longest-connected
+    client that is *droppable* -- no valid (signed, with signing on) HEARTBEAT
+    for :data:`~bridge.mavlink.endpoints.base.PEER_PROTECT_S`, or bytes left
+    unread for half that -- and not accepted in the last :data:`TCP_GRACE_S`.
+    With none droppable yet, newcomers wait in the listen backlog (not refused)
+    until one is: idle clients cannot lock a ground station out.
+    """
 
     kind = "tcpin"
 
@@ -164,7 +183,7 @@ class TcpServerEndpoint(Endpoint):
         try:
             srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             srv.bind(addr)
-            srv.listen(MAX_TCP_CLIENTS)
+            srv.listen(_LISTEN_BACKLOG)
             srv.setblocking(False)
         except OSError:
             srv.close()
@@ -176,9 +195,30 @@ class TcpServerEndpoint(Endpoint):
     def _select_sets(self) -> tuple[list[Any], list[Any]]:
         if self._server is None:
             return [], []
-        r: list[Any] = [self._server, *self._clients]
+        # Full with nobody droppable: newcomers wait in the backlog (no busy loop on them).
+        room = len(self._clients) < MAX_TCP_CLIENTS or self._victim(time.monotonic()) is not None
+        r: list[Any] = [self._server, *self._clients] if room else list(self._clients)
         w = [s for s, link in self._clients.items() if link.pending or link.queue]
         return r, w
+
+    def _victim(self, now: float) -> socket.socket | None:
+        """The client a newcomer replaces (the longest connected droppable one), if any."""
+        old = [
+            (link.opened_at, s)
+            for s, link in self._clients.items()
+            if now - link.opened_at >= TCP_GRACE_S and self._evictable(link, now)
+        ]
+        return min(old, key=lambda x: x[0])[1] if old else None
+
+    def _next_timer(self, now: float) -> float:
+        if self._server is None or len(self._clients) < MAX_TCP_CLIENTS:
+            return super()._next_timer(now)
+        # Full: look again when the first client may become droppable.
+        soonest = min(
+            max(link.opened_at + TCP_GRACE_S, link.last_heartbeat + PEER_PROTECT_S)
+            for link in self._clients.values()
+        )
+        return min(super()._next_timer(now), max(now, soonest))
 
     def _readable(self, obj: Any) -> None:
         if obj is self._server:
@@ -200,23 +240,33 @@ class TcpServerEndpoint(Endpoint):
         self._deliver(link, data)
 
     def _accept(self) -> None:
-        assert self._server is not None
-        try:
-            conn, addr = self._server.accept()
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as e:
-            self._count("errors")
-            log.warning("mavlink %s: accept: %s", self.name, e)
-            return
-        if len(self._clients) >= MAX_TCP_CLIENTS:
-            log.warning(
-                "mavlink %s: refusing %s: %d clients already", self.name, addr, len(self._clients)
-            )
-            conn.close()
-            return
+        for _ in range(_ACCEPTS_PER_ROUND):  # bounded: the clients must get their turn
+            if self._server is None:
+                return
+            if len(self._clients) >= MAX_TCP_CLIENTS:
+                victim = self._victim(time.monotonic())
+                if victim is None:
+                    return  # the newcomer waits in the backlog until one is droppable
+                link = self._clients[victim]
+                why = "stopped reading" if link.stalled_since is not None else "idle"
+                self._drop_client(victim, f"dropped ({why}) to make room for a newcomer")
+                self._count("peers_evicted")
+            try:
+                conn, addr = self._server.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:
+                self._count("errors")
+                log.warning("mavlink %s: accept: %s", self.name, e)
+                return
+            self._add_client(conn, addr)
+
+    def _add_client(self, conn: socket.socket, addr: Any) -> None:
         conn.setblocking(False)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        # Seconds of telemetry, not the kernel's megabytes: a client that stops reading is
+        # seen (stalled) soon, and what it cannot take is dropped from its own queue.
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _CLIENT_SNDBUF)
         link = Link(self, f"{self.name} <- {addr[0]}:{addr[1]}", address=addr, sock=conn)
         self._clients[conn] = link
         self._links = [*self._links, link]
@@ -235,19 +285,24 @@ class TcpServerEndpoint(Endpoint):
         """Writes happen in :meth:`_flush`; writability just ends the wait."""
 
     def _flush(self) -> None:
+        now = time.monotonic()
         for sock, link in list(self._clients.items()):
             self._fill(link)
+            if link.pending:
+                try:
+                    n = sock.send(link.pending)
+                except (BlockingIOError, InterruptedError):
+                    n = 0
+                except OSError as e:
+                    self._drop_client(sock, f"lost ({e})")
+                    continue
+                del link.pending[:n]
+                self._count("bytes_sent", n)
+            # Bytes its socket would not take: the client is not reading (droppable soon).
             if not link.pending:
-                continue
-            try:
-                n = sock.send(link.pending)
-            except (BlockingIOError, InterruptedError):
-                continue
-            except OSError as e:
-                self._drop_client(sock, f"lost ({e})")
-                continue
-            del link.pending[:n]
-            self._count("bytes_sent", n)
+                link.stalled_since = None
+            elif link.stalled_since is None:
+                link.stalled_since = now
 
     def _close_transport(self) -> None:
         for sock in list(self._clients):

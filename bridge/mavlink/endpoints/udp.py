@@ -1,4 +1,17 @@
-"""UDP endpoints: ``udpout`` (a fixed destination) and ``udpin`` (listen; answer who spoke)."""
+"""UDP endpoints: ``udpout`` (a fixed destination) and ``udpin`` (listen; answer who spoke).
+
+``udpin`` answers the peers it has heard a valid frame from (a validly signed one
+when signing is on): a datagram from an unknown address is parsed on its own
+(a datagram holds whole packets) and makes its sender a peer only if it holds
+one; anything else is counted (``strangers_dropped``) and forgotten. With all
+:data:`~bridge.mavlink.endpoints.base.MAX_UDP_PEERS` places taken, a newcomer
+replaces the least recently heard peer that sends no HEARTBEAT, or is turned
+away (``peers_refused``): a ground station's one HEARTBEAT a second keeps it a
+peer whatever strangers send. The port is bound without ``SO_REUSEADDR``: on
+Linux that option lets a second socket bind the same UDP port and take the
+ground station's datagrams, so a second bridge (or any process) gets "address
+in use" -- said in the log, retried -- instead of a share of the traffic.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +23,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from bridge.config import MavlinkEndpoint
-from bridge.mavlink.dialect import Message
+from bridge.mavlink.dialect import IFLAG_SIGNED, MAGIC_V2, Message, mavlink
 from bridge.mavlink.endpoints import base
 from bridge.mavlink.endpoints.base import (
     _READ_BYTES,
@@ -23,6 +36,8 @@ from bridge.mavlink.endpoints.base import (
 )
 
 log = logging.getLogger(__name__)
+
+_UDPIN_RCVBUF = 1 << 20
 
 
 class UdpEndpoint(Endpoint):
@@ -148,8 +163,10 @@ class UdpEndpoint(Endpoint):
         try:
             sock.setblocking(False)
             if self.kind == "udpin":
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                sock.bind(addr)
+                # Room for a burst of datagrams while this thread is busy (the kernel caps
+                # it at net.core.rmem_max): a flood overflows into strangers, not the GCS.
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _UDPIN_RCVBUF)
+                sock.bind(addr)  # alone: no SO_REUSEADDR (see the module docstring)
             else:
                 # The GCS may be a broadcast address (udpout:192.168.1.255:14550).
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
@@ -188,22 +205,51 @@ class UdpEndpoint(Endpoint):
                 self._count("errors")
                 log.debug("mavlink %s: recv: %s", self.name, e)
                 return
-            self._deliver(self._link_for(addr), data)
+            if self.kind == "udpout":
+                self._deliver(self._links[0], data)
+                continue
+            link = self._by_addr.get(addr)
+            if link is not None:
+                self._deliver(link, data)
+                continue
+            parsed = self._stranger(data)
+            if parsed is None:
+                self._count("strangers_dropped")
+                continue
+            link = self._new_peer(addr)
+            if link is not None:
+                self._deliver(link, data, parsed)
 
-    def _link_for(self, addr: Any) -> Link:
-        if self.kind == "udpout":
-            return self._links[0]
-        link = self._by_addr.get(addr)
-        if link is None:
-            if len(self._by_addr) >= MAX_UDP_PEERS:
-                oldest = min(self._by_addr.values(), key=lambda lk: lk.last_heard)
-                self._forget(oldest)
-            host, port = addr[0], addr[1]
-            link = Link(self, f"{self.name} <- {host}:{port}", address=addr)
-            self._by_addr[addr] = link
-            self._links = [*self._links, link]
-            self._count("connects")
-            log.info("mavlink %s: new peer %s:%s", self.name, host, port)
+    def _stranger(self, data: bytes) -> list[tuple[Any, bool]] | None:
+        """What a datagram from an unknown address holds, if it may make a peer (None: not)."""
+        if not data or data[0] not in (MAGIC_V2, 0xFE):
+            return None  # a datagram starts with a packet: junk is dropped unparsed
+        signed = data[0] == MAGIC_V2 and len(data) > 2 and bool(data[2] & IFLAG_SIGNED)
+        if self.signing is not None and not signed:
+            return None  # signing on: an unsigned packet makes nobody a peer
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        parsed = self._parse(parser, data)
+        if not parsed or not any(authentic for _, authentic in parsed):
+            return None
+        return parsed
+
+    def _new_peer(self, addr: Any) -> Link | None:
+        """A link for a new peer, or None when every place is held by a protected peer."""
+        if len(self._by_addr) >= MAX_UDP_PEERS:
+            now = base._monotonic()
+            idle = [lk for lk in self._by_addr.values() if self._evictable(lk, now)]
+            if not idle:
+                self._count("peers_refused")
+                return None
+            self._forget(min(idle, key=lambda lk: lk.last_heard))
+            self._count("peers_evicted")
+        host, port = addr[0], addr[1]
+        link = Link(self, f"{self.name} <- {host}:{port}", address=addr)
+        self._by_addr[addr] = link
+        self._links = [*self._links, link]
+        self._count("connects")
+        log.info("mavlink %s: new peer %s:%s", self.name, host, port)
         return link
 
     def _forget(self, link: Link) -> None:

@@ -1,0 +1,202 @@
+"""A signed ground station is never starved by traffic it did not send.
+
+A real ``compass-bridge run`` (subprocess) on the simulated compass (pty), signing on,
+``udpin`` and ``tcpin``. A signed ground station on ``udpin`` sends one HEARTBEAT a
+second and counts the ATTITUDE it gets. Then, from another process, 1 000 datagrams a
+second, each from a port of its own -- random junk, unsigned HEARTBEATs, HEARTBEATs signed
+with another key, replays of the ground station's own packets -- and 50 TCP clients that
+connect and never send nor read. The ground station's ATTITUDE stays at its set rate
+(>= 95 %), and a new TCP client is still served within 5 s.
+
+The rate is counted on the bridge's own clock (ATTITUDE.time_boot_ms), so what is measured
+is what the bridge sent, not how promptly this loaded test process read it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as apm
+from service_harness import DaemonProcess, free_port, free_udp_port, toml_config, wait_for
+
+from bridge.sim.firmware import make_firmware
+from bridge.sim.pty import PtyCompass
+
+pytestmark = pytest.mark.integration
+
+KEY = bytes.fromhex("5a" * 32)
+ATT_HZ = 10.0  #: BRG_SR_ATT's default
+WINDOW_MS = 8000
+JUNK_PER_S = 1000
+IDLE_TCP = 50
+
+#: The flood, run in a process of its own: it must not steal this process's time.
+FLOOD = textwrap.dedent(
+    """
+    import os, random, socket, sys, time
+    port, rate, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+    samples = [bytes.fromhex(h) for h in sys.argv[4:]]
+    rng = random.Random(7)
+    sent, t0 = 0, time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        for _ in range(rate // 20):
+            k = rng.random()
+            if k < 0.5:
+                d = rng.randbytes(rng.randint(1, 200))
+            elif k < 0.6:
+                d = b"\\xfd" + rng.randbytes(rng.randint(10, 100))
+            else:
+                d = rng.choice(samples)
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port of its own
+                s.sendto(d, ("127.0.0.1", port))
+            sent += 1
+        time.sleep(max(0.0, t0 + sent / rate - time.monotonic()))
+    print(sent / (time.monotonic() - t0))
+    """
+)
+
+
+def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
+    mav = apm.MAVLink(None, sysid, 190)
+    mav.signing.secret_key = key
+    mav.signing.sign_outgoing = True
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
+    return mav
+
+
+class SignedGcs:
+    """A ground station on ``udpin``: signed HEARTBEATs at 1 Hz, ATTITUDE by bridge time."""
+
+    def __init__(self, port: int) -> None:
+        self.addr = ("127.0.0.1", port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.mav = signed(255, KEY)
+        self.parser = apm.MAVLink(None)
+        self.lock = threading.Lock()
+        self.att_boot_ms: list[int] = []
+        self.sent: list[bytes] = []  # what an attacker could capture and replay
+        self._stop = threading.Event()
+        self._threads = [
+            threading.Thread(target=self._beat, daemon=True),
+            threading.Thread(target=self._recv, daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    def _beat(self) -> None:
+        while not self._stop.is_set():
+            pkt = bytes(self.mav.heartbeat_encode(6, 8, 0, 0, 0).pack(self.mav))
+            self.sent.append(pkt)
+            self.sock.sendto(pkt, self.addr)
+            self._stop.wait(1.0)
+
+    def _recv(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            for m in self.parser.parse_buffer(data) or []:
+                if m.get_type() == "ATTITUDE":
+                    with self.lock:
+                        self.att_boot_ms.append(int(m.time_boot_ms))
+
+    def attitudes(self) -> list[int]:
+        with self.lock:
+            return list(self.att_boot_ms)
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(2.0)
+        self.sock.close()
+
+
+def rate_in_window(stamps: list[int], start_ms: int) -> float:
+    return sum(1 for t in stamps if start_ms <= t < start_ms + WINDOW_MS) / (WINDOW_MS / 1000)
+
+
+def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude(
+    tmp_path: Path,
+) -> None:
+    udp, tcp = free_udp_port(), free_port()
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(KEY.hex() + "\n")
+    with PtyCompass(make_firmware(31), tmp_path / "compass") as sim:
+        cfg = tmp_path / "bridge.toml"
+        text = toml_config(
+            str(sim.link_path),
+            tmp_path / "state",
+            mavlink=[f"udpin:127.0.0.1:{udp}", f"tcpin:127.0.0.1:{tcp}"],
+            rate_hz=20,
+        )
+        cfg.write_text(text.replace("[mavlink]\n", f'[mavlink]\nsigning_key_file = "{key_file}"\n'))
+        d = DaemonProcess(cfg, None, tmp_path / "daemon.log", watchdog_usec=None)
+        gcs = SignedGcs(udp)
+        idle: list[socket.socket] = []
+        flood: subprocess.Popen[str] | None = None
+        try:
+            wait_for(lambda: len(gcs.attitudes()) >= 20, "ATTITUDE at the signed GCS")
+            # What an attacker has: junk, its own packets, and copies of the GCS's.
+            stranger = apm.MAVLink(None, 66, 1)
+            samples = [
+                bytes(stranger.heartbeat_encode(6, 8, 0, 0, 0).pack(stranger)),
+                bytes(signed(77, bytes(32)).heartbeat_encode(6, 8, 0, 0, 0).pack(signed(77, bytes(32)))),
+                *gcs.sent[:3],
+            ]  # fmt: skip
+            flood = subprocess.Popen(
+                [sys.executable, "-c", FLOOD, str(udp), str(JUNK_PER_S), "14",
+                 *(s.hex() for s in samples)],
+                stdout=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            for _ in range(IDLE_TCP):
+                s = socket.socket()
+                s.setblocking(False)
+                with contextlib.suppress(BlockingIOError):
+                    s.connect(("127.0.0.1", tcp))
+                idle.append(s)
+            time.sleep(2.0)  # the flood is on, the crowd connected
+            start_ms = max(gcs.attitudes())
+            # A newcomer on tcpin, meanwhile, is served within 5 s.
+            t0 = time.monotonic()
+            with socket.create_connection(("127.0.0.1", tcp), timeout=10.0) as c:
+                c.sendall(
+                    bytes(
+                        signed(250, KEY, 3)
+                        .heartbeat_encode(6, 8, 0, 0, 0)
+                        .pack(signed(250, KEY, 3))
+                    )
+                )
+                c.settimeout(10.0)
+                assert c.recv(4096)
+            served_s = time.monotonic() - t0
+            wait_for(lambda: max(gcs.attitudes()) >= start_ms + WINDOW_MS, "the window", 30.0)
+            rate = rate_in_window(gcs.attitudes(), start_ms)
+            out, _ = flood.communicate(timeout=30.0)
+            junk_rate = float(out.strip())
+            assert junk_rate >= 0.9 * JUNK_PER_S, junk_rate  # the flood did run
+            assert rate >= 0.95 * ATT_HZ, f"ATTITUDE {rate:.2f} Hz under the flood"
+            assert served_s < 5.0, served_s
+            assert not d.exited and "Traceback" not in d.log()
+            assert d.stop() == 0
+        finally:
+            if flood is not None and flood.poll() is None:
+                flood.kill()
+            for s in idle:
+                s.close()
+            gcs.close()
+            d.kill()

@@ -1,0 +1,97 @@
+"""Parameter writes are gentle and complete: a storm of sets is about one params.json write a
+second, nothing set is lost at shutdown, and a write that failed is done once storage is back
+(said when it fails and when it works again). A real state directory (real files, fsync)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from bridge.app.params import PARAMS_DOCUMENT, SAVE_INTERVAL_S, ParamStore
+from bridge.app.settings import EngineSettings
+from bridge.calibration.model import Calibration
+from bridge.core.attitude import AttitudeEngine
+from bridge.events import Event, EventBus
+from bridge.ports import LoadResult
+from bridge.storage import StateStore
+
+
+class CountingStore:
+    """The real state directory, counting the writes that reach it."""
+
+    def __init__(self, directory: Path) -> None:
+        self.inner = StateStore(directory)
+        self.writes: list[float] = []
+
+    def save(self, name: str, payload: dict[str, Any], version: int = 1) -> None:
+        self.writes.append(time.monotonic())
+        self.inner.save(name, payload, version)
+
+    def load(self, name: str) -> LoadResult:
+        return self.inner.load(name)
+
+
+def make(directory: Path, events: EventBus | None = None) -> tuple[ParamStore, CountingStore]:
+    docs = CountingStore(directory)
+    settings = EngineSettings(AttitudeEngine(Calibration()))
+    return ParamStore(settings, docs, events=events), docs
+
+
+def stored(directory: Path) -> dict[str, float]:
+    payload = StateStore(directory).load(PARAMS_DOCUMENT).payload or {}
+    return dict(payload.get("set", {}))
+
+
+def test_a_set_storm_is_about_one_write_a_second_and_nothing_is_lost(tmp_path: Path) -> None:
+    params, docs = make(tmp_path / "state")
+    t0 = time.monotonic()
+    n = 0
+    while time.monotonic() - t0 < 3.0:  # as fast as sets come (thousands a second)
+        assert params.set("BRG_SR_HUD", float(1 + n % 40)).accepted
+        n += 1
+    elapsed = time.monotonic() - t0
+    assert n > 1000
+    assert len(docs.writes) <= elapsed / SAVE_INTERVAL_S + 2, (len(docs.writes), n)
+    gaps = [b - a for a, b in zip(docs.writes, docs.writes[1:], strict=False)]
+    assert all(g >= 0.9 * SAVE_INTERVAL_S for g in gaps), gaps
+    last = params.get("BRG_SR_HUD")
+    params.close()  # the bridge stops a moment after the last set: it is written
+    assert stored(tmp_path / "state")["BRG_SR_HUD"] == last
+
+
+def test_an_explicit_save_storm_is_paced_too(tmp_path: Path) -> None:
+    params, docs = make(tmp_path / "state")
+    t0 = time.monotonic()
+    for i in range(5):  # PREFLIGHT_STORAGE write, again and again
+        params.set("BRG_SR_HUD", float(i + 1))
+        assert params.save()
+    assert len(docs.writes) == 5
+    assert time.monotonic() - t0 >= 4 * 0.9 * SAVE_INTERVAL_S
+    params.close()
+
+
+def test_a_write_that_failed_is_done_when_storage_is_back(tmp_path: Path) -> None:
+    blocker = tmp_path / "blocked"
+    blocker.write_text("a file where the state directory's parent should be\n")
+    events: list[Event] = []
+    bus = EventBus()
+    bus.subscribe(events.append)
+    params, docs = make(blocker / "state", bus)
+    got = threading.Event()
+    bus.subscribe(lambda e: got.set() if e.kind == "params.saved" else None)
+    for v in (2.0, 3.0, 5.0):
+        params.set("BRG_SR_HUD", v)
+    deadline = time.monotonic() + 5.0
+    while not params.last_error and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert params.last_error and not params.saved
+    time.sleep(2.5 * SAVE_INTERVAL_S)  # retried, still failing: said once, not every time
+    assert [e.kind for e in events] == ["params.storage_error"]
+    assert len(docs.writes) >= 2
+    blocker.unlink()  # space is back
+    assert got.wait(5.0)
+    assert params.saved and stored(blocker / "state")["BRG_SR_HUD"] == 5.0
+    assert [e.kind for e in events] == ["params.storage_error", "params.saved"]
+    params.close()
