@@ -225,7 +225,10 @@ def test_config_shows_a_parameter_set_over_mavlink_as_the_value_in_effect(
     assert echo.param_value == 1.0
     g.set_param("BRG_FIELD_TOL", 0.25, M.MAV_PARAM_TYPE_REAL32)
     state = tmp_path / "state"
-    assert wait_until(lambda: (state / "params.json").exists())
+    # parameter writes are coalesced (one a second): wait for the one holding both
+    assert wait_until(lambda: "BRG_FIELD_TOL" in _read_or_empty(state / "params.json")), (
+        "params.json never held BRG_FIELD_TOL"
+    )
     cfg = tmp_path / "bridge.toml"
     cfg.write_text(f'[heading]\nreference = "magnetic"\n[storage]\ndir = "{state}"\n')
     res = cli("config", "--config", str(cfg), env=dict(os.environ))
@@ -246,6 +249,13 @@ def test_config_shows_a_parameter_set_over_mavlink_as_the_value_in_effect(
     assert "# built-in defaults < " + str(cfg) + " < parameters stored in " in res.stdout
     # the port of this configuration (the default /dev/ttyUSB0) is not here: said, exit 0
     assert 'warning: device.port = "/dev/ttyUSB0": no such device now' in res.stderr
+
+
+def _read_or_empty(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except OSError:
+        return ""
 
 
 @pytest.mark.integration

@@ -185,11 +185,11 @@ def test_two_bridges_on_one_key_prefix(tmp_path: Path) -> None:
                 keyexpr=first.prefix, connect=(f"tcp/127.0.0.1:{port}",), once=True,
                 duration=2.5, tty=False, overrides=NO_SCOUTING,
             )  # fmt: skip
-            assert run_monitor(opts, out) == 0
+            assert run_monitor(opts, out) == 1  # a shared prefix is not OK (docs/zenoh.md)
             (row,) = [ln for ln in out.getvalue().splitlines() if ln.startswith(first.prefix)]
             assert "DUP2" in row, out.getvalue()
             said = io.StringIO()
-            run_status(opts, said, timeout=3.0)
+            assert run_status(opts, said, timeout=3.0) == 1
             assert "key prefix shared with 1 other bridge" in said.getvalue(), said.getvalue()
             # The first bridge goes: the second has the prefix and publishes.
             first.stop()

@@ -326,7 +326,8 @@ def _console(daemon: Daemon, gate: TerminalGate | None) -> ConsoleOutput:
 
     def on_params(change: ParamChange) -> None:
         names = [n for n in change.names if n not in CAL_PARAMS]
-        if names and change.source != "start" and daemon.params.saved:
+        # Written within a second (coalesced); a write that fails is said on its own.
+        if names and change.source != "start" and not daemon.params.last_error:
             values = ", ".join(f"{n} = {daemon.params.get(n):g}" for n in names)
             console.note(
                 f"Parameter {values} stored in {where / 'params.json'}: it overrides the "

@@ -199,6 +199,11 @@ class FleetView:
         with self._lock:
             return self._bridges.get(prefix)
 
+    def duplicated(self) -> list[str]:
+        """Prefixes that more than one bridge holds (``DUP`` in the table)."""
+        with self._lock:
+            return sorted(p for p, b in self._bridges.items() if b.duplicated)
+
     def uncalibrated(self) -> list[str]:
         """Prefixes of the bridges whose last status says they run uncalibrated."""
         with self._lock:
@@ -424,7 +429,8 @@ def _show(
         stop.wait(max(0.0, end - clock()) if end is not None else 0.0)
         _write_block(out, view, clock(), tty=False)
         # as `status`: 0 all seen calibrated, 3 one runs uncalibrated (UNCAL), 1 none seen
-        if view.seen_documents():
+        # or a prefix held by two bridges (DUP: nobody can tell whose heading is whose)
+        if view.seen_documents() and not view.duplicated():
             return 3 if view.uncalibrated() else 0
         if view.bridges():  # a token, and not one document: say what was (not) seen
             out.write(

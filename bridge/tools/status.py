@@ -129,6 +129,7 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
         and isinstance(rate, int | float)
         and rate > 0
         and heading_usable(bool(flags.get("saturated")), bool(disturbed))
+        and not shared  # two bridges' headings under one key: nobody can tell whose
     )
     rec["verdict"] = verdict(rec)
     return rec
