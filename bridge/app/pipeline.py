@@ -11,7 +11,8 @@ Per frame:
 
 * ``$PGMRA``: :meth:`AttitudeEngine.solve_counts
   <bridge.core.attitude.AttitudeEngine.solve_counts>` (nominal transfer ->
-  calibration -> tilt-compensated heading, declination), plus the
+  calibration -> tilt-compensated heading, declination; the tilt from the
+  engine's tilt policy, :mod:`bridge.app.tilt`, given the frame's time), plus the
   disturbance events (start / end, at most one per
   :data:`DISTURBANCE_EVENT_MIN_S`, none while a calibration tumbles);
 * a heading-only sentence (NMEA / OceanServer): forwarded, with the
@@ -127,7 +128,7 @@ class Pipeline:
         return None  # $PGMRV/P/K/C: handled by the link
 
     def _from_gmr(self, f: AttitudeFrame, t: float) -> CompassSample:
-        a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+        a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az, t)
         if a.disturbed is not self._disturbed:
             self._disturbance_changed(a.disturbed, a, t)
         # int & int: Flags' own "&" is Python code in the enum module (per frame).
