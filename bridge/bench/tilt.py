@@ -47,6 +47,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +64,7 @@ from bridge.core.geometry import dcm_to_euler
 from bridge.core.sensor import mag_counts_to_gauss
 from bridge.core.vectors import down_from_euler
 from bridge.core.wmm import EarthField, earth_field
-from bridge.sim.autopilot import AutopilotAttitude
+from bridge.sim.autopilot import AttitudeMessage, AutopilotAttitude
 from bridge.sim.drive import MANOEUVRES, ManoeuvreDrive
 from bridge.sim.motion import AttitudeList, Motion, linear_acc_of, with_shake
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel
@@ -155,6 +156,10 @@ def solve(
     return Solved(hdg, sig, src, 1e6 * spent / max(1, n))
 
 
+def _attitude(tilt: TiltSources, m: AttitudeMessage) -> None:
+    tilt.autopilot_attitude(m.time_boot_ms, down_from_euler(m.roll, m.pitch), m.arrival_s)
+
+
 def autopilot_feed(
     tilt: TiltSources, ap: AutopilotAttitude, t0: float, t1: float, timesync: bool
 ) -> Callable[[float], None]:
@@ -162,20 +167,12 @@ def autopilot_feed(
     as it arrives, and the answers to a TIMESYNC request a second."""
     events: list[tuple[float, Callable[[], None]]] = []
     for m in ap.messages(t0, t1):
-        down = down_from_euler(m.roll, m.pitch)
-        events.append(
-            (
-                m.arrival_s,
-                lambda m=m, d=down: tilt.autopilot_attitude(m.time_boot_ms, d, m.arrival_s),
-            )
-        )
+        events.append((m.arrival_s, partial(_attitude, tilt, m)))
     if timesync:
         for k in range(math.ceil(t1 - t0)):
             sent = t0 + k + 0.31
             arrival, tc1 = ap.timesync(sent)
-            events.append(
-                (arrival, lambda s=sent, a=arrival, r=tc1: tilt.autopilot_timesync(s, r / 1e9, a))
-            )
+            events.append((arrival, partial(tilt.autopilot_timesync, sent, tc1 / 1e9, arrival)))
     events.sort(key=lambda e: e[0])
     it = iter(events)
     pending = [next(it, None)]
