@@ -104,12 +104,17 @@ class TiltSources:
 
     # -- the autopilot's side (MAVLink endpoint threads) --------------------------------
 
-    def autopilot_attitude(self, time_boot_ms: int, down: Vec3, arrival: float) -> None:
+    def autopilot_attitude(
+        self, time_boot_ms: int, down: Vec3, arrival: float, rate: Vec3 | None = None
+    ) -> None:
         """The autopilot's ATTITUDE(_QUATERNION): its stamp, the unit down in its body axes
-        (from its roll and pitch), when it arrived (our monotonic clock)."""
+        (from its roll and pitch), when it arrived (our monotonic clock), and its body
+        rates (rad/s) when given."""
         if not (all(math.isfinite(v) for v in down) and norm(down) > 0.5):
             self.link.refused += 1
             return
+        if rate is not None and not all(math.isfinite(v) and abs(v) < 50.0 for v in rate):
+            rate = None  # a gyro's word it cannot have meant: extrapolate without it
         remote = time_boot_ms / 1000.0
         with self._lock:
             link = self.link
@@ -121,7 +126,7 @@ class TiltSources:
                 link.reboots += 1
                 self._track.clear()
                 log.info("tilt: the autopilot's clock went back (a reboot): its track starts anew")
-            self._track.add(AttitudeSample(remote, unit(down)))
+            self._track.add(AttitudeSample(remote, unit(down), rate))
             link.messages += 1
             link.last_arrival = arrival
 
@@ -183,7 +188,7 @@ class TiltSources:
         if (
             ap is not None
             and not est.manoeuvre
-            and ap[2] < 0.1
+            and ap[2] < 0.3
             and abs(norm(accel) - 1.0) < 0.03
             and abs(f.turn_rate_dps) < 0.5 * f.settings.turn_dps
         ):

@@ -157,7 +157,7 @@ def solve(
 
 
 def _attitude(tilt: TiltSources, m: AttitudeMessage) -> None:
-    tilt.autopilot_attitude(m.time_boot_ms, down_from_euler(m.roll, m.pitch), m.arrival_s)
+    tilt.autopilot_attitude(m.time_boot_ms, down_from_euler(m.roll, m.pitch), m.arrival_s, m.rates)
 
 
 def autopilot_feed(

@@ -124,10 +124,12 @@ class ClockMap:
 @dataclass(frozen=True, slots=True)
 class AttitudeSample:
     """One autopilot attitude: its instant on the autopilot's clock (s), its unit down
-    vector in the autopilot's body axes."""
+    vector in the autopilot's body axes, and its body rates (rad/s: ATTITUDE's
+    rollspeed, pitchspeed, yawspeed -- its gyros) when it sent them."""
 
     t: float
     down: Vec3
+    rate: Vec3 | None = None
 
 
 class AttitudeTrack:
@@ -136,9 +138,10 @@ class AttitudeTrack:
     Immutable snapshots (a tuple swapped on each :meth:`add`), so one thread may
     add while another reads without a lock. :meth:`at` interpolates the down
     vector between the two samples around ``t``, or extrapolates past the newest
-    by a line fitted to the last :attr:`fit_s` (a frame newer than the
-    autopilot's last word, by the link's latency; two noisy samples 50 ms apart
-    would amplify their noise), up to :attr:`max_extrapolate_s`.
+    (a frame newer than the autopilot's last word, by the link's latency) up to
+    :attr:`max_extrapolate_s`: with the newest sample's gyro rates when it has them
+    (``d' = d x w``), else by a line fitted to the last :attr:`fit_s` (the slope of
+    two noisy samples 50 ms apart would amplify their noise).
     """
 
     fit_s = 0.3
@@ -195,6 +198,13 @@ class AttitudeTrack:
 
     def _extrapolate(self, s: tuple[AttitudeSample, ...], t: float) -> Vec3:
         last = s[-1]
+        if last.rate is not None:
+            d, w, dt = last.down, last.rate, t - last.t
+            return (
+                d[0] + (d[1] * w[2] - d[2] * w[1]) * dt,
+                d[1] + (d[2] * w[0] - d[0] * w[2]) * dt,
+                d[2] + (d[0] * w[1] - d[1] * w[0]) * dt,
+            )
         pts = [x for x in s if x.t >= last.t - self.fit_s]
         if len(pts) < 2:
             pts = list(s[-2:])

@@ -12,6 +12,8 @@ that for a motion script (the *compass's* attitude, as the simulator moves it):
 * the roll and pitch are off by the estimator's error: white noise
   (``noise_deg``) plus a slowly wandering part (``wander_deg``, first-order
   Gauss-Markov with ``wander_s``): an EKF's attitude error is correlated, not white;
+* its body rates (rollspeed, pitchspeed, yawspeed) are the true ones with
+  ``gyro_noise_dps`` of white noise;
 * each message is stamped ``time_boot_ms`` on the autopilot's clock (booted
   ``boot_s`` before the simulation's zero) and arrives ``latency_s`` plus an
   exponential jitter (``jitter_s``) later, in order (a serial link does not
@@ -29,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.core.geometry import dcm_to_euler, euler_to_dcm
+from bridge.core.geometry import dcm_to_euler, dcm_to_rotvec, euler_to_dcm
 from bridge.sim.motion import Motion
 
 FloatArray = npt.NDArray[np.float64]
@@ -45,6 +47,7 @@ class AttitudeMessage:
     pitch: float
     yaw: float
     truth_s: float  #: the instant it describes (the simulation's clock)
+    rates: tuple[float, float, float] = (0.0, 0.0, 0.0)  #: body rates, rad/s (its gyros)
 
 
 class AutopilotAttitude:
@@ -67,6 +70,7 @@ class AutopilotAttitude:
         jitter_s: float = 0.01,
         boot_s: float = 123.456,
         mounting: npt.ArrayLike | None = None,
+        gyro_noise_dps: float = 0.1,
     ) -> None:
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
@@ -87,6 +91,7 @@ class AutopilotAttitude:
         self.latency_s = float(latency_s)
         self.jitter_s = float(jitter_s)
         self.boot_s = float(boot_s)
+        self.gyro_noise_dps = float(gyro_noise_dps)
         self.mounting = np.eye(3) if mounting is None else np.asarray(mounting, dtype=np.float64)
         self._rng = np.random.default_rng([seed, 0xA7])
         self._link = np.random.default_rng([seed, 0x11A])
@@ -108,6 +113,13 @@ class AutopilotAttitude:
     def boot_ms(self, t: float) -> int:
         """The autopilot's ``time_boot_ms`` at simulation time ``t``."""
         return int((t + self.boot_s) * 1000.0)
+
+    def body_rates(self, t: float, h: float = 0.005) -> tuple[float, float, float]:
+        """The vehicle's true body rates at ``t`` (rad/s), by a central difference."""
+        Ra = np.asarray(self.motion.attitude(t - h)) @ self.mounting.T
+        Rb = np.asarray(self.motion.attitude(t + h)) @ self.mounting.T
+        w = dcm_to_rotvec(Ra.T @ Rb) / (2.0 * h)
+        return float(w[0]), float(w[1]), float(w[2])
 
     def true_euler(self, t: float) -> tuple[float, float, float]:
         """The vehicle's (autopilot's body) true roll, pitch, yaw at ``t``."""
@@ -132,8 +144,17 @@ class AutopilotAttitude:
         # In order: a message never overtakes the one before it.
         arrival = max(t + self._delay(), self._last_arrival)
         self._last_arrival = arrival
+        gyro = self.body_rates(t)
+        gyro_noise = self._rng.normal(0.0, math.radians(self.gyro_noise_dps), size=3)
+        rates = (gyro[0] + gyro_noise[0], gyro[1] + gyro_noise[1], gyro[2] + gyro_noise[2])
         return AttitudeMessage(
-            arrival, self.boot_ms(t), roll + float(err[0]), pitch + float(err[1]), yaw, t
+            arrival,
+            self.boot_ms(t),
+            roll + float(err[0]),
+            pitch + float(err[1]),
+            yaw,
+            t,
+            (float(rates[0]), float(rates[1]), float(rates[2])),
         )
 
     def messages(self, t0: float, t1: float) -> list[AttitudeMessage]:
