@@ -82,7 +82,7 @@ PATHS = ("accelerometer", "companion", "standalone")
 class TiltBenchConfig:
     """What the benchmark runs (see the module docstring)."""
 
-    units: int = 4
+    units: int = 8
     seed: int = 1
     seconds: float = 600.0
     rate_hz: float = 10.0

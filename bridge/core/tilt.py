@@ -86,7 +86,7 @@ class TiltSettings:
       it is being turned by hand, faster than any vehicle turns or rocks; the
       accelerometer's down is followed as it is;
     * ``max_accel_deg`` -- the accelerometer's (low-passed) down this far from the
-      estimate is more than a vehicle's acceleration explains (30 deg: 0.58 g): the
+      estimate is more than a vehicle's acceleration explains (25 deg: 0.47 g): the
       unit was turned, and is followed like a spin;
     * ``heave_g`` -- above this vertical acceleration (low-passed) the vehicle is
       taken to be rocking in swell, and its turn rate is not believed;
@@ -115,7 +115,7 @@ class TiltSettings:
     settle_s: float = 1.0
     persist_s: float = 1.5
     spin_dps: float = 25.0
-    max_accel_deg: float = 30.0
+    max_accel_deg: float = 25.0
     heave_g: float = 0.05
     autopilot_sigma_deg: float = 0.3
 
@@ -478,7 +478,18 @@ class TiltFilter:
             if abs(rate) < 0.25 * st.turn_dps * _DEG:
                 self._turn_from = t
             if abs(rate) > st.turn_dps * _DEG and self._heave < st.heave_g:
-                self._evidence(t, (1,), "turn", t - self._turn_from + st.lookback_s)
+                # ... if it pulls the accelerometer sideways: a turn on the spot (a
+                # turntable, a pivoting boat) has no centripetal acceleration to hide.
+                # (Against the estimate from before the turn began: the one since may
+                # have followed the centripetal pull.)
+                before = self._d
+                for ht, hd, _hp, _hm in self._history:
+                    if ht > self._turn_from:
+                        break
+                    before = hd
+                _b1, b2 = self._basis(before)
+                if abs(dot(lp, b2)) > max(0.5 * _DEG, 2.0 * math.sqrt(self._white / 5.0)):
+                    self._evidence(t, (1,), "turn", t - self._turn_from + st.lookback_s)
             if field_ok and sin_dip is not None:
                 off = math.asin(max(-1.0, min(1.0, dot(mhat, ahat)))) - math.asin(sin_dip)
                 if abs(off) <= st.dip_alarm_deg * _DEG:

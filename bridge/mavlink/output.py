@@ -27,10 +27,10 @@ component); **companion** -- component 200 (MAV_COMP_ID_IMU), type IMU,
 autopilot INVALID, beside an autopilot with the same system id: it acts only on
 what is addressed to its own component, reports its calibration as a compass
 id no autopilot has (:data:`COMPANION_COMPASS_ID`), and takes the position
-for declination from the autopilot's GLOBAL_POSITION_INT / GPS_RAW_INT.
+for declination from the autopilot's GLOBAL_POSITION_INT / GPS_RAW_INT (its ATTITUDE: tilt).
 
 Security: with a signing key every packet we send is signed, and COMMAND_LONG,
-COMMAND_INT, PARAM_SET and position messages must carry a valid, fresh
+COMMAND_INT, PARAM_SET, position and attitude messages must carry a valid, fresh
 signature (see :mod:`bridge.mavlink.signing`); others are refused, logged
 and counted. Reads (PARAM_REQUEST_*) stay open so a ground station without
 the key can still watch.
@@ -58,6 +58,7 @@ from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.attitude_in import AutopilotAttitudeIn
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.mavlink.dispatch import CommandDispatcher
@@ -191,6 +192,8 @@ class MavlinkOutput:
         self.schedule = S.StreamSchedule({})
         self.relay = C.CalibrationRelay(self.compass_id, self.clock)
         self.dispatcher = CommandDispatcher(self)
+        #: The autopilot's attitude as the tilt source (companion role only).
+        self.autopilot_in = AutopilotAttitudeIn.beside(settings, services, clock, self._t0)
         self.latest: CompassSample | None = None
         self.alt_m = 0.0  #: the autopilot's altitude (companion role), for VFR_HUD
         self._running = False  # publish() sends only between start() and close()
@@ -276,6 +279,8 @@ class MavlinkOutput:
                     p = encoders[sid](sample)
                     if p is not None:
                         packets.append(p)
+                        if sid == S.ATTITUDE:  # its tilt source (NAMED_VALUE_INT TILT_SRC)
+                            packets.append(T.tilt_source(sample, p.time_boot_ms))
             finally:  # a stream that fails to encode does not hold back those before it
                 self.broadcast(packets)
         except Exception:
@@ -511,6 +516,8 @@ class MavlinkOutput:
             out += self.relay.keepalive(now, self.services.calibrator.snapshot)
             if out:
                 self.broadcast(out)
+            if self.autopilot_in is not None:  # TIMESYNC to the autopilot, now and then
+                self.autopilot_in.tick(now)
             self.dispatcher.pending.expire(now)
             if self._signing_dirty and now - self._signing_saved_at >= _SIGNING_SAVE_S:
                 self._save_signing()
@@ -549,6 +556,9 @@ class MavlinkOutput:
     def _on_message(self, msg: Any, link: Link) -> None:
         """Endpoint threads: answer TIMESYNC at once, queue what the dispatcher handles."""
         kind = msg.get_type()
+        ap = self.autopilot_in  # its attitude, its TIMESYNC answers: taken here, on arrival
+        if ap is not None and ap.takes(msg, link, self._refuse_unsigned):
+            return
         if kind == "TIMESYNC":
             if int(msg.tc1) == 0:  # a request: answer with our time, echo theirs
                 now_ns = int((self.clock() - self._t0) * 1e9)

@@ -5,7 +5,9 @@ Every function here turns bridge state into a pymavlink message object
 
 * ATTITUDE / ATTITUDE_QUATERNION: radians, body FRD relative to NED, yaw from
   the published heading (magnetic or true, as the daemon publishes it). The
-  compass has no gyro: the rate fields are 0.
+  compass has no gyro: the rate fields are 0. Each ATTITUDE goes with a
+  NAMED_VALUE_INT ``TILT_SRC`` (same ``time_boot_ms``): where its roll and pitch
+  came from, 0 accelerometer, 1 autopilot, 2 magnetometer.
 * SCALED_IMU: accelerations in mG and the calibrated field in mgauss, vehicle
   axes. MAVLink IMU messages carry *specific force* (a level unit at rest reads
   z = -1 g), the negative of the datasheet's gravity vector, so the sign is
@@ -34,6 +36,7 @@ from bridge.app.sample import CompassSample
 from bridge.core.geometry import euler_to_quaternion, wrap_radians_pi
 from bridge.core.quality import heading_usable
 from bridge.core.sensor import STANDARD_GRAVITY
+from bridge.core.tilt import TILT_SOURCES
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.ports import LinkState
@@ -338,10 +341,35 @@ def feed_usable(sample: CompassSample) -> bool:
 
 
 def feed_yaw_sigma_rad(sample: CompassSample, sigma_deg: float) -> float:
-    """Yaw standard deviation: ``sigma_deg``, five times that while accelerating or degraded."""
+    """Yaw standard deviation: ``sigma_deg`` with the heading error the sample's tilt
+    leaves (``heading_sigma_deg``, in quadrature); five times that while degraded, or
+    while accelerating with the accelerometer as the only tilt source."""
     a = sample.attitude
-    k = 5.0 if a is not None and (a.accelerating or a.degraded) else 1.0
-    return math.radians(k * sigma_deg)
+    if a is None:
+        return math.radians(sigma_deg)
+    tilt = a.heading_sigma_deg
+    s = math.hypot(sigma_deg, tilt) if tilt is not None and math.isfinite(tilt) else sigma_deg
+    blind = a.accelerating and a.tilt_source == "accelerometer"
+    return math.radians((5.0 if a.degraded or blind else 1.0) * s)
+
+
+#: NAMED_VALUE_INT name of the tilt source each ATTITUDE used: 0 accelerometer,
+#: 1 autopilot, 2 magnetometer (:data:`bridge.core.tilt.TILT_SOURCES`).
+TILT_SOURCE_NAME = "TILT_SRC"
+
+
+def tilt_source(sample: CompassSample, time_boot_ms: int) -> Message:
+    """NAMED_VALUE_INT ``TILT_SRC``: the tilt source of ``sample`` (sent with its ATTITUDE,
+    same ``time_boot_ms``): 0 accelerometer, 1 autopilot, 2 magnetometer; -1 a
+    heading-only compass's own."""
+    src = sample.tilt_source
+    value = TILT_SOURCES.index(src) if src in TILT_SOURCES else -1
+    return message(
+        M.MAVLINK_MSG_ID_NAMED_VALUE_INT,
+        time_boot_ms=_ms32(time_boot_ms),
+        name=TILT_SOURCE_NAME.encode(),
+        value=value,
+    )
 
 
 def feed_euler(sample: CompassSample) -> tuple[float, float, float, bool]:
