@@ -482,12 +482,12 @@ class TiltFilter:
                 # turntable, a pivoting boat) has no centripetal acceleration to hide.
                 # (Against the estimate from before the turn began: the one since may
                 # have followed the centripetal pull.)
-                before = self._d
+                pre = self._d
                 for ht, hd, _hp, _hm in self._history:
                     if ht > self._turn_from:
                         break
-                    before = hd
-                _b1, b2 = self._basis(before)
+                    pre = hd
+                _b1, b2 = self._basis(pre)
                 if abs(dot(lp, b2)) > max(0.5 * _DEG, 2.0 * math.sqrt(self._white / 5.0)):
                     self._evidence(t, (1,), "turn", t - self._turn_from + st.lookback_s)
             if field_ok and sin_dip is not None:
@@ -598,13 +598,13 @@ class TiltFilter:
                 # gravity's either. Hold them all.
                 self._evidence(t, (0, 1), "dip", 0.0)
             elif max(map(abs, self._dip_push)) < st.dip_push_deg * _DEG:
-                before = (x[0], x[1])
+                x_before = (x[0], x[1])
                 if (self.held[0] and self.held[1]) or math.hypot(m0, m1) > 0.5 * hn:
                     self._match(r + m0 * x[0] + m1 * x[1], m0, m1, Rm, x)
                 else:
                     self._match(r + h0 * x[0] + h1 * x[1], h0, h1, Rm, x)
-                self._dip_push[0] += x[0] - before[0]
-                self._dip_push[1] += x[1] - before[1]
+                self._dip_push[0] += x[0] - x_before[0]
+                self._dip_push[1] += x[1] - x_before[1]
         # -- the autopilot's down.
         if external is not None:
             self._update(dot(external, e1), 1.0, 0.0, es * es, x)
