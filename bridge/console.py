@@ -11,7 +11,8 @@ from bridge.ports import LinkState
 
 
 def format_line(sample: CompassSample | None, status: DaemonStatus) -> str:
-    """The console line: heading, pitch, roll, where the heading comes from, link health."""
+    """The console line: heading, pitch, roll, where the heading and its tilt come from
+    (accelerometer, autopilot, magnetometer), quality flags, link health."""
     c = status.counters
     health = f"{status.state.value}  frames {c.attitude_frames or c.frames}"
     health += f"  lost {c.lost_frames}  bad {c.bad_lines_total}"
@@ -28,6 +29,7 @@ def format_line(sample: CompassSample | None, status: DaemonStatus) -> str:
     if sample.device_heading_deg is not None:
         src += f", device hdg {sample.device_heading_deg:5.1f}"
     parts.append(f"[{src}]")
+    parts.append(_tilt(sample))
     flags = []
     if sample.saturated:
         flags.append("SATURATED")
@@ -39,6 +41,16 @@ def format_line(sample: CompassSample | None, status: DaemonStatus) -> str:
     if flags:
         parts.append(" ".join(flags).upper())
     return "  ".join(parts) + f"  [{health}]"
+
+
+def _tilt(sample: CompassSample) -> str:
+    """Where roll and pitch came from ("tilt accelerometer"), with the heading error that
+    tilt leaves when it is not the accelerometer's own."""
+    src = sample.tilt_source or "n/a"
+    err = sample.heading_sigma_deg
+    if src in ("accelerometer", "device") or err is None:
+        return f"tilt {src}"
+    return f"tilt {src} +-{err:.1f}"
 
 
 def _deg(v: float | None) -> str:

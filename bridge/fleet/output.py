@@ -112,6 +112,7 @@ class FleetServices:
     run_command: Callable[[str, Mapping[str, Any]], CommandOutcome] | None = None
     subscribe_events: Callable[[Callable[[Event], None]], Callable[[], None]] | None = None
     subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
+    tilt_state: Callable[[], Mapping[str, Any]] | None = None  #: the tilt source (status)
 
 
 @dataclass(slots=True)
@@ -524,6 +525,7 @@ class ZenohOutput:
             publisher=self.counters.as_dict(),
             t_unix=self._wall(),
             uptime_s=now - self._started_at,
+            tilt=self._safe(self.services.tilt_state, {}) if self.services.tilt_state else None,
         )
 
     def _safe(self, fn: Callable[[], Mapping[str, Any]], default: Mapping[str, Any]) -> Any:

@@ -162,4 +162,5 @@ def fleet_services(svc: BridgeServices) -> FleetServices:
         run_command=run_command,
         subscribe_events=svc.events.subscribe,
         subscribe_mavlink=subscribe_mavlink,
+        tilt_state=svc.tilt.status if svc.tilt is not None else None,
     )
