@@ -196,6 +196,7 @@ class TiltFilter:
         self._gate_sign = [0.0, 0.0]
         self._gate_from: list[tuple[Vec3, Vec3]] = [((0, 0, 1), (0, 0, 0))] * 2  # (down, field)
         self._steady_since: float | None = None  # the accelerometer steady since
+        self._steady_lp: Vec3 | None = None  # ... and its down then
         self.still_s = 0.0
         self._spinning_until = -math.inf  # turned by hand (faster than a vehicle) until
         self._recent: deque[tuple[float, Vec3, Vec3]] = deque()  # (t, low-passed down, field)
@@ -203,6 +204,7 @@ class TiltFilter:
         self._white = self.settings.accel_noise_g**2  # learnt white noise (vibration)
         self._heave = 0.0  # low-passed vertical acceleration, g
         self._excess = 0.0  # low-passed |g| - 1 g, signed
+        self._an_mean = 1.0  # |g| over the last 2 s
         self._prev: Vec3 | None = None  # last accelerometer direction (white noise)
         self._lp: Vec3 | None = None  # low-passed accelerometer direction
         self._long: Vec3 | None = None  # its long-run mean (20 s)
@@ -382,7 +384,10 @@ class TiltFilter:
             dd = (ahat[0] - prev[0]) ** 2 + (ahat[1] - prev[1]) ** 2 + (ahat[2] - prev[2]) ** 2
             self._white += 0.005 * (max(0.25 * dd, st.accel_noise_g**2) - self._white)
         k = min(1.0, dt / 0.5)
-        self._heave += k * (abs(an - self._g0) - self._heave)
+        # Heave: the swinging part of |g| (about its 2 s mean), not its offset -- a
+        # braking vehicle's |g| grows steadily by a_h^2 / 2 without rocking it.
+        self._an_mean += min(1.0, dt / 2.0) * (an - self._an_mean)
+        self._heave += k * (abs(an - self._an_mean) - self._heave)
         self._excess += k * (an - self._g0 - self._excess)  # vibration averages out of it
         lp = self._lp
         if lp is None:
@@ -434,13 +439,17 @@ class TiltFilter:
         still = (
             abs(an - self._g0) < 0.01
             and self._heave < 0.02
-            and angle_deg(lp, ahat) < 3.0 * self.white_deg + 0.3
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
+            # its down where it was when this began (the tail of a braking creeps back)
+            and (
+                self._steady_lp is None
+                or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * self.white_deg
+            )
         )
         if not still:
-            self._steady_since = None
+            self._steady_since, self._steady_lp = None, None
         elif self._steady_since is None:
-            self._steady_since = t
+            self._steady_since, self._steady_lp = t, ahat
         #: How long the accelerometer has been still (1 g, its down not moving, no turn).
         self.still_s = 0.0 if self._steady_since is None else t - self._steady_since
         if mhat != (0.0, 0.0, 0.0):
