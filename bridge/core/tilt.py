@@ -114,7 +114,7 @@ class TiltSettings:
     max_hold_s: float = 15.0
     settle_s: float = 1.0
     persist_s: float = 1.5
-    spin_dps: float = 25.0
+    spin_dps: float = 20.0
     max_accel_deg: float = 25.0
     heave_g: float = 0.05
     autopilot_sigma_deg: float = 0.3
