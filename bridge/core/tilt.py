@@ -46,6 +46,8 @@ TILT_SOURCES: tuple[TiltSource, ...] = ("accelerometer", "autopilot", "magnetome
 _DEG = math.pi / 180.0
 #: Steady frames before the learnt dip is used (attitude matching, the dip alarm).
 _DIP_FRAMES = 50
+#: The accelerometer's white noise is learnt from frames at least this far apart (10 Hz).
+_WHITE_SPACING_S = 0.075
 #: The quiet estimates kept to roll back to on a manoeuvre's onset, seconds.
 _HISTORY_S = 8.0
 
@@ -205,13 +207,15 @@ class TiltFilter:
         self._heave = 0.0  # low-passed vertical acceleration, g
         self._excess = 0.0  # low-passed |g| - 1 g, signed
         self._an_mean = 1.0  # |g| over the last 2 s
-        self._prev: Vec3 | None = None  # last accelerometer direction (white noise)
+        self._prev: Vec3 | None = None  # an accelerometer direction ~0.1 s ago (white noise)
+        self._prev_t = -math.inf
         self._lp: Vec3 | None = None  # low-passed accelerometer direction
         self._long: Vec3 | None = None  # its long-run mean (20 s)
         self._m_now: Vec3 = (0.0, 0.0, 0.0)  # this frame's field direction
         self._mags: deque[tuple[float, Vec3]] = deque()  # recent field directions (turn rate)
         self.turn_rate_dps = 0.0  #: the field's turn about down over the last second
         self._turn_from = -math.inf  # the current turn began
+        self._turning_at = -math.inf  # last turning (faster than a quarter of turn_dps)
         self._evidence_at = [-math.inf, -math.inf]  # last evidence, per axis
         self._held_since = [-math.inf, -math.inf]
         # (time, estimate, its covariance, the field's direction then): quiet frames only.
@@ -350,10 +354,14 @@ class TiltFilter:
         if t - t0 < 0.5 * self._TURN_BASE_S:
             return 0.0
         self.spin_dps = angle_deg(m0, mhat) / (t - t0)
-        k0, k1 = dot(m0, d), dot(mhat, d)
+        return self._rotation_about(m0, mhat, d) / (t - t0)
+
+    @staticmethod
+    def _rotation_about(m0: Vec3, m1: Vec3, d: Vec3) -> float:
+        k0, k1 = dot(m0, d), dot(m1, d)
         p0 = (m0[0] - k0 * d[0], m0[1] - k0 * d[1], m0[2] - k0 * d[2])
-        p1 = (mhat[0] - k1 * d[0], mhat[1] - k1 * d[1], mhat[2] - k1 * d[2])
-        return math.atan2(dot(cross(p0, p1), d), dot(p0, p1)) / (t - t0)
+        p1 = (m1[0] - k1 * d[0], m1[1] - k1 * d[1], m1[2] - k1 * d[2])
+        return math.atan2(dot(cross(p0, p1), d), dot(p0, p1))
 
     def update(
         self,
@@ -379,10 +387,13 @@ class TiltFilter:
         dt = max(0.0, min(1.0, t - self._t))
         self._t = t
         # -- what the frame says beside its down: vibration, heave, turning, dip.
-        prev, self._prev = self._prev, ahat
-        if prev is not None:
-            dd = (ahat[0] - prev[0]) ** 2 + (ahat[1] - prev[1]) ** 2 + (ahat[2] - prev[2]) ** 2
-            self._white += 0.005 * (max(0.25 * dd, st.accel_noise_g**2) - self._white)
+        # Its scatter between frames ~0.1 s apart, whatever the rate: a hand's shake is
+        # smooth from one 50 Hz frame to the next, and would pass for no noise at all.
+        if t - self._prev_t >= _WHITE_SPACING_S or t < self._prev_t:
+            prev, self._prev, self._prev_t = self._prev, ahat, t
+            if prev is not None:
+                dd = (ahat[0] - prev[0]) ** 2 + (ahat[1] - prev[1]) ** 2 + (ahat[2] - prev[2]) ** 2
+                self._white += 0.005 * (max(0.25 * dd, st.accel_noise_g**2) - self._white)
         k = min(1.0, dt / 0.5)
         # Heave: the swinging part of |g| (about its 2 s mean), not its offset -- a
         # braking vehicle's |g| grows steadily by a_h^2 / 2 without rocking it.
@@ -486,6 +497,12 @@ class TiltFilter:
             # tightening turn builds its centripetal acceleration before it is caught.
             if abs(rate) < 0.25 * st.turn_dps * _DEG:
                 self._turn_from = t
+            elif not self.held[1] or abs(
+                self._rotation_about(self._mags[0][1], mhat, lp)
+            ) >= 0.25 * st.turn_dps * _DEG * (t - self._mags[0][0]):
+                # (About the accelerometer's down too while the lateral axis is held: a
+                # held down far off makes a changing tilt look like a turn.)
+                self._turning_at = t
             if abs(rate) > st.turn_dps * _DEG and self._heave < st.heave_g:
                 # ... if it pulls the accelerometer sideways: a turn on the spot (a
                 # turntable, a pivoting boat) has no centripetal acceleration to hide.
@@ -567,7 +584,11 @@ class TiltFilter:
                     gd, gm = self._gate_from[i]
                     if t - since >= st.persist_s and not self._turned(gd, ahat, gm, mhat):
                         self._evidence(t, (i,), "gate", st.persist_s + st.lookback_s)
-                elif t - self._held_since[i] < st.max_hold_s:
+                elif t - self._held_since[i] < st.max_hold_s and (
+                    i == 0 or t - self._turning_at < st.release_s
+                ):
+                    # (A wheeled vehicle's lateral acceleration is its turn's: not
+                    # turning, the lateral axis is held no longer.)
                     self._evidence(t, (i,), "gate")
                 elif t - self._evidence_at[i] > st.release_s:
                     # Held this long on the gate alone: no manoeuvre lasts so long, the
@@ -602,9 +623,12 @@ class TiltFilter:
             m1 = h1 if self.held[1] else 0.0
             pxx, pxy, pyy = self._P
             S = h0 * h0 * pxx + 2 * h0 * h1 * pxy + h1 * h1 * pyy + Rm
-            if r * r > st.gate * S:
-                # More than the held axes can explain: the accelerometer's axes are not
-                # gravity's either. Hold them all.
+            lp_off = math.asin(max(-1.0, min(1.0, dot(mhat, lp)))) - math.asin(sin_dip)
+            if r * r > st.gate * S and abs(lp_off) > st.dip_alarm_deg * _DEG:
+                # More than the held axes can explain, and the accelerometer's own down
+                # misses the dip too: its axes are not gravity's either. Hold them all.
+                # (Its down matching the dip where the estimate does not: the estimate
+                # is what is wrong -- no evidence against the accelerometer.)
                 self._evidence(t, (0, 1), "dip", 0.0)
             elif max(map(abs, self._dip_push)) < st.dip_push_deg * _DEG:
                 x_before = (x[0], x[1])
