@@ -44,7 +44,7 @@ TiltSource = Literal["accelerometer", "autopilot", "magnetometer"]
 TILT_SOURCES: tuple[TiltSource, ...] = ("accelerometer", "autopilot", "magnetometer")
 
 _DEG = math.pi / 180.0
-#: Steady frames before the learnt dip is used (attitude matching, the dip alarm).
+#: Steady frames (10 Hz ones' worth) before the learnt dip is used (matching, the alarm).
 _DIP_FRAMES = 50
 #: The accelerometer's white noise is learnt from frames at least this far apart (10 Hz).
 _WHITE_SPACING_S = 0.075
@@ -191,7 +191,7 @@ class TiltFilter:
         self._t: float | None = None
         self._g0 = 1.0  # |g| at rest (learnt: the accelerometer's scale)
         self._dip: float | None = None  # sin(dip) learnt from steady frames
-        self._dip_n = 0  # frames it was learnt from
+        self._dip_n = 0.0  # 10 Hz frames' worth it was learnt from
         self._dip_alarm_since: float | None = None  # the dip contradicted since
         self._dip_alarm_sign = 0.0
         self._gate_since: list[float | None] = [None, None]  # outside the gate since, per axis
@@ -525,7 +525,7 @@ class TiltFilter:
                 elif t - self._dip_alarm_since > st.max_hold_s and self._heave < st.heave_g:
                     # The accelerometer has contradicted the learnt dip longer than any
                     # manoeuvre lasts: the field (or its calibration) changed. Learn it anew.
-                    self._dip, self._dip_n, self._dip_alarm_since = None, 0, None
+                    self._dip, self._dip_n, self._dip_alarm_since = None, 0.0, None
                     self.held = [False, False]
                     off = 0.0
                 since = self._dip_alarm_since
@@ -559,9 +559,10 @@ class TiltFilter:
         self._P = [min(P[0] + q, big), P[1], min(P[2] + q, big)]
         e1, e2 = self._basis(d)
         # -- the accelerometer's down, axis by axis, inside the gate.
-        # Frames faster than 10 Hz bring no more information a second: vibration and the
-        # device's own filtering correlate them. Their noise is taken as 10 Hz frames'.
-        R = self._white * max(1.0, 0.1 / dt) if dt > 0.0 else self._white
+        # Frames faster than 10 Hz bring no more information a second (vibration and the
+        # device's filtering correlate them): their noise, and the dip's, as 10 Hz frames'.
+        slow = max(1.0, 0.1 / dt) if dt > 0.0 else 1.0
+        R = self._white * slow
         y = (dot(ahat, e1), dot(ahat, e2))
         pxx, _pxy, pyy = self._P
         es = (
@@ -587,8 +588,7 @@ class TiltFilter:
                 elif t - self._held_since[i] < st.max_hold_s and (
                     i == 0 or t - self._turning_at < st.release_s
                 ):
-                    # (A wheeled vehicle's lateral acceleration is its turn's: not
-                    # turning, the lateral axis is held no longer.)
+                    # (Not turning, a wheeled vehicle has no lateral acceleration.)
                     self._evidence(t, (i,), "gate")
                 elif t - self._evidence_at[i] > st.release_s:
                     # Held this long on the gate alone: no manoeuvre lasts so long, the
@@ -610,7 +610,7 @@ class TiltFilter:
         # -- the field's dip (attitude matching), every regime.
         if self.manoeuvre and field_ok and mhat != (0.0, 0.0, 0.0) and sin_dip is not None:
             cos_dip = math.sqrt(max(1e-6, 1.0 - sin_dip * sin_dip))
-            Rm = (cos_dip * st.dip_sigma_deg * _DEG) ** 2
+            Rm = (cos_dip * st.dip_sigma_deg * _DEG) ** 2 * slow
             h0, h1 = dot(mhat, e1), dot(mhat, e2)
             # The residual with the accelerometer's axes as they now are; the dip then
             # corrects the held axes only, and only where it sees them well: pushed
@@ -655,7 +655,7 @@ class TiltFilter:
             while self._history and self._history[0][0] < t - _HISTORY_S:
                 self._history.popleft()
             if abs(an - self._g0) < 0.05:
-                self._g0 += 0.01 * (an - self._g0)
+                self._g0 += 0.01 * min(1.0, dt / 0.1) * (an - self._g0)
         # Steady: learn the local dip. Steady is no manoeuvre, the accelerometer's
         # length at |g|, its down not moving, the vehicle not turning.
         steady = (
@@ -665,10 +665,11 @@ class TiltFilter:
             and angle_deg(lp, ahat) < 3.0 * self.white_deg + 0.5
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
         )
-        if steady and field_ok and mhat != (0.0, 0.0, 0.0):
+        w = min(1.0, dt / 0.1)  # the frame's weight: its share of a 10 Hz frame
+        if steady and field_ok and mhat != (0.0, 0.0, 0.0) and w > 0.0:
             sd = dot(mhat, ahat)
-            self._dip_n += 1
-            rate = max(0.005, 1.0 / self._dip_n)
+            self._dip_n += w
+            rate = max(0.005 * w, w / self._dip_n)
             self._dip = sd if self._dip is None else self._dip + rate * (sd - self._dip)
         # -- which source carried it, and how well.
         sxx, sxy, syy = self._P

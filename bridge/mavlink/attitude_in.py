@@ -21,8 +21,9 @@ with ``timesync_receive_timestamp_ns()``, the request's arrival in
 **The stream the companion wants.** :data:`WANTED_STREAMS` says which message at
 what rate: the bridge's stream requester (SET_MESSAGE_INTERVAL /
 REQUEST_DATA_STREAM when it is not heard) asks the autopilot for it. ArduPilot
-sends ATTITUDE in its ``SRn_EXTRA1`` group (4 Hz on a telemetry port by
-default); PX4 in its MAVLink instance's stream set.
+sends ATTITUDE in its EXTRA1 stream group: ``MAVn_EXTRA1`` for MAVLink channel n
+in 4.7 (``MAV2_`` for SERIAL1; ``SRn_EXTRA1`` before), 1 Hz on Rover SITL's
+SERIAL1 with its defaults; PX4 in its MAVLink instance's stream set.
 """
 
 from __future__ import annotations
@@ -48,9 +49,12 @@ AUTOPILOT_COMPONENT = 1
 #: How often the companion wants the autopilot's ATTITUDE (Hz): fast enough that its
 #: interpolation between samples costs nothing at a vehicle's roll and pitch rates.
 AUTOPILOT_ATTITUDE_HZ = 20.0
-#: What the companion wants from its autopilot, message id -> Hz, for the stream
-#: requester: asked for when not heard.
-WANTED_STREAMS: dict[int, float] = {int(M.MAVLINK_MSG_ID_ATTITUDE): AUTOPILOT_ATTITUDE_HZ}
+#: What the companion wants from its autopilot, for the stream requester (asked for when
+#: not heard): (message id, Hz, ArduPilot's stream group carrying it -- MAV_DATA_STREAM,
+#: for REQUEST_DATA_STREAM).
+WANTED_STREAMS: tuple[tuple[int, float, int], ...] = (
+    (int(M.MAVLINK_MSG_ID_ATTITUDE), AUTOPILOT_ATTITUDE_HZ, int(M.MAV_DATA_STREAM_EXTRA1)),
+)
 #: A TIMESYNC request to the autopilot this often while it is heard (s).
 TIMESYNC_PERIOD_S = 1.0
 _OUTSTANDING = 8  #: TIMESYNC requests remembered for their answer
