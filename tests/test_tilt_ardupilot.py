@@ -201,8 +201,8 @@ def test_the_companion_takes_ardupilots_attitude_while_the_accelerometer_lies(
     print(f"ArduPilot: {st}")
     assert st["heard"] and st["rate_hz"] >= 15.0, st  # MAV2_EXTRA1 = 20
     assert abs(before) > 10.0, f"roll {before:.1f} deg before ArduPilot was heard"
-    assert len(atts) >= 50 and len(srcs) >= 50
-    assert srcs.count(1) >= 0.95 * len(srcs), f"tilt sources {set(srcs)}"
+    # TILT_SRC beside an ATTITUDE on a change and once a second: 1 (autopilot) all along
+    assert len(atts) >= 50 and len(srcs) >= 5 and set(srcs) == {1}, srcs
     roll = [math.degrees(a.roll) for a in atts]
     pitch = [math.degrees(a.pitch) for a in atts]
     yaw_err = [

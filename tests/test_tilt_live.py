@@ -118,11 +118,13 @@ def fly(rig: Rig, drive: ManoeuvreDrive) -> list[tuple[float, float, int | None]
     epoch = rig.fw.motion_epoch
     assert epoch is not None
     out = []
+    src: int | None = None  # TILT_SRC comes on a change (and once a second): the last one holds
     for ms, a in sorted(atts.items()):
+        src = srcs.get(ms, src)
         tm = rig.out._t0 + ms / 1000.0 - epoch  # the frame's instant on the drive's clock
         yaw = math.degrees(dcm_yaw(drive.attitude(tm))) - DECLINATION
         err = (math.degrees(a.yaw) - yaw + 180.0) % 360.0 - 180.0
-        out.append((tm, err, srcs.get(ms)))
+        out.append((tm, err, src))
     return out
 
 

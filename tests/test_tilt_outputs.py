@@ -96,6 +96,17 @@ def test_mavlink_says_the_tilt_source_beside_attitude_and_in_the_feed_sigma() ->
             value,
             1234,
         )
+    # sent beside an ATTITUDE when the source changes, else once a second
+    note = T.TiltSourceNote()
+    acc, mag = (
+        sample(FixedTilt("accelerometer", 1.0, False)),
+        sample(FixedTilt("magnetometer", 2.0, True)),
+    )
+    sent = [
+        [m.value for m in note.due(s, t, int(t * 1000))]
+        for t, s in ((0.0, acc), (0.02, acc), (0.5, acc), (0.52, mag), (0.54, mag), (1.6, mag))
+    ]
+    assert sent == [[0], [], [], [2], [], [2]]
     # the feed's yaw sigma: BRG_YAW_SIGMA with the tilt's heading error in quadrature ...
     held = sample(FixedTilt("magnetometer", 4.0, True), 0.25)
     assert math.degrees(T.feed_yaw_sigma_rad(held, 3.0)) == pytest.approx(5.0)

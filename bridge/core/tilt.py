@@ -61,12 +61,10 @@ class TiltSettings:
 
     * ``accel_noise_g`` -- the accelerometer's white noise per axis and frame, the
       floor of what the filter learns (vibration adds to it);
-    * ``tilt_rate_dps`` -- how fast roll and pitch change on a calm road (a random
-      walk, deg per square-root second): how fast the estimate follows the
-      accelerometer when quiet, and how fast a held tilt's uncertainty grows;
-    * ``heave_tilt_dps_per_g`` -- how much faster they may change per g of vertical
-      acceleration: swell and rough roads rock a vehicle as they heave it, and a
-      vertical acceleration does not turn the accelerometer's down;
+    * ``tilt_rate_dps`` -- how fast roll and pitch change on a calm road (a random walk,
+      deg/sqrt(s)): how fast the estimate follows when quiet, and a held one blurs;
+    * ``heave_tilt_dps_per_g`` -- how much faster per g of vertical acceleration: swell
+      rocks a vehicle as it heaves it (which does not turn the accelerometer's down);
     * ``gate`` -- an accelerometer down further from the estimate, along an axis,
       than the square root of this many sigmas is a manoeuvre, not a tilt;
     * ``turn_dps`` -- turning faster than this is a manoeuvre (a centripetal
@@ -78,18 +76,14 @@ class TiltSettings:
     * ``release_s`` -- a manoeuvre ends this long after its last evidence;
       ``max_hold_s`` -- an axis held on the gate alone (no turn, no dip) this long
       takes the accelerometer again: no braking lasts so long, the tilt changed;
-    * ``persist_s`` -- the gate and the dip alarm count as evidence once they have
-      held, one way, this long: a hand's shake (0.4-2.5 Hz) swings back sooner,
-      a vehicle's manoeuvre does not;
-    * ``settle_s`` -- an accelerometer steady this long (its down not moving, its
-      length 1 g, no turn) ends a manoeuvre at once and is taken as it is: the unit
-      was re-oriented (by hand), not accelerated -- no vehicle brakes that steadily;
-    * ``spin_dps`` -- the field turning (about any axis) faster than this in the unit:
-      it is being turned by hand, faster than any vehicle turns or rocks; the
-      accelerometer's down is followed as it is;
+    * ``persist_s`` -- the gate and the dip alarm are evidence once they have held, one
+      way, this long: a hand's shake (0.4-2.5 Hz) swings back sooner;
+    * ``settle_s`` -- an accelerometer steady this long (its down still, 1 g, no turn)
+      ends a manoeuvre and is taken: re-oriented by hand, no vehicle brakes so steadily;
+    * ``spin_dps`` -- the field turning (about any axis) faster than this: turned by
+      hand, faster than any vehicle turns or rocks; the accelerometer is followed;
     * ``max_accel_deg`` -- the accelerometer's (low-passed) down this far from the
-      estimate is more than a vehicle's acceleration explains (25 deg: 0.47 g): the
-      unit was turned, and is followed like a spin;
+      estimate (25 deg: 0.47 g) is more than a vehicle's acceleration: followed too;
     * ``heave_g`` -- above this vertical acceleration (low-passed) the vehicle is
       taken to be rocking in swell, and its turn rate is not believed;
     * ``lookback_s`` -- on a manoeuvre's onset the estimate goes back to the one
@@ -157,23 +151,21 @@ class TiltFilter:
     faster while the vehicle heaves). Each axis is in one of two regimes:
 
     * **quiet**: the accelerometer's down along that axis is a measurement of ``d``
-      with its white noise (learnt from the frame-to-frame scatter: vibration);
+      with its white noise (learnt from the scatter ~0.1 s apart: vibration);
     * **manoeuvre**: it is not used; ``d`` is held along that axis, corrected only
       by the field's dip (and the autopilot's down when there is one).
 
     Why per axis: a vehicle accelerates along its own axes -- braking and driving
     off along x, turning along y (no sideslip) -- so while it brakes the
     accelerometer still gives the roll, and while it turns the pitch. An axis
-    enters its manoeuvre on evidence -- its accelerometer reading outside the gate,
-    or (the lateral axis) turning -- and then the estimate goes back to the one
-    from before the onset; it leaves ``release_s`` after the last evidence, once
-    the reading is back inside the gate (which widens as the held tilt's
-    uncertainty grows, so a tilt that changed meanwhile is taken up). A dip that
-    the accelerometer's down contradicts puts both axes in manoeuvre.
+    enters its manoeuvre on evidence (docs/tilt.md) and the estimate goes back to
+    the one from before the onset; it leaves ``release_s`` after the last
+    evidence, once the reading is back inside the gate (which widens as the held
+    tilt's uncertainty grows, so a tilt that changed meanwhile is taken up).
 
-    The magnetometer's dip (``d . m_hat = sin(dip)``) is applied in every regime;
-    the dip is learnt on quiet frames (the expected one serves until then). Pure
-    and single-threaded: the caller owns it.
+    The magnetometer's dip (``d . m_hat = sin(dip)``, learnt on quiet frames)
+    corrects held axes. Turned by hand, the frame's own down goes out as it is.
+    Pure and single-threaded: the caller owns it.
     """
 
     _MAX_SIGMA = 30.0 * _DEG  #: the held tilt is never assumed worse than this
@@ -189,6 +181,7 @@ class TiltFilter:
         big = self._MAX_SIGMA**2
         self._P = [big, 0.0, big]  # (xx, xy, yy)
         self._t: float | None = None
+        self._interval = 0.1  # the frames' mean interval, s
         self._g0 = 1.0  # |g| at rest (learnt: the accelerometer's scale)
         self._dip: float | None = None  # sin(dip) learnt from steady frames
         self._dip_n = 0.0  # 10 Hz frames' worth it was learnt from
@@ -384,7 +377,11 @@ class TiltFilter:
         ahat = unit(accel) if an > 1e-6 else (0.0, 0.0, 1.0)
         if self._d is None or self._t is None:
             self._d, self._t = ahat, t
-        dt = max(0.0, min(1.0, t - self._t))
+        else:  # frames read in one burst share their arrival: half the mean interval apart
+            self._interval += 0.02 * (max(0.0, min(1.0, t - self._t)) - self._interval)
+            if t <= self._t:
+                t = self._t + 0.5 * max(self._interval, 0.005)
+        dt = min(1.0, t - self._t)
         self._t = t
         # -- what the frame says beside its down: vibration, heave, turning, dip.
         # Its scatter between frames ~0.1 s apart, whatever the rate: a hand's shake is
@@ -483,14 +480,17 @@ class TiltFilter:
             if angle_deg(lp, self._d) > st.max_accel_deg:
                 tilting = True
             if self.spin_dps > st.spin_dps or tilting:
-                # Faster than a vehicle turns: a hand. Follow the accelerometer.
+                # Faster than a vehicle turns: a hand. Follow the accelerometer as it is.
                 self._spinning_until = t + 0.5
-                self.held = [False, False]
+                self.held, self._d = [False, False], ahat
                 # Nothing from before the turn may be rolled back to, nor drifted from.
                 self._history.clear()
                 P = self._P
                 floor = (5.0 * _DEG) ** 2
                 self._P = [max(P[0], floor), P[1], max(P[2], floor)]
+                if external is None:  # nothing to weigh: the frame's own down, its noise
+                    w = max(self._white, (0.2 * _DEG) ** 2)
+                    return self._result(ahat, ahat, mhat, (w, 0.0, w), "accelerometer")
             # (While the vehicle heaves, its rocking about the field's horizontal looks
             # like turning -- the same illusion that makes that tilt unobservable.)
             # When the turn began (its rate above a quarter of the threshold): a slowly
@@ -672,16 +672,22 @@ class TiltFilter:
             rate = max(0.005 * w, w / self._dip_n)
             self._dip = sd if self._dip is None else self._dip + rate * (sd - self._dip)
         # -- which source carried it, and how well.
-        sxx, sxy, syy = self._P
+        if external is not None and (self.manoeuvre or es * es < R):
+            source: TiltSource = "autopilot"
+        else:
+            source = "magnetometer" if self.manoeuvre else "accelerometer"
+        return self._result(nd, ahat, mhat, (self._P[0], self._P[1], self._P[2]), source, (e1, e2))
+
+    def _result(
+        self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: tuple[float, float, float],
+        source: TiltSource, basis: tuple[Vec3, Vec3] | None = None,
+    ) -> TiltEstimate:  # fmt: skip
+        """The estimate ``nd`` with covariance ``P`` (on ``basis``'s axes) as it goes out."""
+        e1, e2 = self._basis(nd) if basis is None else basis
+        sxx, sxy, syy = P
         sigma = math.sqrt(
             max(0.0, 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy))
         )
-        if external is not None and (self.manoeuvre or es * es < R):
-            source: TiltSource = "autopilot"
-        elif not self.manoeuvre:
-            source = "accelerometer"
-        else:
-            source = "magnetometer"
         hs = sigma
         if mhat != (0.0, 0.0, 0.0):
             east = cross(nd, mhat)
@@ -690,11 +696,5 @@ class TiltFilter:
                 f1, f2 = dot(east, e1) / en, dot(east, e2) / en
                 var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
                 hs = math.sqrt(max(0.0, var)) * abs(dot(mhat, nd)) / en
-        return TiltEstimate(
-            nd,
-            source,
-            math.degrees(sigma),
-            math.degrees(hs),
-            angle_deg(ahat, nd),
-            self.manoeuvre,
-        )
+        sig, h, off = math.degrees(sigma), math.degrees(hs), angle_deg(ahat, nd)
+        return TiltEstimate(nd, source, sig, h, off, self.manoeuvre)

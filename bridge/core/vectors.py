@@ -30,8 +30,9 @@ def norm(a: Vec3) -> float:
 
 def unit(a: Vec3) -> Vec3:
     """a / |a| (level down for a zero vector)."""
-    n = norm(a)
-    return (a[0] / n, a[1] / n, a[2] / n) if n > 0.0 else (0.0, 0.0, 1.0)
+    x, y, z = a
+    n = math.sqrt(x * x + y * y + z * z)
+    return (x / n, y / n, z / n) if n > 0.0 else (0.0, 0.0, 1.0)
 
 
 def down_from_euler(roll: float, pitch: float) -> Vec3:
@@ -59,7 +60,10 @@ def euler_from_down(d: Vec3) -> tuple[float, float]:
 
 
 def angle_deg(a: Vec3, b: Vec3) -> float:
-    """The angle between two vectors, degrees (0 for a zero vector)."""
-    if norm(a) <= 0.0 or norm(b) <= 0.0:
-        return 0.0
-    return math.degrees(math.atan2(norm(cross(a, b)), dot(a, b)))
+    """The angle between two vectors, degrees (0 for a zero vector: atan2(0, 0))."""
+    ax, ay, az = a
+    bx, by, bz = b
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return math.degrees(
+        math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+    )

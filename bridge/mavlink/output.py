@@ -192,8 +192,9 @@ class MavlinkOutput:
         self.schedule = S.StreamSchedule({})
         self.relay = C.CalibrationRelay(self.compass_id, self.clock)
         self.dispatcher = CommandDispatcher(self)
-        #: The autopilot's attitude as the tilt source (companion role only).
+        #: The autopilot's attitude as the tilt source (companion role only); TILT_SRC out.
         self.autopilot_in = AutopilotAttitudeIn.beside(settings, services, clock, self._t0)
+        self._tilt_note = T.TiltSourceNote()
         self.latest: CompassSample | None = None
         self.alt_m = 0.0  #: the autopilot's altitude (companion role), for VFR_HUD
         self._running = False  # publish() sends only between start() and close()
@@ -279,8 +280,8 @@ class MavlinkOutput:
                     p = encoders[sid](sample)
                     if p is not None:
                         packets.append(p)
-                        if sid == S.ATTITUDE:  # its tilt source (NAMED_VALUE_INT TILT_SRC)
-                            packets.append(T.tilt_source(sample, p.time_boot_ms))
+                        if sid == S.ATTITUDE:  # its tilt source beside it (TILT_SRC)
+                            packets.extend(self._tilt_note.due(sample, now, p.time_boot_ms))
             finally:  # a stream that fails to encode does not hold back those before it
                 self.broadcast(packets)
         except Exception:
@@ -494,8 +495,7 @@ class MavlinkOutput:
     # ------------------------------------------------------------------ the telemetry thread
 
     def _telemetry_loop(self) -> None:
-        # Paced by the clock streams and the calibration keep-alive, not by the frame rate:
-        # sample streams go out from publish().
+        # Paced by the clock streams and calibration keep-alive (samples: from publish()).
         while not self._stop.is_set():
             now = self.clock()
             due_at = min(self.schedule.next_clock_due(now), self.relay.keepalive_due)
