@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from bridge.app.tilt import TiltSources, frame_latency_s
-from bridge.core.aligned import AttitudeSample, AttitudeTrack, ClockMap, MountingResidual
+from bridge.core.aligned import (
+    AttitudeSample,
+    AttitudeTrack,
+    ClockMap,
+    FrameClock,
+    MountingResidual,
+)
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, euler_to_quaternion
 from bridge.core.tilt import TiltFilter
 from bridge.core.vectors import (
@@ -340,6 +346,31 @@ def test_frames_read_in_one_burst_share_their_time_and_still_count() -> None:
         R = euler_to_dcm(*rng.uniform(-1.0, 1.0, 3))
         errs.append(tilt_error(f.update(*frame(R), 7.0), R))
     assert np.mean(np.array(errs[100:]) < 0.5) > 0.9
+
+
+def test_frame_clock_places_frames_by_seq_not_by_arrival() -> None:
+    """50 Hz frames read late and in bursts (a busy host): their instants come from seq at the
+    device's rate, anchored on the least-delayed arrivals; a restart and a new rate start over."""
+    rng = np.random.default_rng(2)
+    fc = FrameClock()
+    errs = []
+    for k in range(1000):  # 20 s; every frame late by 2-40 ms, and a 300 ms stall at 12 s
+        sampled = 100.0 + k * 0.02
+        arrival = sampled + 0.002 + rng.uniform(0.0, 0.038)
+        if 600 <= k < 615:
+            arrival = 100.0 + 615 * 0.02 + 0.003  # the stalled frames arrive together
+        t = fc.at((40000 + k) % 65536, arrival)  # seq wraps at 65536 on the way
+        assert t <= arrival
+        if k >= 250:
+            errs.append(t - sampled)
+    assert fc.rate_hz == 50.0
+    assert max(errs) - min(errs) < 0.005  # arrivals scattered over 40 ms (300 ms in the stall)
+    # a device restart (seq back to 0): its arrival until the rate is learnt again
+    assert fc.at(0, 200.0) == 200.0 and fc.rate_hz is None
+    # a new rate (RATE,10): learnt anew
+    for k in range(1, 60):
+        t = fc.at(k, 200.0 + k * 0.1 + 0.01)
+    assert fc.rate_hz == 10.0 and t == pytest.approx(200.0 + 59 * 0.1 + 0.01, abs=1e-6)
 
 
 # -- the application's owner --------------------------------------------------------------

@@ -1,5 +1,5 @@
-"""Heading under acceleration, live: a real daemon on a simulated compass that drives a turn at
-0.29 g and a stop at 0.18 g, its MAVLink heard by a ground station over UDP.
+"""Heading under acceleration, live: a real daemon on a simulated compass that stands 8 s, then
+drives a turn at 0.29 g and a stop at 0.18 g, its MAVLink heard by a ground station over UDP.
 
 * **companion**: a stand-in autopilot (system 1, component 1, its own UDP peer) streams its
   ATTITUDE unasked -- the vehicle's true roll and pitch with an EKF's noise (0.1 deg white,
@@ -35,7 +35,8 @@ from bridge.sim.drive import ManoeuvreDrive
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
 
 SEED = 13  #: its drive: a 0.29 g turn from 4 to 15 s, a 0.18 g stop from 22 to 32 s
-END_S = 32.0  #: collect until the drive's clock reads this
+LEAD_S = 8.0  #: standing first: the bridge learns how the boards sit and the local dip
+END_S = LEAD_S + 32.0  #: collect until the motion's clock reads this
 LATENCY_S = 0.04
 DECLINATION = earth_field(*DEFAULT_LOCATION).declination_deg
 
@@ -45,13 +46,35 @@ def rigs() -> Iterator[Callable[..., Rig]]:
     yield from rig_factory()
 
 
+class StandingFirst:
+    """The drive after ``LEAD_S`` s standing at its first attitude (as a bridge in service
+    has seen its vehicle quiet before; the benchmark scores after 60 s)."""
+
+    def __init__(self, drive: ManoeuvreDrive) -> None:
+        self.drive = drive
+        self.duration = drive.duration + LEAD_S
+
+    def attitude(self, t: float) -> np.ndarray:
+        return self.drive.attitude(max(0.0, t - LEAD_S))
+
+    def linear_acc_ned_g(self, t: float) -> np.ndarray:
+        return self.drive.linear_acc_ned_g(t - LEAD_S) if t >= LEAD_S else np.zeros(3)
+
+    def manoeuvre_acc_ned_g(self, t: float) -> np.ndarray:
+        return self.drive.manoeuvre_acc_ned_g(t - LEAD_S) if t >= LEAD_S else np.zeros(3)
+
+
+def drive_of(seed: int) -> StandingFirst:
+    return StandingFirst(ManoeuvreDrive(seed, END_S + 30.0))
+
+
 class StandInAutopilot(threading.Thread):
     """An autopilot on the link: ATTITUDE at 20 Hz of the vehicle the compass rides in, late
     by ``LATENCY_S`` (stamped on its boot clock), HEARTBEAT at 1 Hz, TIMESYNC answered."""
 
     BOOT_S = 321.0
 
-    def __init__(self, rig: Rig, drive: ManoeuvreDrive) -> None:
+    def __init__(self, rig: Rig, drive: StandingFirst) -> None:
         super().__init__(daemon=True)
         self.rig = rig
         self.model = AutopilotAttitude(drive, seed=SEED, latency_s=0.0, jitter_s=0.0)
@@ -97,7 +120,7 @@ class StandInAutopilot(threading.Thread):
         self.conn.close()
 
 
-def fly(rig: Rig, drive: ManoeuvreDrive) -> list[tuple[float, float, int | None]]:
+def fly(rig: Rig, drive: StandingFirst) -> list[tuple[float, float, int | None]]:
     """Collect the bridge's ATTITUDE (and its TILT_SRC) until the drive reaches END_S:
     (drive time, heading error deg, tilt source)."""
     g = connect_gcs(f"udpout:127.0.0.1:{rig.udp_port}")
@@ -132,11 +155,11 @@ def dcm_yaw(R: np.ndarray) -> float:
     return math.atan2(R[1, 0], R[0, 0])
 
 
-def accelerating(drive: ManoeuvreDrive, rows: list[tuple[float, float, int | None]]) -> list:
+def accelerating(drive: StandingFirst, rows: list[tuple[float, float, int | None]]) -> list:
     return [r for r in rows if np.linalg.norm(drive.manoeuvre_acc_ned_g(r[0])) >= 0.05]
 
 
-def accelerometer_tilt_rms(drive: ManoeuvreDrive, times: list[float]) -> float:
+def accelerometer_tilt_rms(drive: StandingFirst, times: list[float]) -> float:
     """What the accelerometer's own tilt gives on those attitudes (ideal unit, same engine)."""
     model = SensorModel.at_location(UnitErrors.ideal())
     engine = AttitudeEngine(Calibration())
@@ -158,7 +181,7 @@ def rms(rows: list) -> float:
 def test_companion_takes_the_autopilots_attitude_while_it_accelerates(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    drive = ManoeuvreDrive(SEED, END_S + 30.0)
+    drive = drive_of(SEED)
     rig = rigs(tmp_path, motion=drive, ideal=True, mavlink={"role": "companion"})
     ap = StandInAutopilot(rig, drive)
     ap.start()
@@ -186,7 +209,7 @@ def test_companion_takes_the_autopilots_attitude_while_it_accelerates(
 def test_standalone_holds_the_tilt_and_matches_the_field(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    drive = ManoeuvreDrive(SEED, END_S + 30.0)
+    drive = drive_of(SEED)
     rig = rigs(tmp_path, motion=drive, ideal=True)
     rows = fly(rig, drive)
     acc = accelerating(drive, rows)

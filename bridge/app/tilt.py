@@ -35,7 +35,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bridge.core.aligned import AttitudeSample, AttitudeTrack, ClockMap, MountingResidual
-from bridge.core.tilt import TILT_SOURCES, TiltEstimate, TiltFilter, TiltSettings, TiltSource
+from bridge.core.tilt import TILT_SOURCES, TiltEstimate, TiltFilter, TiltSource
+from bridge.core.tilt_settings import TiltSettings
 from bridge.core.vectors import Vec3, norm, unit
 
 log = logging.getLogger(__name__)

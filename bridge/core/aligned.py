@@ -11,7 +11,9 @@ frame's instant and turned into the compass's axes. Three pure pieces:
 * :class:`AttitudeTrack` -- the recent samples on the autopilot's clock,
   interpolated at an instant (or extrapolated over the link's latency);
 * :class:`MountingResidual` -- the small rotation between the autopilot's body
-  axes and the compass's vehicle axes, learnt from quasi-static frames.
+  axes and the compass's vehicle axes, learnt from quasi-static frames;
+* :class:`FrameClock` -- the compass frames' own instants, from their sequence
+  numbers, not their arrivals (a busy host reads them late and in bursts).
 
 The compass's vehicle axes are its accelerometer's axes turned by its mounting
 (``AHRS_ORIENTATION`` and trim, :mod:`bridge.core.mounting`); the magnetometer's
@@ -340,3 +342,85 @@ class MountingResidual:
         """An autopilot-axes vector in the compass's vehicle axes."""
         C = self._C
         return (dot(C[0], v), dot(C[1], v), dot(C[2], v))
+
+
+# -- the compass frames' clock -----------------------------------------------------------
+
+#: The output rates a ``$PGMRA`` compass runs at (``RATE,<hz>``), frames per second.
+DEVICE_RATES_HZ = (1, 2, 5, 10, 20, 50, 100)
+
+
+class FrameClock:
+    """When each compass frame was sampled, from its ``seq`` and its arrival.
+
+    Arrivals are late by a delay that varies: a serial read delivers several
+    frames at once, and a busy host reads them tens or hundreds of milliseconds
+    late. Frames are sampled on the device's clock, one ``seq`` apart at its rate.
+    So a frame's instant is ``a + n p``: ``n`` its unwrapped ``seq``, ``p`` the
+    period of the device's rate (frames per second over the last
+    :data:`RATE_WINDOW_S` of arrivals, snapped to :data:`DEVICE_RATES_HZ`: a burst
+    does not move it to another rate), ``a`` the least-delayed frame's
+    ``arrival - n p`` of the last :data:`ANCHOR_WINDOW_S`. Until the rate is known,
+    and after ``seq`` goes back or jumps further than the time since allows (a
+    device restart) or the rate changes, a frame's instant is its arrival. Pure;
+    the caller owns it (one per compass link).
+    """
+
+    RATE_WINDOW_S = 4.0
+    ANCHOR_WINDOW_S = 2.0
+    MODULO = 65536
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the frames: the next is its arrival."""
+        self._seq: int | None = None
+        self._n = 0
+        self._arrivals: deque[tuple[float, int]] = deque()  # (arrival, n), rate window
+        self._period: float | None = None
+        self._anchor: deque[tuple[float, int, float]] = deque()  # (arrival, n, a): rising a
+
+    @property
+    def rate_hz(self) -> float | None:
+        """The device's rate as learnt (None before it is)."""
+        return None if self._period is None else 1.0 / self._period
+
+    def at(self, seq: int, arrival: float) -> float:
+        """The instant frame ``seq``, which arrived at ``arrival``, was sampled."""
+        if self._seq is not None:
+            step = (seq - self._seq) % self.MODULO
+            p, last = self._period, self._arrivals[-1][0]
+            if (
+                step == 0
+                or step > self.MODULO // 2
+                or (p is not None and step * p > arrival - last + 1.0)
+            ):  # went back, or on further than the time allows: the device restarted
+                self.reset()
+            else:
+                self._n += step
+        self._seq = seq
+        n = self._n
+        arr = self._arrivals
+        arr.append((arrival, n))
+        while len(arr) > 2 and arr[1][0] <= arrival - self.RATE_WINDOW_S:
+            arr.popleft()
+        a0, n0 = arr[0]
+        if arrival - a0 >= 0.5 * self.RATE_WINDOW_S and n > n0:
+            seen = (n - n0) / (arrival - a0)
+            rate = min(DEVICE_RATES_HZ, key=lambda r: abs(math.log(seen / r)))
+            if self._period is None or abs(rate * self._period - 1.0) > 1e-9:
+                self._period = 1.0 / rate
+                self._anchor.clear()
+        p = self._period
+        if p is None:
+            return arrival
+        # The sliding minimum of arrival - n p over the anchor window (a rising deque).
+        a = arrival - n * p
+        anchor = self._anchor
+        while anchor and anchor[-1][2] >= a:
+            anchor.pop()
+        anchor.append((arrival, n, a))
+        while anchor[0][0] <= arrival - self.ANCHOR_WINDOW_S:
+            anchor.popleft()
+        return anchor[0][2] + n * p

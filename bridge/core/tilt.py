@@ -33,10 +33,13 @@ per-frame path runs at up to 100 Hz. Vectors are in the vehicle's body axes.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections import deque
 from dataclasses import dataclass
+from operator import itemgetter
 from typing import Literal
 
+from bridge.core.tilt_settings import TiltSettings
 from bridge.core.vectors import Vec3, angle_deg, cross, dot, norm, unit
 
 TiltSource = Literal["accelerometer", "autopilot", "magnetometer"]
@@ -48,78 +51,12 @@ _DEG = math.pi / 180.0
 _DIP_FRAMES = 50
 #: The accelerometer's white noise is learnt from frames at least this far apart (10 Hz).
 _WHITE_SPACING_S = 0.075
+_TIME = itemgetter(0)
 #: The quiet estimates kept to roll back to on a manoeuvre's onset, seconds.
 _HISTORY_S = 8.0
 
 
 # -- the estimate ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class TiltSettings:
-    """The filter's assumptions (the defaults suit road vehicles and boats; docs/tilt.md).
-
-    * ``accel_noise_g`` -- the accelerometer's white noise per axis and frame, the
-      floor of what the filter learns (vibration adds to it);
-    * ``tilt_rate_dps`` -- how fast roll and pitch change on a calm road (a random walk,
-      deg/sqrt(s)): how fast the estimate follows when quiet, and a held one blurs;
-    * ``heave_tilt_dps_per_g`` -- how much faster per g of vertical acceleration: swell
-      rocks a vehicle as it heaves it (which does not turn the accelerometer's down);
-    * ``gate`` -- an accelerometer down further from the estimate, along an axis,
-      than the square root of this many sigmas is a manoeuvre, not a tilt;
-    * ``turn_dps`` -- turning faster than this is a manoeuvre (a centripetal
-      acceleration comes with it);
-    * ``dip_sigma_deg`` -- how well the measured dip matches the expected one;
-      ``dip_alarm_deg`` -- the accelerometer's down giving a dip off by more than
-      this is a manoeuvre (an acceleration with a north-south part);
-      ``dip_push_deg`` -- the most the dip may move a held axis in one manoeuvre;
-    * ``release_s`` -- a manoeuvre ends this long after its last evidence;
-      ``max_hold_s`` -- an axis held on the gate alone (no turn, no dip) this long
-      takes the accelerometer again: no braking lasts so long, the tilt changed;
-    * ``persist_s`` -- the gate and the dip alarm are evidence once they have held, one
-      way, this long: a hand's shake (0.4-2.5 Hz) swings back sooner;
-    * ``settle_s`` -- an accelerometer steady this long (its down still, 1 g, no turn)
-      ends a manoeuvre and is taken: re-oriented by hand, no vehicle brakes so steadily;
-    * ``spin_dps`` -- the field turning (about any axis) faster than this: turned by
-      hand, faster than any vehicle turns or rocks; the accelerometer is followed;
-    * ``max_accel_deg`` -- the accelerometer's (low-passed) down this far from the
-      estimate (25 deg: 0.47 g) is more than a vehicle's acceleration: followed too;
-    * ``heave_g`` -- above this vertical acceleration (low-passed) the vehicle is
-      taken to be rocking in swell, and its turn rate is not believed;
-    * ``lookback_s`` -- on a manoeuvre's onset the estimate goes back to the one
-      this long before (its first frames were taken for tilt);
-    * ``drift_s`` / ``drift_dps`` -- the accelerometer's down (low-passed) moving
-      further than ``drift_dps`` per second (plus its noise) from the estimate of
-      ``drift_s`` ago is a manoeuvre too: a braking vehicle's down moves as fast as
-      a tilt, but not as far;
-    * ``autopilot_sigma_deg`` -- the autopilot's roll/pitch error.
-    """
-
-    accel_noise_g: float = 0.004
-    tilt_rate_dps: float = 1.0
-    heave_tilt_dps_per_g: float = 60.0
-    gate: float = 16.0
-    turn_dps: float = 4.0
-    dip_sigma_deg: float = 0.5
-    dip_alarm_deg: float = 2.5
-    dip_push_deg: float = 5.0
-    release_s: float = 1.5
-    lookback_s: float = 1.0
-    drift_s: float = 1.5
-    drift_dps: float = 1.0
-    max_hold_s: float = 15.0
-    settle_s: float = 1.0
-    persist_s: float = 1.5
-    spin_dps: float = 20.0
-    max_accel_deg: float = 25.0
-    heave_g: float = 0.05
-    autopilot_sigma_deg: float = 0.3
-
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
 
 
 @dataclass(slots=True)
@@ -215,6 +152,7 @@ class TiltFilter:
         self._history: deque[tuple[float, Vec3, tuple[float, float, float], Vec3]] = deque()
         self.held = [False, False]  #: per axis (forward, right): in a manoeuvre
         self._dip_push = [0.0, 0.0]  # the dip's corrections to the held axes since the onset
+        self._onset: tuple[Vec3, Vec3] | None = None  # (down, field) before the manoeuvre
         self.why = ""  #: what started the current manoeuvre ("gate", "turn", "dip")
 
     @property
@@ -326,6 +264,7 @@ class TiltFilter:
             and not self._turned(back[0], self._lp, back[2], self._m_now)
         ):
             self._d, self._P = back[0], list(back[1])
+        self._onset = None if back is None else (back[0], back[2])
 
     @staticmethod
     def _turned(d0: Vec3, d1: Vec3, m0: Vec3, m1: Vec3) -> bool:
@@ -426,12 +365,9 @@ class TiltFilter:
         mhat = unit(mag) if norm(mag) > 0.0 else (0.0, 0.0, 0.0)
         self._m_now = mhat
         if not self.manoeuvre and self._history and t - self._history[0][0] >= st.drift_s:
-            # The estimate of drift_s ago (the oldest kept that recent or older).
-            _ht, old, _hp, old_m = self._history[0]
-            for ht, hd, _hp, hm in self._history:
-                if ht > t - st.drift_s:
-                    break
-                old, old_m = hd, hm
+            # The estimate of drift_s ago (the newest kept that old, or the oldest).
+            i = bisect_right(self._history, t - st.drift_s, key=_TIME)
+            _ht, old, _hp, old_m = self._history[max(0, i - 1)]
             o1, o2 = self._basis(old)
             rate_dps = st.drift_dps + st.heave_tilt_dps_per_g * self._heave
             allowed = (
@@ -508,11 +444,8 @@ class TiltFilter:
                 # turntable, a pivoting boat) has no centripetal acceleration to hide.
                 # (Against the estimate from before the turn began: the one since may
                 # have followed the centripetal pull.)
-                pre = self._d
-                for ht, hd, _hp, _hm in self._history:
-                    if ht > self._turn_from:
-                        break
-                    pre = hd
+                i = bisect_right(self._history, self._turn_from, key=_TIME)
+                pre = self._history[i - 1][1] if i > 0 else self._d
                 _b1, b2 = self._basis(pre)
                 if abs(dot(lp, b2)) > max(0.5 * _DEG, 2.0 * math.sqrt(self._white / 5.0)):
                     self._evidence(t, (1,), "turn", t - self._turn_from + st.lookback_s)
@@ -543,6 +476,14 @@ class TiltFilter:
             self.manoeuvre
             and self._steady_since is not None
             and t - self._steady_since > st.settle_s
+            # ... and the field turned with the down since the onset (a braking vehicle's
+            # down creeps as steadily at first, the field stays put), or the down is
+            # further off than an acceleration at 1 g (|g| within 0.01) can put it
+            and (
+                self._onset is None
+                or angle_deg(self._d, lp) > 10.0
+                or self._turned(self._onset[0], lp, self._onset[1], mhat)
+            )
         ):
             # Settled: re-oriented, not accelerated. Take the accelerometer's down.
             self.held = [False, False]
@@ -682,8 +623,8 @@ class TiltFilter:
         self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: tuple[float, float, float],
         source: TiltSource, basis: tuple[Vec3, Vec3] | None = None,
     ) -> TiltEstimate:  # fmt: skip
-        """The estimate ``nd`` with covariance ``P`` (on ``basis``'s axes) as it goes out."""
-        e1, e2 = self._basis(nd) if basis is None else basis
+        """The estimate ``nd`` with covariance ``P`` (on ``basis``'s axes; none: the same
+        on every axis) as it goes out."""
         sxx, sxy, syy = P
         sigma = math.sqrt(
             max(0.0, 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy))
@@ -693,8 +634,11 @@ class TiltFilter:
             east = cross(nd, mhat)
             en = norm(east)
             if en > 1e-3:
-                f1, f2 = dot(east, e1) / en, dot(east, e2) / en
-                var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
+                var = sxx
+                if basis is not None:
+                    f1, f2 = dot(east, basis[0]) / en, dot(east, basis[1]) / en
+                    var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
                 hs = math.sqrt(max(0.0, var)) * abs(dot(mhat, nd)) / en
-        sig, h, off = math.degrees(sigma), math.degrees(hs), angle_deg(ahat, nd)
+        off = 0.0 if nd is ahat else angle_deg(ahat, nd)
+        sig, h = math.degrees(sigma), math.degrees(hs)
         return TiltEstimate(nd, source, sig, h, off, self.manoeuvre)
