@@ -440,6 +440,7 @@ BENCHMARKS = {
     "pipeline": "speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
     "fuzz": "hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
     "drift": "hard-iron drift: detection time, false alarms, heading before/after learning",
+    "tilt": "heading under acceleration: accelerometer, autopilot and magnetometer tilt sources",
 }
 
 

@@ -122,6 +122,8 @@ HeadingReference = Literal["magnetic", "true"]
 #: Published heading references: magnetic north (as the compass and ArduPilot's
 #: compass driver report) or true north (magnetic + WMM declination at [location]).
 HEADING_REFERENCES: tuple[HeadingReference, ...] = ("magnetic", "true")
+#: ``[heading] tilt``: where the tilt compensation's roll and pitch come from.
+TILT_MODES: tuple[str, ...] = ("auto", "accelerometer")
 #: MAV_AUTOPILOT flavours of the standalone HEARTBEAT.
 AUTOPILOTS = ("generic", "px4", "ardupilot")
 #: Background judgement of the stored calibration while the bridge runs.
@@ -214,6 +216,14 @@ class HeadingConfig(Section):
         one_of(*HEADING_REFERENCES),
         'north of the published heading (MAVLink ATTITUDE yaw, VFR_HUD, Zenoh "heading_deg"): '
         '"magnetic" or "true" (magnetic + declination)',
+    )
+    tilt: str = setting(
+        "auto",
+        one_of(*TILT_MODES),
+        'where roll and pitch for the tilt compensation come from: "auto" (the accelerometer '
+        "while the vehicle is quiet; while it accelerates the autopilot's attitude in the "
+        "companion role, else the tilt held and matched to the field: docs/tilt.md) or "
+        '"accelerometer" (always the accelerometer\'s, frame by frame)',
     )
 
 

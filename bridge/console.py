@@ -26,8 +26,9 @@ TruthFn = Callable[[CompassSample], float | None]
 def format_line(
     sample: CompassSample | None, status: DaemonStatus, truth_deg: float | None = None
 ) -> str:
-    """The console line: heading, pitch, roll, where the heading comes from, the simulated
-    truth and how far the heading is from it (a simulator only), link health."""
+    """The console line: heading, pitch, roll, where the heading and its tilt come from
+    (accelerometer, autopilot, magnetometer), the simulated truth and how far the heading
+    is from it (a simulator only), quality flags, link health."""
     c = status.counters
     health = f"{status.state.value}  frames {c.attitude_frames}"
     health += f"  lost {c.lost_frames}  bad {c.bad_lines_total}"
@@ -45,6 +46,7 @@ def format_line(
         # the compass's own heading is magnetic, whatever the bridge publishes
         src += f", device hdg {sample.device_heading_deg:5.1f} mag"
     parts.append(f"[{src}]")
+    parts.append(_tilt(sample))
     if truth_deg is not None:
         off = (sample.heading_deg - truth_deg + 180.0) % 360.0 - 180.0
         off = 0.0 if abs(off) < 0.05 else off  # no "-0.0"
@@ -60,6 +62,16 @@ def format_line(
     if flags:
         parts.append(" ".join(flags).upper())
     return "  ".join(parts) + f"  [{health}]"
+
+
+def _tilt(sample: CompassSample) -> str:
+    """Where roll and pitch came from ("tilt accelerometer"), with the heading error that
+    tilt leaves when it is not the accelerometer's own."""
+    src = sample.tilt_source or "n/a"
+    err = sample.heading_sigma_deg
+    if src in ("accelerometer", "device") or err is None:
+        return f"tilt {src}"
+    return f"tilt {src} +-{err:.1f}"
 
 
 def _deg(v: float | None) -> str:

@@ -41,6 +41,8 @@ from bridge.mavlink.signing import Signing
 
 #: Every per-sample stream on: all of them fall due on the first sample, in this order.
 ALL_STREAMS = ["ATTITUDE", "ATTITUDE_QUATERNION", "VFR_HUD", "SCALED_IMU", "RAW_IMU", "HIGHRES_IMU"]
+#: The first frame's: ATTITUDE with its tilt source beside it (TILT_SRC, then once a second).
+FIRST_FRAME = ["ATTITUDE", "NAMED_VALUE_INT", *ALL_STREAMS[1:]]
 ALL_ON = {
     "rate_attitude_hz": 50.0,
     "rate_attitude_quaternion_hz": 10.0,
@@ -50,6 +52,7 @@ ALL_ON = {
     "rate_highres_imu_hz": 10.0,
 }
 SAMPLE_IDS = {T.ATTITUDE, T.ATTITUDE_QUATERNION, T.VFR_HUD, T.SCALED_IMU, T.RAW_IMU, T.HIGHRES_IMU}
+SAMPLE_IDS |= {int(M.MAVLINK_MSG_ID_NAMED_VALUE_INT)}
 
 
 def consecutive(seqs: list[int]) -> bool:
@@ -144,7 +147,7 @@ def test_streams_due_on_one_sample_arrive_in_one_datagram(
     out.publish(make_sample(t=100.0))
     data = gcs.datagram_with("ATTITUDE")
     msgs = parse_all(data)
-    assert [m.get_type() for m in msgs] == ALL_STREAMS  # all six, in one datagram, in order
+    assert [m.get_type() for m in msgs] == FIRST_FRAME  # all six, in one datagram, in order
     assert consecutive([m.get_seq() for m in msgs])
     assert b"".join(bytes(m.get_msgbuf()) for m in msgs) == data  # nothing else in it
     # each packet handed to the tap once, in the same order, the same payloads
@@ -153,7 +156,7 @@ def test_streams_due_on_one_sample_arrive_in_one_datagram(
         (m.get_msgId(), payload_of(m)) for m in msgs
     ]
     after = ep.counters()
-    assert after.packets_sent - before.packets_sent == 6  # packets, not datagrams
+    assert after.packets_sent - before.packets_sent == 7  # packets, not datagrams
     assert after.bytes_sent - before.bytes_sent == len(data)
     assert out.counters.publish_errors == 0
     # A frame with only ATTITUDE due (50 Hz: 20 ms later) still sends it alone.
@@ -170,7 +173,7 @@ def test_a_signed_link_signs_every_packet_of_the_datagram(
     out.publish(make_sample(t=100.0))
     data = gcs.datagram_with("ATTITUDE", KEY)
     msgs = parse_all(data, KEY)  # pymavlink checks every signature with the key
-    assert [m.get_type() for m in msgs] == ALL_STREAMS
+    assert [m.get_type() for m in msgs] == FIRST_FRAME
     assert all(m._signed and m._link_id == 0 for m in msgs)
     assert consecutive([m.get_seq() for m in msgs])
     with pytest.raises(M.MAVError):  # and they are really signed: another key fails
@@ -188,7 +191,7 @@ def test_a_stream_that_fails_to_encode_does_not_hold_back_the_others(
     out._sample_encoders[T.VFR_HUD] = broken  # the third of the six
     out.publish(make_sample(t=100.0))  # never raises
     msgs = parse_all(gcs.datagram_with("ATTITUDE"))
-    assert [m.get_type() for m in msgs] == ["ATTITUDE", "ATTITUDE_QUATERNION"]
+    assert [m.get_type() for m in msgs] == ["ATTITUDE", "NAMED_VALUE_INT", "ATTITUDE_QUATERNION"]
     assert out.counters.publish_errors == 1
 
 

@@ -462,7 +462,10 @@ def test_heading_feed_for_the_autopilot(
         if mtype == "ODOMETRY":
             w, x, y, z = m.q
             yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-            assert m.pose_covariance[20] == pytest.approx(math.radians(2.0) ** 2, rel=1e-5)
+            # BRG_YAW_SIGMA (2 deg) with the heading error of the sample's tilt in quadrature:
+            # an ideal unit turning level has its accelerometer's tilt, near-perfect.
+            sigma_deg = math.degrees(math.sqrt(m.pose_covariance[20]))
+            assert 2.0 - 1e-6 <= sigma_deg <= 2.5
             assert (m.x, m.y, m.z) == (0.0, 0.0, 0.0)
         else:
             yaw = m.yaw

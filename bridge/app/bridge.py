@@ -25,6 +25,7 @@ from bridge.app.pipeline import Pipeline
 from bridge.app.sample import DaemonStatus, HeadingReference, Output
 from bridge.app.services import BridgeServices, MessageTap
 from bridge.app.settings import EngineSettings, SettingsChange
+from bridge.app.tilt import TiltSources, frame_latency_s
 from bridge.calibration.model import Calibration
 from bridge.calibrator.controller import CalibrationController, CalibratorSettings
 from bridge.calibrator.store import CalibrationStore
@@ -51,6 +52,11 @@ class BridgeOptions:
     calibration_timeout_s: float = 180.0
     heading_reference: HeadingReference = "magnetic"
     learn: str = "detect"  #: BRG_CAL_LEARN's default: "off", "detect" or "learn"
+    #: ``[heading] tilt``: "auto" (a tilt source other than the accelerometer while it is
+    #: unreliable, :mod:`bridge.app.tilt`) or "accelerometer" (frame by frame, always).
+    tilt: str = "auto"
+    #: How long before its arrival a compass frame was sampled (its line on the wire).
+    frame_latency_s: float = 0.0
     #: Parameter defaults the configuration sets (stream rates, heading feed, ...).
     param_defaults: Mapping[str, float] = field(default_factory=dict)
 
@@ -68,8 +74,11 @@ class BridgeOptions:
             spec.name: param_from_config(spec, config_value(cfg, spec.config_key))
             for spec in CONFIG_PARAMS
         }
+        heading_section = getattr(cfg, "heading", None)
         return cls(
             location=(loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None,
+            tilt=str(getattr(heading_section, "tilt", "auto")),
+            frame_latency_s=frame_latency_s(cfg.device.baud),
             onboard=cfg.calibration.onboard,
             calibration_timeout_s=cfg.calibration.timeout_s,
             heading_reference=heading,
@@ -139,6 +148,10 @@ class Bridge:
         else:
             self.calibration_source = calibration_source or "given"
         self.engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
+        #: Where each frame's tilt comes from (the engine's tilt policy, unless "accelerometer").
+        self.tilt = TiltSources(frame_latency=options.frame_latency_s)
+        if options.tilt != "accelerometer":
+            self.engine.set_tilt_policy(self.tilt)
         field = location_field(options.location)
         self.settings = EngineSettings(self.engine, field=field)
         self.drift = DriftMonitor(
@@ -198,6 +211,7 @@ class Bridge:
             mavlink_tap=self.mavlink_tap,
             documents=documents,
             drift=self.drift,
+            tilt=self.tilt,
         )
         self.settings.subscribe(self._on_settings)
         self.params.subscribe(self._on_params)
@@ -258,6 +272,10 @@ class Bridge:
         return "" if out.ok else out.message
 
     def _on_settings(self, change: SettingsChange) -> None:
+        if change.aspect in ("mounting", "calibration"):
+            # The compass's axes or its accelerometer's level moved: what the tilt estimate
+            # held, and the residual to the autopilot's axes it learnt, no longer hold.
+            self.tilt.reset(f"{change.aspect} changed by {change.source}")
         if change.aspect == "reference":
             # A new position (reload, autopilot): fits are scaled to the field there.
             self.calibrator.set_field(self.settings.field)

@@ -11,7 +11,9 @@ Per frame:
 
 * ``$PGMRA``: :meth:`AttitudeEngine.solve_counts
   <bridge.core.attitude.AttitudeEngine.solve_counts>` (nominal transfer ->
-  calibration -> tilt-compensated heading, declination), plus the
+  calibration -> tilt-compensated heading, declination; the tilt from the
+  engine's tilt policy, :mod:`bridge.app.tilt`, given the frame's sampling instant
+  from its ``seq``: :class:`~bridge.core.aligned.FrameClock`), plus the
   disturbance events (start / end, at most one per
   :data:`DISTURBANCE_EVENT_MIN_S`, none while a calibration tumbles);
 * a heading-only sentence (NMEA / OceanServer): forwarded, with the
@@ -31,6 +33,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from bridge.app.sample import CompassSample, HeadingReference, Output
+from bridge.core.aligned import FrameClock
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.geometry import wrap_degrees_360
 from bridge.events import Event, EventBus, Severity
@@ -79,6 +82,8 @@ class Pipeline:
         #: A change of the disturbance state went unreported because a calibration ran.
         self.muted_while_calibrating = False
         self._link_lost = False  # link.lost emitted, link.restored not yet
+        #: The frames' sampling instants (from seq, not arrival) for the tilt policy.
+        self.frame_clock = FrameClock()
 
     @property
     def alive_at(self) -> float:
@@ -127,7 +132,8 @@ class Pipeline:
         return None  # $PGMRV/P/K/C: handled by the link
 
     def _from_gmr(self, f: AttitudeFrame, t: float) -> CompassSample:
-        a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+        tf = self.frame_clock.at(f.seq, t)  # sampled; t is when the reader got it
+        a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az, tf)
         if a.disturbed is not self._disturbed:
             self._disturbance_changed(a.disturbed, a, t)
         # int & int: Flags' own "&" is Python code in the enum module (per frame).
@@ -208,6 +214,7 @@ class Pipeline:
         down = (LinkState.STALE, LinkState.ABSENT)
         if old is LinkState.STREAMING and new in down:
             self._link_lost = True
+            self.frame_clock.reset()
             why = "stale" if new is LinkState.STALE else "port gone"
             self.events.emit(
                 Event(

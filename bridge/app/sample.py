@@ -62,6 +62,22 @@ class CompassSample:
     #: The frame's raw ADC counts (mx, my, mz, ax, ay, az), for MAVLink RAW_IMU; GMR frames only.
     raw_counts: tuple[int, int, int, int, int, int] | None = None
 
+    @property
+    def tilt_source(self) -> str | None:
+        """Where roll and pitch came from: ``"accelerometer"``, ``"autopilot"`` or
+        ``"magnetometer"`` (host samples); ``"device"`` for a heading-only compass's own."""
+        a = self.attitude
+        if a is not None:
+            return a.tilt_source
+        return "device" if self.pitch_deg is not None else None
+
+    @property
+    def heading_sigma_deg(self) -> float | None:
+        """The heading error (1 sigma, degrees) the tilt's uncertainty leaves; None when
+        the bridge does not know it (no tilt estimate, a heading-only compass)."""
+        a = self.attitude
+        return a.heading_sigma_deg if a is not None else None
+
     @classmethod
     def from_solution(
         cls,

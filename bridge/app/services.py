@@ -23,6 +23,7 @@ from bridge.app.drift import DriftMonitor
 from bridge.app.params import ParamStore
 from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
+from bridge.app.tilt import TiltSources
 from bridge.calibration.model import corrects_iron
 from bridge.calibrator.controller import CalibrationController
 from bridge.calibrator.store import CalibrationStore
@@ -88,6 +89,8 @@ class BridgeServices:
     * ``documents`` -- the state directory, for what an adapter must keep across a
       restart (MAVLink's signing replay table); None without one.
     * ``drift`` -- the calibration's drift monitor (status, undo of learned offsets).
+    * ``tilt`` -- where each frame's tilt comes from: the companion role's MAVLink
+      adapter hands it the autopilot's attitude; status reads it.
     """
 
     status: Callable[[], DaemonStatus]
@@ -100,6 +103,7 @@ class BridgeServices:
     mavlink_tap: MessageTap
     documents: DocumentStore | None = None
     drift: DriftMonitor | None = None
+    tilt: TiltSources | None = None
 
 
 def magnetometer_calibrated(svc: BridgeServices) -> bool | None:

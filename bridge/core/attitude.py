@@ -16,6 +16,14 @@ gravity-vector sign (level reads +1 g on z)::
     Y = Hy cos(roll) - Hz sin(roll)
     heading = atan2(-Y, X), folded into [0, 360), clockwise from magnetic north
 
+Under acceleration the accelerometer's gravity is not gravity: a *tilt policy*
+(:class:`TiltPolicy`, set with :meth:`AttitudeEngine.set_tilt_policy`; the
+application's :class:`~bridge.app.tilt.TiltSources`, the maths in
+:mod:`bridge.core.tilt`) may then give the down to use instead -- the
+autopilot's, or one held from the quiet frames and matched to the field -- and
+the solution says which (``tilt_source``) and what heading error that tilt leaves
+(``heading_sigma_deg``).
+
 Near +-90 deg pitch roll is undefined (gravity lies along x); the outputs stay
 finite (roll falls to whatever the tiny y/z components give, heading stays
 consistent with it) and the solution is flagged ``degraded``.
@@ -32,7 +40,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -47,6 +55,7 @@ from bridge.core.geometry import (
 )
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
+from bridge.core.tilt import TiltEstimate, TiltSource
 from bridge.core.wmm import EarthField, earth_field
 
 HeadingReference = Literal["magnetic", "true"]
@@ -54,6 +63,15 @@ Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
 _DEG = 180.0 / math.pi
+
+
+class TiltPolicy(Protocol):
+    """Gives a frame the down to compensate it with (see the module docstring)."""
+
+    def tilt(self, mag: Vec3, accel: Vec3, t: float, *, field_ok: bool) -> TiltEstimate:
+        """The down (vehicle axes) for a frame with calibrated ``mag`` and ``accel``
+        (vehicle axes) that arrived at ``t``; ``field_ok``: the field is not disturbed."""
+        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +132,14 @@ class AttitudeSolution:
     declination. ``quaternion`` is (w, x, y, z) body->NED with w >= 0 and uses
     the published yaw. ``mag_G``/``accel_g`` are the calibrated vectors in
     vehicle axes; ``dip_deg`` is the measured inclination (positive down).
+
+    ``tilt_source`` says where roll and pitch (and so the heading's tilt
+    compensation) came from: ``"accelerometer"``, ``"autopilot"`` or
+    ``"magnetometer"`` (:data:`bridge.core.tilt.TILT_SOURCES`);
+    ``heading_sigma_deg`` is the heading error (1 sigma) that tilt's
+    uncertainty leaves, None without a tilt policy. ``accelerating`` is the
+    accelerometer's magnitude off 1 g (the quality flag; a turn's horizontal
+    acceleration hardly changes it -- the tilt source says more).
     """
 
     roll: float
@@ -131,6 +157,8 @@ class AttitudeSolution:
     degraded: bool
     disturbed: bool
     accelerating: bool
+    tilt_source: TiltSource = "accelerometer"
+    heading_sigma_deg: float | None = None
 
     @property
     def heading_deg(self) -> float:
@@ -197,6 +225,7 @@ class AttitudeEngine:
         self._heading_reference: HeadingReference = heading_reference
         self._limits = limits if limits is not None else QualityLimits()
         self._quality = QualityMonitor(self._limits)
+        self._tilt: TiltPolicy | None = None
         self._state = self._build()
 
     # -- configuration -------------------------------------------------------------
@@ -277,6 +306,15 @@ class AttitudeEngine:
         self._quality = QualityMonitor(limits)
         self._state = self._build()
 
+    @property
+    def tilt_policy(self) -> TiltPolicy | None:
+        """Where frames given a time get their down from (None: their accelerometer)."""
+        return self._tilt
+
+    def set_tilt_policy(self, policy: TiltPolicy | None) -> None:
+        """Use ``policy`` for the down of every frame solved with a time (one store)."""
+        self._tilt = policy
+
     def update_reference(self, reference: FieldReference | None) -> None:
         """Set the declination / expected field (``None`` = unknown)."""
         self._reference = reference
@@ -309,10 +347,19 @@ class AttitudeEngine:
     # -- the fast path -------------------------------------------------------------
 
     def solve_counts(
-        self, mx: float, my: float, mz: float, ax: float, ay: float, az: float
+        self,
+        mx: float,
+        my: float,
+        mz: float,
+        ax: float,
+        ay: float,
+        az: float,
+        t: float | None = None,
     ) -> AttitudeSolution:
         """One frame of raw ADC counts (as ``$PGMRA`` carries them) to an attitude.
 
+        ``t`` is the frame's arrival time (monotonic seconds): with it, and a tilt
+        policy set, the policy gives the down; without, the accelerometer does.
         Raises ``ValueError`` on non-finite input (the quality state is left untouched).
         """
         s = self._state  # one read: a concurrent update cannot mix two configurations
@@ -329,7 +376,11 @@ class AttitudeEngine:
         if not math.isfinite(hx + hy + hz + gx + gy + gz):
             # The codec only passes 0..4095 integers; anything else is a caller bug.
             raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
-        return self._finish(s, hx, hy, hz, gx, gy, gz)
+        policy = self._tilt
+        if policy is None or t is None:
+            return self._finish(s, hx, hy, hz, gx, gy, gz)
+        est = policy.tilt((hx, hy, hz), (gx, gy, gz), t, field_ok=not self._quality.disturbed)
+        return self._finish(s, hx, hy, hz, gx, gy, gz, est)
 
     def solve_vectors(self, mag_G: npt.ArrayLike, accel_g: npt.ArrayLike) -> AttitudeSolution:
         """Same as :meth:`solve_counts` from nominal-transfer vectors (gauss, g)."""
@@ -342,8 +393,19 @@ class AttitudeEngine:
         )
 
     def _finish(
-        self, s: _State, hx: float, hy: float, hz: float, gx: float, gy: float, gz: float
+        self,
+        s: _State,
+        hx: float,
+        hy: float,
+        hz: float,
+        gx: float,
+        gy: float,
+        gz: float,
+        est: TiltEstimate | None = None,
     ) -> AttitudeSolution:
+        an = math.sqrt(gx * gx + gy * gy + gz * gz)  # the accelerometer's |g|
+        if est is not None:
+            gx, gy, gz = est.down  # the tilt policy's down replaces the accelerometer's
         gn = math.sqrt(gx * gx + gy * gy + gz * gz)
         bn = math.sqrt(hx * hx + hy * hy + hz * hz)
         degraded = False
@@ -366,7 +428,7 @@ class AttitudeEngine:
                 if bn > 0.0
                 else 0.0
             )
-            if abs(sp) > s.sin_degraded or gn < 0.2:
+            if abs(sp) > s.sin_degraded or an < 0.2:
                 degraded = True
         else:
             # No gravity at all (free fall, dead accelerometer): level is a guess.
@@ -388,7 +450,23 @@ class AttitudeEngine:
         else:
             published, label = heading_mag, "magnetic"
         yaw = wrap_radians_pi(math.radians(published))
-        disturbed, accelerating = self._quality.update(bn, dip, gn, s.total_G, s.dip_deg)
+        if est is None:
+            disturbed, accelerating = self._quality.update(bn, dip, an, s.total_G, s.dip_deg)
+            source: TiltSource = "accelerometer"
+            heading_sigma: float | None = None
+        else:
+            # The dip says something about the field only against a down it was not
+            # matched to: the accelerometer's while quiet, or the autopilot's.
+            disturbed, accelerating = self._quality.update(
+                bn,
+                dip,
+                an,
+                s.total_G,
+                s.dip_deg,
+                down_trusted=est.source != "magnetometer"
+                and not (est.source == "accelerometer" and est.manoeuvre),
+            )
+            source, heading_sigma = est.source, est.heading_sigma_deg
         return AttitudeSolution(
             roll,
             pitch,
@@ -405,6 +483,8 @@ class AttitudeEngine:
             degraded,
             disturbed,
             accelerating,
+            source,
+            heading_sigma,
         )
 
 

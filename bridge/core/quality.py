@@ -146,17 +146,21 @@ class QualityMonitor:
         accel_norm_g: float,
         expected_total_G: float | None,
         expected_dip_deg: float | None,
+        *,
+        down_trusted: bool | None = None,
     ) -> tuple[bool, bool]:
         """One frame in; ``(disturbed, accelerating)`` out, both debounced.
 
         The judgement is :func:`accel_out_of_limits` and :func:`field_out_of_limits`;
         under acceleration the "down" direction is wrong, so the dip says nothing
-        about the field and only the magnitude is judged.
+        about the field and only the magnitude is judged. ``down_trusted`` overrides
+        that when the dip was measured against another down (a tilt source's).
         """
         lim = self.limits
         accel_bad = accel_out_of_limits(accel_norm_g, lim)
+        trusted = not accel_bad if down_trusted is None else down_trusted
         field_bad = field_out_of_limits(
-            field_G, None if accel_bad else dip_deg, expected_total_G, expected_dip_deg, lim
+            field_G, dip_deg if trusted else None, expected_total_G, expected_dip_deg, lim
         )
         return self._field.update(field_bad), self._accel.update(accel_bad)
 

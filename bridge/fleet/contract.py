@@ -63,6 +63,7 @@ class FleetServices:
     subscribe_events: Callable[[Callable[[Event], None]], Callable[[], None]] | None = None
     subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
     emit_event: Callable[[Event], None] | None = None
+    tilt_state: Callable[[], Mapping[str, Any]] | None = None  #: the tilt source (status)
 
 
 @dataclass(slots=True)

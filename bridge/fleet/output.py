@@ -535,6 +535,7 @@ class ZenohOutput:
             publisher={**self.counters.as_dict(), "duplicate_prefix": list(self._shared_with)},
             t_unix=self._wall(),
             uptime_s=now - self._started_at,
+            tilt=self._safe(self.services.tilt_state, {}) if self.services.tilt_state else None,
         )
 
     def _safe(self, fn: Callable[[], Mapping[str, Any]], default: Mapping[str, Any]) -> Any:

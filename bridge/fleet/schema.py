@@ -213,6 +213,11 @@ def heading_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
             "declination_deg": _r(sample.declination_deg, _ANGLE_DIGITS),
             "device_heading_deg": _r(sample.device_heading_deg, _ANGLE_DIGITS),
             "flags": quality_flags(sample),
+            # where roll and pitch came from, and the heading error that tilt leaves
+            "tilt": {
+                "source": sample.tilt_source,
+                "heading_error_deg": _r(sample.heading_sigma_deg, _ANGLE_DIGITS),
+            },
         }
     )
     return doc
@@ -313,8 +318,10 @@ def status_doc(
     publisher: Mapping[str, Any],
     t_unix: float,
     uptime_s: float,
+    tilt: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """``<prefix>/status``: link state, frame rate, counters, calibration state.
+    """``<prefix>/status``: link state, frame rate, counters, calibration state, and the
+    tilt source's state (``tilt``: :meth:`bridge.app.tilt.TiltSources.status`, or None).
 
     ``calibration`` may carry ``drift`` (:func:`drift_detected` reads it): the drift
     monitor's ``mode``, ``state`` ("off", "uncalibrated", "collecting", "ok", "drift",
@@ -336,6 +343,7 @@ def status_doc(
             "samples": status.samples,
             "pipeline_errors": status.pipeline_errors,
             "calibration": dict(calibration),
+            "tilt": dict(tilt) if tilt else None,
             "zenoh": dict(publisher),
         }
     )

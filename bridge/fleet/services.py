@@ -169,4 +169,5 @@ def fleet_services(svc: BridgeServices) -> FleetServices:
         subscribe_events=svc.events.subscribe,
         subscribe_mavlink=subscribe_mavlink,
         emit_event=svc.events.emit,
+        tilt_state=svc.tilt.status if svc.tilt is not None else None,
     )

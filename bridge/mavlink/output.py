@@ -25,11 +25,11 @@ component); **companion** -- component 200 (MAV_COMP_ID_IMU), type IMU,
 autopilot INVALID, beside an autopilot with the same system id: it obeys only
 what names its own component (reads of parameters addressed to every component
 are answered too), reports its calibration as compass :data:`COMPANION_COMPASS_ID`,
-and takes the position for declination from the autopilot
-(:mod:`~bridge.mavlink.autopilot`).
+and takes the position for declination (:mod:`~bridge.mavlink.autopilot`) and its
+attitude for the tilt (:mod:`~bridge.mavlink.attitude_in`) from the autopilot.
 
-Security: with a signing key what we send is signed and COMMAND_*, PARAM_SET and
-position messages must be validly signed (:mod:`bridge.mavlink.signing`).
+Security: with a signing key what we send is signed and COMMAND_*, PARAM_SET,
+position and attitude messages must be validly signed (:mod:`bridge.mavlink.signing`).
 """
 
 from __future__ import annotations
@@ -47,27 +47,25 @@ from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
 from bridge.calibrator import CalibratorSnapshot
-from bridge.config import Config
 from bridge.events import Event
 from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.attitude_in import WANTED_STREAMS, AutopilotAttitudeIn
 from bridge.mavlink.autopilot import AutopilotWatch
 from bridge.mavlink.dialect import Message
-from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.mavlink.dispatch import CommandDispatcher
 from bridge.mavlink.endpoints import Endpoint, EndpointCounters, Link, open_endpoint
 from bridge.mavlink.feed import HeadingFeed
 from bridge.mavlink.pacing import PacedLink, Pacer
-from bridge.mavlink.paramproto import FLAVOURS, Flavour, ParamEncoding, ParamProtocol
+from bridge.mavlink.paramproto import ParamEncoding, ParamProtocol
+from bridge.mavlink.settings import MavlinkSettings
 from bridge.mavlink.signing import Signing, Verdict
 from bridge.ports import StorageError
 
 log = logging.getLogger(__name__)
 
-MAV_COMP_ID_IMU = int(M.MAV_COMP_ID_IMU)
-DEFAULT_QUEUE_PACKETS = 128
 #: The compass id a companion bridge reports its calibration as: beyond ArduPilot's
 #: three compasses (COMPASS_MAX_INSTANCES), so neither the autopilot nor a ground
 #: station takes it, or an accept sent for it, for one of the autopilot's.
@@ -88,61 +86,6 @@ _INBOX_TYPES = _SIGNED_TYPES | {
 }
 #: The parameter change source of this output's own SETs (their echo is sent by the SET).
 _OWN_SET = "mavlink PARAM_SET"
-
-
-@dataclass(frozen=True, slots=True)
-class MavlinkSettings:
-    """Everything the output takes from the configuration (``[mavlink]``).
-
-    ``component_id`` None means "by role": 1 standalone, 200 (MAV_COMP_ID_IMU)
-    companion. ``autopilot`` is the standalone HEARTBEAT's flavour, which also
-    decides how a standalone bridge's parameters are encoded
-    (:mod:`bridge.mavlink.paramproto`); a companion's always travel as REAL32.
-    """
-
-    endpoints: tuple[str, ...] = ("udpout:127.0.0.1:14550",)
-    system_id: int = 1
-    component_id: int | None = None
-    role: T.Role = "standalone"
-    autopilot: Flavour = "generic"
-    signing_key: bytes | None = None
-    queue_packets: int = DEFAULT_QUEUE_PACKETS
-
-    def __post_init__(self) -> None:
-        if self.role not in T.ROLES:
-            raise ValueError(f"role must be one of {T.ROLES}, got {self.role!r}")
-        if self.autopilot not in FLAVOURS:
-            raise ValueError(f"autopilot must be one of {FLAVOURS}, got {self.autopilot!r}")
-        if not 1 <= self.system_id <= 255:
-            raise ValueError(f"system_id must be 1..255, got {self.system_id}")
-        if self.component_id is not None and not 1 <= self.component_id <= 255:
-            raise ValueError(f"component_id must be 1..255, got {self.component_id}")
-
-    @property
-    def effective_component_id(self) -> int:
-        """Our component id."""
-        if self.component_id is not None:
-            return self.component_id
-        return MAV_COMP_ID_IMU if self.role == "companion" else 1
-
-    @classmethod
-    def from_config(cls, cfg: Config) -> MavlinkSettings:
-        """From a loaded configuration."""
-        m = cfg.mavlink
-        role: T.Role = "companion" if m.role == "companion" else "standalone"
-        # Component 1 is the autopilot's in companion role: 1 there means "the role's default".
-        comp: int | None = m.component_id
-        if role == "companion" and comp == 1:
-            comp = None
-        autopilot = str(getattr(m, "autopilot", "generic"))
-        return cls(
-            endpoints=tuple(m.endpoints),
-            system_id=m.system_id,
-            component_id=comp,
-            role=role,
-            autopilot=autopilot,  # type: ignore[arg-type]  # validated by config
-            signing_key=m.signing_key,
-        )
 
 
 @dataclass(slots=True)
@@ -189,6 +132,9 @@ class MavlinkOutput:
         self.schedule = S.StreamSchedule({})
         self.relay = C.CalibrationRelay(self.compass_id, self.clock)
         self.dispatcher = CommandDispatcher(self)
+        #: The autopilot's attitude as the tilt source (companion role only); TILT_SRC out.
+        self.autopilot_in = AutopilotAttitudeIn.beside(settings, services, clock, self._t0)
+        self._tilt_note = T.TiltSourceNote()
         self.latest: CompassSample | None = None
         self.alt_m = 0.0  #: the autopilot's altitude (companion role), for VFR_HUD
         self._running = False  # publish() sends only between start() and close()
@@ -208,6 +154,9 @@ class MavlinkOutput:
             clock,
         )
         self.autopilot.on_due = self._wake.set
+        if self.autopilot_in is not None:  # the tilt source: the autopilot's ATTITUDE, asked for
+            for msgid, hz, group in WANTED_STREAMS:
+                self.autopilot.requests.want(msgid, hz, group)
         self.feed = HeadingFeed(self)
         #: Every burst (answers, lists, status texts, reports) leaves through it:
         #: routers in between forward through small buffers (bridge.mavlink.pacing).
@@ -291,6 +240,8 @@ class MavlinkOutput:
                     p = encoders[sid](sample)
                     if p is not None:
                         packets.append(p)
+                        if sid == S.ATTITUDE:  # its tilt source beside it (TILT_SRC)
+                            packets.extend(self._tilt_note.due(sample, now, p.time_boot_ms))
             finally:  # a stream that fails to encode does not hold back those before it
                 self.broadcast_now(packets)
         except Exception:
@@ -495,8 +446,7 @@ class MavlinkOutput:
     # ------------------------------------------------------------------ the telemetry thread
 
     def _telemetry_loop(self) -> None:
-        # Paced by the clock streams and the calibration keep-alive, not by the frame rate:
-        # sample streams go out from publish().
+        # Paced by the clock streams and calibration keep-alive (samples: from publish()).
         while not self._stop.is_set():
             now = self.clock()
             due_at = min(
@@ -521,6 +471,8 @@ class MavlinkOutput:
             keepalive = self.relay.keepalive(now, self.services.calibrator.snapshot)
             if keepalive:
                 self.broadcast(keepalive)
+            if self.autopilot_in is not None:  # TIMESYNC to the autopilot, now and then
+                self.autopilot_in.tick(now)
             self.dispatcher.pending.expire(now)
             if self.companion:
                 self.autopilot.tick(now)
@@ -556,6 +508,10 @@ class MavlinkOutput:
         """Endpoint threads: answer TIMESYNC at once, tell the autopilot watch what the
         autopilot says, queue what the dispatcher handles."""
         kind = msg.get_type()
+        self.autopilot.heard(msg, link.send)  # its HEARTBEAT, position, wanted streams
+        ap = self.autopilot_in  # its attitude, its TIMESYNC answers: taken here, on arrival
+        if ap is not None and ap.takes(msg, link, self._refuse_unsigned):
+            return
         if kind == "TIMESYNC":
             if int(msg.tc1) == 0:  # a request: answer with our (feed's) time, echo theirs
                 now_ns = int((self.clock() + self._epoch_offset) * 1e9)
@@ -565,7 +521,6 @@ class MavlinkOutput:
                     )
                 )
             return
-        self.autopilot.heard(msg, link.send)
         if kind not in _INBOX_TYPES:
             return
         with self._inbox_cond:

@@ -5,7 +5,10 @@ Every function here turns bridge state into a pymavlink message object
 
 * ATTITUDE / ATTITUDE_QUATERNION: radians, body FRD relative to NED, yaw from
   the published heading (magnetic or true, as the daemon publishes it). The
-  compass has no gyro: the rate fields are 0.
+  compass has no gyro: the rate fields are 0. A NAMED_VALUE_INT ``TILT_SRC``
+  (same ``time_boot_ms``) goes beside an ATTITUDE when its tilt source changes,
+  and once a second: where its roll and pitch came from, 0 accelerometer,
+  1 autopilot, 2 magnetometer (:class:`TiltSourceNote`).
 * SCALED_IMU: accelerations in mG and the calibrated field in mgauss, vehicle
   axes. MAVLink IMU messages carry *specific force* (a level unit at rest reads
   z = -1 g), the negative of the datasheet's gravity vector, so the sign is
@@ -40,6 +43,7 @@ from bridge.app.sample import CompassSample
 from bridge.core.geometry import euler_to_quaternion, wrap_radians_pi
 from bridge.core.quality import heading_usable
 from bridge.core.sensor import STANDARD_GRAVITY
+from bridge.core.tilt import TILT_SOURCES
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 from bridge.ports import LinkState
@@ -344,11 +348,58 @@ def feed_usable(sample: CompassSample) -> bool:
 
 
 def feed_yaw_sigma_rad(sample: CompassSample, sigma_deg: float) -> float:
-    """Yaw standard deviation: ``sigma_deg``, five times that (25 times the variance) while
-    accelerating or degraded."""
+    """Yaw standard deviation: ``sigma_deg`` with the heading error the sample's tilt
+    leaves (``heading_sigma_deg``, in quadrature); five times that while degraded, or
+    while accelerating with the accelerometer as the only tilt source."""
     a = sample.attitude
-    k = 5.0 if a is not None and (a.accelerating or a.degraded) else 1.0
-    return math.radians(k * sigma_deg)
+    if a is None:
+        return math.radians(sigma_deg)
+    tilt = a.heading_sigma_deg
+    s = math.hypot(sigma_deg, tilt) if tilt is not None and math.isfinite(tilt) else sigma_deg
+    blind = a.accelerating and a.tilt_source == "accelerometer"
+    return math.radians((5.0 if a.degraded or blind else 1.0) * s)
+
+
+#: NAMED_VALUE_INT name of the tilt source each ATTITUDE used: 0 accelerometer,
+#: 1 autopilot, 2 magnetometer (:data:`bridge.core.tilt.TILT_SOURCES`).
+TILT_SOURCE_NAME = "TILT_SRC"
+
+
+#: TILT_SRC goes beside an ATTITUDE when the tilt source changes, and at least this often.
+TILT_SOURCE_EVERY_S = 1.0
+
+
+class TiltSourceNote:
+    """When TILT_SRC goes out: beside the ATTITUDE of a sample whose tilt source differs from
+    the last one sent, and beside one a second otherwise. Every sample's source is the one
+    last sent before it, without a second packet per ATTITUDE: 50 Hz of them would take a
+    quarter of a 57600 baud radio. Used by the pipeline's thread only."""
+
+    def __init__(self) -> None:
+        self._last: str | None = None
+        self._at = -math.inf
+
+    def due(self, sample: CompassSample, now: float, time_boot_ms: int) -> tuple[Message, ...]:
+        """The TILT_SRC to send with this sample's ATTITUDE: one, or none."""
+        src = sample.tilt_source
+        if src == self._last and 0.0 <= now - self._at < TILT_SOURCE_EVERY_S:
+            return ()
+        self._last, self._at = src, now
+        return (tilt_source(sample, time_boot_ms),)
+
+
+def tilt_source(sample: CompassSample, time_boot_ms: int) -> Message:
+    """NAMED_VALUE_INT ``TILT_SRC``: the tilt source of ``sample`` (sent with its ATTITUDE,
+    same ``time_boot_ms``, see :class:`TiltSourceNote`): 0 accelerometer, 1 autopilot,
+    2 magnetometer; -1 a heading-only compass's own."""
+    src = sample.tilt_source
+    value = TILT_SOURCES.index(src) if src in TILT_SOURCES else -1
+    return message(
+        M.MAVLINK_MSG_ID_NAMED_VALUE_INT,
+        time_boot_ms=_ms32(time_boot_ms),
+        name=TILT_SOURCE_NAME.encode(),
+        value=value,
+    )
 
 
 def feed_euler(sample: CompassSample) -> tuple[float, float, float, bool]:

@@ -142,3 +142,206 @@ class Drive(MotionBase):
         c, s = math.cos(yaw), math.sin(yaw)
         lat = v * rate
         return np.array([dv * c - lat * s, dv * s + lat * c, 0.0]) / self._G0
+
+
+#: Kinds of :class:`ManoeuvreDrive` stretch, in the order :attr:`ManoeuvreDrive.KINDS` numbers them.
+MANOEUVRES = ("cruise", "turn", "stop", "start", "waves")
+
+
+class ManoeuvreDrive(MotionBase):
+    """A vehicle's drive with real accelerations: turns, stops and starts, a wavy road.
+
+    The path is built from seeded stretches, each after ``cruise_s`` (uniform) of
+    straight, steady driving at ``speed_mps``:
+
+    * **turn** -- ``turn_deg`` (uniform, either side) with a raised-cosine yaw rate
+      whose peak gives a centripetal ``v * yaw_rate`` drawn in ``accel_g``;
+    * **stop / start** -- braking to a standstill with a raised-cosine deceleration
+      peaking in ``accel_g``, ``halt_s`` at rest, then driving off the same way;
+    * **waves** -- a stretch of swell (``waves_s``): the road (or the sea) rises and
+      falls under the vehicle, ``z = A sin(k s)`` along the track, crossing it at an
+      angle, so the vehicle pitches and rolls with the slope while it heaves; the
+      amplitude gives a vertical acceleration peaking in ``accel_g``.
+
+    Under it all, the road's camber and grade (three slow tones each, peaks
+    ``max_roll_deg`` / ``max_pitch_deg``) and vibration (``vibration_g`` RMS per
+    axis, white at the frame rate; only while the vehicle moves).
+
+    The vehicle's pitch is the road's slope and its roll the road's cross slope;
+    its acceleration is the derivative of its velocity along that road
+    (``v * [cos(slope) cos(yaw), cos(slope) sin(yaw), -sin(slope)]``), so turns,
+    braking, grades and swell all give the accelerometer exactly what they would.
+    Not modelled: a boat's sway in beam seas (a raft that follows the wave surface
+    reads no tilt at all: no estimator without gyros can see that roll).
+
+    The schedule is computed for ``duration_s`` on a ``grid_hz`` grid and
+    interpolated; after ``duration_s`` the vehicle holds its last attitude, at
+    rest. :meth:`kind_at` names the stretch a time falls in.
+    """
+
+    KINDS = MANOEUVRES
+    _G0 = 9.80665
+
+    def __init__(
+        self,
+        seed: int = 0,
+        duration_s: float = 600.0,
+        *,
+        speed_mps: float = 10.0,
+        accel_g: tuple[float, float] = (0.15, 0.3),
+        cruise_s: tuple[float, float] = (3.0, 10.0),
+        turn_deg: tuple[float, float] = (45.0, 180.0),
+        halt_s: tuple[float, float] = (1.0, 4.0),
+        waves_s: tuple[float, float] = (10.0, 25.0),
+        wavelength_m: tuple[float, float] = (15.0, 40.0),
+        max_roll_deg: float = 10.0,
+        max_pitch_deg: float = 10.0,
+        vibration_g: float = 0.01,
+        grid_hz: float = 200.0,
+    ) -> None:
+        if not (math.isfinite(duration_s) and duration_s > 0.0):
+            raise ValueError(f"duration_s must be finite and > 0, got {duration_s!r}")
+        if not (math.isfinite(speed_mps) and speed_mps > 0.0):
+            raise ValueError(f"speed_mps must be finite and > 0, got {speed_mps!r}")
+        for name, (lo, hi) in (
+            ("accel_g", accel_g),
+            ("cruise_s", cruise_s),
+            ("turn_deg", turn_deg),
+            ("halt_s", halt_s),
+            ("waves_s", waves_s),
+            ("wavelength_m", wavelength_m),
+        ):
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
+                raise ValueError(f"{name} must be 0 < low <= high, got {(lo, hi)!r}")
+        if not (math.isfinite(vibration_g) and vibration_g >= 0.0):
+            raise ValueError(f"vibration_g must be finite and >= 0, got {vibration_g!r}")
+        self.seed = seed
+        self.duration = float(duration_s)
+        self.speed_mps = float(speed_mps)
+        rng = np.random.default_rng([seed, 0x5A1E])
+        dt = 1.0 / grid_hz
+        n = math.ceil(duration_s * grid_hz) + 3
+        t = np.arange(n) * dt
+        yaw_rate = np.zeros(n)  # rad/s
+        dv = np.zeros(n)  # m/s^2 along the track
+        wave_amp = np.zeros(n)  # m
+        wave_k = np.full(n, 1.0)  # rad/m
+        wave_cross = np.zeros(n)  # rad: angle between the crests' normal and the track
+        kind = np.zeros(n, dtype=np.int64)
+        v0 = self.speed_mps
+        at = float(rng.uniform(*cruise_s))
+        events = ("turn", "stop", "waves")
+        while at < duration_s:
+            what = events[int(rng.integers(len(events)))]
+            a_peak = float(rng.uniform(*accel_g)) * self._G0
+            if what == "turn":
+                dyaw = math.radians(float(rng.uniform(*turn_deg))) * float(rng.choice([-1.0, 1.0]))
+                rate = a_peak / v0  # the peak yaw rate giving that centripetal acceleration
+                length = 2.0 * abs(dyaw) / rate
+                i0, i1 = int(at / dt), min(n, int((at + length) / dt))
+                x = (t[i0:i1] - at) / length
+                yaw_rate[i0:i1] = dyaw / length * (1.0 - np.cos(2.0 * math.pi * x))
+                kind[i0:i1] = MANOEUVRES.index("turn")
+                at += length
+            elif what == "stop":
+                ramp = 2.0 * v0 / a_peak  # raised cosine: mean deceleration a_peak / 2
+                for sign, name in ((-1.0, "stop"), (1.0, "start")):
+                    i0, i1 = int(at / dt), min(n, int((at + ramp) / dt))
+                    x = (t[i0:i1] - at) / ramp
+                    dv[i0:i1] = sign * 0.5 * a_peak * (1.0 - np.cos(2.0 * math.pi * x))
+                    kind[i0:i1] = MANOEUVRES.index(name)
+                    at += ramp
+                    if name == "stop":
+                        halt = float(rng.uniform(*halt_s))
+                        i0, i1 = int(at / dt), min(n, int((at + halt) / dt))
+                        kind[i0:i1] = MANOEUVRES.index("stop")
+                        at += halt
+            else:
+                length = float(rng.uniform(*waves_s))
+                k = 2.0 * math.pi / float(rng.uniform(*wavelength_m))
+                cross = float(rng.uniform(-0.6, 0.6))  # up to ~35 deg off the track
+                kk = k * math.cos(cross)  # wavenumber along the track
+                amp = a_peak / (kk * v0) ** 2  # heave acceleration amplitude = a_peak
+                i0, i1 = int(at / dt), min(n, int((at + length) / dt))
+                x = (t[i0:i1] - at) / length
+                # Eased in and out over the stretch, so the road never steps.
+                wave_amp[i0:i1] = amp * np.sin(math.pi * x) ** 2
+                wave_k[i0:i1] = k
+                wave_cross[i0:i1] = cross
+                kind[i0:i1] = MANOEUVRES.index("waves")
+                at += length
+            at += float(rng.uniform(*cruise_s))
+        speed = np.maximum(0.0, v0 + np.cumsum(dv) * dt)
+        s = np.cumsum(speed) * dt  # distance along the track
+        yaw = float(rng.uniform(0.0, 2.0 * math.pi)) + np.cumsum(yaw_rate) * dt
+        tones = np.random.default_rng([seed, 0x70AD])
+
+        def road(peak_deg: float) -> FloatArray:
+            amp, omega, phase = Drive._tones(tones, math.radians(peak_deg))
+            # A tone of the road is a function of distance, not of time: it stays put
+            # while the vehicle stands.
+            return np.asarray(
+                np.sum(amp[:, None] * np.sin(omega[:, None] * s[None, :] / v0 + phase[:, None]), 0)
+            )
+
+        # The wave surface along the track and across it: slopes in both directions.
+        phase = wave_k * np.cos(wave_cross) * s
+        slope_along = wave_amp * wave_k * np.cos(wave_cross) * np.cos(phase)
+        slope_across = wave_amp * wave_k * np.sin(wave_cross) * np.cos(phase)
+        pitch = road(max_pitch_deg) + np.arctan(slope_along)
+        roll = road(max_roll_deg) + np.arctan(slope_across)
+        # Velocity along the road (nose-up pitch climbs: NED down velocity negative).
+        vel = speed[:, None] * np.stack(
+            [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), -np.sin(pitch)], axis=1
+        )
+        acc = np.gradient(vel, dt, axis=0) / self._G0
+        vib = np.random.default_rng([seed, 0x71B]).normal(0.0, vibration_g, size=(n, 3))
+        moving = (speed > 0.05)[:, None]
+        self._t = t
+        self._dt = dt
+        self._roll, self._pitch, self._yaw = roll, pitch, yaw
+        self._acc = acc
+        self._vib = vib * moving
+        self._kind = kind
+        self._speed = speed
+
+    def _index(self, t: float) -> tuple[int, float]:
+        x = min(max(0.0, t), self.duration) / self._dt
+        i = min(int(x), len(self._t) - 2)
+        return i, x - i
+
+    def _lerp(self, a: FloatArray, t: float) -> float:
+        i, f = self._index(t)
+        return float(a[i] + f * (a[i + 1] - a[i]))
+
+    def attitude(self, t: float) -> FloatArray:
+        """The road's roll and pitch, the track's yaw."""
+        return euler_to_dcm(
+            self._lerp(self._roll, t), self._lerp(self._pitch, t), self._lerp(self._yaw, t)
+        )
+
+    def linear_acc_ned_g(self, t: float) -> FloatArray:
+        """The vehicle's acceleration (g, NED) plus vibration; zero after the drive."""
+        if t > self.duration:
+            return np.zeros(3)
+        i, f = self._index(t)
+        a = self._acc[i] + f * (self._acc[i + 1] - self._acc[i])
+        # Vibration: the sample nearest in time (white at any frame rate, not smoothed).
+        return np.asarray(a + self._vib[i if f < 0.5 else i + 1], dtype=np.float64)
+
+    def manoeuvre_acc_ned_g(self, t: float) -> FloatArray:
+        """The vehicle's acceleration without the vibration (what the benchmarks call
+        "accelerating": the manoeuvres themselves)."""
+        if t > self.duration:
+            return np.zeros(3)
+        i, f = self._index(t)
+        return np.asarray(self._acc[i] + f * (self._acc[i + 1] - self._acc[i]), dtype=np.float64)
+
+    def kind_at(self, t: float) -> str:
+        """The stretch ``t`` falls in: one of :data:`MANOEUVRES`."""
+        i, _ = self._index(t)
+        return MANOEUVRES[int(self._kind[i])]
+
+    def speed(self, t: float) -> float:
+        """Speed along the track, m/s."""
+        return self._lerp(self._speed, t)

@@ -113,6 +113,8 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
             "accelerating": flags.get("accelerating") if flags else None,
             "heading_deg": (a.heading or {}).get("heading_deg"),
         },
+        # where roll and pitch come from (the last heading's), and the tilt source's state
+        "tilt": _tilt_record((a.heading or {}).get("tilt"), st.get("tilt")),
         "errors": list(a.errors),
     }
     # The drift monitor's verdict (bridge.app.drift, issue 17) as the status document has
@@ -154,6 +156,49 @@ def exit_code(records: list[dict[str, Any]]) -> int:
     if not records or "NOT OK" in verdicts:
         return EXIT_NOT_OK
     return EXIT_UNCALIBRATED if "UNCALIBRATED" in verdicts else EXIT_OK
+
+
+def _tilt_record(heading: Any, state: Any) -> dict[str, Any] | None:
+    """The tilt source as ``status`` shows it: the last heading's source and heading error,
+    and (from the status document) the autopilot's attitude heard or not, its clock."""
+    if not isinstance(heading, dict) and not isinstance(state, dict):
+        return None
+    h = heading if isinstance(heading, dict) else {}
+    s = state if isinstance(state, dict) else {}
+    ap_doc = s.get("autopilot")
+    ap: dict[str, Any] = ap_doc if isinstance(ap_doc, dict) else {}
+    return {
+        "source": h.get("source", s.get("source")),
+        "heading_error_deg": h.get("heading_error_deg", s.get("heading_sigma_deg")),
+        "frames": s.get("frames"),
+        "autopilot_heard": ap.get("heard"),
+        "autopilot_rate_hz": ap.get("rate_hz"),
+        "autopilot_clock": ap.get("clock"),
+        "autopilot_residual_deg": ap.get("residual_deg"),
+    }
+
+
+def _tilt_text(t: dict[str, Any]) -> str:
+    """The tilt line: "autopilot, heading error 0.4 deg; autopilot heard at 20 Hz ..."."""
+    parts = [str(t.get("source") or "unknown")]
+    err = t.get("heading_error_deg")
+    if isinstance(err, int | float):
+        parts[0] += f", heading error {err:.1f} deg"
+    if t.get("autopilot_heard"):
+        rate = t.get("autopilot_rate_hz")
+        clock = t.get("autopilot_clock")
+        res = t.get("autopilot_residual_deg")
+        ap = "autopilot attitude heard" + (
+            f" at {rate:.0f} Hz" if isinstance(rate, int | float) else ""
+        )
+        if clock:
+            ap += f", clock by {clock}"
+        if isinstance(res, int | float):
+            ap += f", boards {res:.1f} deg apart"
+        parts.append(ap)
+    elif t.get("autopilot_heard") is False:
+        parts.append("no autopilot attitude")
+    return "; ".join(parts)
 
 
 def _drift_text(d: dict[str, Any]) -> str:
@@ -218,6 +263,8 @@ def format_human(records: list[dict[str, Any]]) -> str:
             hdg = q.get("heading_deg")
             h = f"heading {hdg:.1f}, " if isinstance(hdg, int | float) else ""
             out.append(f"  quality      {h}{', '.join(flags).upper() if flags else 'clean'}")
+        if r.get("tilt"):
+            out.append("  tilt         " + _tilt_text(r["tilt"]))
         for e in r.get("errors") or []:
             out.append(f"  error        {e}")
     return "\n".join(out)

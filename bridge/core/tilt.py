@@ -1,0 +1,644 @@
+"""Tilt under acceleration: which "down" the heading is compensated with (pure, no I/O).
+
+The tilt-compensated heading is only as good as the down direction it uses. The
+compass's accelerometer measures gravity *minus* the vehicle's acceleration: at
+0.3 g of horizontal acceleration its down is off by 17 deg, and the heading by up
+to ``tan(dip)`` times that (two times at a dip of 63 deg). A vertical
+acceleration (a bump, swell) only changes the reading's length, not its direction.
+
+:class:`TiltFilter` gives every frame the down to use and says where it came from
+(its *tilt source*, :data:`TILT_SOURCES`):
+
+* ``accelerometer`` -- the vehicle is quiet: the accelerometer's down, smoothed;
+* ``autopilot`` -- beside an autopilot (the companion role): its gyro-stabilised
+  roll and pitch, taken at the frame's instant and turned into the compass's axes
+  (:mod:`bridge.core.aligned`), which judge the accelerometer too;
+* ``magnetometer`` -- standalone, while the vehicle manoeuvres: the tilt from the
+  quasi-static frames before it, held in the vehicle's axes and kept matched to the
+  field -- the measured field must keep the local dip against down
+  (``d . m_hat = sin(dip)``), the "attitude matching" of the 12-position
+  calibration paper, which pins the tilt about the field's east axis.
+
+What the magnetometer cannot pin is the tilt about the field's horizontal (north)
+axis: a rotation about it looks, to a magnetometer, like a turn. That is also the
+only tilt error that moves the heading (a tilt error about the east axis leaves
+it alone), ``tan(dip)`` times. So the held tilt's uncertainty about that axis,
+growing while it is held, is the heading error the estimate announces
+(``heading_sigma_deg``).
+
+Everything is plain floats on 3-vectors (:mod:`bridge.core.vectors`): the
+per-frame path runs at up to 100 Hz. Vectors are in the vehicle's body axes.
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from collections import deque
+from dataclasses import dataclass
+from operator import itemgetter
+from typing import Literal
+
+from bridge.core.tilt_settings import TiltSettings
+from bridge.core.vectors import Vec3, angle_deg, cross, dot, norm, unit
+
+TiltSource = Literal["accelerometer", "autopilot", "magnetometer"]
+#: The tilt sources, in the order MAVLink's ``TILT_SRC`` value numbers them (0, 1, 2).
+TILT_SOURCES: tuple[TiltSource, ...] = ("accelerometer", "autopilot", "magnetometer")
+
+_DEG = math.pi / 180.0
+#: Steady frames (10 Hz ones' worth) before the learnt dip is used (matching, the alarm).
+_DIP_FRAMES = 50
+#: The accelerometer's white noise is learnt from frames at least this far apart (10 Hz).
+_WHITE_SPACING_S = 0.075
+_TIME = itemgetter(0)
+#: The quiet estimates kept to roll back to on a manoeuvre's onset, seconds.
+_HISTORY_S = 8.0
+
+
+# -- the estimate ---------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class TiltEstimate:
+    """One frame's down direction and how it was found (read-only by contract).
+
+    ``down`` is the unit gravity vector in vehicle axes; ``source`` one of
+    :data:`TILT_SOURCES`; ``sigma_deg`` the tilt's 1-sigma error (the larger
+    axis); ``heading_sigma_deg`` the heading error it gives (1 sigma);
+    ``accel_deg`` how far the accelerometer's own down is from the estimate;
+    ``manoeuvre`` whether the accelerometer is being distrusted (on any axis).
+    """
+
+    down: Vec3
+    source: TiltSource
+    sigma_deg: float
+    heading_sigma_deg: float
+    accel_deg: float
+    manoeuvre: bool
+
+
+class TiltFilter:
+    """A Kalman filter on the down direction that knows when the accelerometer lies.
+
+    The state is the down ``d`` (a unit vector) and its 2x2 covariance in the plane
+    normal to it, on the basis ``e1`` (the vehicle's forward axis, levelled) and
+    ``e2`` (its right axis, levelled): an error-state filter, each frame's
+    correction folded into ``d``. The tilt is a random walk (``tilt_rate_dps``,
+    faster while the vehicle heaves). Each axis is in one of two regimes:
+
+    * **quiet**: the accelerometer's down along that axis is a measurement of ``d``
+      with its white noise (learnt from the scatter ~0.1 s apart: vibration);
+    * **manoeuvre**: it is not used; ``d`` is held along that axis, corrected only
+      by the field's dip (and the autopilot's down when there is one).
+
+    Why per axis: a vehicle accelerates along its own axes -- braking and driving
+    off along x, turning along y (no sideslip) -- so while it brakes the
+    accelerometer still gives the roll, and while it turns the pitch. An axis
+    enters its manoeuvre on evidence (docs/tilt.md) and the estimate goes back to
+    the one from before the onset; it leaves ``release_s`` after the last
+    evidence, once the reading is back inside the gate (which widens as the held
+    tilt's uncertainty grows, so a tilt that changed meanwhile is taken up).
+
+    The magnetometer's dip (``d . m_hat = sin(dip)``, learnt on quiet frames)
+    corrects held axes. Turned by hand, the frame's own down goes out as it is.
+    Pure and single-threaded: the caller owns it.
+    """
+
+    _MAX_SIGMA = 30.0 * _DEG  #: the held tilt is never assumed worse than this
+    _TURN_BASE_S = 1.0  #: the turn rate is measured over this long
+
+    def __init__(self, settings: TiltSettings | None = None) -> None:
+        self.settings = settings if settings is not None else TiltSettings()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the estimate: the next frame starts from its accelerometer."""
+        self._d: Vec3 | None = None
+        big = self._MAX_SIGMA**2
+        self._P = [big, 0.0, big]  # (xx, xy, yy)
+        self._t: float | None = None
+        self._interval = 0.1  # the frames' mean interval, s
+        self._g0 = 1.0  # |g| at rest (learnt: the accelerometer's scale)
+        self._dip: float | None = None  # sin(dip) learnt from steady frames
+        self._dip_n = 0.0  # 10 Hz frames' worth it was learnt from
+        self._dip_alarm_since: float | None = None  # the dip contradicted since
+        self._dip_alarm_sign = 0.0
+        self._gate_since: list[float | None] = [None, None]  # outside the gate since, per axis
+        self._gate_sign = [0.0, 0.0]
+        self._gate_from: list[tuple[Vec3, Vec3]] = [((0, 0, 1), (0, 0, 0))] * 2  # (down, field)
+        self._steady_since: float | None = None  # the accelerometer steady since
+        self._steady_lp: Vec3 | None = None  # ... and its down then
+        self.still_s = 0.0
+        self._spinning_until = -math.inf  # turned by hand (faster than a vehicle) until
+        self._recent: deque[tuple[float, Vec3, Vec3]] = deque()  # (t, low-passed down, field)
+        self.spin_dps = 0.0  #: the field's turn rate about any axis over the last second
+        self._white = self.settings.accel_noise_g**2  # learnt white noise (vibration)
+        self._heave = 0.0  # low-passed vertical acceleration, g
+        self._excess = 0.0  # low-passed |g| - 1 g, signed
+        self._an_mean = 1.0  # |g| over the last 2 s
+        self._prev: Vec3 | None = None  # an accelerometer direction ~0.1 s ago (white noise)
+        self._prev_t = -math.inf
+        self._lp: Vec3 | None = None  # low-passed accelerometer direction
+        self._long: Vec3 | None = None  # its long-run mean (20 s)
+        self._m_now: Vec3 = (0.0, 0.0, 0.0)  # this frame's field direction
+        self._mags: deque[tuple[float, Vec3]] = deque()  # recent field directions (turn rate)
+        self.turn_rate_dps = 0.0  #: the field's turn about down over the last second
+        self._turn_from = -math.inf  # the current turn began
+        self._turning_at = -math.inf  # last turning (faster than a quarter of turn_dps)
+        self._evidence_at = [-math.inf, -math.inf]  # last evidence, per axis
+        self._held_since = [-math.inf, -math.inf]
+        # (time, estimate, its covariance, the field's direction then): quiet frames only.
+        self._history: deque[tuple[float, Vec3, tuple[float, float, float], Vec3]] = deque()
+        self.held = [False, False]  #: per axis (forward, right): in a manoeuvre
+        self._dip_push = [0.0, 0.0]  # the dip's corrections to the held axes since the onset
+        self._onset: tuple[Vec3, Vec3] | None = None  # (down, field) before the manoeuvre
+        self.why = ""  #: what started the current manoeuvre ("gate", "turn", "dip")
+
+    @property
+    def manoeuvre(self) -> bool:
+        """Either axis is held."""
+        return self.held[0] or self.held[1]
+
+    @property
+    def learned_dip_deg(self) -> float | None:
+        """The dip measured on quiet frames (None before any)."""
+        if self._dip is None or self._dip_n < _DIP_FRAMES:
+            return None
+        return math.degrees(math.asin(self._dip))
+
+    @property
+    def down(self) -> Vec3 | None:
+        """The current estimate (None before the first frame)."""
+        return self._d
+
+    @property
+    def white_deg(self) -> float:
+        """The accelerometer's learnt white noise (vibration) per axis and frame, degrees."""
+        return math.degrees(math.sqrt(self._white))
+
+    @staticmethod
+    def _basis(d: Vec3) -> tuple[Vec3, Vec3]:
+        """Two unit vectors spanning the plane normal to ``d``: forward-ish, right-ish."""
+        x = (1.0, 0.0, 0.0) if abs(d[0]) < 0.9 else (0.0, 1.0, 0.0)
+        k = dot(x, d)
+        e1 = unit((x[0] - k * d[0], x[1] - k * d[1], x[2] - k * d[2]))
+        return e1, cross(d, e1)
+
+    def _update(self, y: float, h0: float, h1: float, R: float, x: list[float]) -> None:
+        """One scalar measurement ``y = h . x + noise(R)`` on the correction ``x``."""
+        pxx, pxy, pyy = self._P
+        ph0 = pxx * h0 + pxy * h1
+        ph1 = pxy * h0 + pyy * h1
+        S = h0 * ph0 + h1 * ph1 + R
+        if S <= 0.0:
+            return
+        k0, k1 = ph0 / S, ph1 / S
+        r = y - (h0 * x[0] + h1 * x[1])
+        x[0] += k0 * r
+        x[1] += k1 * r
+        self._P = [pxx - k0 * ph0, pxy - k0 * ph1, pyy - k1 * ph1]
+
+    def _match(self, y: float, h0: float, h1: float, R: float, x: list[float]) -> None:
+        """The dip: a scalar measurement that moves the estimate only along what it
+        observes (``h``, the field's east axis) -- the minimal correction. The optimal
+        gain would also move it across, through the covariance's cross term: with a
+        dip a few tenths off (the learnt one is a mean over frames), every frame
+        would push the held, unobserved axis a little further. Joseph form: the
+        covariance stays positive whatever the gain."""
+        hn2 = h0 * h0 + h1 * h1
+        if hn2 <= 1e-12:
+            return
+        pxx, pxy, pyy = self._P
+        ph0 = pxx * h0 + pxy * h1
+        ph1 = pxy * h0 + pyy * h1
+        S = h0 * ph0 + h1 * ph1 + R
+        if S <= 0.0:
+            return
+        # The optimal gain projected onto h's direction.
+        a = (h0 * ph0 + h1 * ph1) / (S * hn2)
+        k0, k1 = a * h0, a * h1
+        r = y - (h0 * x[0] + h1 * x[1])
+        x[0] += k0 * r
+        x[1] += k1 * r
+        # P' = (I - k h^T) P (I - k h^T)^T + R k k^T
+        i00, i01, i10, i11 = 1.0 - k0 * h0, -k0 * h1, -k1 * h0, 1.0 - k1 * h1
+        a00 = i00 * pxx + i01 * pxy
+        a01 = i00 * pxy + i01 * pyy
+        a10 = i10 * pxx + i11 * pxy
+        a11 = i10 * pxy + i11 * pyy
+        self._P = [
+            a00 * i00 + a01 * i01 + R * k0 * k0,
+            a00 * i10 + a01 * i11 + R * k0 * k1,
+            a10 * i10 + a11 * i11 + R * k1 * k1,
+        ]
+
+    def _evidence(
+        self, t: float, axes: tuple[int, ...], why: str, lookback: float | None = None
+    ) -> None:
+        if t < self._spinning_until:
+            return  # turned by hand: no manoeuvre of a vehicle's
+        onset = not self.manoeuvre
+        for i in axes:
+            self._evidence_at[i] = t
+            if not self.held[i]:
+                self._held_since[i] = t
+            self.held[i] = True
+        if not onset:
+            return
+        self.why = why
+        self._dip_push = [0.0, 0.0]
+        # Its first frames were believed: go back to the estimate from before it began.
+        horizon = t - (self.settings.lookback_s if lookback is None else lookback)
+        back: tuple[Vec3, tuple[float, float, float], Vec3] | None = None
+        for ht, hd, hp, hm in self._history:
+            if ht >= horizon:
+                break
+            back = (hd, hp, hm)
+        self._history.clear()
+        # Unless the field turned with the down meanwhile: then the unit turned (a
+        # hand), and the estimate of then is no longer this attitude's.
+        if (
+            back is not None
+            and self._lp is not None
+            and not self._turned(back[0], self._lp, back[2], self._m_now)
+        ):
+            self._d, self._P = back[0], list(back[1])
+        self._onset = None if back is None else (back[0], back[2])
+
+    @staticmethod
+    def _turned(d0: Vec3, d1: Vec3, m0: Vec3, m1: Vec3) -> bool:
+        """Whether the down's move from ``d0`` to ``d1`` came with the field's own: the
+        unit turned. Any tilt turns the field (dipping at I) in the unit's axes by at
+        least ``sin(I)`` times as much; an acceleration moves the down alone."""
+        if m0 == (0.0, 0.0, 0.0) or m1 == (0.0, 0.0, 0.0):
+            return False
+        return angle_deg(m0, m1) > 0.5 * angle_deg(d0, d1)
+
+    def _turn_rate(self, t: float, mhat: Vec3, d: Vec3) -> float:
+        """The field's rotation about down over the last second, rad/s (the yaw rate:
+        the tilt changes it only through its own rate, which a vehicle keeps low)."""
+        mags = self._mags
+        mags.append((t, mhat))
+        while len(mags) > 2 and mags[1][0] <= t - self._TURN_BASE_S:
+            mags.popleft()
+        t0, m0 = mags[0]
+        if t - t0 < 0.5 * self._TURN_BASE_S:
+            return 0.0
+        self.spin_dps = angle_deg(m0, mhat) / (t - t0)
+        return self._rotation_about(m0, mhat, d) / (t - t0)
+
+    @staticmethod
+    def _rotation_about(m0: Vec3, m1: Vec3, d: Vec3) -> float:
+        k0, k1 = dot(m0, d), dot(m1, d)
+        p0 = (m0[0] - k0 * d[0], m0[1] - k0 * d[1], m0[2] - k0 * d[2])
+        p1 = (m1[0] - k1 * d[0], m1[1] - k1 * d[1], m1[2] - k1 * d[2])
+        return math.atan2(dot(cross(p0, p1), d), dot(p0, p1))
+
+    def update(
+        self,
+        mag: Vec3,
+        accel: Vec3,
+        t: float,
+        *,
+        external: Vec3 | None = None,
+        external_sigma_deg: float | None = None,
+        field_ok: bool = True,
+    ) -> TiltEstimate:
+        """One frame in, the down to use out (see the class docstring).
+
+        ``external``: the autopilot's unit down in the compass's vehicle axes, at
+        this frame's instant, with its 1-sigma error. ``field_ok``: the field is not
+        disturbed (the dip is only learnt and used then).
+        """
+        st = self.settings
+        an = norm(accel)
+        ahat = unit(accel) if an > 1e-6 else (0.0, 0.0, 1.0)
+        if self._d is None or self._t is None:
+            self._d, self._t = ahat, t
+        else:  # frames read in one burst share their arrival: half the mean interval apart
+            self._interval += 0.02 * (max(0.0, min(1.0, t - self._t)) - self._interval)
+            if t <= self._t:
+                t = self._t + 0.5 * max(self._interval, 0.005)
+        dt = min(1.0, t - self._t)
+        self._t = t
+        # -- what the frame says beside its down: vibration, heave, turning, dip.
+        # Its scatter between frames ~0.1 s apart, whatever the rate: a hand's shake is
+        # smooth from one 50 Hz frame to the next, and would pass for no noise at all.
+        if t - self._prev_t >= _WHITE_SPACING_S or t < self._prev_t:
+            prev, self._prev, self._prev_t = self._prev, ahat, t
+            if prev is not None:
+                dd = (ahat[0] - prev[0]) ** 2 + (ahat[1] - prev[1]) ** 2 + (ahat[2] - prev[2]) ** 2
+                self._white += 0.005 * (max(0.25 * dd, st.accel_noise_g**2) - self._white)
+        k = min(1.0, dt / 0.5)
+        # Heave: the swinging part of |g| (about its 2 s mean), not its offset -- a
+        # braking vehicle's |g| grows steadily by a_h^2 / 2 without rocking it.
+        self._an_mean += min(1.0, dt / 2.0) * (an - self._an_mean)
+        self._heave += k * (abs(an - self._an_mean) - self._heave)
+        self._excess += k * (an - self._g0 - self._excess)  # vibration averages out of it
+        lp = self._lp
+        if lp is None:
+            lp = ahat
+        else:
+            k = min(1.0, dt / 0.5)
+            lp = unit(
+                (
+                    lp[0] + k * (ahat[0] - lp[0]),
+                    lp[1] + k * (ahat[1] - lp[1]),
+                    lp[2] + k * (ahat[2] - lp[2]),
+                )
+            )
+        self._lp = lp
+        lg = self._long
+        k = min(1.0, dt / 20.0)
+        self._long = (
+            unit(
+                (
+                    lg[0] + k * (ahat[0] - lg[0]),
+                    lg[1] + k * (ahat[1] - lg[1]),
+                    lg[2] + k * (ahat[2] - lg[2]),
+                )
+            )
+            if lg is not None
+            else ahat
+        )
+        mhat = unit(mag) if norm(mag) > 0.0 else (0.0, 0.0, 0.0)
+        self._m_now = mhat
+        if not self.manoeuvre and self._history and t - self._history[0][0] >= st.drift_s:
+            # The estimate of drift_s ago (the newest kept that old, or the oldest).
+            i = bisect_right(self._history, t - st.drift_s, key=_TIME)
+            _ht, old, _hp, old_m = self._history[max(0, i - 1)]
+            o1, o2 = self._basis(old)
+            rate_dps = st.drift_dps + st.heave_tilt_dps_per_g * self._heave
+            allowed = (
+                rate_dps * st.drift_s + 3.0 * math.degrees(math.sqrt(self._white / 5.0))
+            ) * _DEG
+            axes = tuple(i for i, e in enumerate((o1, o2)) if abs(dot(lp, e)) > allowed)
+            # Moving away from the long-run mean down: a manoeuvre's onset. Moving back
+            # towards it is the end of one the estimate followed: no rollback then.
+            away = angle_deg(lp, self._long) > angle_deg(old, self._long) + 1.0
+            if axes and away and not self._turned(old, lp, old_m, mhat):
+                self._evidence(t, axes, "drift", st.drift_s)
+        sin_dip = self._dip if self._dip_n >= _DIP_FRAMES else None
+        still = (
+            abs(an - self._g0) < 0.01
+            and self._heave < 0.02
+            and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
+            # its down where it was when this began (the tail of a braking creeps back)
+            and (
+                self._steady_lp is None
+                or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * self.white_deg
+            )
+        )
+        if not still:
+            self._steady_since, self._steady_lp = None, None
+        elif self._steady_since is None:
+            self._steady_since, self._steady_lp = t, ahat
+        #: How long the accelerometer has been still (1 g, its down not moving, no turn).
+        self.still_s = 0.0 if self._steady_since is None else t - self._steady_since
+        if mhat != (0.0, 0.0, 0.0):
+            rate = self._turn_rate(t, mhat, self._d)
+            self.turn_rate_dps = math.degrees(rate)
+            # The low-passed down turning fast, with the field: a tilt faster than a
+            # vehicle's (swell aside) -- a hand.
+            rec = self._recent
+            rec.append((t, lp, mhat))
+            while len(rec) > 2 and rec[1][0] <= t - 0.5:
+                rec.popleft()
+            tr, dr, mr = rec[0]
+            tilting = (
+                t - tr >= 0.25
+                and angle_deg(dr, lp) / (t - tr) > st.spin_dps
+                and self._turned(dr, lp, mr, mhat)
+                and self._heave < st.heave_g
+            )
+            # A down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
+            if angle_deg(lp, self._d) > st.max_accel_deg:
+                tilting = True
+            if self.spin_dps > st.spin_dps or tilting:
+                # Faster than a vehicle turns: a hand. Follow the accelerometer as it is.
+                self._spinning_until = t + 0.5
+                self.held, self._d = [False, False], ahat
+                # Nothing from before the turn may be rolled back to, nor drifted from.
+                self._history.clear()
+                P = self._P
+                floor = (5.0 * _DEG) ** 2
+                self._P = [max(P[0], floor), P[1], max(P[2], floor)]
+                if external is None:  # nothing to weigh: the frame's own down, its noise
+                    w = max(self._white, (0.2 * _DEG) ** 2)
+                    return self._result(ahat, ahat, mhat, (w, 0.0, w), "accelerometer")
+            # (While the vehicle heaves, its rocking about the field's horizontal looks
+            # like turning -- the same illusion that makes that tilt unobservable.)
+            # When the turn began (its rate above a quarter of the threshold): a slowly
+            # tightening turn builds its centripetal acceleration before it is caught.
+            if abs(rate) < 0.25 * st.turn_dps * _DEG:
+                self._turn_from = t
+            elif not self.held[1] or abs(
+                self._rotation_about(self._mags[0][1], mhat, lp)
+            ) >= 0.25 * st.turn_dps * _DEG * (t - self._mags[0][0]):
+                # (About the accelerometer's down too while the lateral axis is held: a
+                # held down far off makes a changing tilt look like a turn.)
+                self._turning_at = t
+            if abs(rate) > st.turn_dps * _DEG and self._heave < st.heave_g:
+                # ... if it pulls the accelerometer sideways: a turn on the spot (a
+                # turntable, a pivoting boat) has no centripetal acceleration to hide.
+                # (Against the estimate from before the turn began: the one since may
+                # have followed the centripetal pull.)
+                i = bisect_right(self._history, self._turn_from, key=_TIME)
+                pre = self._history[i - 1][1] if i > 0 else self._d
+                _b1, b2 = self._basis(pre)
+                if abs(dot(lp, b2)) > max(0.5 * _DEG, 2.0 * math.sqrt(self._white / 5.0)):
+                    self._evidence(t, (1,), "turn", t - self._turn_from + st.lookback_s)
+            if field_ok and sin_dip is not None:
+                off = math.asin(max(-1.0, min(1.0, dot(mhat, ahat)))) - math.asin(sin_dip)
+                if abs(off) <= st.dip_alarm_deg * _DEG:
+                    self._dip_alarm_since = None
+                elif self._dip_alarm_since is None or off * self._dip_alarm_sign < 0:
+                    self._dip_alarm_since, self._dip_alarm_sign = t, off
+                elif t - self._dip_alarm_since > st.max_hold_s and self._heave < st.heave_g:
+                    # The accelerometer has contradicted the learnt dip longer than any
+                    # manoeuvre lasts: the field (or its calibration) changed. Learn it anew.
+                    self._dip, self._dip_n, self._dip_alarm_since = None, 0.0, None
+                    self.held = [False, False]
+                    off = 0.0
+                since = self._dip_alarm_since
+                if (
+                    abs(off) > st.dip_alarm_deg * _DEG
+                    and since is not None
+                    and (t - since >= st.persist_s)
+                ):
+                    # The axes the accelerometer's down has left the estimate along.
+                    b1, b2 = self._basis(self._d)
+                    lim = max(st.dip_alarm_deg * _DEG, 3.0 * math.sqrt(self._white))
+                    axes = tuple(i for i, e in enumerate((b1, b2)) if abs(dot(ahat, e)) > lim)
+                    self._evidence(t, axes or (0, 1), "dip", st.persist_s + st.lookback_s)
+        if (
+            self.manoeuvre
+            and self._steady_since is not None
+            and t - self._steady_since > st.settle_s
+            # ... and the field turned with the down since the onset (a braking vehicle's
+            # down creeps as steadily at first, the field stays put), or the down is
+            # further off than an acceleration at 1 g (|g| within 0.01) can put it
+            and (
+                self._onset is None
+                or angle_deg(self._d, lp) > 10.0
+                or self._turned(self._onset[0], lp, self._onset[1], mhat)
+            )
+        ):
+            # Settled: re-oriented, not accelerated. Take the accelerometer's down.
+            self.held = [False, False]
+            self._d = lp
+            r = max(self._white, (0.5 * _DEG) ** 2)
+            self._P = [r, 0.0, r]
+            self._history.clear()
+        d = self._d
+        # -- predict: the tilt drifts, faster while the vehicle heaves.
+        rate_dps = st.tilt_rate_dps + st.heave_tilt_dps_per_g * self._heave
+        q = (rate_dps * _DEG) ** 2 * dt
+        big = self._MAX_SIGMA**2
+        P = self._P
+        self._P = [min(P[0] + q, big), P[1], min(P[2] + q, big)]
+        e1, e2 = self._basis(d)
+        # -- the accelerometer's down, axis by axis, inside the gate.
+        # Frames faster than 10 Hz bring no more information a second (vibration and the
+        # device's filtering correlate them): their noise, and the dip's, as 10 Hz frames'.
+        slow = max(1.0, 0.1 / dt) if dt > 0.0 else 1.0
+        R = self._white * slow
+        y = (dot(ahat, e1), dot(ahat, e2))
+        pxx, _pxy, pyy = self._P
+        es = (
+            external_sigma_deg if external_sigma_deg is not None else st.autopilot_sigma_deg
+        ) * _DEG
+        if external is not None:
+            # Beside an autopilot its down judges the accelerometer's, axis by axis.
+            for i, e in enumerate((e1, e2)):
+                z = dot(ahat, e) - dot(external, e)
+                if z * z > st.gate * (es * es + R):
+                    self._evidence(t, (i,), "autopilot", 0.0)
+        for i, (yi, pii) in enumerate(((y[0], pxx), (y[1], pyy))):
+            if yi * yi > st.gate * (pii + R):
+                since = self._gate_since[i]
+                if since is None or yi * self._gate_sign[i] < 0:
+                    self._gate_since[i], self._gate_sign[i] = t, yi
+                    self._gate_from[i] = (d, mhat)
+                    since = t
+                if not self.held[i]:
+                    gd, gm = self._gate_from[i]
+                    if t - since >= st.persist_s and not self._turned(gd, ahat, gm, mhat):
+                        self._evidence(t, (i,), "gate", st.persist_s + st.lookback_s)
+                elif t - self._held_since[i] < st.max_hold_s and (
+                    i == 0 or t - self._turning_at < st.release_s
+                ):
+                    # (Not turning, a wheeled vehicle has no lateral acceleration.)
+                    self._evidence(t, (i,), "gate")
+                elif t - self._evidence_at[i] > st.release_s:
+                    # Held this long on the gate alone: no manoeuvre lasts so long, the
+                    # tilt changed meanwhile. Take the accelerometer's again.
+                    self.held[i] = False
+                    self._P[0 if i == 0 else 2] += yi * yi
+            else:
+                self._gate_since[i] = None
+                if self.held[i] and t - self._evidence_at[i] > st.release_s:
+                    self.held[i] = False
+        if self._d is not d:  # rolled back: the basis moves with it
+            d = self._d
+            e1, e2 = self._basis(d)
+        x = [0.0, 0.0]
+        if not self.held[0]:
+            self._update(dot(ahat, e1), 1.0, 0.0, R, x)
+        if not self.held[1]:
+            self._update(dot(ahat, e2), 0.0, 1.0, R, x)
+        # -- the field's dip (attitude matching), every regime.
+        if self.manoeuvre and field_ok and mhat != (0.0, 0.0, 0.0) and sin_dip is not None:
+            cos_dip = math.sqrt(max(1e-6, 1.0 - sin_dip * sin_dip))
+            Rm = (cos_dip * st.dip_sigma_deg * _DEG) ** 2 * slow
+            h0, h1 = dot(mhat, e1), dot(mhat, e2)
+            # The residual with the accelerometer's axes as they now are; the dip then
+            # corrects the held axes only, and only where it sees them well: pushed
+            # through a small part of it along a held axis, a residual a few tenths off
+            # (the learnt dip, or the other axis's undetected acceleration) would move
+            # that axis far, frame after frame.
+            r = sin_dip - dot(mhat, d) - h0 * x[0] - h1 * x[1]
+            hn = math.hypot(h0, h1)
+            m0 = h0 if self.held[0] else 0.0
+            m1 = h1 if self.held[1] else 0.0
+            pxx, pxy, pyy = self._P
+            S = h0 * h0 * pxx + 2 * h0 * h1 * pxy + h1 * h1 * pyy + Rm
+            lp_off = math.asin(max(-1.0, min(1.0, dot(mhat, lp)))) - math.asin(sin_dip)
+            if r * r > st.gate * S and abs(lp_off) > st.dip_alarm_deg * _DEG:
+                # More than the held axes can explain, and the accelerometer's own down
+                # misses the dip too: its axes are not gravity's either. Hold them all.
+                # (Its down matching the dip where the estimate does not: the estimate
+                # is what is wrong -- no evidence against the accelerometer.)
+                self._evidence(t, (0, 1), "dip", 0.0)
+            elif max(map(abs, self._dip_push)) < st.dip_push_deg * _DEG:
+                x_before = (x[0], x[1])
+                if (self.held[0] and self.held[1]) or math.hypot(m0, m1) > 0.5 * hn:
+                    self._match(r + m0 * x[0] + m1 * x[1], m0, m1, Rm, x)
+                else:
+                    self._match(r + h0 * x[0] + h1 * x[1], h0, h1, Rm, x)
+                self._dip_push[0] += x[0] - x_before[0]
+                self._dip_push[1] += x[1] - x_before[1]
+        # -- the autopilot's down.
+        if external is not None:
+            self._update(dot(external, e1), 1.0, 0.0, es * es, x)
+            self._update(dot(external, e2), 0.0, 1.0, es * es, x)
+        nd = unit(
+            (
+                d[0] + x[0] * e1[0] + x[1] * e2[0],
+                d[1] + x[0] * e1[1] + x[1] * e2[1],
+                d[2] + x[0] * e1[2] + x[1] * e2[2],
+            )
+        )
+        self._d = nd
+        if not self.manoeuvre:
+            self._history.append((t, nd, (self._P[0], self._P[1], self._P[2]), mhat))
+            while self._history and self._history[0][0] < t - _HISTORY_S:
+                self._history.popleft()
+            if abs(an - self._g0) < 0.05:
+                self._g0 += 0.01 * min(1.0, dt / 0.1) * (an - self._g0)
+        # Steady: learn the local dip. Steady is no manoeuvre, the accelerometer's
+        # length at |g|, its down not moving, the vehicle not turning.
+        steady = (
+            not self.manoeuvre
+            and abs(an - self._g0) < 0.02
+            and self._heave < 0.02
+            and angle_deg(lp, ahat) < 3.0 * self.white_deg + 0.5
+            and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
+        )
+        w = min(1.0, dt / 0.1)  # the frame's weight: its share of a 10 Hz frame
+        if steady and field_ok and mhat != (0.0, 0.0, 0.0) and w > 0.0:
+            sd = dot(mhat, ahat)
+            self._dip_n += w
+            rate = max(0.005 * w, w / self._dip_n)
+            self._dip = sd if self._dip is None else self._dip + rate * (sd - self._dip)
+        # -- which source carried it, and how well.
+        if external is not None and (self.manoeuvre or es * es < R):
+            source: TiltSource = "autopilot"
+        else:
+            source = "magnetometer" if self.manoeuvre else "accelerometer"
+        return self._result(nd, ahat, mhat, (self._P[0], self._P[1], self._P[2]), source, (e1, e2))
+
+    def _result(
+        self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: tuple[float, float, float],
+        source: TiltSource, basis: tuple[Vec3, Vec3] | None = None,
+    ) -> TiltEstimate:  # fmt: skip
+        """The estimate ``nd`` with covariance ``P`` (on ``basis``'s axes; none: the same
+        on every axis) as it goes out."""
+        sxx, sxy, syy = P
+        sigma = math.sqrt(
+            max(0.0, 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy))
+        )
+        hs = sigma
+        if mhat != (0.0, 0.0, 0.0):
+            east = cross(nd, mhat)
+            en = norm(east)
+            if en > 1e-3:
+                var = sxx
+                if basis is not None:
+                    f1, f2 = dot(east, basis[0]) / en, dot(east, basis[1]) / en
+                    var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
+                hs = math.sqrt(max(0.0, var)) * abs(dot(mhat, nd)) / en
+        off = 0.0 if nd is ahat else angle_deg(ahat, nd)
+        sig, h = math.degrees(sigma), math.degrees(hs)
+        return TiltEstimate(nd, source, sig, h, off, self.manoeuvre)

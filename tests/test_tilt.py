@@ -1,0 +1,417 @@
+"""The tilt under acceleration, in memory: the autopilot's attitude aligned to a frame, and the
+estimate that holds the tilt through a manoeuvre (bridge.core.aligned, bridge.core.tilt)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bridge.app.tilt import TiltSources, frame_latency_s
+from bridge.core.aligned import (
+    AttitudeSample,
+    AttitudeTrack,
+    ClockMap,
+    FrameClock,
+    MountingResidual,
+)
+from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, euler_to_quaternion
+from bridge.core.tilt import TiltFilter
+from bridge.core.vectors import (
+    angle_deg,
+    down_from_euler,
+    down_from_quaternion,
+    euler_from_down,
+)
+from bridge.core.wmm import earth_field
+from bridge.sim.physics import DEFAULT_LOCATION
+
+FIELD = earth_field(*DEFAULT_LOCATION)
+
+
+def vec(a: np.ndarray) -> tuple[float, float, float]:
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def frame(
+    R: np.ndarray, lin_ned_g: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """(field, gravity vector) a perfect unit at attitude R reads, accelerating by lin_ned_g."""
+    g = np.array([0.0, 0.0, 1.0]) - np.asarray(lin_ned_g)
+    return vec(R.T @ FIELD.ned_G), vec(R.T @ g)
+
+
+# -- vectors ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("roll,pitch", [(0.0, 0.0), (10.0, -20.0), (-170.0, 45.0)])
+def test_down_vectors_agree_with_the_rotation_matrices(roll: float, pitch: float) -> None:
+    R = euler_to_dcm(math.radians(roll), math.radians(pitch), 1.234)
+    want = R.T @ np.array([0.0, 0.0, 1.0])
+    d = down_from_euler(math.radians(roll), math.radians(pitch))
+    q = euler_to_quaternion(math.radians(roll), math.radians(pitch), 1.234)
+    assert np.allclose(d, want, atol=1e-12)
+    assert np.allclose(down_from_quaternion(*q), want, atol=1e-12)
+    r, p = euler_from_down(d)
+    assert (math.degrees(r), math.degrees(p)) == pytest.approx((roll, pitch), abs=1e-9)
+
+
+# -- the autopilot's clock, track and mounting --------------------------------------------
+
+
+def test_clock_map_takes_the_least_delayed_arrival_then_prefers_timesync() -> None:
+    cm = ClockMap()
+    assert cm.remote(1.0) is None
+    boot = 100.0  # the autopilot booted 100 s before our clock's zero: local = remote - 100
+    for i, delay in enumerate([0.05, 0.03, 0.08, 0.031]):
+        remote = 200.0 + i
+        cm.arrival(remote, remote - boot + delay)
+    assert cm.offset == pytest.approx(-boot + 0.03)  # biased by the smallest delay
+    assert not cm.synced
+    # a TIMESYNC round trip: 20 ms out, 10 ms back
+    sent = 110.0
+    cm.round_trip(sent, sent + 0.02 + boot, sent + 0.03)
+    assert cm.synced and cm.round_trip_s == pytest.approx(0.03)
+    assert cm.offset == pytest.approx(-boot - 0.005)  # off by half the asymmetry only
+    assert cm.remote(110.0) == pytest.approx(210.005)
+    # a longer (more queued) round trip does not replace it
+    cm.round_trip(111.0, 111.0 + 0.2 + boot, 111.5)
+    assert cm.offset == pytest.approx(-boot - 0.005)
+    # a reboot: the remote clock starts again; what was learnt is forgotten
+    assert cm.arrival(1.0, 115.0)
+    assert cm.reboots == 1 and not cm.synced and cm.offset == pytest.approx(114.0)
+
+
+def test_track_interpolates_and_extrapolates_with_the_gyros() -> None:
+    tr = AttitudeTrack()
+    assert tr.at(1.0) is None
+    for t in (1.0, 1.05, 1.1):
+        tr.add(AttitudeSample(t, down_from_euler(math.radians(10.0 * t), 0.0)))
+    tr.add(AttitudeSample(1.05, down_from_euler(0.0, 0.0)))  # a duplicate instant: dropped
+    got = tr.at(1.025)
+    assert got is not None and got[1] == 0.0
+    assert math.degrees(euler_from_down(got[0])[0]) == pytest.approx(10.25, abs=0.01)
+    # past the newest: a line through the last samples, up to the limit
+    got = tr.at(1.2)
+    assert got is not None and got[1] == pytest.approx(0.1)
+    assert math.degrees(euler_from_down(got[0])[0]) == pytest.approx(12.0, abs=0.05)
+    assert tr.at(1.1 + tr.max_extrapolate_s + 0.01) is None
+    assert tr.at(0.9) is None
+    # with its gyro rates the newest sample extrapolates on its own: 20 deg/s of roll
+    tr2 = AttitudeTrack()
+    tr2.add(AttitudeSample(5.0, down_from_euler(0.0, 0.0), (math.radians(20.0), 0.0, 0.0)))
+    got = tr2.at(5.1)
+    assert got is not None
+    assert math.degrees(euler_from_down(got[0])[0]) == pytest.approx(2.0, abs=0.01)
+    # a late sample goes in its place
+    tr2.add(AttitudeSample(4.9, down_from_euler(0.0, 0.0)))
+    assert tr2.newest is not None and tr2.newest.t == 5.0
+
+
+def test_mounting_residual_learns_how_the_boards_sit() -> None:
+    rng = np.random.default_rng(3)
+    M = axis_angle_to_dcm([0.3, -0.5, 0.8], math.radians(2.0))  # v_autopilot = M v_compass
+    res = MountingResidual()
+    assert res.rotation_deg() == 0.0 and res.scatter_deg is None
+    for _ in range(3000):
+        R = euler_to_dcm(*rng.uniform(-0.25, 0.25, 2), rng.uniform(0.0, 6.28))
+        gc = R.T @ np.array([0.0, 0.0, 1.0])
+        noisy = gc + rng.normal(0.0, 0.005, 3)
+        res.add(vec(noisy / np.linalg.norm(noisy)), vec(M @ gc))
+    assert res.rotation_deg() == pytest.approx(2.0, abs=0.2)
+    # applied to the autopilot's down, it gives the compass's
+    gc = euler_to_dcm(0.2, -0.1, 0.0).T @ np.array([0.0, 0.0, 1.0])
+    assert angle_deg(res.apply(vec(M @ gc)), vec(gc)) < 0.1
+    assert res.scatter_deg == pytest.approx(math.degrees(0.005 * math.sqrt(3)), rel=0.3)
+
+
+# -- the estimate -------------------------------------------------------------------------
+
+
+def run(
+    f: TiltFilter, R_of, lin_of, t0: float, t1: float, rate: float = 10.0, external_of=None
+) -> list[tuple[float, object]]:
+    out = []
+    for t in np.arange(t0, t1, 1.0 / rate):
+        mag, acc = frame(R_of(t), lin_of(t))
+        ext = external_of(t) if external_of is not None else None
+        out.append((float(t), f.update(mag, acc, float(t), external=ext)))
+    return out
+
+
+def level(yaw_deg: float = 30.0, roll: float = 5.0, pitch: float = -3.0):
+    R = euler_to_dcm(math.radians(roll), math.radians(pitch), math.radians(yaw_deg))
+    return lambda t: R
+
+
+def still(t: float) -> tuple[float, float, float]:
+    return (0.0, 0.0, 0.0)
+
+
+def braking(start: float, g: float, heading_deg: float):
+    """A raised-cosine deceleration of peak ``g`` over 8 s, along the track."""
+
+    def lin(t: float) -> tuple[float, float, float]:
+        x = (t - start) / 8.0
+        if not 0.0 <= x <= 1.0:
+            return (0.0, 0.0, 0.0)
+        a = -g * 0.5 * (1.0 - math.cos(2.0 * math.pi * x))
+        h = math.radians(heading_deg)
+        return (a * math.cos(h), a * math.sin(h), 0.0)
+
+    return lin
+
+
+def tilt_error(est, R: np.ndarray) -> float:
+    return angle_deg(est.down, vec(R.T @ np.array([0.0, 0.0, 1.0])))
+
+
+def test_quiet_the_estimate_is_the_accelerometers() -> None:
+    f = TiltFilter()
+    R = level()(0.0)
+    out = run(f, level(), still, 0.0, 20.0)
+    est = out[-1][1]
+    assert est.source == "accelerometer" and not est.manoeuvre
+    assert tilt_error(est, R) < 0.05
+    assert est.heading_sigma_deg < 0.5
+    assert f.learned_dip_deg == pytest.approx(FIELD.inclination_deg, abs=0.1)
+
+
+@pytest.mark.parametrize("heading", [0.0, 90.0, 45.0])
+def test_braking_the_held_tilt_beats_the_accelerometer(heading: float) -> None:
+    """0.25 g of braking tips the accelerometer's down 14 deg; the estimate holds the tilt of
+    the quiet frames before it, says so, and says its heading may be off."""
+    f = TiltFilter()
+    R_of = level(heading)
+    R = R_of(0.0)
+    lin = braking(20.0, 0.25, heading)
+    out = run(f, R_of, lin, 0.0, 40.0)
+    during = [e for t, e in out if 22.0 <= t <= 26.0]
+    raw = max(
+        angle_deg(frame(R, lin(t))[1], vec(R.T @ np.array([0.0, 0.0, 1.0])))
+        for t, _ in out
+        if 22.0 <= t <= 26.0
+    )
+    assert raw > 10.0  # the accelerometer alone is this far off
+    assert max(tilt_error(e, R) for e in during) < 3.0
+    assert all(e.source == "magnetometer" and e.manoeuvre for e in during)
+    if heading == 90.0:  # braking east, the held pitch is the tilt about north: it says so
+        assert max(e.heading_sigma_deg for e in during) > 0.5
+    after = out[-1][1]  # back to the accelerometer once it is over
+    assert after.source == "accelerometer" and tilt_error(after, R) < 0.3
+
+
+def test_beside_an_autopilot_its_down_carries_the_tilt() -> None:
+    f = TiltFilter()
+    R_of = level(90.0)
+    R = R_of(0.0)
+    truth = vec(R.T @ np.array([0.0, 0.0, 1.0]))
+    out = run(f, R_of, braking(10.0, 0.3, 90.0), 0.0, 30.0, external_of=lambda t: truth)
+    during = [e for t, e in out if 12.0 <= t <= 16.0]
+    assert all(e.source == "autopilot" for e in during)
+    assert max(tilt_error(e, R) for e in during) < 0.5
+
+
+def test_heave_does_not_count_as_a_manoeuvre() -> None:
+    """Swell: the accelerometer's length swings +-0.3 g, its down does not move."""
+    f = TiltFilter()
+    R_of = level()
+    R = R_of(0.0)
+    out = run(f, R_of, lambda t: (0.0, 0.0, 0.3 * math.sin(2.0 * t)), 0.0, 30.0)
+    late = [e for t, e in out if t > 10.0]
+    assert max(tilt_error(e, R) for e in late) < 0.3
+    assert all(e.source == "accelerometer" for e in late)
+
+
+def test_a_turn_on_the_spot_is_not_a_manoeuvre_but_a_turn_at_speed_is() -> None:
+    f = TiltFilter()
+    spin = lambda t: euler_to_dcm(0.05, -0.03, math.radians(15.0 * t))  # noqa: E731
+    out = run(f, spin, still, 0.0, 20.0)
+    assert all(e.source == "accelerometer" for t, e in out if t > 5.0)
+    # the same turn at 10 m/s: 0.27 g towards the centre
+    f2 = TiltFilter()
+    w = math.radians(15.0)
+
+    def centripetal(t: float) -> tuple[float, float, float]:
+        if t < 5.0:
+            return (0.0, 0.0, 0.0)
+        yaw = w * (t - 5.0)
+        a = 10.0 * w / 9.80665
+        return (-a * math.sin(yaw), a * math.cos(yaw), 0.0)
+
+    def turning(t: float) -> np.ndarray:
+        return euler_to_dcm(0.05, -0.03, w * max(0.0, t - 5.0))
+
+    out2 = run(f2, turning, centripetal, 0.0, 15.0)
+    late = [(t, e) for t, e in out2 if t > 8.0]
+    assert any(e.source == "magnetometer" for _, e in late)
+    assert max(tilt_error(e, turning(t)) for t, e in late) < 4.0  # the raw one: 15 deg
+
+
+def test_after_a_turn_a_tilt_that_changed_meanwhile_is_taken_up() -> None:
+    """The road's camber changes by 20 deg during a 6 s, 0.2 g turn: the held roll is 12 deg
+    off once the turn is over, outside the gate. Not turning, a vehicle feels no lateral
+    acceleration: the estimate takes the accelerometer's roll again within a few seconds,
+    not after the longest braking."""
+    f = TiltFilter()
+    w = math.radians(12.0)  # 12 deg/s at 10 m/s: 0.21 g
+    t_in, t_out = 10.0, 16.0
+
+    def turned(t: float) -> float:
+        return w * min(max(0.0, t - t_in), t_out - t_in)
+
+    def R_of(t: float) -> np.ndarray:
+        camber = 2.0 + 20.0 * min(1.0, max(0.0, (t - t_in) / (t_out - t_in)))
+        return euler_to_dcm(math.radians(camber), math.radians(-3.0), 0.3 + turned(t))
+
+    def centripetal(t: float) -> tuple[float, float, float]:
+        vib = np.random.default_rng(int(t * 1000)).normal(0.0, 0.01, 3)  # a running engine
+        if not t_in <= t < t_out:
+            return vec(vib)
+        yaw, a = 0.3 + turned(t), 10.0 * w / 9.80665
+        return vec(vib + np.array([-a * math.sin(yaw), a * math.cos(yaw), 0.0]))
+
+    out = run(f, R_of, centripetal, 0.0, 30.0)
+    assert any(e.source == "magnetometer" for t, e in out if t_in < t < t_out)
+    late = [(t, e) for t, e in out if t >= t_out + 3.5]
+    assert all(e.source == "accelerometer" for _, e in late)
+    assert max(tilt_error(e, R_of(t)) for t, e in late) < 1.5
+
+
+@pytest.mark.parametrize("rate", [10.0, 50.0])
+def test_a_hands_shake_is_smoothed_at_any_frame_rate(rate: float) -> None:
+    """Held still by a shaking hand (0.05 g RMS, 0.5-2 Hz): the estimate averages the shake
+    out, at 50 Hz as at 10 Hz (where one frame to the next it looks smooth)."""
+    f = TiltFilter()
+    R_of = level(40.0)
+    R = R_of(0.0)
+    tones = [(0.53, 0.0), (1.1, 1.0), (1.9, 2.0)]
+
+    def shake(t: float) -> tuple[float, float, float]:
+        a = [
+            0.05
+            * math.sqrt(2.0 / 3.0)
+            * sum(math.sin(2 * math.pi * fq * t + ph + k) for fq, ph in tones)
+            for k in range(3)
+        ]
+        return (a[0], a[1], a[2])
+
+    out = run(f, R_of, shake, 0.0, 40.0, rate=rate)
+    late = [(t, e) for t, e in out if t > 20.0]
+    est = math.sqrt(np.mean([tilt_error(e, R) ** 2 for _, e in late]))
+    raw = math.sqrt(
+        np.mean(
+            [
+                angle_deg(frame(R, shake(t))[1], vec(R.T @ np.array([0.0, 0.0, 1.0]))) ** 2
+                for t, _ in late
+            ]
+        )
+    )
+    assert est < 0.85 * raw
+
+
+def test_turned_by_hand_the_accelerometer_is_followed() -> None:
+    """A re-orientation of 40 deg in a second is a hand, not a manoeuvre."""
+    f = TiltFilter()
+
+    def R_of(t: float) -> np.ndarray:
+        s = min(1.0, max(0.0, t - 10.0))
+        return euler_to_dcm(math.radians(40.0 * s), 0.1, 1.0)
+
+    out = run(f, R_of, still, 0.0, 16.0)
+    est = out[-1][1]
+    assert tilt_error(est, R_of(16.0)) < 0.5 and est.source == "accelerometer"
+
+
+def test_frames_read_in_one_burst_share_their_time_and_still_count() -> None:
+    """A serial read delivers several frames at once, stamped alike (100 Hz in bursts of 4;
+    and a bench's frames all at one instant): the estimate follows a hand's turn all the same."""
+
+    def R_of(t: float) -> np.ndarray:
+        s = min(1.0, max(0.0, t - 10.0))
+        return euler_to_dcm(math.radians(40.0 * s), 0.1, 1.0)
+
+    f = TiltFilter()
+    for k in range(1600):
+        mag, acc = frame(R_of(k / 100.0))
+        est = f.update(mag, acc, 0.04 * (k // 4))  # arrival: every 4th frame's
+    assert tilt_error(est, R_of(16.0)) < 0.5 and est.source == "accelerometer"
+    # frames at random attitudes, all stamped alike (no unit turns so; a bench's frames): as
+    # turned by hand, nearly each one's own down goes out
+    f = TiltFilter()
+    rng = np.random.default_rng(5)
+    errs = []
+    for _ in range(300):
+        R = euler_to_dcm(*rng.uniform(-1.0, 1.0, 3))
+        errs.append(tilt_error(f.update(*frame(R), 7.0), R))
+    assert np.mean(np.array(errs[100:]) < 0.5) > 0.9
+
+
+def test_frame_clock_places_frames_by_seq_not_by_arrival() -> None:
+    """50 Hz frames read late and in bursts (a busy host): their instants come from seq at the
+    device's rate, anchored on the least-delayed arrivals; a restart and a new rate start over."""
+    rng = np.random.default_rng(2)
+    fc = FrameClock()
+    errs = []
+    for k in range(1000):  # 20 s; every frame late by 2-40 ms, and a 300 ms stall at 12 s
+        sampled = 100.0 + k * 0.02
+        arrival = sampled + 0.002 + rng.uniform(0.0, 0.038)
+        if 600 <= k < 615:
+            arrival = 100.0 + 615 * 0.02 + 0.003  # the stalled frames arrive together
+        t = fc.at((40000 + k) % 65536, arrival)  # seq wraps at 65536 on the way
+        assert t <= arrival
+        if k >= 250:
+            errs.append(t - sampled)
+    assert fc.rate_hz == 50.0
+    assert max(errs) - min(errs) < 0.005  # arrivals scattered over 40 ms (300 ms in the stall)
+    # a device restart (seq back to 0): its arrival until the rate is learnt again
+    assert fc.at(0, 200.0) == 200.0 and fc.rate_hz is None
+    # a new rate (RATE,10): learnt anew
+    for k in range(1, 60):
+        t = fc.at(k, 200.0 + k * 0.1 + 0.01)
+    assert fc.rate_hz == 10.0 and t == pytest.approx(200.0 + 59 * 0.1 + 0.01, abs=1e-6)
+
+
+# -- the application's owner --------------------------------------------------------------
+
+
+def test_tilt_sources_align_the_autopilot_to_the_frame() -> None:
+    """The autopilot's ATTITUDE, stamped on its clock and arriving late, taken at the frame's
+    instant; its board mounted 3 deg off: learnt on quiet frames, then the frame's down."""
+    ts = TiltSources(frame_latency=frame_latency_s(115200))
+    assert ts.frame_latency == pytest.approx(640 / 115200)
+    M = axis_angle_to_dcm([1.0, 0.0, 0.0], math.radians(3.0))  # v_autopilot = M v_compass
+    boot = 50.0
+    rng = np.random.default_rng(1)
+    for k in range(0, 1200):
+        t = k * 0.05
+        R = euler_to_dcm(0.2 * math.sin(t / 7.0), 0.15 * math.sin(t / 5.0), 0.5 * math.sin(t / 11))
+        down_ap = vec(M @ (R.T @ np.array([0.0, 0.0, 1.0])))
+        ts.autopilot_attitude(int((t + boot) * 1000), down_ap, t + 0.04)
+        if k % 20 == 0:
+            ts.autopilot_timesync(t, t + boot + 0.01, t + 0.02)
+        if k % 2 == 0:  # a 10 Hz compass
+            mag, acc = frame(R)
+            noisy = vec(np.asarray(acc) + rng.normal(0.0, 0.001, 3))
+            ts.tilt(mag, noisy, t + 0.06 + ts.frame_latency, field_ok=True)
+    st = ts.status()
+    assert st["autopilot"]["clock"] == "timesync" and st["autopilot"]["messages"] == 1200
+    assert ts.residual.rotation_deg() == pytest.approx(3.0, abs=0.3)
+    # now the compass accelerates: the autopilot's down, aligned, carries the tilt
+    t = 60.0
+    R = euler_to_dcm(0.1, 0.05, 0.3)
+    for k in range(40):
+        tk = t + 0.05 * k
+        ts.autopilot_attitude(
+            int((tk + boot) * 1000), vec(M @ (R.T @ np.array([0.0, 0.0, 1.0]))), tk + 0.04
+        )
+        mag, acc = frame(R, (0.0, 0.25, 0.0))
+        if k % 2 == 0:
+            est = ts.tilt(mag, acc, tk + 0.05, field_ok=True)
+    assert est.source == "autopilot"
+    assert tilt_error(est, R) < 0.4
+    # after a reset (a new mounting) it starts again
+    ts.reset("test")
+    ts.tilt(*frame(R), t + 3.0, field_ok=True)
+    assert ts.residual.rotation_deg() == 0.0
