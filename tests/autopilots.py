@@ -547,6 +547,9 @@ class Bridge:
     log: list[str]  #: the ``bridge`` loggers' lines (INFO and up) while it ran
     #: The time stamp (us) of every heading-feed message it sent (the MAVLink tap's view).
     sent_feed: list[int] = field(default_factory=list)
+    #: The yaw sigma (rad) of every heading-feed message it sent, as the autopilot reads it
+    #: back from the covariance (ArduPilot's angErr, PX4's yaw variance's root).
+    sent_sigma: list[float] = field(default_factory=list)
     _restore: Callable[[], None] = lambda: None
 
     def stop(self) -> None:
@@ -621,13 +624,17 @@ def start_bridge(
         logger.setLevel(level)
 
     sent: list[int] = []
+    sigmas: list[float] = []
 
     def tap(m: Any) -> None:
         kind = m.message.get_type()
         if kind == "VISION_POSITION_ESTIMATE":
             sent.append(int(m.message.usec))
+            c = m.message.covariance  # GCS_Common.cpp: angErr = cbrt(c15^2 + c18^2 + c20^2)
+            sigmas.append((c[15] ** 2 + c[18] ** 2 + c[20] ** 2) ** (1.0 / 3.0))
         elif kind == "ODOMETRY":
             sent.append(int(m.message.time_usec))
+            sigmas.append(math.sqrt(m.message.pose_covariance[20]))
 
     unsubscribe = daemon.services.mavlink_tap.subscribe(tap)
 
@@ -637,7 +644,7 @@ def start_bridge(
 
     daemon.set_outputs([out, recorder])
     daemon.start()
-    bridge = Bridge(daemon, out, recorder, lines, sent, restore_all)
+    bridge = Bridge(daemon, out, recorder, lines, sent, sigmas, restore_all)
     deadline = time.monotonic() + DEADLINE_S
     while daemon.link.state is not LinkState.STREAMING or daemon.samples < 3:
         if time.monotonic() > deadline:

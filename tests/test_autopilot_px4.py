@@ -82,6 +82,7 @@ class Timeline:
     #: (``clock[1]``): PX4's clock and ours drift apart by tens of milliseconds a minute
     #: on a loaded machine, so one offset for the whole run would misplace the steps.
     clock: tuple[Any, Any] = ((0.0,), (0.0,))
+    sent_sigma_b: list[float] = field(default_factory=list)  #: the second bridge's sigmas (rad)
     console: str = ""
     bridge_heading: list[tuple[float, float]] = field(default_factory=list)
     log: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -174,6 +175,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(3.0)
         tl.end = time.time()
         tl.bridge_heading += list(b.recorder.samples)
+        tl.sent_sigma_b = list(b.sent_sigma)
         arrivals = obs.history("ATTITUDE", lambda m: m.get_srcComponent() == 1)
         now_mono, now_unix = time.monotonic(), time.time()
         tl.clock = _clock_map(
@@ -326,10 +328,16 @@ def check_px4_uses_the_bridges_variance_above_ekf2_eva_noise(run: Timeline) -> N
     lowered = np.unique(np.round(var[t > run.noise_at + 1.0], 6))
     print(
         f"PX4 yaw observation variance: EKF2_EVA_NOISE 0.1 -> {default}, "
-        f"0.001 -> {lowered} (the bridge's sigma^2 = {math.radians(SIGMA_DEG) ** 2:.6f})"
+        f"0.001 -> {lowered} (BRG_YAW_SIGMA^2 = {math.radians(SIGMA_DEG) ** 2:.6f}, with the "
+        "tilt's heading error in quadrature)"
     )
     assert list(default) == [0.1]
-    assert list(lowered) == [round(math.radians(SIGMA_DEG) ** 2, 6)]
+    # each variance EKF2 used is one the bridge sent (PX4 logs it as a float32)
+    meant = [sg * sg for sg in run.sent_sigma_b]
+    assert len(lowered) > 0 and meant
+    for v in lowered:
+        assert min(abs(float(v) - m) for m in meant) < 2e-6, (v, sorted(set(meant))[:5])
+    assert min(lowered) >= round(math.radians(SIGMA_DEG) ** 2, 6) - 1e-6
 
 
 def test_the_heading_feed_inside_px4(run: Any) -> None:
