@@ -1,4 +1,4 @@
-"""``compass-bridge bench accuracy``: heading accuracy of every calibration method on simulated units.
+"""``python -m benchmarks accuracy``: heading accuracy of every calibration method on simulated units.
 
 For each of ``--units`` seeded units with realistic errors (``UnitErrors.draw``:
 hard iron 10-30 % of the field, gains +-10 %, non-orthogonality up to 3 deg,
@@ -30,12 +30,12 @@ averaged frames, against the device's own min/max calibration: single frames
 carry +-150 nT of sensor noise whatever the calibration); the 10 000-sample
 full fit (ellipsoid + alignment) under 50 ms (median of repeated runs).
 
-``--shake G ...`` adds hand-held conditions (:mod:`bridge.bench.handheld`):
+``--shake G ...`` adds hand-held conditions (:mod:`benchmarks.handheld`):
 the same units tumbled by a shaking hand, through the live calibration's
 collection, scored held still beside the floor on the same frames; targets:
 heading RMS within 1.3x and max within +0.15 deg of the floor up to 0.05 g,
 and the heading error ``calibrate`` announces within 2x of the measured one.
-``--e2e`` runs the daemon itself (:mod:`bridge.bench.e2e`) through the
+``--e2e`` runs the daemon itself (:mod:`benchmarks.e2e`) through the
 MAVLink ArduPilot flow at those shake levels.
 """
 
@@ -55,14 +55,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.bench.e2e import E2eConfig, check_e2e_targets, format_e2e, run_e2e
-from bridge.bench.handheld import (
+from benchmarks.e2e import E2eConfig, check_e2e_targets, format_e2e, run_e2e
+from benchmarks.handheld import (
     HandheldConfig,
     check_handheld_targets,
     format_handheld,
     run_handheld,
 )
-from bridge.bench.scoring import heading_errors, magnetic_heading_deg, positive_int, still_means
+from benchmarks.scoring import heading_errors, magnetic_heading_deg, positive_int, still_means
 from bridge.calibration.accel_faces import Face, detect_face
 from bridge.calibration.alignment import fit_ellipsoid_aligned
 from bridge.calibration.handheld import tilted_attitudes
@@ -112,7 +112,7 @@ class BenchConfig:
     hard_iron_frac: tuple[float, float] = (0.1, 0.3)  #: of the field, as UnitErrors.draw
     location: tuple[float, float, float] = DEFAULT_LOCATION
     year: float = 2026.0  #: WMM epoch (fixed so results do not drift with the date)
-    #: hand-held conditions (:mod:`bridge.bench.handheld`): shake levels, g RMS per axis
+    #: hand-held conditions (:mod:`benchmarks.handheld`): shake levels, g RMS per axis
     shakes_g: tuple[float, ...] = ()
     rate_hz: float = 50.0  #: frame rate of the hand-held tumbles
     holds: int = 200  #: held attitudes per unit in the hand-held conditions
@@ -453,7 +453,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command line: prints the table, optionally writes JSON; exit 1 if a target fails."""
     defaults = BenchConfig()
     p = argparse.ArgumentParser(
-        prog="compass-bridge bench accuracy",
+        prog="python -m benchmarks accuracy",
         description="Heading accuracy of each calibration method on simulated units.",
     )
     p.add_argument("--units", type=positive_int, default=defaults.units, help="simulated units")

@@ -1,4 +1,4 @@
-"""``compass-bridge bench drift``: hard-iron drift detection and online learning, in figures.
+"""``python -m benchmarks drift``: hard-iron drift detection and online learning, in figures.
 
 Each simulated unit (its errors drawn from a seed) drives
 (:class:`~bridge.sim.drive.Drive`: turns, +-15 deg roll and pitch, the
@@ -42,10 +42,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from benchmarks.scoring import HeldScore, positive_int, score_held, target
 from bridge.app.drift import DriftMonitor
 from bridge.app.pipeline import Pipeline
 from bridge.app.settings import EngineSettings
-from bridge.bench.scoring import HeldScore, positive_int, score_held, target
 from bridge.calibration.drift import DriftSettings
 from bridge.calibration.handheld import tilted_attitudes
 from bridge.calibration.methods import BEST, CalibrationData, calibrate
@@ -543,7 +543,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command line: prints the tables, optionally JSON; exit 1 if a target fails."""
     d = DriftBenchConfig()
     p = argparse.ArgumentParser(
-        prog="compass-bridge bench drift",
+        prog="python -m benchmarks drift",
         description="Hard-iron drift: detection time, false alarms, heading before/after learning.",
     )
     p.add_argument("--units", type=positive_int, default=d.units, help="simulated units")

@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from bridge.bench.handheld import TARGET_SHAKE_G
-from bridge.bench.scoring import (
+from benchmarks.handheld import TARGET_SHAKE_G
+from benchmarks.scoring import (
     bar_targets,
     estimate_target,
     ratio_apart,
@@ -191,7 +191,7 @@ def run_e2e(cfg: E2eConfig, progress: Callable[[str], None] | None = None) -> di
 
 
 def check_e2e_targets(result: dict[str, Any]) -> list[dict[str, Any]]:
-    """PASS/FAIL of the daemon's calibrations (as :func:`bridge.bench.handheld.check_handheld_targets`)."""
+    """PASS/FAIL of the daemon's calibrations (as :func:`benchmarks.handheld.check_handheld_targets`)."""
     out: list[dict[str, Any]] = []
     for c in result["conditions"]:
         label = f"e2e {c['shake_g']:g} g"

@@ -1,6 +1,6 @@
-"""Hostile input against a running daemon: ``compass-bridge bench fuzz`` (issue 15; the
+"""Hostile input against a running daemon: ``python -m benchmarks fuzz`` (issue 15; the
 round-two angles -- many-peer junk, a TCP crowd, oversized Zenoh arguments, a silent or a
-late compass -- are :mod:`bridge.bench.fuzz_hostile`, run after these unless ``--angles none``).
+late compass -- are :mod:`benchmarks.fuzz_hostile`, run after these unless ``--angles none``).
 
 A real daemon (a child ``compass-bridge run``) reads a pseudo-terminal this
 process serves as the compass, speaks MAVLink on ``udpin:127.0.0.1`` and keeps
@@ -51,8 +51,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bridge.bench import fuzz_hostile
-from bridge.bench.pipeline import Figure, _proc_rss_mb, report
+from benchmarks import fuzz_hostile
+from benchmarks.pipeline import Figure, _proc_rss_mb, report
 
 log = logging.getLogger(__name__)
 
@@ -658,11 +658,11 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``compass-bridge bench fuzz``: print the figures; exit 1 if any is not zero."""
+    """``python -m benchmarks fuzz``: print the figures; exit 1 if any is not zero."""
     from bridge.tools.progress import Progress
 
     ap = argparse.ArgumentParser(
-        prog="compass-bridge bench fuzz",
+        prog="python -m benchmarks fuzz",
         description="Drive a running daemon with fuzzed serial chunks and MAVLink messages.",
     )
     ap.add_argument("--chunks", type=int, default=1_000_000, help="serial fuzz chunks")

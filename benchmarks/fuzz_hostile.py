@@ -1,5 +1,5 @@
-"""Hostile angles, round two: what ``compass-bridge bench fuzz`` adds to its serial and MAVLink
-fuzzing (:mod:`bridge.bench.fuzz`). Each angle runs a real daemon (a child ``compass-bridge
+"""Hostile angles, round two: what ``python -m benchmarks fuzz`` adds to its serial and MAVLink
+fuzzing (:mod:`benchmarks.fuzz`). Each angle runs a real daemon (a child ``compass-bridge
 run``) on the simulated compass, served on a pseudo-terminal by this process:
 
 * **crowd** -- signing on, ``udpin`` and ``tcpin``. A signed ground station on ``udpin``
@@ -43,7 +43,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from bridge.bench.pipeline import Figure, _proc_rss_mb
+from benchmarks.pipeline import Figure, _proc_rss_mb
 
 log = logging.getLogger(__name__)
 

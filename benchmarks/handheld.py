@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.bench.scoring import (
+from benchmarks.scoring import (
     bar_targets,
     estimate_target,
     ratio_apart,

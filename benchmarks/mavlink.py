@@ -1,4 +1,4 @@
-"""Throughput of the per-frame path with MAVLink: ``python -m bridge.bench.mavlink``.
+"""Throughput of the per-frame path with MAVLink: ``python -m benchmarks.mavlink``.
 
 Every frame goes the daemon's whole way and then into every MAVLink stream:
 ``$PGMRA`` bytes -> :class:`~bridge.protocol.gmr.GmrDecoder` ->
@@ -145,7 +145,7 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
 
 def main(argv: list[str] | None = None) -> int:
     """Print the figures (or JSON); exit status 1 below the target."""
-    ap = argparse.ArgumentParser(prog="python -m bridge.bench.mavlink", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.mavlink", description=__doc__)
     ap.add_argument("--frames", type=int, default=20000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--signed", action="store_true", help="sign every packet (MAVLink 2 signing)")

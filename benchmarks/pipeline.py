@@ -1,4 +1,4 @@
-"""Speed and footprint of the whole bridge: ``compass-bridge bench pipeline``.
+"""Speed and footprint of the whole bridge: ``python -m benchmarks pipeline``.
 
 Six figures, each printed with its target (one without) and PASS/FAIL (``--json`` writes
 them as one JSON object too):
@@ -139,8 +139,8 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
     """Frames per process-CPU second through the whole per-frame path (see the module doc)."""
     import zenoh
 
+    from benchmarks.mavlink import STREAMS, bench_config, frame_lines
     from bridge.app.sample import CompassSample
-    from bridge.bench.mavlink import STREAMS, bench_config, frame_lines
     from bridge.daemon import Daemon
     from bridge.fleet import schema
     from bridge.mavlink.dialect import mavlink as mavlink_dialect
@@ -604,11 +604,11 @@ def format_figures(figures: list[Figure]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``compass-bridge bench pipeline``: print the figures; exit 1 if any misses its target."""
+    """``python -m benchmarks pipeline``: print the figures; exit 1 if any misses its target."""
     from bridge.tools.progress import Progress
 
     ap = argparse.ArgumentParser(
-        prog="compass-bridge bench pipeline",
+        prog="python -m benchmarks pipeline",
         description="Speed and footprint: throughput, latency, CPU, RSS, start-up, fit time.",
     )
     ap.add_argument("--frames", type=int, default=20000, help="frames per throughput run")

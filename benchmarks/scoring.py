@@ -1,8 +1,8 @@
 """How the accuracy benchmarks score a calibration: heading (and tilt) error against the truth.
 
-Shared by ``bench accuracy`` (:mod:`bridge.bench.accuracy`), its hand-held
-conditions (:mod:`bridge.bench.handheld`) and its end-to-end mode
-(:mod:`bridge.bench.e2e`). The truth is the simulator's: the attitude each
+Shared by ``bench accuracy`` (:mod:`benchmarks.accuracy`), its hand-held
+conditions (:mod:`benchmarks.handheld`) and its end-to-end mode
+(:mod:`benchmarks.e2e`). The truth is the simulator's: the attitude each
 frame was sampled at. Every calibration scored in one call sees the very same
 frames, so the *floor* -- the unit's true parameters, what noise and
 quantisation alone leave -- is comparable with each method.

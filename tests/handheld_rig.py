@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.bench.scoring import HeldScore, score_held
+from benchmarks.scoring import HeldScore, score_held
 from bridge.calibration.handheld import tilted_attitudes
 from bridge.calibration.model import Calibration
 from bridge.calibrator.collect import MagCollector, sphere_step

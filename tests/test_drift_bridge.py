@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.drift import Unit
 from bridge.app.drift import LEARNED
-from bridge.bench.drift import Unit
 from bridge.calibrator.store import CalibrationStore
 from bridge.config import config_from_mapping
 from bridge.core.wmm import earth_field

@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from benchmarks.drift import Unit
 from bridge.app.drift import LEARNED, DriftMonitor, DriftStatus
 from bridge.app.settings import EngineSettings
-from bridge.bench.drift import Unit
 from bridge.calibration.drift import DriftSettings
 from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine
