@@ -142,11 +142,11 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
     from benchmarks.mavlink import STREAMS, bench_config, frame_lines
     from bridge.app.sample import CompassSample
     from bridge.daemon import Daemon
-    from bridge.fleet import schema
     from bridge.mavlink.dialect import mavlink as mavlink_dialect
     from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
     from bridge.ports import Received
     from bridge.protocol.gmr import GmrDecoder
+    from bridge.zenoh import schema
 
     data = frame_lines(n)
     port = _free_port(socket.SOCK_STREAM)

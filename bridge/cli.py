@@ -506,8 +506,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_status(args: argparse.Namespace) -> int:
     """``status``: see :mod:`bridge.tools.status`."""
-    from bridge.fleet.monitor import MonitorOptions
     from bridge.tools.status import run_status
+    from bridge.zenoh.monitor import MonitorOptions
 
     opts = MonitorOptions(keyexpr=args.keyexpr, connect=tuple(args.connect))
     return run_status(opts, sys.stdout, as_json=args.json, timeout=args.timeout)
@@ -517,7 +517,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     """``monitor``: the fleet view; stops on SIGINT/SIGTERM, ``--duration`` or ``--once``."""
     import zenoh
 
-    from bridge.fleet.monitor import MonitorOptions, run_monitor
+    from bridge.zenoh.monitor import MonitorOptions, run_monitor
 
     try:
         zenoh.KeyExpr(args.keyexpr)

@@ -8,7 +8,7 @@
 
 :class:`~bridge.app.bridge.Bridge` (the application layer) owns the state --
 engine settings, parameters, calibration store and controller, the pipeline;
-the adapters (:mod:`bridge.link`, :mod:`bridge.mavlink`, :mod:`bridge.fleet`,
+the adapters (:mod:`bridge.link`, :mod:`bridge.mavlink`, :mod:`bridge.zenoh`,
 :mod:`bridge.console`, :mod:`bridge.service`) get its
 :class:`~bridge.app.services.BridgeServices` and never each other.
 :class:`Daemon` builds them in that order and starts and stops them; the
@@ -362,9 +362,9 @@ def build_outputs(
         outputs.append(MavlinkOutput(MavlinkSettings.from_config(cfg), services))
     if cfg.zenoh.enabled:
         # Imported here: zenoh (a native runtime) loads only when it is asked for.
-        from bridge.fleet.output import ZenohOutput
-        from bridge.fleet.services import fleet_services
-        from bridge.fleet.session import ZenohSettings
+        from bridge.zenoh.output import ZenohOutput
+        from bridge.zenoh.services import fleet_services
+        from bridge.zenoh.session import ZenohSettings
 
         outputs.append(ZenohOutput(ZenohSettings.from_config(cfg.zenoh), fleet_services(services)))
     return outputs

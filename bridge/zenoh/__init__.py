@@ -1,13 +1,14 @@
 """The compass on the fleet's data bus: Eclipse Zenoh publications, queries, and the fleet view.
 
-(Named ``fleet`` so that nothing here shadows the ``zenoh`` package.)
+Inside this package ``import zenoh`` is the Eclipse Zenoh library, as everywhere: imports
+are absolute, so :mod:`bridge.zenoh` never shadows it (``tests/test_zenoh_schema.py`` checks).
 
 * ``schema``   -- PURE. The JSON documents: names, versions, builders, validation.
 * ``pacing``   -- PURE. Per-stream rate caps and the frame-rate meter.
 * ``mirror``   -- PURE. MAVLink messages in bluerobotics/mavlink-server's JSON layout.
 * ``session``  -- zenoh configuration from ``[zenoh]`` (loopback listener, no multicast,
   fast re-join) and opening the session.
-* ``output``   -- ADAPTER. :class:`~bridge.fleet.output.ZenohOutput`, the daemon's Zenoh output.
+* ``output``   -- ADAPTER. :class:`~bridge.zenoh.output.ZenohOutput`, the daemon's Zenoh output.
 * ``monitor``  -- ``compass-bridge monitor``: the live table of every bridge seen.
 
 Key layout under ``<prefix>`` (``[zenoh] key_prefix``, default ``fleet/<hostname>/compass``)::

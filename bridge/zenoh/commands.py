@@ -17,7 +17,7 @@ answered at once with ``bad arguments: <why>``:
   argument is not echoed in the reply nor in the log.
 
 Zenoh bounds the rest before any of this runs: the session's
-``transport/link/rx/max_message_size`` (:mod:`bridge.fleet.session`) keeps a
+``transport/link/rx/max_message_size`` (:mod:`bridge.zenoh.session`) keeps a
 flood of huge queries from costing memory.
 """
 

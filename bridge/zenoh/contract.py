@@ -1,7 +1,7 @@
 """What the Zenoh output asks of the bridge, and what it counts.
 
 :class:`FleetServices` is the output's view of the application (built from the
-bridge's services by :func:`bridge.fleet.services.fleet_services`),
+bridge's services by :func:`bridge.zenoh.services.fleet_services`),
 :class:`CommandOutcome` a remote command's answer and :class:`ZenohCounters`
 the counters ``<prefix>/status`` carries under ``zenoh``.
 """

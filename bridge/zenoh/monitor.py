@@ -12,7 +12,7 @@ shown as ``gone`` until it comes back.
 ``fleet/*/compass``, or one exact prefix (``fleet/boat7/compass``); the
 documents under each prefix (``<prefix>/heading`` ...) are what is shown.
 Two bridges on one prefix (each declares a liveliness token
-``<prefix>/@bridge/<zid>``, see :mod:`bridge.fleet.instances`) are flagged
+``<prefix>/@bridge/<zid>``, see :mod:`bridge.zenoh.instances`) are flagged
 ``DUP``: their documents are interleaved and a command reaches both.
 
 On a terminal the table is redrawn in place; otherwise (a pipe, a log, a
@@ -35,8 +35,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final, TextIO
 
-from bridge.fleet import schema
-from bridge.fleet.instances import INSTANCE_CHUNK, instance_keyexpr
+from bridge.zenoh import schema
+from bridge.zenoh.instances import INSTANCE_CHUNK, instance_keyexpr
 
 if TYPE_CHECKING:
     import zenoh

@@ -40,13 +40,13 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, Final
 
 from bridge.app.services import SentMessage
-from bridge.fleet import schema
-from bridge.fleet.commands import check_sizes, parse_command_args
-from bridge.fleet.contract import CommandOutcome, FleetServices, ZenohCounters, no_unsubscribe
-from bridge.fleet.instances import Instances, instance_id, instance_key, instance_keyexpr
-from bridge.fleet.mirror import MirrorMessage, mirror_key
-from bridge.fleet.pacing import Decimator, RateMeter
-from bridge.fleet.session import ZenohSettings, describe_error, endpoints_text, open_session
+from bridge.zenoh import schema
+from bridge.zenoh.commands import check_sizes, parse_command_args
+from bridge.zenoh.contract import CommandOutcome, FleetServices, ZenohCounters, no_unsubscribe
+from bridge.zenoh.instances import Instances, instance_id, instance_key, instance_keyexpr
+from bridge.zenoh.mirror import MirrorMessage, mirror_key
+from bridge.zenoh.pacing import Decimator, RateMeter
+from bridge.zenoh.session import ZenohSettings, describe_error, endpoints_text, open_session
 
 if TYPE_CHECKING:
     import zenoh
@@ -347,7 +347,7 @@ class ZenohOutput:
                     next_status = now + self.settings.status_period_s
                     self._attach_mirror()  # a reload may have replaced the MAVLink output
 
-    # -- one bridge per key prefix (bridge.fleet.instances) -------------------------------
+    # -- one bridge per key prefix (bridge.zenoh.instances) -------------------------------
 
     def _claim_prefix(self) -> None:
         """Declare our instance token and watch the others' (before anything else)."""
@@ -613,7 +613,7 @@ class ZenohOutput:
             if str(query.key_expr) != key:
                 return
             try:
-                # Here, in zenoh's thread: bounded and quick (bridge.fleet.commands).
+                # Here, in zenoh's thread: bounded and quick (bridge.zenoh.commands).
                 args = _command_args(query)
             except ValueError as e:
                 self.counters.bad_arguments += 1
@@ -683,7 +683,7 @@ class ZenohOutput:
 
 def _command_args(query: zenoh.Query) -> dict[str, Any]:
     """Arguments from the query's JSON payload (an object) and its selector parameters,
-    bounded (:func:`bridge.fleet.commands.parse_command_args`); ValueError says why not."""
+    bounded (:func:`bridge.zenoh.commands.parse_command_args`); ValueError says why not."""
     params = query.parameters
     text = str(params)
     payload = query.payload

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 from bridge.app.services import magnetometer_calibrated
 from bridge.calibrator.state import number
-from bridge.fleet.commands import quote
-from bridge.fleet.contract import CommandOutcome, FleetServices
+from bridge.zenoh.commands import quote
+from bridge.zenoh.contract import CommandOutcome, FleetServices
 
 if TYPE_CHECKING:
     from bridge.app.services import BridgeServices, SentMessage

@@ -53,7 +53,7 @@ CONNECT_TIMEOUT_MS: Final = 1000
 #: The largest message the bridge's session takes in (zenoh's own bound, 1 GiB by default):
 #: the bridge receives queries (remote commands, a few hundred bytes) and liveliness
 #: tokens, so 1 MiB leaves room; a flood of huge queries then costs no memory
-#: (:mod:`bridge.fleet.commands` answers "bad arguments" below it).
+#: (:mod:`bridge.zenoh.commands` answers "bad arguments" below it).
 MAX_MESSAGE_BYTES: Final = 1 << 20
 
 
