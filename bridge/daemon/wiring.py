@@ -9,11 +9,11 @@
 :class:`~bridge.app.bridge.Bridge` (the application layer) owns the state --
 engine settings, parameters, calibration store and controller, the pipeline;
 the adapters (:mod:`bridge.link`, :mod:`bridge.mavlink`, :mod:`bridge.zenoh`,
-:mod:`bridge.console`, :mod:`bridge.service`) get its
+:mod:`bridge.console`, :mod:`bridge.systemd`) get its
 :class:`~bridge.app.services.BridgeServices` and never each other.
 :class:`Daemon` builds them in that order and starts and stops them; the
 service-manager side (sd_notify, watchdog, reload) is
-:class:`bridge.service.Service`, which runs a :class:`Daemon`.
+:class:`bridge.daemon.runner.Service`, which runs a :class:`Daemon`.
 
 Threads: the link's reader thread (which runs the pipeline: one wake per
 frame) and handshake thread, the calibration worker, and the outputs' own.

@@ -1,7 +1,7 @@
 """The systemd adapter's status line: what ``systemctl status`` shows.
 
 The service manager side of the daemon -- ``READY=1``, ``STATUS=``, the
-watchdog, ``RELOADING=1`` -- is :mod:`bridge.sdnotify`; the run loop that
+watchdog, ``RELOADING=1`` -- is :mod:`bridge.systemd.notify`; the run loop that
 drives it, with SIGHUP reload, is :class:`bridge.daemon.Service`. This module
 turns the bridge's status into the one-line ``STATUS=`` text.
 """

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from bridge.link.observed import ObservedTransport
-from bridge.sdnotify import (
+from bridge.systemd.notify import (
     Liveness,
     Notifier,
     ServiceNotifier,
