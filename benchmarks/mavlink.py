@@ -34,11 +34,11 @@ from bridge.app.sample import CompassSample
 from bridge.config import Config, config_from_mapping
 from bridge.core.geometry import random_rotations
 from bridge.daemon import Daemon
+from bridge.device import Received
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink.dialect import mavlink as mavlink_dialect
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.signing import Signing, sign_outgoing
-from bridge.ports import Received
 from bridge.protocol.gmr import AttitudeFrame, Flags, GmrDecoder, encode
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
 

@@ -142,9 +142,9 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
     from benchmarks.mavlink import STREAMS, bench_config, frame_lines
     from bridge.app.sample import CompassSample
     from bridge.daemon import Daemon
+    from bridge.device import Received
     from bridge.mavlink.dialect import mavlink as mavlink_dialect
     from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-    from bridge.ports import Received
     from bridge.protocol.gmr import GmrDecoder
     from bridge.zenoh import schema
 

@@ -336,7 +336,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise UsageError("--reset goes with --simulate (it clears the simulator's state)")
     cfg = load_config(args.config, overrides)
     if args.reset:
-        from bridge.ports import StorageError
+        from bridge.documents import StorageError
 
         try:
             print(reset_state(cfg.storage.dir), file=sys.stderr)

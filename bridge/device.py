@@ -1,14 +1,13 @@
-"""The vocabulary the layers share: what the application asks of the outside world.
+"""The compass as the application sees it: :class:`DevicePort` and the words it is told in.
 
-The application layer (:mod:`bridge.app`, with the calibration controller in
-:mod:`bridge.calibrator`) talks to the compass and to the state directory
-through the two protocols here, never through the adapters' classes, so the
-dependencies point inwards: :class:`bridge.link.serial_link.CompassLink` is a
-:class:`DevicePort`, :class:`bridge.storage.StateStore` a
-:class:`DocumentStore`, and :mod:`bridge.daemon` hands them in.
+The application layer (:mod:`bridge.app`, with the calibration controller) talks
+to the compass through :class:`DevicePort`, never through the serial adapter's
+classes, so the dependencies point inwards: :class:`bridge.link.serial_link.CompassLink`
+is a :class:`DevicePort`, and :mod:`bridge.daemon` hands it in. (The state
+directory has its own: :mod:`bridge.documents`.)
 
 The types every layer names live here too: the link's state and counters (in
-every status) and the errors a device command or a save can end with.
+every status), a received frame, and the errors a device command can end with.
 """
 
 from __future__ import annotations
@@ -152,40 +151,4 @@ class DevicePort(Protocol):
         self, name: str, *args: object, timeout: float | None = None, retries: int = 2
     ) -> Any:
         """One command transaction; the answer frame, or a :class:`CommandError`."""
-        ...
-
-
-# ---------------------------------------------------------------------------
-# The state directory
-# ---------------------------------------------------------------------------
-
-
-class StorageError(Exception):
-    """A document could not be saved (the in-memory value stays authoritative)."""
-
-
-@dataclass(frozen=True, slots=True)
-class LoadResult:
-    """What :meth:`DocumentStore.load` found.
-
-    ``source`` is ``"current"``, ``"previous"`` (the current copy was bad and
-    the last good copy was used) or ``"none"`` (nothing valid: use defaults).
-    ``problems`` lists what was wrong with the copies that were rejected.
-    """
-
-    payload: dict[str, Any] | None
-    source: str
-    problems: tuple[str, ...] = ()
-    saved_at: float | None = None
-
-
-class DocumentStore(Protocol):
-    """Named JSON documents that survive a crash (the state directory)."""
-
-    def save(self, name: str, payload: dict[str, Any], version: int = 1) -> None:
-        """Replace document ``name``; :class:`StorageError` when it cannot be written."""
-        ...
-
-    def load(self, name: str) -> LoadResult:
-        """Document ``name`` (its last good copy); never raises for a bad file."""
         ...

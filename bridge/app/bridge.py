@@ -4,9 +4,9 @@
 the event bus, the calibration store and controller, the parameter store and
 the per-frame pipeline, and gives every adapter the same
 :class:`~bridge.app.services.BridgeServices`. It does no I/O of its own: the
-compass link and the state directory come in as ports
-(:class:`~bridge.ports.DevicePort` -- made by a factory, since the link calls
-the pipeline back -- and :class:`~bridge.ports.DocumentStore`), and
+compass link and the state directory come in as protocols
+(:class:`~bridge.device.DevicePort` -- made by a factory, since the link calls
+the pipeline back -- and :class:`~bridge.documents.DocumentStore`), and
 :mod:`bridge.daemon` wires it to the adapters.
 """
 
@@ -31,8 +31,9 @@ from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
+from bridge.device import DevicePort, LinkState, Received
+from bridge.documents import DocumentStore
 from bridge.events import EventBus
-from bridge.ports import DevicePort, DocumentStore, LinkState, Received
 
 log = logging.getLogger(__name__)
 

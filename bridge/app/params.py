@@ -48,8 +48,8 @@ from bridge.app.paramspec import (
 )
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
+from bridge.documents import DocumentStore, StorageError
 from bridge.events import ChangeRefusedError, Event, EventBus, Severity, Subscribers
-from bridge.ports import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,8 @@ from collections.abc import Callable, Sequence
 from bridge.app.sample import CompassSample, HeadingReference, Output
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.geometry import wrap_degrees_360
+from bridge.device import LinkState, Received
 from bridge.events import Event, EventBus, Severity
-from bridge.ports import LinkState, Received
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.protocol.heading import HeadingFrame
 

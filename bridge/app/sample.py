@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from bridge.core.attitude import AttitudeSolution
-from bridge.ports import LinkCounters, LinkState
+from bridge.device import LinkCounters, LinkState
 
 log = logging.getLogger(__name__)
 

@@ -26,8 +26,9 @@ from bridge.app.settings import EngineSettings
 from bridge.calibration.model import corrects_iron
 from bridge.calibrator.controller import CalibrationController
 from bridge.calibrator.store import CalibrationStore
+from bridge.device import DevicePort
+from bridge.documents import DocumentStore
 from bridge.events import EventBus, Subscribers
-from bridge.ports import DevicePort, DocumentStore
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 The bridge keeps two documents there (``calibration.json``, ``params.json``;
 see :mod:`bridge.calibrator.store` and :mod:`bridge.app.params`); these read
-them through the :class:`~bridge.ports.DocumentStore` port without changing
+them through the :class:`~bridge.documents.DocumentStore` port without changing
 anything, for the lines that say what a run will start from.
 """
 
@@ -14,7 +14,7 @@ from typing import Any
 
 from bridge.app.params import PARAMS_DOCUMENT
 from bridge.calibrator.store import CalibrationStore
-from bridge.ports import DocumentStore
+from bridge.documents import DocumentStore
 
 
 def home_relative(path: object) -> str:

@@ -91,12 +91,9 @@ from bridge.calibrator.state import (
 )
 from bridge.calibrator.store import CalibrationStore
 from bridge.core.wmm import EarthField
+from bridge.device import CommandError, DevicePort
+from bridge.documents import DocumentStore
 from bridge.events import ChangeRefusedError, Event, EventBus, Severity
-from bridge.ports import (
-    CommandError,
-    DevicePort,
-    DocumentStore,
-)
 from bridge.protocol.gmr import AttitudeFrame, CalProgressFrame, Flags
 
 log = logging.getLogger(__name__)

@@ -14,7 +14,7 @@ from bridge.calibration.model import Calibration
 from bridge.calibrator.report import params_dict
 from bridge.calibrator.results import device_params_for
 from bridge.calibrator.session import Emit, device_error
-from bridge.ports import CommandError, CommandRejected
+from bridge.device import CommandError, CommandRejected
 from bridge.protocol.gmr import CommandFrame, ParamsFrame
 
 #: Runs one device command: (name, *args) -> the answer; raises ``CommandError``.

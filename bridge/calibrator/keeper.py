@@ -28,7 +28,8 @@ from typing import Any
 
 from bridge.calibration.model import Calibration
 from bridge.calibrator.store import CalibrationStore
-from bridge.ports import CommandError, StorageError
+from bridge.device import CommandError
+from bridge.documents import StorageError
 
 log = logging.getLogger(__name__)
 

@@ -49,7 +49,7 @@ from bridge.calibrator.report import (
 from bridge.calibrator.session import Action, Device, Job, Progress, Session, device_error
 from bridge.calibrator.state import CalibratorSettings, Mode, Outcome, Phase, Result
 from bridge.core import sensor
-from bridge.ports import CommandError, CommandLate, CommandRejected, CommandTimeout, LinkDown
+from bridge.device import CommandError, CommandLate, CommandRejected, CommandTimeout, LinkDown
 from bridge.protocol.gmr import AckFrame, AttitudeFrame, CalProgressFrame, Flags, ParamsFrame
 
 #: The device's two-step rotation, as the operator is told.

@@ -9,7 +9,7 @@ device, no store. Each call returns the :data:`Action` list the runner
 * :class:`Compute` -- a fit to run in the worker; its value comes back through
   :meth:`Session.resolve` (an exception through :meth:`Session.crashed`);
 * :class:`Device` -- a device command to run in the worker; its answer (or the
-  :class:`~bridge.ports.CommandError`) comes back through :meth:`Session.resolve`;
+  :class:`~bridge.device.CommandError`) comes back through :meth:`Session.resolve`;
 * :class:`Apply` -- a calibration to use from now on (engine, store, flash).
 
 The calls: :meth:`Session.begin` once, :meth:`Session.feed` for every frame,

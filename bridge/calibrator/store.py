@@ -1,7 +1,7 @@
 """The calibration store: one document, one format, one loader.
 
 The calibration in use lives in ``<storage.dir>/calibration.json`` (a
-:class:`~bridge.ports.DocumentStore` document, crash-safe)::
+:class:`~bridge.documents.DocumentStore` document, crash-safe)::
 
     {"calibration": Calibration.to_dict(),
      "source": "mag" | "accel" | "level" | "fixed_yaw" | "parameters" | "calibrate" | ...,
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from bridge.calibration.model import Calibration
-from bridge.ports import DocumentStore, StorageError
+from bridge.documents import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class CalibrationStore:
     """Loads and saves the calibration document (see the module docstring).
 
     ``documents`` None keeps nothing (a bridge without a state directory):
-    loads give the identity, saves raise :class:`~bridge.ports.StorageError`.
+    loads give the identity, saves raise :class:`~bridge.documents.StorageError`.
     """
 
     def __init__(self, documents: DocumentStore | None) -> None:
@@ -128,7 +128,7 @@ class CalibrationStore:
         report: Mapping[str, Any] | None = None,
         view: Mapping[str, float] | None = None,
     ) -> None:
-        """Replace the stored calibration; :class:`~bridge.ports.StorageError` if it cannot.
+        """Replace the stored calibration; :class:`~bridge.documents.StorageError` if it cannot.
 
         A report that is not JSON (a fit's numpy leftovers) is dropped with a
         warning rather than losing the calibration itself.

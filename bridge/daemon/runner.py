@@ -47,9 +47,9 @@ from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
 from bridge.console import TerminalGate
 from bridge.daemon.wiring import Daemon, build_outputs, make_transport
+from bridge.device import LinkState
 from bridge.events import ChangeRefusedError
 from bridge.link.observed import ObservedTransport
-from bridge.ports import LinkState
 from bridge.systemd.notify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
 from bridge.systemd.status import StatusText
 

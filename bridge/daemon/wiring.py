@@ -40,10 +40,10 @@ from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
 from bridge.console import ConsoleOutput, TerminalGate
 from bridge.core.attitude import AttitudeEngine
+from bridge.device import LinkState, Received
 from bridge.events import Event, EventBus
 from bridge.link.serial_link import CompassLink
 from bridge.link.transport import Transport, open_transport
-from bridge.ports import LinkState, Received
 from bridge.storage import StateStore
 
 log = logging.getLogger(__name__)
