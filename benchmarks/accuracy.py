@@ -63,13 +63,13 @@ from benchmarks.handheld import (
     run_handheld,
 )
 from benchmarks.scoring import heading_errors, magnetic_heading_deg, positive_int, still_means
-from bridge.calibration.accel_faces import Face, detect_face
-from bridge.calibration.alignment import fit_ellipsoid_aligned
-from bridge.calibration.handheld import tilted_attitudes
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.accel_faces import Face, detect_face
+from bridge.calibration.fits.alignment import fit_ellipsoid_aligned
+from bridge.calibration.fits.handheld import tilted_attitudes
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.scalar import field_spread_nT
+from bridge.calibration.fits.twelve_position import twelve_position_attitudes
 from bridge.calibration.model import Calibration
-from bridge.calibration.scalar import field_spread_nT
-from bridge.calibration.twelve_position import twelve_position_attitudes
 from bridge.core.geometry import euler_to_dcm, random_rotations
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field

@@ -4,7 +4,7 @@ Each simulated unit (its errors drawn from a seed) drives
 (:class:`~bridge.sim.drive.Drive`: turns, +-15 deg roll and pitch, the
 centripetal and along-track acceleration of a vehicle) with its true
 calibration in use. The frames go through the attitude engine to the drift
-monitor (:class:`~bridge.app.drift.DriftMonitor`, processing each block at
+monitor (:class:`~bridge.app.calibration.drift.DriftMonitor`, processing each block at
 once) exactly as in the daemon; its learned steps are applied to the engine.
 
 * **change**: the hard iron changes by ``size`` mG (a random direction, sensor
@@ -43,12 +43,12 @@ import numpy as np
 import numpy.typing as npt
 
 from benchmarks.scoring import HeldScore, positive_int, score_held, target
-from bridge.app.drift import DriftMonitor
+from bridge.app.calibration.drift import DriftMonitor
 from bridge.app.pipeline import Pipeline
 from bridge.app.settings import EngineSettings
-from bridge.calibration.drift import DriftSettings
-from bridge.calibration.handheld import tilted_attitudes
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.drift.estimator import DriftSettings
+from bridge.calibration.fits.handheld import tilted_attitudes
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.attitude import AttitudeEngine
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss

@@ -41,7 +41,7 @@ from benchmarks.scoring import (
     score_held,
     target,
 )
-from bridge.calibration.handheld import tilted_attitudes
+from bridge.calibration.fits.handheld import tilted_attitudes
 from bridge.sim.physics import DEFAULT_LOCATION
 
 FLOOR = "floor"
@@ -104,7 +104,7 @@ def run_condition(
     shake_g: float, cfg: E2eConfig, progress: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
     """One daemon, one calibration through MAVLink at ``shake_g``; the accepted one scored."""
-    from bridge.calibrator.store import CalibrationStore
+    from bridge.app.calibration.store import CalibrationStore
     from bridge.sim.firmware import make_firmware
     from bridge.storage import StateStore
     from bridge.tools.calibrate import run_mavlink

@@ -4,14 +4,14 @@ A person's tumble is not a gimbal's: the unit accelerates as it turns. For
 each simulated unit and each shake level (``HandShake``: smooth linear
 acceleration at 0.4-2.5 Hz, RMS per axis in g) the benchmark records what the
 live calibration records -- frames at ``rate_hz`` from a 45 deg/s tumble, fed
-to ArduPilot's two-step sample collection (:class:`~bridge.calibrator.collect.MagCollector`)
+to ArduPilot's two-step sample collection (:class:`~bridge.calibration.sessions.collect.MagCollector`)
 until it completes, its motion judge counting the "slower / steadier"
 warnings the operator would get -- and fits them two ways:
 
 * ``samples`` -- the best method on the collector's kept samples alone (what
   the bridge fitted before it knew about hands);
 * ``series`` -- the best method on the whole frame series, as the live
-  calibration now does (:mod:`bridge.calibration.handheld`);
+  calibration now does (:mod:`bridge.calibration.fits.handheld`);
 
 then holds the unit still at fresh random attitudes (tilt up to 60 deg,
 ``hold_s`` of frames each) and scores every calibration on the very same
@@ -36,12 +36,12 @@ from benchmarks.scoring import (
     ratio_apart,
     score_held,
 )
-from bridge.calibration.handheld import tilted_attitudes
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.handheld import tilted_attitudes
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import CalibrationResult
-from bridge.calibrator import CalibratorSettings
-from bridge.calibrator.collect import MagCollector, sphere_step
-from bridge.calibrator.motion import MotionJudge
+from bridge.calibration.sessions import CalibratorSettings
+from bridge.calibration.sessions.collect import MagCollector, sphere_step
+from bridge.calibration.sessions.motion import MotionJudge
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField
 from bridge.sim.motion import HandShake, Tumble

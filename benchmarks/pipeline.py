@@ -230,7 +230,7 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
 
 def fit_time(n: int = 10000, method: str = "best", seed: int = 3) -> Figure:
     """Seconds for one fit of ``method`` on ``n`` samples of a drawn unit at random attitudes."""
-    from bridge.calibration.methods import CalibrationData, calibrate
+    from bridge.calibration.fits.methods import CalibrationData, calibrate
     from bridge.core.geometry import random_rotations
     from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
     from bridge.core.wmm import earth_field

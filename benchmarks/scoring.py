@@ -7,7 +7,7 @@ frame was sampled at. Every calibration scored in one call sees the very same
 frames, so the *floor* -- the unit's true parameters, what noise and
 quantisation alone leave -- is comparable with each method.
 
-* the attitudes: ``bridge.calibration.handheld.tilted_attitudes`` (random heading,
+* the attitudes: ``bridge.calibration.fits.handheld.tilted_attitudes`` (random heading,
   tilt uniform over a cap; the hand-held fit predicts its errors over the same);
 * :func:`heading_errors` -- single frames;
 * :func:`score_held` -- the unit held still at each attitude for a number of

@@ -489,7 +489,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """``calibrate``: see :mod:`bridge.tools.calibrate`."""
-    from bridge.calibration.methods import LIVE_ONLY, METHOD_NAMES, canonical_name
+    from bridge.calibration.fits.methods import LIVE_ONLY, METHOD_NAMES, canonical_name
     from bridge.tools.calibrate import cmd_calibrate as run
 
     try:

@@ -402,7 +402,7 @@ class StorageConfig(Section):
 
 @dataclass(frozen=True, slots=True)
 class CalibrationConfig(Section):
-    """``[calibration]``: how calibrations run (``bridge.calibrator``)."""
+    """``[calibration]``: how calibrations run (``bridge.app.calibration``)."""
 
     onboard: bool = setting(
         False,

@@ -31,12 +31,12 @@ import pytest
 from helpers import load_calibration
 from test_mavlink_rig import FastClock  # the shared simulated-compass harness
 
+from bridge.app.calibration import CalibrationController
+from bridge.calibration.fits.sanity import MagCalStatus
 from bridge.calibration.model import Calibration
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import (
+from bridge.calibration.sessions import (
     INSTRUCTION_LEVEL_TURN,
     INSTRUCTION_SIDE_TURN,
-    CalibrationController,
     CalibratorSettings,
     CalibratorSnapshot,
     Failure,

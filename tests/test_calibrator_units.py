@@ -13,37 +13,37 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.accel_faces import Face
-from bridge.calibration.acceptance import Acceptance
-from bridge.calibration.coverage import section
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.app.calibration.controller import (
+    CalibrationController,
+    CalibratorSettings,
+    Outcome,
+    Result,
+)
+from bridge.calibration.fits.accel_faces import Face
+from bridge.calibration.fits.acceptance import Acceptance
+from bridge.calibration.fits.coverage import section
+from bridge.calibration.fits.fixed_yaw import (
+    device_params_for,
+    fixed_yaw_calibration,
+    orientation_confidence,
+)
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibrator.collect import (
+from bridge.calibration.sessions.collect import (
     FaceCollector,
     MagCollector,
     StillCollector,
     counts_to_nominal,
     sphere_step,
 )
-from bridge.calibrator.controller import (
-    CalibrationController,
-    CalibratorSettings,
-    Outcome,
-    Result,
-)
-from bridge.calibrator.onboard import OnboardMagTracker
-from bridge.calibrator.report import Failure, SessionReport, fit_report
-from bridge.calibrator.results import (
-    device_params_for,
-    fixed_yaw_calibration,
-    orientation_confidence,
-)
-from bridge.calibrator.state import Mode
+from bridge.calibration.sessions.onboard import OnboardMagTracker
+from bridge.calibration.sessions.report import Failure, SessionReport, fit_report
+from bridge.calibration.sessions.state import Mode
 from bridge.core.attitude import AttitudeEngine
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, random_rotations
 from bridge.core.mounting import Rotation, rotation_matrix

@@ -175,8 +175,8 @@ def test_piped_progress_lines_and_the_hint() -> None:
 
 def test_a_calibration_that_does_not_move_on_is_still_said_every_15_s() -> None:
     """A unit turned level only never reaches 20 %: MAVProxy must not stay silent."""
-    from bridge.calibrator.snapshot import CalibratorSnapshot
-    from bridge.calibrator.state import Phase
+    from bridge.calibration.sessions.snapshot import CalibratorSnapshot
+    from bridge.calibration.sessions.state import Phase
     from bridge.mavlink.commands import PROGRESS_TEXT_REMIND_S
 
     t = [100.0]

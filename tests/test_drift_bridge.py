@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.drift import Unit
-from bridge.app.drift import LEARNED
-from bridge.calibrator.store import CalibrationStore
+from bridge.app.calibration.drift import LEARNED
+from bridge.app.calibration.store import CalibrationStore
 from bridge.config import config_from_mapping
 from bridge.core.wmm import earth_field
 from bridge.daemon import Daemon

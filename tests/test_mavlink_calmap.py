@@ -8,9 +8,9 @@ from typing import Any
 import pytest
 from test_mavlink_telemetry import decode, wire_text
 
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
-from bridge.calibrator.report import DeviceOutcome, FitQuality, MagParams
+from bridge.calibration.fits.sanity import MagCalStatus
+from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
+from bridge.calibration.sessions.report import DeviceOutcome, FitQuality, MagParams
 from bridge.events import Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink.commands import ONBOARD_REPORTS, TEXT_BURST, TEXT_RATE_HZ, CalibrationRelay

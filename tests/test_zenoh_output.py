@@ -20,8 +20,8 @@ from typing import Any
 import pytest
 import zenoh
 
+from bridge.app.calibration.store import CALIBRATION_DOCUMENT
 from bridge.calibration.model import AffineCalibration, Calibration
-from bridge.calibrator.store import CALIBRATION_DOCUMENT
 from bridge.config import load_config
 from bridge.daemon import Daemon, build_outputs
 from bridge.mavlink import MavlinkOutput, MavlinkSettings

@@ -18,7 +18,9 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from bridge.app.drift import LEARN_MODES, DriftMonitor
+from bridge.app.calibration.controller import CalibrationController, CalibratorSettings
+from bridge.app.calibration.drift import LEARN_MODES, DriftMonitor
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
 from bridge.app.paramspec import CONFIG_PARAMS, param_from_config
 from bridge.app.pipeline import Pipeline
@@ -26,8 +28,6 @@ from bridge.app.sample import DaemonStatus, HeadingReference, Output
 from bridge.app.services import BridgeServices, MessageTap
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
-from bridge.calibrator.controller import CalibrationController, CalibratorSettings
-from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
@@ -290,7 +290,7 @@ class Bridge:
 
     def undo_learned(self) -> tuple[bool, str]:
         """Back to the calibration learning started from (Zenoh ``cmd/calibration/undo``,
-        ``BRG_CAL_UNDO``); see :meth:`~bridge.app.drift.DriftMonitor.undo`."""
+        ``BRG_CAL_UNDO``); see :meth:`~bridge.app.calibration.drift.DriftMonitor.undo`."""
         return self.drift.undo()
 
     def _on_params(self, change: ParamChange) -> None:

@@ -326,7 +326,7 @@ SPECS: tuple[ParamSpec, ...] = (
         "routing",
         config_key="calibration.onboard",
     ),
-    # -- calibration drift (bridge.app.drift)
+    # -- calibration drift (bridge.app.calibration.drift)
     ParamSpec(
         "BRG_CAL_LEARN",
         INT8,

@@ -1,7 +1,7 @@
 """What the state directory holds, in words an operator reads (console, ``config``, logs).
 
 The bridge keeps two documents there (``calibration.json``, ``params.json``;
-see :mod:`bridge.calibrator.store` and :mod:`bridge.app.params`); these read
+see :mod:`bridge.app.calibration.store` and :mod:`bridge.app.params`); these read
 them through the :class:`~bridge.documents.DocumentStore` port without changing
 anything, for the lines that say what a run will start from.
 """
@@ -12,8 +12,8 @@ import os
 import time
 from typing import Any
 
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMS_DOCUMENT
-from bridge.calibrator.store import CalibrationStore
 from bridge.documents import DocumentStore
 
 

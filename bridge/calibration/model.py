@@ -198,7 +198,7 @@ class CalibrationReport:
     (the seed paper's "+-700 nT -> +-100 nT"). ``status`` is a MAG_CAL_STATUS
     name ("MAG_CAL_SUCCESS", "MAG_CAL_BAD_RADIUS", ...).
 
-    Fits of a frame series (a hand-held tumble, :mod:`bridge.calibration.handheld`)
+    Fits of a frame series (a hand-held tumble, :mod:`bridge.calibration.fits.handheld`)
     also say how good the result is for the heading: ``heading_error_deg`` /
     ``tilt_error_deg`` the predicted RMS error the calibration itself leaves
     (any heading, tilt up to 60 deg), ``motion_g`` the linear acceleration seen
@@ -212,7 +212,7 @@ class CalibrationReport:
     ``n_frames`` counts every usable frame and ``field_spread_after_all_nT`` is
     the spread after over all of them. ``reason`` is the cause of a failure
     (empty on success); ``predicted_heading_deg`` / ``heading_limit_deg`` the
-    acceptance rule's verdict (:mod:`bridge.calibration.acceptance`).
+    acceptance rule's verdict (:mod:`bridge.calibration.fits.acceptance`).
     """
 
     method: str
@@ -239,7 +239,7 @@ class CalibrationReport:
     tilt_error_deg: float = math.nan
     motion_g: float = math.nan
     window_s: float = math.nan
-    # The acceptance rule's figures (bridge.calibration.acceptance): the cause of a
+    # The acceptance rule's figures (bridge.calibration.fits.acceptance): the cause of a
     # failure, the frames the figures cover, the sensor's noise, the heading error
     # predicted and its limit, the sphere sections the raw samples reach.
     reason: str = ""

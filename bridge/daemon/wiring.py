@@ -28,6 +28,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from bridge.app.bridge import Bridge, BridgeOptions
+from bridge.app.calibration import CalibrationController
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMS_DOCUMENT, ParamChange, ParamStore
 from bridge.app.paramspec import CAL_PARAMS
 from bridge.app.sample import CompassSample, DaemonStatus, Output
@@ -35,8 +37,7 @@ from bridge.app.services import BridgeServices, magnetometer_calibrated
 from bridge.app.settings import EngineSettings
 from bridge.app.state import home_relative, state_summary, stored_parameters, value_text
 from bridge.calibration.model import Calibration
-from bridge.calibrator import CalibrationController, CalibratorSettings
-from bridge.calibrator.store import CalibrationStore
+from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config
 from bridge.console import ConsoleOutput, TerminalGate
 from bridge.core.attitude import AttitudeEngine

@@ -28,7 +28,7 @@ from bridge import __version__
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices
 from bridge.calibration.model import Calibration
-from bridge.calibrator import CalibratorSnapshot, Outcome, Result
+from bridge.calibration.sessions import CalibratorSnapshot, Outcome, Result
 from bridge.device import LinkState
 from bridge.events import ChangeRefusedError, Event, Severity
 from bridge.mavlink import calmap

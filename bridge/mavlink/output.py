@@ -46,7 +46,7 @@ from typing import Any, cast
 from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
-from bridge.calibrator import CalibratorSnapshot
+from bridge.calibration.sessions import CalibratorSnapshot
 from bridge.config import Config
 from bridge.documents import StorageError
 from bridge.events import Event

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.coverage import N_SECTIONS, sections
+from bridge.calibration.fits.coverage import N_SECTIONS, sections
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -13,13 +13,13 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from bridge.app.services import magnetometer_calibrated
-from bridge.calibrator.state import number
+from bridge.calibration.sessions.state import number
 from bridge.zenoh.commands import quote
 from bridge.zenoh.contract import CommandOutcome, FleetServices
 
 if TYPE_CHECKING:
+    from bridge.app.calibration.controller import CalibrationController
     from bridge.app.services import BridgeServices, SentMessage
-    from bridge.calibrator.controller import CalibrationController
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         "fitness_mG": fitness,
         # False: no hard- or soft-iron correction in use (None: a heading-only compass)
         "calibrated": magnetometer_calibrated(svc),
-        # the drift monitor (bridge.app.drift): mode, state, change left, heading error
+        # the drift monitor (bridge.app.calibration.drift): mode, state, change left, heading error
         "drift": svc.drift.status().to_dict() if svc.drift is not None else None,
     }
 

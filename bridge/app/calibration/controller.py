@@ -3,14 +3,14 @@
 MAVLink (ArduPilot's MAV_CMD_DO_START/ACCEPT/CANCEL_MAG_CAL, PX4's
 MAV_CMD_PREFLIGHT_CALIBRATION), the zenoh ``cmd/calibration/*`` queryables and
 the CLI all drive this one object; it answers each command with an
-:class:`~bridge.calibrator.state.Outcome` and reports everything else as
+:class:`~bridge.calibration.sessions.state.Outcome` and reports everything else as
 :class:`~bridge.events.Event` on the bus (kinds in
-:data:`~bridge.calibrator.session.EVENT_KINDS`), which
+:data:`~bridge.calibration.sessions.base.EVENT_KINDS`), which
 each front end maps to its wire format. :meth:`CalibrationController.snapshot`
 serves status queries.
 
 The calibration itself is a pure session per mode
-(:mod:`bridge.calibrator.session`: frames and ticks in, actions out); this
+(:mod:`bridge.calibration.sessions.base`: frames and ticks in, actions out); this
 class only runs them: it holds the lock, feeds the session, and carries out
 what it returns -- events to the bus, fits and device commands in its worker
 thread, results into the engine, the calibration store and the compass flash.
@@ -57,20 +57,11 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from bridge.app.calibration.flash import write_calibration
+from bridge.app.calibration.keeper import CalibrationKeeper, StrayCalibration
+from bridge.app.calibration.store import CalibrationStore
 from bridge.calibration.model import Calibration
-from bridge.calibrator.flash import write_calibration
-from bridge.calibrator.host import (
-    FaceSession,
-    FixedYawSession,
-    LevelSession,
-    MagSession,
-    fixed_yaw_inputs,
-    fixed_yaw_result,
-)
-from bridge.calibrator.keeper import CalibrationKeeper, StrayCalibration
-from bridge.calibrator.onboard import OnboardLevelSession, OnboardMagSession
-from bridge.calibrator.report import SessionReport
-from bridge.calibrator.session import (
+from bridge.calibration.sessions.base import (
     Action,
     Apply,
     Compute,
@@ -80,8 +71,18 @@ from bridge.calibrator.session import (
     Job,
     Session,
 )
-from bridge.calibrator.snapshot import CalibrationTarget, CalibratorSnapshot
-from bridge.calibrator.state import (
+from bridge.calibration.sessions.host import (
+    FaceSession,
+    FixedYawSession,
+    LevelSession,
+    MagSession,
+    fixed_yaw_inputs,
+    fixed_yaw_result,
+)
+from bridge.calibration.sessions.onboard import OnboardLevelSession, OnboardMagSession
+from bridge.calibration.sessions.report import SessionReport
+from bridge.calibration.sessions.snapshot import CalibrationTarget, CalibratorSnapshot
+from bridge.calibration.sessions.state import (
     CalibratorSettings,
     Mode,
     Outcome,
@@ -89,7 +90,6 @@ from bridge.calibrator.state import (
     mask_refusal,
     number,
 )
-from bridge.calibrator.store import CalibrationStore
 from bridge.core.wmm import EarthField
 from bridge.device import CommandError, DevicePort
 from bridge.documents import DocumentStore
@@ -384,7 +384,7 @@ class CalibrationController:
         ``yaw_deg`` is the vehicle's true yaw; the position is
         ``latitude_deg``/``longitude_deg`` when given (0, 0 = unset, as the
         MAVLink command says), else the configured field. Every input and the
-        result are checked for plausibility (:func:`~bridge.calibrator.host.fixed_yaw_inputs`).
+        result are checked for plausibility (:func:`~bridge.calibration.sessions.host.fixed_yaw_inputs`).
         The unit must be still; the last ``fixed_yaw_window_s`` of frames are
         averaged. The new offsets are applied, persisted and written to the
         device at once.

@@ -1,7 +1,7 @@
 """The calibration watched while the vehicle works: drift detection and offset learning.
 
 :class:`DriftMonitor` owns the running bridge's side of
-:mod:`bridge.calibration.drift`. The pipeline hands it every sample
+:mod:`bridge.calibration.drift.estimator`. The pipeline hands it every sample
 (:meth:`DriftMonitor.observe`, in the compass link's reader thread): one
 comparison per frame, and every ``sample_period_s`` a row appended to the
 current block -- a few microseconds. Every ``block_s`` the block goes to the
@@ -37,7 +37,7 @@ mounting starts over.
 Undo (:meth:`DriftMonitor.undo`; Zenoh ``cmd/calibration/undo``, MAVLink
 ``BRG_CAL_UNDO = 1``): back to the calibration learning started from -- the
 copy the calibration store kept when the first learned step replaced it
-(:meth:`~bridge.calibrator.store.CalibrationStore.replaced`), or, without a
+(:meth:`~bridge.app.calibration.store.CalibrationStore.replaced`), or, without a
 state directory, the one in memory. It applies only while a learned
 calibration is in use, so a repeated request does nothing, and it turns
 ``learn`` down to ``detect`` so the offsets are not learned straight back.
@@ -55,8 +55,9 @@ from typing import Any
 
 import numpy as np
 
+from bridge.app.calibration.store import LEARNED_SOURCE, CalibrationStore
 from bridge.app.settings import EngineSettings
-from bridge.calibration.drift import (
+from bridge.calibration.drift.estimator import (
     ZERO,
     DriftEstimate,
     DriftEstimator,
@@ -68,9 +69,8 @@ from bridge.calibration.drift import (
     norm,
     with_offset_change,
 )
-from bridge.calibration.drift_judge import DriftJudge, Verdict
+from bridge.calibration.drift.judge import DriftJudge, Verdict
 from bridge.calibration.model import Calibration
-from bridge.calibrator.store import LEARNED_SOURCE, CalibrationStore
 from bridge.core.attitude import AttitudeSolution
 from bridge.core.mounting import Mounting
 from bridge.events import Event, EventBus, Severity

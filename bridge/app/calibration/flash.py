@@ -1,7 +1,7 @@
 """Writing a host calibration into the compass flash (``PAR,GET`` / ``PAR,SET``).
 
 The device's model ``H = K * (m - off)`` holds offsets and per-axis gains
-(:func:`~bridge.calibrator.results.device_params_for`); the level reference it
+(:func:`~bridge.calibration.fits.fixed_yaw.device_params_for`); the level reference it
 keeps (Gxoff .. Gzoff) is read first and written back unchanged.
 """
 
@@ -10,10 +10,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from bridge.calibration.fits.fixed_yaw import device_params_for
 from bridge.calibration.model import Calibration
-from bridge.calibrator.report import params_dict
-from bridge.calibrator.results import device_params_for
-from bridge.calibrator.session import Emit, device_error
+from bridge.calibration.sessions.base import Emit, device_error
+from bridge.calibration.sessions.report import params_dict
 from bridge.device import CommandError, CommandRejected
 from bridge.protocol.gmr import CommandFrame, ParamsFrame
 

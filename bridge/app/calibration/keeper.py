@@ -2,7 +2,7 @@
 
 :class:`CalibrationKeeper` holds what the controller knows of the calibration in
 use -- where it came from, when it was accepted, whether it is on disk -- and
-saves it through the :class:`~bridge.calibrator.store.CalibrationStore`. A save
+saves it through the :class:`~bridge.app.calibration.store.CalibrationStore`. A save
 that fails (a full, read-only or missing state directory) leaves the
 calibration in force and *pending*: :meth:`CalibrationKeeper.retry` (the
 controller's worker, every :data:`RETRY_S`) saves the newest pending one as
@@ -26,8 +26,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.app.calibration.store import CalibrationStore
 from bridge.calibration.model import Calibration
-from bridge.calibrator.store import CalibrationStore
 from bridge.device import CommandError
 from bridge.documents import StorageError
 

@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 CALIBRATION_DOCUMENT = "calibration"
 #: ``source`` of the identity calibration used when nothing (usable) is stored.
 NO_CALIBRATION = "none (identity)"
-#: ``source`` of a calibration learned online (bridge.app.drift): steps of it share one undo.
+#: ``source`` of a calibration learned online (bridge.app.calibration.drift): steps of it share one undo.
 LEARNED_SOURCE = "learned"
 
 

@@ -31,7 +31,7 @@ Tukey's biweight. A fit says how well it knows each direction (its covariance:
 (``consistent``: not across a change, not full of a disturbance).
 
 :class:`DriftEstimator` keeps a window and fits it;
-:class:`~bridge.calibration.drift_judge.DriftJudge` turns successive fits into
+:class:`~bridge.calibration.drift.judge.DriftJudge` turns successive fits into
 verdicts (drift detected, cleared, the bounded learning steps). Times are the
 samples' own (no clock here).
 """

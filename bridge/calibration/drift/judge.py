@@ -1,6 +1,6 @@
 """Successive drift fits in, verdicts out: detected, cleared, learn a step (pure).
 
-The judge of :mod:`bridge.calibration.drift`: no I/O, no clock (times are the
+The judge of :mod:`bridge.calibration.drift.estimator`: no I/O, no clock (times are the
 fits' own), one owner.
 """
 
@@ -10,7 +10,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
-from bridge.calibration.drift import (
+from bridge.calibration.drift.estimator import (
     DriftEstimate,
     DriftSettings,
     Vec3,

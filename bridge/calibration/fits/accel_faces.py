@@ -23,13 +23,13 @@ from enum import Enum
 import numpy as np
 import numpy.typing as npt
 
+from bridge.calibration.fits.scalar import failed_result, gravity_spread_mg
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibration.scalar import failed_result, gravity_spread_mg
 from bridge.core.geometry import FloatArray, euler_to_dcm
 
 DEFAULT_STILL_TOL_G = 0.02  #: per-axis std dev for "still" (PX4: 0.25 m/s^2)

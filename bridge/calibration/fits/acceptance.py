@@ -1,6 +1,6 @@
 """One acceptance rule for every method: the heading error the calibration is predicted to leave.
 
-Every method of :mod:`bridge.calibration.methods` ends here
+Every method of :mod:`bridge.calibration.fits.methods` ends here
 (:func:`accept`), so no method can say MAG_CAL_SUCCESS -- or be saved -- when
 its own figures condemn it. The rule is stated in docs/calibration.md
 ("When a calibration is accepted"); in short:
@@ -20,7 +20,7 @@ its own figures condemn it. The rule is stated in docs/calibration.md
     failed to explain (a min/max of a tumble, a wrong model);
   - *uncertainty*: the offset and soft-iron uncertainty of the samples;
   - *hand-held*: for a fitted frame series, the jackknife heading error of the
-    accelerometer and alignment (:mod:`bridge.calibration.handheld`);
+    accelerometer and alignment (:mod:`bridge.calibration.fits.handheld`);
   - (six faces: the accelerometer's residual tilt seen across ``tan(dip)``.)
 
 * **The limit**: ``max(heading_max_deg, 3 x floor)``, the floor being what a
@@ -46,12 +46,16 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.coverage import N_SECTIONS, sections
-from bridge.calibration.ellipsoid import ReferenceField, fit_ellipsoid_geometry, reference_total_G
+from bridge.calibration.fits.coverage import N_SECTIONS, sections
+from bridge.calibration.fits.ellipsoid import (
+    ReferenceField,
+    fit_ellipsoid_geometry,
+    reference_total_G,
+)
+from bridge.calibration.fits.samples import usable_mask
+from bridge.calibration.fits.sanity import MagCalStatus, SanityLimits, check_mag_calibration
+from bridge.calibration.fits.scalar import field_spread_nT
 from bridge.calibration.model import CalibrationReport, CalibrationResult
-from bridge.calibration.samples import usable_mask
-from bridge.calibration.sanity import MagCalStatus, SanityLimits, check_mag_calibration
-from bridge.calibration.scalar import field_spread_nT
 from bridge.core.wmm import EarthField
 
 FloatArray = npt.NDArray[np.float64]
@@ -75,7 +79,7 @@ SUCCESS = MagCalStatus.MAG_CAL_SUCCESS.name
 
 
 class CalibrationData(Protocol):
-    """What the rule reads of :class:`bridge.calibration.methods.CalibrationData`."""
+    """What the rule reads of :class:`bridge.calibration.fits.methods.CalibrationData`."""
 
     @property
     def mag_G(self) -> FloatArray: ...

@@ -26,7 +26,7 @@ That is :func:`fit_ellipsoid_aligned`, for a bag of samples (unit vectors, so
 a sample taken while the unit accelerates is skipped). A *series* of
 consecutive frames -- what a live calibration records -- goes through
 :func:`fit_ellipsoid_aligned_series` instead: the same ellipsoid, then
-:mod:`bridge.calibration.handheld`, which keeps every frame of a shaken,
+:mod:`bridge.calibration.fits.handheld`, which keeps every frame of a shaken,
 hand-held tumble and averages the shake away.
 
 A level-only turn leaves the rotation about the vertical undetermined; that is
@@ -41,7 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.ellipsoid import (
+from bridge.calibration.fits.ellipsoid import (
     DEFAULT_MAX_ITERATIONS,
     ReferenceField,
     ellipsoid_result,
@@ -49,11 +49,11 @@ from bridge.calibration.ellipsoid import (
     no_ellipsoid,
     reference_total_G,
 )
-from bridge.calibration.handheld import fit_handheld
+from bridge.calibration.fits.handheld import fit_handheld
+from bridge.calibration.fits.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
+from bridge.calibration.fits.sanity import MagCalStatus, SanityLimits, check_mag_calibration
+from bridge.calibration.fits.scalar import gravity_spread_mg
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
-from bridge.calibration.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
-from bridge.calibration.sanity import MagCalStatus, SanityLimits, check_mag_calibration
-from bridge.calibration.scalar import gravity_spread_mg
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.sensor import GAUSS_TO_MGAUSS
 from bridge.core.wmm import EarthField
@@ -354,7 +354,7 @@ def fit_ellipsoid_aligned_series(
     usable frame (a shake does not reach the magnetometer); the accelerometer
     calibration -- unless ``accel_calibration`` is given -- and the
     magnetometer-to-accelerometer rotation come from
-    :func:`bridge.calibration.handheld.fit_handheld`, which averages the shake
+    :func:`bridge.calibration.fits.handheld.fit_handheld`, which averages the shake
     away. The report carries ``heading_error_deg`` and a ``fitness_mG`` that
     includes it (see :class:`CalibrationReport`). Falls back to
     :func:`fit_ellipsoid_aligned` on the same frames when the series does not

@@ -5,7 +5,7 @@ Model: the raw samples ``x`` (nominal gauss) lie on an ellipsoid
 positive-definite soft-iron matrix. A symmetric ``S`` is all COMPASS_DIA_* /
 COMPASS_ODI_* can hold; it cannot express the *rotational* part of the sensor
 error (axis non-orthogonality, mag-to-accel misalignment) -- that is what
-:mod:`bridge.calibration.alignment` adds on top.
+:mod:`bridge.calibration.fits.alignment` adds on top.
 
 Steps:
 
@@ -35,16 +35,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.coverage import coverage
+from bridge.calibration.fits.coverage import coverage
+from bridge.calibration.fits.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
+from bridge.calibration.fits.sanity import SanityLimits, check_mag_calibration
+from bridge.calibration.fits.scalar import failed_result, field_spread_nT
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibration.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
-from bridge.calibration.sanity import SanityLimits, check_mag_calibration
-from bridge.calibration.scalar import failed_result, field_spread_nT
 from bridge.core.wmm import EarthField
 
 FloatArray = npt.NDArray[np.float64]
@@ -334,7 +334,7 @@ def fit_ellipsoid(
     result to the WMM field strength; without it the corrected field has the
     fitted radius. ``saturated`` flags samples to ignore. ``accel`` is carried
     into the returned :class:`Calibration` unchanged (identity when None).
-    The report's status comes from :func:`bridge.calibration.sanity.check_mag_calibration`.
+    The report's status comes from :func:`bridge.calibration.fits.sanity.check_mag_calibration`.
     Raises ``ValueError`` only for malformed arguments (shape, bad reference);
     data that cannot be fitted gives a MAG_CAL_FAILED result.
     """

@@ -20,12 +20,12 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from bridge.calibration.fits.sanity import (
+    MagCalStatus,
+)
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
-)
-from bridge.calibration.sanity import (
-    MagCalStatus,
 )
 from bridge.core import sensor
 from bridge.core.geometry import euler_to_dcm

@@ -20,7 +20,7 @@ the rotation from the magnetometer's into the accelerometer's axes). With
 ``q = P o`` the model is linear in ``(P, q)`` and in the products ``m (x) x``
 and ``m``. The shake enters only as ``-a . B`` (the acceleration along the
 field, in the world frame: it does not depend on how the unit is turned), so
-the products are averaged over Hann windows (:mod:`bridge.calibration.series`):
+the products are averaged over Hann windows (:mod:`bridge.calibration.fits.series`):
 the model stays exact for any turn within a window while the shake averages
 out. The window (none, or 1 to 6 s) is the one whose result is most
 certain; the overall scale comes from ``|g| = 1`` (a common scale does not
@@ -48,9 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import AffineCalibration
-from bridge.calibration.scalar import _lower_factor, fit_scalar_accel
-from bridge.calibration.series import (
+from bridge.calibration.fits.scalar import _lower_factor, fit_scalar_accel
+from bridge.calibration.fits.series import (
     MOTION_WINDOW_S,
     frame_period_s,
     frames_for,
@@ -59,6 +58,7 @@ from bridge.calibration.series import (
     runs,
     window_means,
 )
+from bridge.calibration.model import AffineCalibration
 from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.geometry import axis_angle_to_dcm, dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
 

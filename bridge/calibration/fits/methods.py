@@ -21,7 +21,7 @@ result always carries the accelerometer calibration it was computed with.
 
 When the data is a *series* of consecutive frames (``t_s``, what a live
 calibration records), ``ellipsoid_aligned`` fits it as a hand-held tumble
-(:func:`~bridge.calibration.alignment.fit_ellipsoid_aligned_series`): the
+(:func:`~bridge.calibration.fits.alignment.fit_ellipsoid_aligned_series`): the
 accelerometer (when neither six faces nor a calibration are given) and the
 alignment come from window means that average a person's shake away, and the
 report predicts the heading error the calibration leaves.
@@ -36,15 +36,15 @@ from types import MappingProxyType
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.accel_faces import Face, fit_six_face
-from bridge.calibration.acceptance import Acceptance, accept
-from bridge.calibration.alignment import fit_ellipsoid_aligned, fit_ellipsoid_aligned_series
-from bridge.calibration.ellipsoid import ReferenceField, fit_ellipsoid, reference_total_G
-from bridge.calibration.minmax import fit_minmax
+from bridge.calibration.fits.accel_faces import Face, fit_six_face
+from bridge.calibration.fits.acceptance import Acceptance, accept
+from bridge.calibration.fits.alignment import fit_ellipsoid_aligned, fit_ellipsoid_aligned_series
+from bridge.calibration.fits.ellipsoid import ReferenceField, fit_ellipsoid, reference_total_G
+from bridge.calibration.fits.minmax import fit_minmax
+from bridge.calibration.fits.sanity import SanityLimits
+from bridge.calibration.fits.scalar import fit_scalar, fit_scalar_accel, fit_scalar_mag
+from bridge.calibration.fits.twelve_position import fit_twelve_position
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
-from bridge.calibration.sanity import SanityLimits
-from bridge.calibration.scalar import fit_scalar, fit_scalar_accel, fit_scalar_mag
-from bridge.calibration.twelve_position import fit_twelve_position
 from bridge.core.wmm import EarthField
 
 FloatArray = npt.NDArray[np.float64]
@@ -52,7 +52,7 @@ BoolArray = npt.NDArray[np.bool_]
 
 #: The methods' own checks: structure only (radius, offsets, scaling, rotation). The
 #: fitness (COMPASS_CAL_FIT) and how well the samples determine the result are judged
-#: for every method alike by :func:`bridge.calibration.acceptance.accept`.
+#: for every method alike by :func:`bridge.calibration.fits.acceptance.accept`.
 _STRUCTURE_ONLY = SanityLimits(
     fitness_max_mG=float("inf"), offset_sd_max_mG=float("inf"), matrix_sd_max=float("inf")
 )
@@ -358,7 +358,7 @@ def calibrate(
     """Run method ``name`` (or an alias such as ``"best"``) on ``data`` and judge it.
 
     Every method's result goes through the one acceptance rule
-    (:func:`bridge.calibration.acceptance.accept`: the heading error it is
+    (:func:`bridge.calibration.fits.acceptance.accept`: the heading error it is
     predicted to leave, against a limit that scales with the sensor's noise and
     the number of samples; COMPASS_CAL_FIT as ``acceptance.fitness_max_mG``).
     The report's ``method`` is the canonical name; a failure's cause is in its

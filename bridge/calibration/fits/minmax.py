@@ -22,13 +22,13 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from bridge.calibration.fits.scalar import failed_result, field_spread_nT
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibration.scalar import failed_result, field_spread_nT
 from bridge.core.sensor import MAG_COUNTS_PER_GAUSS, ZERO_COUNTS
 
 #: Datasheet: MAGCAL fails with RANGE if an axis spanned under 400 counts.

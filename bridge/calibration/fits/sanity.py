@@ -31,7 +31,7 @@ an offline fit cannot, and samples from a small cap of the sphere fit their
 9 parameters to noise with a perfect-looking residual. The engine's methods
 (``methods.calibrate``) leave the uncertainty and the fitness out of these
 checks and judge them by the acceptance rule instead
-(:mod:`bridge.calibration.acceptance`: the heading error predicted, against
+(:mod:`bridge.calibration.fits.acceptance`: the heading error predicted, against
 a limit that scales with the sensor's noise and sample count); the fixed
 defaults here serve direct callers of the fits.
 """

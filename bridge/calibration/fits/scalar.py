@@ -20,7 +20,7 @@ scale -- else the radius of the initial sphere. For the accelerometer ``R`` is
 
 What magnitudes cannot see: a common rotation of all three axes. The result
 lives in the sensor's own "x-defined" frame, so mag-to-accel alignment is a
-separate step (``bridge.calibration.alignment``).
+separate step (``bridge.calibration.fits.alignment``).
 
 The module also holds small helpers the other fits share: input cleaning and
 the field-spread statistics reported as ``+-half peak-to-peak`` and RMS.

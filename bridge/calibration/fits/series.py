@@ -5,7 +5,7 @@ hundredths of a g at 0.4-2.5 Hz rides on the gravity the accelerometer
 measures, and a single frame's gravity direction is then degrees off. What
 saves the calibration is that the shake has no mean -- a hand does not travel
 far -- while the unit's attitude changes smoothly. So the hand-held fits
-(:mod:`bridge.calibration.handheld`) are written as models that are *linear in
+(:mod:`bridge.calibration.fits.handheld`) are written as models that are *linear in
 products of the measured vectors* (``m (x) x``, ``x``, ``x x^T`` ...). Averaging
 such a product over a short window keeps the model exact however the unit
 turns within the window, and averages the shake away. This module makes those

@@ -26,13 +26,13 @@ from dataclasses import replace
 import numpy as np
 import numpy.typing as npt
 
+from bridge.calibration.fits.scalar import failed_result, field_spread_nT, gravity_spread_mg
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibration.scalar import failed_result, field_spread_nT, gravity_spread_mg
 from bridge.core.geometry import GRAVITY_NED, FloatArray, euler_to_dcm_batch
 
 _FACES_DEG = (  # (roll, pitch) of the six faces

@@ -1,44 +1,35 @@
-"""The calibrator: a pure session per calibration mode, and the controller that runs them.
+"""Calibration sessions: one pure state machine per calibration mode -- frames and ticks in,
+actions out (no thread, no clock, no device, no store).
 
-MAVLink, zenoh and the CLI call :class:`CalibrationController` (start, accept,
-cancel, fixed yaw, level, six faces) and map its :class:`~bridge.events.Event`
-stream (``calibration.*``), its :class:`Outcome` answers and its
-:class:`CalibratorSnapshot` (a neutral :class:`Phase`, a typed
-:class:`SessionReport`) to their wire formats. See
-:mod:`bridge.calibrator.controller` for the threads and routes and
-:mod:`bridge.calibrator.session` for the sessions.
+The modes: the host's magnetometer, six faces, level and fixed yaw
+(:mod:`~bridge.calibration.sessions.host`), and the compass's own MAGCAL and ACCCAL
+(:mod:`~bridge.calibration.sessions.onboard`); what every session shares -- the
+actions, the phase, the time-outs -- is :mod:`~bridge.calibration.sessions.base`. The
+controller that runs them in the daemon (a worker thread, the engine, the store, the
+flash) is :class:`bridge.app.calibration.CalibrationController`.
+
+Front ends (MAVLink, Zenoh, the CLI) map the neutral words here -- a :class:`Phase`,
+an :class:`Outcome`, a :class:`CalibratorSnapshot` with its typed :class:`SessionReport`
+-- to their wire formats.
 """
 
-from bridge.calibrator.controller import CalibrationController
-from bridge.calibrator.onboard import INSTRUCTION_LEVEL_TURN, INSTRUCTION_SIDE_TURN
-from bridge.calibrator.report import Failure, SessionReport
-from bridge.calibrator.results import DeviceMagParams, device_params_for
-from bridge.calibrator.session import EVENT_KINDS
-from bridge.calibrator.snapshot import CalibrationTarget, CalibratorSnapshot
-from bridge.calibrator.state import CalibratorSettings, Mode, Outcome, Phase, Result
-from bridge.calibrator.store import (
-    CALIBRATION_DOCUMENT,
-    CalibrationStore,
-    StoredCalibration,
-)
+from bridge.calibration.sessions.base import EVENT_KINDS
+from bridge.calibration.sessions.onboard import INSTRUCTION_LEVEL_TURN, INSTRUCTION_SIDE_TURN
+from bridge.calibration.sessions.report import Failure, SessionReport
+from bridge.calibration.sessions.snapshot import CalibrationTarget, CalibratorSnapshot
+from bridge.calibration.sessions.state import CalibratorSettings, Mode, Outcome, Phase, Result
 
 __all__ = [
-    "CALIBRATION_DOCUMENT",
     "EVENT_KINDS",
     "INSTRUCTION_LEVEL_TURN",
     "INSTRUCTION_SIDE_TURN",
-    "CalibrationController",
-    "CalibrationStore",
     "CalibrationTarget",
     "CalibratorSettings",
     "CalibratorSnapshot",
-    "DeviceMagParams",
     "Failure",
     "Mode",
     "Outcome",
     "Phase",
     "Result",
     "SessionReport",
-    "StoredCalibration",
-    "device_params_for",
 ]

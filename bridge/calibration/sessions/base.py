@@ -2,7 +2,7 @@
 
 A session does no I/O: no thread, no clock (time comes in as ``now``), no
 device, no store. Each call returns the :data:`Action` list the runner
-(:class:`~bridge.calibrator.controller.CalibrationController`) carries out:
+(:class:`~bridge.app.calibration.controller.CalibrationController`) carries out:
 
 * :class:`Emit` -- an event for the bus (plain sentences; front ends cut or
   chunk them for their wire);
@@ -18,7 +18,7 @@ The calls: :meth:`Session.begin` once, :meth:`Session.feed` for every frame,
 bridge stops. Results of jobs the session no longer waits for (cancelled,
 failed, replaced) are ignored by the session itself.
 
-The base class holds what every mode shares: the :class:`~bridge.calibrator.state.Phase`,
+The base class holds what every mode shares: the :class:`~bridge.calibration.sessions.state.Phase`,
 the progress events (rate-limited), the time-outs (ArduPilot's: no data for
 ``no_data_timeout_s`` or the whole session over ``timeout_s`` fails it, a
 time-out is final even with retry), success and failure.
@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from bridge.calibration.model import Calibration
-from bridge.calibrator.report import Failure, SessionReport, failure_report
-from bridge.calibrator.state import CalibratorSettings, Mode, Outcome, Phase, Result
+from bridge.calibration.sessions.report import Failure, SessionReport, failure_report
+from bridge.calibration.sessions.state import CalibratorSettings, Mode, Outcome, Phase, Result
 from bridge.core.wmm import EarthField
 from bridge.events import Severity
 

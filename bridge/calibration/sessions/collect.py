@@ -14,7 +14,7 @@ a simulated clock in tests.
 * :class:`StillCollector` -- one still average (level calibration, fixed yaw).
 
 The device's own MAGCAL routine is followed by
-:class:`~bridge.calibrator.onboard.OnboardMagTracker`.
+:class:`~bridge.calibration.sessions.onboard.OnboardMagTracker`.
 """
 
 from __future__ import annotations
@@ -26,17 +26,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.accel_faces import Face, detect_face
-from bridge.calibration.coverage import (
+from bridge.calibration.fits.accel_faces import Face, detect_face
+from bridge.calibration.fits.coverage import (
     MASK_BYTES,
     N_SECTIONS,
     completion_mask,
     section_vertices,
     sections,
 )
-from bridge.calibration.ellipsoid import fit_sphere
-from bridge.calibration.samples import COMPASS_CAL_NUM_SAMPLES, SampleAcceptor
-from bridge.calibrator.motion import FrameSeries, MotionJudge, MotionWarning
+from bridge.calibration.fits.ellipsoid import fit_sphere
+from bridge.calibration.fits.samples import COMPASS_CAL_NUM_SAMPLES, SampleAcceptor
+from bridge.calibration.sessions.motion import FrameSeries, MotionJudge, MotionWarning
 from bridge.core import sensor
 from bridge.protocol.gmr import AttitudeFrame, Flags
 
@@ -299,7 +299,7 @@ class FaceCollector:
     """PX4's six-face routine on raw nominal accelerometer samples.
 
     A face counts when the last ``still_s`` seconds are still and point along
-    it (:func:`~bridge.calibration.accel_faces.detect_face`); its mean is then
+    it (:func:`~bridge.calibration.fits.accel_faces.detect_face`); its mean is then
     taken over ``collect_s`` more seconds of stillness. ``norm_tol_g`` is wide
     by default because an uncalibrated unit can read 1 +- 0.5 g (ADC zero and
     gain tolerances).

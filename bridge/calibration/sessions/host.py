@@ -1,9 +1,9 @@
 """The host's calibration sessions: magnetometer, six faces, level, fixed yaw (pure).
 
 * :class:`MagSession` -- ArduPilot's two-step magnetometer collection
-  (:class:`~bridge.calibrator.collect.MagCollector`), step one's sphere and
+  (:class:`~bridge.calibration.sessions.collect.MagCollector`), step one's sphere and
   the final fit of every frame in the worker, judged by the acceptance rule
-  (:mod:`bridge.calibration.acceptance`: the heading error predicted, against
+  (:mod:`bridge.calibration.fits.acceptance`: the heading error predicted, against
   the session's COMPASS_CAL_FIT and heading limit). A success waits for accept
   unless ``autosave``; ``retry`` starts a failed fit over (ArduPilot's retry);
 * :class:`FaceSession` -- PX4's six faces, then the six-face fit (saved at once);
@@ -21,37 +21,22 @@ from typing import Any
 
 import numpy as np
 
-from bridge.calibration.accel_faces import Face, fit_six_face, level_trim
-from bridge.calibration.acceptance import Acceptance
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.accel_faces import Face, fit_six_face, level_trim
+from bridge.calibration.fits.acceptance import Acceptance
+from bridge.calibration.fits.fixed_yaw import (
+    attitude_from_gravity,
+    fixed_yaw_calibration,
+    orientation_confidence,
+)
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.sanity import SanityResult, check_accel_calibration
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibration.sanity import SanityResult, check_accel_calibration
-from bridge.calibrator.collect import (
-    FaceCollector,
-    MagCollector,
-    StillCollector,
-    frame_vectors,
-    sphere_step,
-)
-from bridge.calibrator.motion import MotionJudge
-from bridge.calibrator.report import (
-    AccelParams,
-    Failure,
-    LevelTrim,
-    SessionReport,
-    fit_report,
-)
-from bridge.calibrator.results import (
-    attitude_from_gravity,
-    fixed_yaw_calibration,
-    orientation_confidence,
-)
-from bridge.calibrator.session import (
+from bridge.calibration.sessions.base import (
     Action,
     Apply,
     Compute,
@@ -61,7 +46,29 @@ from bridge.calibrator.session import (
     Progress,
     Session,
 )
-from bridge.calibrator.state import CalibratorSettings, Mode, Outcome, Phase, Result, number
+from bridge.calibration.sessions.collect import (
+    FaceCollector,
+    MagCollector,
+    StillCollector,
+    frame_vectors,
+    sphere_step,
+)
+from bridge.calibration.sessions.motion import MotionJudge
+from bridge.calibration.sessions.report import (
+    AccelParams,
+    Failure,
+    LevelTrim,
+    SessionReport,
+    fit_report,
+)
+from bridge.calibration.sessions.state import (
+    CalibratorSettings,
+    Mode,
+    Outcome,
+    Phase,
+    Result,
+    number,
+)
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Severity
 from bridge.protocol.gmr import AttitudeFrame

@@ -3,10 +3,10 @@
 Pure (no clock, no threads, no I/O): time comes in as ``now``.
 
 * :class:`FrameSeries` -- every frame of a collection in order, with its time:
-  the hand-held fits (:mod:`bridge.calibration.handheld`) need consecutive
+  the hand-held fits (:mod:`bridge.calibration.fits.handheld`) need consecutive
   frames, not only ArduPilot's thinned sample buffer.
 * :class:`MotionJudge` -- the operator's feedback while turning: the linear
-  acceleration of the last few seconds (:func:`bridge.calibration.series.motion_rms_g`,
+  acceleration of the last few seconds (:func:`bridge.calibration.fits.series.motion_rms_g`,
   the same measure the fit reports) against a limit, at most one warning per
   interval. A hand's usual shake (0.05 g RMS per axis) reads about 0.04 g and
   is averaged away by the fit; from about 0.1 g the fit loses accuracy, and a
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.series import MOTION_WINDOW_S, frame_period_s, frames_for, motion_rms_g
+from bridge.calibration.fits.series import MOTION_WINDOW_S, frame_period_s, frames_for, motion_rms_g
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]

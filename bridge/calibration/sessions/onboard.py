@@ -38,16 +38,16 @@ from typing import Any
 
 import numpy as np
 
-from bridge.calibrator.host import LEVEL_INSTRUCTION, LEVEL_TEXT
-from bridge.calibrator.report import (
+from bridge.calibration.sessions.base import Action, Device, Job, Progress, Session, device_error
+from bridge.calibration.sessions.host import LEVEL_INSTRUCTION, LEVEL_TEXT
+from bridge.calibration.sessions.report import (
     DeviceOutcome,
     MagParams,
     SessionReport,
     failure_report,
     params_dict,
 )
-from bridge.calibrator.session import Action, Device, Job, Progress, Session, device_error
-from bridge.calibrator.state import CalibratorSettings, Mode, Outcome, Phase, Result
+from bridge.calibration.sessions.state import CalibratorSettings, Mode, Outcome, Phase, Result
 from bridge.core import sensor
 from bridge.device import CommandError, CommandLate, CommandRejected, CommandTimeout, LinkDown
 from bridge.protocol.gmr import AckFrame, AttitudeFrame, CalProgressFrame, Flags, ParamsFrame

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from bridge.calibration.fits.sanity import MagCalStatus
 from bridge.calibration.model import AffineCalibration, CalibrationReport
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator.state import Mode
+from bridge.calibration.sessions.state import Mode
 from bridge.core import sensor
 from bridge.protocol.gmr import ParamsFrame
 

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from bridge.calibration.model import Calibration
-from bridge.calibrator.report import Failure, SessionReport
-from bridge.calibrator.session import Session
-from bridge.calibrator.state import Phase
+from bridge.calibration.sessions.base import Session
+from bridge.calibration.sessions.report import Failure, SessionReport
+from bridge.calibration.sessions.state import Phase
 from bridge.core.mounting import Mounting
 
 

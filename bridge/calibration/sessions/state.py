@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from bridge.calibration.acceptance import DEFAULT_FITNESS_MAX_MG, DEFAULT_HEADING_MAX_DEG
+from bridge.calibration.fits.acceptance import DEFAULT_FITNESS_MAX_MG, DEFAULT_HEADING_MAX_DEG
 
 
 class Mode(enum.StrEnum):
@@ -90,7 +90,7 @@ class CalibratorSettings:
     Times are seconds of the controller's clock. ``fitness_max_mG`` is the
     starting value of the host magnetometer fit's fitness limit; the
     application keeps it equal to COMPASS_CAL_FIT
-    (:attr:`~bridge.calibrator.controller.CalibrationController.fitness_limit_mG`).
+    (:attr:`~bridge.app.calibration.controller.CalibrationController.fitness_limit_mG`).
     """
 
     capacity: int = 300  #: magnetometer sample buffer (ArduPilot's COMPASS_CAL_NUM_SAMPLES)
