@@ -53,7 +53,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from benchmarks.e2e import E2eConfig, check_e2e_targets, format_e2e, run_e2e
 from benchmarks.handheld import (
@@ -75,8 +74,7 @@ from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
 from bridge.sim.motion import SIX_FACES, OnboardCalRotation, Tumble
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 FRAME_RATE_HZ = 10.0  #: the device's power-up output rate
 HEADING_METHODS: tuple[str, ...] = (

@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from benchmarks.scoring import HeldScore, positive_int, score_held, target
 from bridge.app.calibration.drift import DriftMonitor
@@ -58,8 +57,7 @@ from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.drive import Drive
 from bridge.sim.motion import Tumble, linear_acc_of
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors, magnet_pass
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 DETECT_BAR_S = 90.0  #: a change of DETECT_BAR_MG or more is announced within this
 DETECT_BAR_MG = 20.0

@@ -46,8 +46,7 @@ from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField
 from bridge.sim.motion import HandShake, Tumble
 from bridge.sim.physics import SensorModel, UnitErrors
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 FLOOR = "floor"
 METHODS = ("samples", "series")

@@ -23,15 +23,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from bridge.calibration.model import Calibration
 from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.sim.physics import SensorModel
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 
 def magnetic_heading_deg(R: FloatArray, declination_deg: float) -> FloatArray:

@@ -22,9 +22,9 @@ from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
 from bridge.sim.motion import HandShake, Tumble
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
+from bridge.types import FloatArray
 
 FIELD: EarthField = earth_field(*DEFAULT_LOCATION, 2026.0)
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 from helpers import load_calibration
 from realdata import (
@@ -45,9 +44,7 @@ from bridge.calibration.model import Calibration, CalibrationResult
 from bridge.cli import main
 from bridge.core.attitude import tilt_compensated_heading
 from bridge.tools.calibrate import RecordedVectors, read_recording
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 SOURCES = {
     "ck_tumble": ck_tumble,

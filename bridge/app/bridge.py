@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bridge.app.calibration.controller import CalibrationController, CalibratorSettings
-from bridge.app.calibration.drift import LEARN_MODES, DriftMonitor
+from bridge.app.calibration.drift import DriftMonitor
 from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
 from bridge.app.paramspec import CONFIG_PARAMS, param_from_config
 from bridge.app.pipeline import Pipeline
-from bridge.app.sample import DaemonStatus, HeadingReference, Output
+from bridge.app.sample import DaemonStatus, Output
 from bridge.app.services import BridgeServices, MessageTap
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
@@ -34,6 +34,7 @@ from bridge.core.wmm import EarthField, earth_field
 from bridge.device import DevicePort, LinkState, Received
 from bridge.documents import DocumentStore
 from bridge.events import EventBus
+from bridge.types import LEARN_MODES, HeadingReference
 
 log = logging.getLogger(__name__)
 

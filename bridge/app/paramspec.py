@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
-from bridge.config import CALIBRATION_LEARN_MODES, HEADING_REFERENCES
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation, rotation_matrix
 from bridge.core.quality import QualityLimits
+from bridge.types import HEADING_REFERENCES, LEARN_MODES
 
 # ArduPilot's storage types, numbered as MAVLink's MAV_PARAM_TYPE (which the MAVLink
 # adapter puts on the wire, encoded as the ground station's flavour expects).
@@ -337,7 +337,7 @@ SPECS: tuple[ParamSpec, ...] = (
         "",
         "learn",
         config_key="calibration.learn",
-        config_choices=CALIBRATION_LEARN_MODES,
+        config_choices=LEARN_MODES,
     ),
     ParamSpec(
         "BRG_CAL_UNDO",

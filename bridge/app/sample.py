@@ -17,10 +17,9 @@ from typing import Literal, Protocol
 
 from bridge.core.attitude import AttitudeSolution
 from bridge.device import LinkCounters, LinkState
+from bridge.types import HeadingReference
 
 log = logging.getLogger(__name__)
-
-HeadingReference = Literal["magnetic", "true"]
 
 
 # ---------------------------------------------------------------------------

@@ -26,10 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
-
-FloatArray = npt.NDArray[np.float64]
-Vec3 = tuple[float, float, float]
-Mat3 = tuple[Vec3, Vec3, Vec3]
+from bridge.types import FloatArray, Mat3, Vec3
 
 IDENTITY: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 

@@ -32,7 +32,6 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -40,7 +39,6 @@ import numpy.typing as npt
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
 from bridge.core.geometry import (
-    FloatArray,
     euler_to_quaternion,
     wrap_degrees_360,
     wrap_radians_pi,
@@ -48,9 +46,8 @@ from bridge.core.geometry import (
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
 from bridge.core.wmm import EarthField, earth_field
+from bridge.types import FloatArray, HeadingReference, Vec3
 
-HeadingReference = Literal["magnetic", "true"]
-Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
 _DEG = 180.0 / math.pi

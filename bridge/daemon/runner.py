@@ -52,10 +52,10 @@ from bridge.events import ChangeRefusedError
 from bridge.link.observed import ObservedTransport
 from bridge.systemd.notify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
 from bridge.systemd.status import StatusText
+from bridge.types import Clock
 
 log = logging.getLogger(__name__)
 
-Clock = Callable[[], float]
 
 #: A watched part silent this long is taken as hung. Above the link's longest pause between
 #: two port calls (its reopen backoff, at most 2 s) with margin for a loaded board.

@@ -32,9 +32,10 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from bridge.types import Clock
+
 log = logging.getLogger(__name__)
 
-Clock = Callable[[], float]
 
 #: The datagram limit systemd reads per message is far larger; STATUS is cut here so a
 #: runaway status text cannot make a message the manager would truncate mid-assignment.

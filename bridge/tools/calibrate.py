@@ -66,8 +66,7 @@ from bridge.tools.calreport import (
     progress_note,
     report_lines,
 )
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 # ---------------------------------------------------------------------------
 # Offline: a recording

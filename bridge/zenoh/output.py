@@ -40,6 +40,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, Final
 
 from bridge.app.services import SentMessage
+from bridge.types import Clock
 from bridge.zenoh import schema
 from bridge.zenoh.commands import check_sizes, parse_command_args
 from bridge.zenoh.contract import CommandOutcome, FleetServices, ZenohCounters, no_unsubscribe
@@ -56,7 +57,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-Clock = Callable[[], float]
 
 #: Remote calibration commands, as ``<prefix>/cmd/calibration/<name>``.
 CALIBRATION_COMMANDS: Final = ("start", "accept", "cancel", "undo")

@@ -63,7 +63,6 @@ from bridge.calibration.drift.estimator import (
     DriftEstimator,
     DriftSettings,
     Reference,
-    Vec3,
     heading_error_deg,
     minus,
     norm,
@@ -74,11 +73,10 @@ from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeSolution
 from bridge.core.mounting import Mounting
 from bridge.events import Event, EventBus, Severity
+from bridge.types import LEARN_MODES, Vec3
 
 log = logging.getLogger(__name__)
 
-#: ``[calibration] learn`` values, by BRG_CAL_LEARN value.
-LEARN_MODES: tuple[str, ...] = ("off", "detect", "learn")
 #: ``source`` of a learned calibration.
 LEARNED = LEARNED_SOURCE
 _IDENTITY = Calibration()

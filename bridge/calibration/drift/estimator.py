@@ -47,9 +47,7 @@ import numpy.typing as npt
 
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.attitude import tilt_compensated_heading
-
-FloatArray = npt.NDArray[np.float64]
-Vec3 = tuple[float, float, float]
+from bridge.types import FloatArray, Vec3
 
 ZERO: Vec3 = (0.0, 0.0, 0.0)
 _TUKEY_C = 4.685  # 95 % efficiency under Gaussian noise

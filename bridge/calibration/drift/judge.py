@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 from bridge.calibration.drift.estimator import (
     DriftEstimate,
     DriftSettings,
-    Vec3,
     known_part,
     minus,
     norm,
     plus,
 )
+from bridge.types import Vec3
 
 
 @dataclass(frozen=True, slots=True)

@@ -30,7 +30,8 @@ from bridge.calibration.model import (
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.core.geometry import FloatArray, euler_to_dcm
+from bridge.core.geometry import euler_to_dcm
+from bridge.types import FloatArray
 
 DEFAULT_STILL_TOL_G = 0.02  #: per-axis std dev for "still" (PX4: 0.25 m/s^2)
 DEFAULT_MAX_ANGLE_DEG = 20.0  #: how far from the face's axis a window may point

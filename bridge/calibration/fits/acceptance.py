@@ -44,7 +44,6 @@ from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
-import numpy.typing as npt
 
 from bridge.calibration.fits.coverage import N_SECTIONS, sections
 from bridge.calibration.fits.ellipsoid import (
@@ -57,9 +56,7 @@ from bridge.calibration.fits.sanity import MagCalStatus, SanityLimits, check_mag
 from bridge.calibration.fits.scalar import field_spread_nT
 from bridge.calibration.model import CalibrationReport, CalibrationResult
 from bridge.core.wmm import EarthField
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 #: The operator's heading target (deg RMS) for a sensor quiet enough to reach it. 1 deg:
 #: a good calibration of a real hand-held unit is predicted to leave less, while a

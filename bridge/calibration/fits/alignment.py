@@ -57,9 +57,7 @@ from bridge.calibration.model import AffineCalibration, Calibration, Calibration
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.sensor import GAUSS_TO_MGAUSS
 from bridge.core.wmm import EarthField
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 MIN_SAMPLES = 20
 DEFAULT_MAX_ACCEL_DEVIATION_G = 0.05  #: |g| further than this from 1 g: the unit was accelerating

@@ -29,8 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from bridge.types import FloatArray, IntArray
 
 N_SECTIONS = 80  #: 20 icosahedron faces x 4 sub-triangles
 MASK_BYTES = 10  #: MAG_CAL_PROGRESS.completion_mask is uint8[10]

@@ -46,9 +46,8 @@ from bridge.calibration.model import (
     CalibrationResult,
 )
 from bridge.core.wmm import EarthField
+from bridge.types import BoolArray, FloatArray
 
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 ReferenceField = EarthField | float | npt.ArrayLike | None
 
 MIN_SAMPLES = 12  #: 9 unknowns; a few spare so one bad sample cannot decide the fit

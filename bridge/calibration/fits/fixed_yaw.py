@@ -31,8 +31,8 @@ from bridge.core import sensor
 from bridge.core.geometry import euler_to_dcm
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.protocol.gmr import OFFSET_RANGE, PAR_SET_GAIN_RANGE, ParamsFrame
+from bridge.types import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 SUCCESS = MagCalStatus.MAG_CAL_SUCCESS.name
 RESIDUALS_HIGH = MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH.name
 

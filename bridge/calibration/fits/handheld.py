@@ -61,9 +61,7 @@ from bridge.calibration.fits.series import (
 from bridge.calibration.model import AffineCalibration
 from bridge.core.attitude import tilt_compensated_heading
 from bridge.core.geometry import axis_angle_to_dcm, dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import FloatArray
 
 #: Averaging windows tried, seconds (0: single frames).
 DEFAULT_WINDOWS_S: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0)

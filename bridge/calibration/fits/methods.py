@@ -46,9 +46,7 @@ from bridge.calibration.fits.scalar import fit_scalar, fit_scalar_accel, fit_sca
 from bridge.calibration.fits.twelve_position import fit_twelve_position
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
 from bridge.core.wmm import EarthField
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 #: The methods' own checks: structure only (radius, offsets, scaling, rotation). The
 #: fitness (COMPASS_CAL_FIT) and how well the samples determine the result are judged

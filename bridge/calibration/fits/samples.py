@@ -27,9 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.core.sensor import is_saturated
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 COMPASS_CAL_NUM_SAMPLES = 300  #: ArduPilot's sample buffer size
 INITIAL_RADIUS_G = 0.2  #: ArduPilot starts acceptance with a 200 mG radius

@@ -41,8 +41,7 @@ from bridge.calibration.model import (
     CalibrationResult,
 )
 from bridge.core.sensor import GAUSS_TO_NT
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 MIN_SAMPLES = 30  #: fewer than this and 9 parameters are not credibly determined
 MIN_THICKNESS = 0.02  #: smallest / largest spread of the samples: below, they are planar

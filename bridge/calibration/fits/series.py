@@ -30,9 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import FloatArray, IntArray
 
 #: A gap longer than this many frame periods ends a run (lost frames, a pause in the stream).
 MAX_GAP_PERIODS = 2.5

@@ -33,7 +33,8 @@ from bridge.calibration.model import (
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.core.geometry import GRAVITY_NED, FloatArray, euler_to_dcm_batch
+from bridge.core.geometry import GRAVITY_NED, euler_to_dcm_batch
+from bridge.types import FloatArray
 
 _FACES_DEG = (  # (roll, pitch) of the six faces
     (0.0, 0.0),  # level

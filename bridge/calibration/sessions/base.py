@@ -36,8 +36,8 @@ from bridge.calibration.sessions.report import Failure, SessionReport, failure_r
 from bridge.calibration.sessions.state import CalibratorSettings, Mode, Outcome, Phase, Result
 from bridge.core.wmm import EarthField
 from bridge.events import Severity
+from bridge.types import Vec3
 
-Vec3 = tuple[float, float, float]
 NO_MASK = bytes(10)
 
 #: Every event kind the calibrator emits (sessions, and the controller applying results).

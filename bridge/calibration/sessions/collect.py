@@ -39,9 +39,7 @@ from bridge.calibration.fits.samples import COMPASS_CAL_NUM_SAMPLES, SampleAccep
 from bridge.calibration.sessions.motion import FrameSeries, MotionJudge, MotionWarning
 from bridge.core import sensor
 from bridge.protocol.gmr import AttitudeFrame, Flags
-
-FloatArray = npt.NDArray[np.float64]
-Vec3 = tuple[float, float, float]
+from bridge.types import FloatArray, Vec3
 
 #: ArduPilot's progress split: step one is the first third of the bar.
 STEP_ONE_PCT = 33.3

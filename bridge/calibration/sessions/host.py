@@ -72,8 +72,8 @@ from bridge.calibration.sessions.state import (
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Severity
 from bridge.protocol.gmr import AttitudeFrame
+from bridge.types import FloatArray
 
-FloatArray = Any  # numpy arrays, as the collectors hand them over
 #: What a level calibration asks of the operator (host and on-board alike).
 LEVEL_TEXT = "Keep the vehicle level and still"
 LEVEL_INSTRUCTION = "keep the vehicle level and still"

@@ -21,13 +21,9 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
 from bridge.calibration.fits.series import MOTION_WINDOW_S, frame_period_s, frames_for, motion_rms_g
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
-Vec3 = tuple[float, float, float]
+from bridge.types import BoolArray, FloatArray, Vec3
 
 #: Frames a series keeps (the newest): 6 minutes at 100 Hz, beyond any calibration's time-out.
 SERIES_CAPACITY = 36_000

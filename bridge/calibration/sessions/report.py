@@ -29,8 +29,8 @@ from bridge.calibration.model import AffineCalibration, CalibrationReport
 from bridge.calibration.sessions.state import Mode
 from bridge.core import sensor
 from bridge.protocol.gmr import ParamsFrame
+from bridge.types import Vec3
 
-Vec3 = tuple[float, float, float]
 _NAN = math.nan
 PARAM_NAMES = ("xoff", "yoff", "zoff", "kx", "ky", "kz", "gxoff", "gyoff", "gzoff")
 
