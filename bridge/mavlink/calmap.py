@@ -27,8 +27,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from bridge.calibration.fits.sanity import MagCalStatus
+from bridge.calibration.model import ArduPilotView
 from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
-from bridge.calibration.sessions.report import MagParams
 from bridge.events import Event
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.telemetry import STATUSTEXT_LEN, MagCalReport, mag_cal_progress
@@ -89,7 +89,7 @@ def progress_message(snap: CalibratorSnapshot, compass_id: int) -> Message:
 
 def report_figures(report: SessionReport) -> MagCalReport:
     """A magnetometer session's report as MAG_CAL_REPORT's figures."""
-    m = report.mag if report.mag is not None else MagParams((0.0, 0.0, 0.0))
+    m = report.mag if report.mag is not None else ArduPilotView((0.0, 0.0, 0.0))
     fit = report.fit
     fitness = fit.fitness_mG if fit is not None else math.nan
     confidence = fit.orientation_confidence if fit is not None else math.nan

@@ -43,8 +43,11 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
+import numpy.typing as npt
 
 from bridge.calibration.model import AffineCalibration
+from bridge.core.mounting import Rotation, rotation_matrix
+from bridge.types import FloatArray
 
 
 class MagCalStatus(IntEnum):
@@ -266,3 +269,42 @@ def check_accel_calibration(
     if reasons:
         return SanityResult(MagCalStatus.MAG_CAL_FAILED, tuple(reasons))
     return SanityResult(MagCalStatus.MAG_CAL_SUCCESS)
+
+
+# -- ArduPilot's orientation check (calculate_orientation) ----------------------------------
+
+#: Rotations a wrongly set COMPASS_ORIENT can produce (ArduPilot's table, custom ones
+#: excluded); every one is at least 45 deg from the identity except the identity itself.
+_CANDIDATES: tuple[FloatArray, ...] = tuple(
+    m
+    for m in (
+        rotation_matrix(r) for r in Rotation if not r.is_custom and r is not Rotation.ROTATION_NONE
+    )
+    if math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(m)) - 1.0) / 2.0)))) >= 44.0
+)
+
+
+def _unit_rows(v: FloatArray) -> FloatArray:
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.asarray(v / np.where(n > 0.0, n, 1.0), dtype=np.float64)
+
+
+def orientation_confidence(mag_corrected: npt.ArrayLike, gravity: npt.ArrayLike) -> float:
+    """Runner-up variance over best variance of the gravity-field angle (ArduPilot's confidence).
+
+    With the right orientation the angle between gravity and the field is the
+    same in every sample (90 deg + dip); each candidate rotation of
+    COMPASS_ORIENT's table makes it vary. ``mag_corrected`` and ``gravity`` are
+    calibrated (N, 3) vectors of the same frames. Returns the variance of the
+    best *other* candidate divided by that of the fitted orientation: 1 means
+    "cannot tell", ArduPilot accepts an orientation from about 2 on. NaN with
+    fewer than 10 samples.
+    """
+    m = _unit_rows(np.asarray(mag_corrected, dtype=np.float64).reshape(-1, 3))
+    g = _unit_rows(np.asarray(gravity, dtype=np.float64).reshape(-1, 3))
+    if m.shape[0] < 10 or m.shape != g.shape:
+        return math.nan
+    best = float(np.var(np.sum(g * m, axis=1)))
+    others = min(float(np.var(np.sum(g * (m @ R.T), axis=1))) for R in _CANDIDATES)
+    # A floor keeps a noise-free (simulated) unit finite: 1e-12 is far below any real spread.
+    return others / max(best, 1e-12)

@@ -23,13 +23,13 @@ import numpy as np
 
 from bridge.calibration.fits.accel_faces import Face, fit_six_face, level_trim
 from bridge.calibration.fits.acceptance import Acceptance
-from bridge.calibration.fits.fixed_yaw import (
-    attitude_from_gravity,
-    fixed_yaw_calibration,
+from bridge.calibration.fits.fixed_yaw import attitude_from_gravity, fixed_yaw_calibration
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.sanity import (
+    SanityResult,
+    check_accel_calibration,
     orientation_confidence,
 )
-from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
-from bridge.calibration.fits.sanity import SanityResult, check_accel_calibration
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,

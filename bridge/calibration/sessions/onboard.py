@@ -38,11 +38,11 @@ from typing import Any
 
 import numpy as np
 
+from bridge.calibration.model import ArduPilotView
 from bridge.calibration.sessions.base import Action, Device, Job, Progress, Session, device_error
 from bridge.calibration.sessions.host import LEVEL_INSTRUCTION, LEVEL_TEXT
 from bridge.calibration.sessions.report import (
     DeviceOutcome,
-    MagParams,
     SessionReport,
     failure_report,
     params_dict,
@@ -456,7 +456,7 @@ class OnboardMagSession(_DeviceSession):
             self.mode,
             "device MAGCAL",
             autosaved=True,
-            mag=MagParams.of_device(page),
+            mag=ArduPilotView.of_device(page),
             device=DeviceOutcome(device, params_dict(params), spans),
         )
         self.accepted = True  # the device wrote its flash: nothing left to accept

@@ -3,7 +3,8 @@
 :class:`SessionReport` holds what front ends show and the calibration store
 keeps: the method, the verdict (``failure`` None, or a neutral
 :class:`Failure` with the reason), the magnetometer result as ArduPilot's
-COMPASS_* figures (:class:`MagParams`), the host fit's quality including the
+COMPASS_* figures (the calibration's :class:`~bridge.calibration.model.ArduPilotView`,
+or a device page's), the host fit's quality including the
 hand-held figures (:class:`FitQuality`), an accelerometer or level result, the
 device's answer for an on-board routine, and the notes of the fit.
 
@@ -25,14 +26,14 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import AffineCalibration, CalibrationReport
+from bridge.calibration.model import AffineCalibration, ArduPilotView, CalibrationReport
 from bridge.calibration.sessions.state import Mode
-from bridge.core import sensor
 from bridge.protocol.gmr import ParamsFrame
 from bridge.types import Vec3
 
 _NAN = math.nan
 PARAM_NAMES = ("xoff", "yoff", "zoff", "kx", "ky", "kz", "gxoff", "gyoff", "gzoff")
+MAG_PARAM_NAMES = PARAM_NAMES[:6]  #: the flash page's magnetometer half
 
 
 class Failure(enum.StrEnum):
@@ -76,36 +77,6 @@ def _json(v: float) -> float | None:
 def _vec(v: Any) -> Vec3:
     a = [float(x) for x in v]
     return (a[0], a[1], a[2])
-
-
-@dataclass(frozen=True, slots=True)
-class MagParams:
-    """A magnetometer calibration as ArduPilot's COMPASS_* parameters.
-
-    ``ofs_mG`` is COMPASS_OFS (milligauss *added* to the raw field), ``diag`` /
-    ``offdiag`` COMPASS_DIA / ODI, ``scale`` COMPASS_SCALE; ``rotation_deg`` the
-    rotation into the accelerometer's axes the fit found.
-    """
-
-    ofs_mG: Vec3
-    diag: Vec3 = (1.0, 1.0, 1.0)
-    offdiag: Vec3 = (0.0, 0.0, 0.0)
-    scale: float = 1.0
-    rotation_deg: float = 0.0
-
-    @classmethod
-    def of(cls, mag: AffineCalibration) -> MagParams:
-        """The figures of a host calibration."""
-        view = mag.ardupilot_view()
-        rot = math.degrees(float(np.linalg.norm(view.rotation_rotvec)))
-        return cls(_vec(view.ofs_mG), _vec(view.diag), _vec(view.offdiag), view.scale, rot)
-
-    @classmethod
-    def of_device(cls, page: ParamsFrame) -> MagParams:
-        """A device flash page's magnetometer half (offsets in counts, gains) in these terms."""
-        z, per_g = sensor.ZERO_COUNTS, sensor.MAG_COUNTS_PER_GAUSS
-        ofs = tuple(-1000.0 * (o - z) / per_g for o in (page.xoff, page.yoff, page.zoff))
-        return cls(_vec(ofs), (page.kx, page.ky, page.kz))
 
 
 @dataclass(frozen=True, slots=True)
@@ -251,7 +222,7 @@ class SessionReport:
     failure: Failure | None = None
     reason: str = ""
     autosaved: bool = False
-    mag: MagParams | None = None
+    mag: ArduPilotView | None = None
     fit: FitQuality | None = None
     accel: AccelParams | None = None
     level: LevelTrim | None = None
@@ -318,16 +289,20 @@ class SessionReport:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SessionReport:
-        """A report from its JSON form; raises ``ValueError`` when ``mode`` is not one."""
+        """A report from its JSON form; raises ``ValueError`` when ``mode`` is not one.
+
+        The JSON form keeps the magnetometer's rotation as its angle (``rotation_deg``,
+        what front ends show), not its axis: read back, the rotation is that angle about z.
+        """
         failure = d.get("failure")
         mag = fit = accel = level = device = None
         if "ofs_x" in d:
-            mag = MagParams(
+            mag = ArduPilotView(
                 (_f(d["ofs_x"], 0.0), _f(d.get("ofs_y"), 0.0), _f(d.get("ofs_z"), 0.0)),
                 _vec(_f(d.get(f"diag_{a}"), 1.0) for a in "xyz"),
                 _vec(_f(d.get(f"offdiag_{a}"), 0.0) for a in "xyz"),
                 _f(d.get("scale_factor"), 1.0),
-                _f(d.get("rotation_deg"), 0.0),
+                (0.0, 0.0, math.radians(_f(d.get("rotation_deg"), 0.0))),
             )
         if "fitness" in d:
             fit = FitQuality(
@@ -399,7 +374,7 @@ def fit_report(
         failure=failure,
         reason=reason,
         autosaved=autosaved,
-        mag=MagParams.of(mag),
+        mag=mag.ardupilot_view(),
         fit=FitQuality.of(report, confidence),
         notes=report.notes,
     )
