@@ -3,7 +3,7 @@
 Every frame goes the daemon's whole way and then into every MAVLink stream:
 ``$PGMRA`` bytes -> :class:`~bridge.protocol.gmr.GmrDecoder` ->
 :meth:`bridge.daemon.Daemon.process` (nominal transfer, stored calibration,
-tilt-compensated attitude, quality flags) -> :class:`~bridge.daemon.CompassSample`
+tilt-compensated attitude, quality flags) -> :class:`~bridge.app.sample.CompassSample`
 -> ATTITUDE, ATTITUDE_QUATERNION, VFR_HUD, SCALED_IMU, RAW_IMU, HIGHRES_IMU and
 the heading feed encoded once -> framed (and signed with ``--signed``) for one
 link. In service the streams go out at their configured rates, so this is the

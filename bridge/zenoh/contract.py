@@ -41,7 +41,7 @@ class FleetServices:
     All callables are called from the output's or zenoh's threads and must be
     quick and thread-safe, except ``run_command`` (its own thread).
 
-    * ``status`` -- the daemon's :class:`~bridge.daemon.DaemonStatus`.
+    * ``status`` -- the daemon's :class:`~bridge.app.sample.DaemonStatus`.
     * ``calibration_state`` -- a small JSON-ready dict for ``<prefix>/status``
       (``state``, ``source``, ``percent``, ``fitness_mG`` ...).
     * ``calibration`` -- ``{"calibration", "source", "report", "state"}`` for

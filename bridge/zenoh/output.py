@@ -74,7 +74,7 @@ _CLAIM_SETTLE_S: Final = 0.3
 
 
 class ZenohOutput:
-    """Publishes the bridge on Zenoh (see the module docstring). An :class:`~bridge.daemon.Output`."""
+    """Publishes the bridge on Zenoh (see the module docstring). An :class:`~bridge.app.sample.Output`."""
 
     def __init__(
         self,
