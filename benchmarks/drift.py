@@ -410,7 +410,7 @@ def _config_dict(cfg: DriftBenchConfig) -> dict[str, Any]:
 
 
 def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
-    """The issue's bars, PASS/FAIL."""
+    """The targets, PASS/FAIL."""
     out = []
     big = [c for c in result["changes"] if c["size_mG"] >= DETECT_BAR_MG]
     worst = max(

@@ -55,7 +55,7 @@ class E2eConfig:
     shakes_g: tuple[float, ...] = (0.0, 0.05, 0.1)
     seed: int = 1
     rate_hz: float = 50.0
-    holds: int = 60  #: held attitudes (the issue's figure)
+    holds: int = 60  #: held attitudes (the target's figure)
     hold_s: float = 0.5
     max_tilt_deg: float = 60.0
     location: tuple[float, float, float] = DEFAULT_LOCATION

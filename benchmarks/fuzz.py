@@ -1,6 +1,6 @@
-"""Hostile input against a running daemon: ``python -m benchmarks fuzz`` (issue 15; the
-round-two angles -- many-peer junk, a TCP crowd, oversized Zenoh arguments, a silent or a
-late compass -- are :mod:`benchmarks.fuzz_hostile`, run after these unless ``--angles none``).
+"""Hostile input against a running daemon: ``python -m benchmarks fuzz`` (the further
+angles -- many-peer junk, a TCP crowd, oversized Zenoh arguments, a silent or a late
+compass -- are :mod:`benchmarks.fuzz_hostile`, run after these unless ``--angles none``).
 
 A real daemon (a child ``compass-bridge run``) reads a pseudo-terminal this
 process serves as the compass, speaks MAVLink on ``udpin:127.0.0.1`` and keeps

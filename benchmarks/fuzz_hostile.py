@@ -332,7 +332,7 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
                 doc = json.loads(ok[0].payload.to_bytes())
                 if doc.get("ok") or not str(doc.get("message", "")).startswith("bad arguments"):
                     wrong += 1
-            giant = b"z" * (100 << 20)  # the 24 x 100 MB, in short
+            giant = b"z" * (100 << 20)  # 24 x 100 MB asked for, in short
             giants = sum(
                 1
                 for _ in range(4)

@@ -17,7 +17,7 @@ them as one JSON object too):
   each frame's first byte is written to the pty and when the ATTITUDE
   datagram carrying that frame's yaw arrives on a UDP socket. The unit turns
   at 300 deg/s, so every frame has its own yaw and the datagram names its
-  frame. p99 target 1 ms (issue 16).
+  frame. p99 target 1 ms.
 * **CPU and RSS** -- a second child, MAVLink and zenoh outputs on at the
   shipped stream rates (config/compass-bridge.toml: ATTITUDE 10 Hz, ...), the
   compass at 100 Hz: its user+system CPU time (its CPU-time clock, to the ns)

@@ -40,7 +40,7 @@ def test_small_run_against_the_daemon_finds_nothing(tmp_path: Path) -> None:
 def test_the_round_two_angles_print_their_figures(tmp_path: Path) -> None:
     """Many-peer junk with a TCP crowd, oversized Zenoh arguments, a silent and a late
     compass, a PARAM_SET storm: each against its own daemon, each a figure (small sizes here;
-    the defaults are the issue's: 1000 datagrams/s, 50 clients, 100 queries, 3000 sets/s)."""
+    the defaults: 1000 datagrams/s, 50 clients, 100 queries, 3000 sets/s)."""
     out = tmp_path / "fuzz2.json"
     main(
         ["--chunks", "10", "--messages", "10", "--angles", "crowd,zenoh,silent,late,params",

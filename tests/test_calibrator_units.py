@@ -354,7 +354,7 @@ def _routine(
 
 
 def test_onboard_tracker_sees_the_routine_through_at_hand_pace() -> None:
-    # Issue 13: the datasheet's motion as a person does it -- a level turn in about 15 s,
+    # The datasheet's motion as a person does it -- a level turn in about 15 s,
     # tipped 90 deg to the right in 3 s, a turn on the side in about 15 s.
     hand = HandOnboardCalRotation(turn_s=15.0, tip_s=3.0, yaw0=0.3, seed=7)
     tr, said, answer = _routine(7, hand)

@@ -115,7 +115,7 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
         },
         "errors": list(a.errors),
     }
-    # The drift monitor's verdict (bridge.app.calibration.drift, issue 17) as the status document has
+    # The drift monitor's verdict (bridge.app.calibration.drift) as the status document has
     # it; a drifted calibration leaves the bridge "healthy" (it streams a usable heading)
     # but is said on its own line, as `monitor` flags it DRIFT.
     drift = cal_state.get("drift")
