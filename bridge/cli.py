@@ -14,13 +14,9 @@ Subcommands::
     compass-bridge calibrate --mavlink URL [--target-system N --target-component N]
                              [--plot FILE.png] [--yes|--no]   # a running bridge, ArduPilot flow
     compass-bridge status [KEYEXPR] [--json]       # one-shot health of running bridges (Zenoh)
-    compass-bridge bench accuracy [...]            # accuracy benchmark
-    compass-bridge bench pipeline [...]            # speed and footprint benchmark
-    compass-bridge bench fuzz [--chunks N --messages M]  # hostile input against the daemon
-    compass-bridge bench drift [...]               # drift detection and learning benchmark
     compass-bridge monitor [KEYEXPR] [--once]      # live table of every bridge on Zenoh
 
-Long operations (record, calibrate, bench) draw a progress bar or spinner with
+Long operations (record, calibrate) draw a progress bar or spinner with
 an ETA on stderr when it is a terminal; ``--progress/--no-progress`` forces it.
 
 Exit codes: 0 ok (including a stop by SIGINT/SIGTERM), 2 usage or
@@ -212,13 +208,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rec.set_defaults(func=cmd_record)
 
-    bench = sub.add_parser("bench", parents=[common], help="benchmarks")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    # The benchmark parses its own options (and its own --help): everything after
-    # the benchmark's name is passed through unparsed (see main()).
-    for name, help_text in BENCHMARKS.items():
-        one = bench_sub.add_parser(name, add_help=False, help=help_text)
-        one.set_defaults(func=cmd_bench, passthrough=True)
     _tools_parsers(sub, common)
 
     mon = sub.add_parser(
@@ -347,7 +336,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise UsageError("--reset goes with --simulate (it clears the simulator's state)")
     cfg = load_config(args.config, overrides)
     if args.reset:
-        from bridge.ports import StorageError
+        from bridge.documents import StorageError
 
         try:
             print(reset_state(cfg.storage.dir), file=sys.stderr)
@@ -434,24 +423,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-#: The benchmarks, ``bridge.bench.<name>``, each with its own command line (``main``).
-BENCHMARKS = {
-    "accuracy": "heading accuracy of the calibration methods (prints figures, JSON)",
-    "pipeline": "speed and footprint: throughput, latency, CPU, RSS, start-up, fit time",
-    "fuzz": "hostile input: fuzzed serial chunks and MAVLink messages against a running daemon",
-    "drift": "hard-iron drift: detection time, false alarms, heading before/after learning",
-    "tilt": "heading under acceleration: accelerometer, autopilot and magnetometer tilt sources",
-}
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    """``bench NAME``: hand over to the benchmark's own command line (imported on use)."""
-    import importlib
-
-    bench_main = importlib.import_module(f"bridge.bench.{args.bench}").main
-    return int(bench_main(args.rest) or 0)
-
-
 def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     """``calibrate`` and ``status`` (bridge/tools)."""
     cal = sub.add_parser(
@@ -518,7 +489,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """``calibrate``: see :mod:`bridge.tools.calibrate`."""
-    from bridge.calibration.methods import LIVE_ONLY, METHOD_NAMES, canonical_name
+    from bridge.calibration.fits.methods import LIVE_ONLY, METHOD_NAMES, canonical_name
     from bridge.tools.calibrate import cmd_calibrate as run
 
     try:
@@ -535,8 +506,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_status(args: argparse.Namespace) -> int:
     """``status``: see :mod:`bridge.tools.status`."""
-    from bridge.fleet.monitor import MonitorOptions
     from bridge.tools.status import run_status
+    from bridge.zenoh.monitor import MonitorOptions
 
     opts = MonitorOptions(keyexpr=args.keyexpr, connect=tuple(args.connect))
     return run_status(opts, sys.stdout, as_json=args.json, timeout=args.timeout)
@@ -546,7 +517,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     """``monitor``: the fleet view; stops on SIGINT/SIGTERM, ``--duration`` or ``--once``."""
     import zenoh
 
-    from bridge.fleet.monitor import MonitorOptions, run_monitor
+    from bridge.zenoh.monitor import MonitorOptions, run_monitor
 
     try:
         zenoh.KeyExpr(args.keyexpr)
@@ -602,12 +573,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     in_process = argv is not None  # a caller in this process, not the program itself
     words = argtypes.glue_negative_values(list(sys.argv[1:] if argv is None else argv))
     try:
-        args, rest = parser.parse_known_args(words)
-        if rest and not getattr(args, "passthrough", False):
-            parser.error(f"unrecognized arguments: {' '.join(rest)}")
+        args = parser.parse_args(words)
     except SystemExit as e:  # argparse: --help/--version (0) or usage error (2)
         return _exit_code(e)
-    args.rest = rest
     _setup_logging(args)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
@@ -615,7 +583,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not in_process and args.command == "run":
             _end_process(code)  # the program itself (not a caller in-process): see there
         return code
-    except SystemExit as e:  # a passed-through parser (bench) exiting on --help or bad usage
+    except SystemExit as e:  # a subcommand ending the program itself
         return _exit_code(e)
     except ConfigError as e:
         print(f"config error: {e}", file=sys.stderr)

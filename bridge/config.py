@@ -32,7 +32,7 @@ import re
 import socket
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Self
+from typing import Any, Self
 
 from bridge.configkit import loader
 from bridge.configkit.rules import (
@@ -64,6 +64,7 @@ from bridge.configkit.schema import (
     type_name,
 )
 from bridge.files import FileRefused, read_regular_file
+from bridge.types import HEADING_REFERENCES, LEARN_MODES
 
 #: The service's state directory (calibration, parameters) unless configured or given by systemd.
 DEFAULT_STATE_DIR = "/var/lib/compass-bridge"
@@ -118,16 +119,10 @@ MAX_KEY_FILE_BYTES = 4096
 #: A zenoh JSON5 configuration (TLS, access control) is a few kB.
 MAX_ZENOH_CONFIG_BYTES = 1 << 20
 
-HeadingReference = Literal["magnetic", "true"]
-#: Published heading references: magnetic north (as the compass and ArduPilot's
-#: compass driver report) or true north (magnetic + WMM declination at [location]).
-HEADING_REFERENCES: tuple[HeadingReference, ...] = ("magnetic", "true")
 #: ``[heading] tilt``: where the tilt compensation's roll and pitch come from.
 TILT_MODES: tuple[str, ...] = ("auto", "accelerometer")
 #: MAV_AUTOPILOT flavours of the standalone HEARTBEAT.
 AUTOPILOTS = ("generic", "px4", "ardupilot")
-#: Background judgement of the stored calibration while the bridge runs.
-CALIBRATION_LEARN_MODES = ("off", "detect", "learn")
 
 
 @rule('an existing regular file of at most 1 MiB, read at start; "" = none')
@@ -412,7 +407,7 @@ class StorageConfig(Section):
 
 @dataclass(frozen=True, slots=True)
 class CalibrationConfig(Section):
-    """``[calibration]``: how calibrations run (``bridge.calibrator``)."""
+    """``[calibration]``: how calibrations run (``bridge.app.calibration``)."""
 
     onboard: bool = setting(
         False,
@@ -428,7 +423,7 @@ class CalibrationConfig(Section):
     )
     learn: str = setting(
         "detect",
-        one_of(*CALIBRATION_LEARN_MODES),
+        one_of(*LEARN_MODES),
         'while running, between calibrations: "off" = trust the stored calibration; '
         '"detect" = watch whether it still fits the measured field and report when it '
         'no longer does (it is never changed); "learn" = also refine it in the '

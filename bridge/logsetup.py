@@ -27,11 +27,11 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TextIO
 
-Clock = Callable[[], float]
+from bridge.types import Clock
 
 #: Python level -> syslog priority (sd-daemon(3): <2> crit, <3> err, <4> warning, <6> info, <7> debug).
 SYSLOG_PRIORITIES = (

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from bridge.config import DEFAULT_STATE_DIR
+from bridge.documents import LoadResult, StorageError
 from bridge.files import FileMissing, FileRefused, read_regular_file
-from bridge.ports import LoadResult, StorageError
 
 log = logging.getLogger(__name__)
 

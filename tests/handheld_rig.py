@@ -14,17 +14,17 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.bench.scoring import HeldScore, score_held
-from bridge.calibration.handheld import tilted_attitudes
+from benchmarks.scoring import HeldScore, score_held
+from bridge.calibration.fits.handheld import tilted_attitudes
 from bridge.calibration.model import Calibration
-from bridge.calibrator.collect import MagCollector, sphere_step
+from bridge.calibration.sessions.collect import MagCollector, sphere_step
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
 from bridge.sim.motion import HandShake, Tumble
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
+from bridge.types import FloatArray
 
 FIELD: EarthField = earth_field(*DEFAULT_LOCATION, 2026.0)
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

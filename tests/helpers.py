@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from bridge.app.calibration.store import CalibrationStore
 from bridge.calibration.model import Calibration
-from bridge.calibrator.store import CalibrationStore
 from bridge.storage import StateStore
 
 

@@ -34,10 +34,9 @@ from bridge.link.record import RecordingWriter
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.protocol.gmr_frames import encode
 from bridge.sim.firmware import FACTORY, onboard_attitude
+from bridge.types import FloatArray, IntArray
 
 DATA = Path(__file__).parent / "data"
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 
 @dataclass(frozen=True)

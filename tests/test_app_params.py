@@ -17,14 +17,10 @@ from bridge.app.paramspec import (
     REAL32,
     SPECS,
     ParamTable,
-    calibration_from_values,
     limits_from_values,
-    mag_from_values,
     same_calibration,
-    split_rotation,
-    view_values,
 )
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.calibration.model import AffineCalibration, Calibration, split_rotation
 from bridge.core.geometry import euler_to_dcm, rotvec_to_dcm
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.core.quality import QualityLimits
@@ -112,14 +108,14 @@ def _mag(rot: np.ndarray) -> AffineCalibration:
 )
 def test_view_round_trip_and_orientation_split(rot: np.ndarray, orient: Rotation) -> None:
     mag = _mag(rot)
-    v = view_values(mag)
+    v = Calibration(mag=mag).ardupilot_parameters()
     assert set(v) == set(CAL_PARAMS)
     assert v["COMPASS_ORIENT"] == int(orient)
     assert np.linalg.norm([v["BRG_ALIGN_X"], v["BRG_ALIGN_Y"], v["BRG_ALIGN_Z"]]) < math.radians(5)
     assert v["COMPASS_OFS_X"] == pytest.approx(-120.0) and v["COMPASS_OFS_Z"] == pytest.approx(
         -210.0
     )
-    back = mag_from_values(v)
+    back = Calibration.from_ardupilot_parameters(v).mag
     assert np.allclose(back.matrix_array, mag.matrix_array, atol=1e-12)
     assert np.allclose(back.offset_array, mag.offset_array, atol=1e-12)
 
@@ -137,9 +133,9 @@ def test_a_table_written_back_as_float32_keeps_the_calibration() -> None:
     """A GCS that reads every COMPASS_* value and writes it back changes nothing that matters."""
     mag = _mag(euler_to_dcm(0.02, -0.01, 0.03))
     t = ParamTable()
-    for name, v in view_values(mag).items():
+    for name, v in Calibration(mag=mag).ardupilot_parameters().items():
         t.put(name, v)
-    cal = calibration_from_values(t.values(), AffineCalibration())
+    cal = Calibration.from_ardupilot_parameters(t.values(), AffineCalibration())
     assert same_calibration(cal, Calibration(mag=mag), tol=1e-5)
     assert not same_calibration(cal, Calibration(), tol=1e-5)
 
@@ -150,7 +146,7 @@ def test_singular_calibration_is_refused() -> None:
         t.put(n, 1.0)
     t.put("COMPASS_ODI_X", 1.0)  # rows x and y equal: singular
     with pytest.raises(ValueError, match="singular"):
-        mag_from_values(t.values())
+        Calibration.from_ardupilot_parameters(t.values())
 
 
 def test_limits_from_values() -> None:

@@ -52,8 +52,8 @@ from autopilots import (
     start_bridge,
 )
 
-from bridge.calibration.drift import with_offset_change
-from bridge.calibrator.store import LEARNED_SOURCE
+from bridge.app.calibration.store import LEARNED_SOURCE
+from bridge.calibration.drift.estimator import with_offset_change
 from bridge.core.wmm import earth_field
 
 pytestmark = pytest.mark.integration

@@ -42,8 +42,8 @@ from autopilots import (
     ulog,
 )
 
-from bridge.calibration.drift import with_offset_change
-from bridge.calibrator.store import LEARNED_SOURCE
+from bridge.app.calibration.store import LEARNED_SOURCE
+from bridge.calibration.drift.estimator import with_offset_change
 
 pytestmark = pytest.mark.integration
 

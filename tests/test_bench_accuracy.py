@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge.bench.accuracy import BenchConfig, format_report, main, run
+from benchmarks.accuracy import BenchConfig, format_report, main, run
 
 SMALL = BenchConfig(
     units=2, seed=5, samples=500, eval_samples=400, spread_stops=60, timing_samples=0
@@ -132,7 +132,7 @@ def test_hand_held_conditions_put_the_live_fit_beside_the_floor() -> None:
 
 
 def test_end_to_end_config_runs_the_simulated_daemon_with_its_shake(tmp_path: Path) -> None:
-    from bridge.bench.e2e import E2eConfig, _config_text
+    from benchmarks.e2e import E2eConfig, _config_text
     from bridge.config import load_config
 
     text = _config_text(tmp_path / "state", 14600, 0.05, E2eConfig(rate_hz=50.0, seed=4))

@@ -1,4 +1,4 @@
-"""``compass-bridge bench fuzz``: a tiny run against a real daemon, and its judges."""
+"""``python -m benchmarks fuzz``: a tiny run against a real daemon, and its judges."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from bridge.bench.fuzz import Effects, MavlinkFuzz, SerialFuzz, false_frames, main, palette
-from bridge.cli import main as cli_main
+from benchmarks.__main__ import main as benchmarks_main
+from benchmarks.fuzz import Effects, MavlinkFuzz, SerialFuzz, false_frames, main, palette
 from bridge.protocol.gmr import AttitudeFrame, GmrDecoder
 
 
@@ -40,7 +40,7 @@ def test_small_run_against_the_daemon_finds_nothing(tmp_path: Path) -> None:
 def test_the_round_two_angles_print_their_figures(tmp_path: Path) -> None:
     """Many-peer junk with a TCP crowd, oversized Zenoh arguments, a silent and a late
     compass, a PARAM_SET storm: each against its own daemon, each a figure (small sizes here;
-    the defaults are the issue's: 1000 datagrams/s, 50 clients, 100 queries, 3000 sets/s)."""
+    the defaults: 1000 datagrams/s, 50 clients, 100 queries, 3000 sets/s)."""
     out = tmp_path / "fuzz2.json"
     main(
         ["--chunks", "10", "--messages", "10", "--angles", "crowd,zenoh,silent,late,params",
@@ -99,12 +99,12 @@ def test_mavlink_fuzz_notes_only_what_can_change_state() -> None:
     assert e.allows("BRG_HDG_FEED")
 
 
-def test_wired_as_a_bench_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
+def test_wired_as_a_benchmark(capsys: pytest.CaptureFixture[str]) -> None:
     # main() sets up the root logger on this test's captured stderr: put it back after.
     root = logging.getLogger()
     handlers, level = root.handlers[:], root.level
     try:
-        assert cli_main(["bench", "fuzz", "--chunks", "0"]) == 2  # its own parser, via the CLI
+        assert benchmarks_main(["fuzz", "--chunks", "0"]) == 2  # its own parser, via the table
     finally:
         root.handlers[:] = handlers
         root.setLevel(level)

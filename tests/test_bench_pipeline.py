@@ -1,4 +1,4 @@
-"""``compass-bridge bench pipeline``: a small, quick run; structure and sanity, never speed."""
+"""``python -m benchmarks pipeline``: a small, quick run; structure and sanity, never speed."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge.bench.pipeline import Figure, _proc_cpu_s, live, main, match_latencies
+from benchmarks.pipeline import Figure, _proc_cpu_s, live, main, match_latencies
 
 
 def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.bench.tilt import (
+from benchmarks.tilt import (
     COMPANION_BAR_DEG,
     STANDALONE_BAR_DEG,
     TiltBenchConfig,

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.accel_faces import (
+from bridge.calibration.fits.accel_faces import (
     Face,
     detect_face,
     face_from_px4_side,

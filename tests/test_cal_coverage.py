@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.coverage import (
+from bridge.calibration.fits.coverage import (
     MASK_BYTES,
     N_SECTIONS,
     completion_mask,

@@ -12,14 +12,14 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.ellipsoid import (
+from bridge.calibration.fits.ellipsoid import (
     fit_ellipsoid,
     fit_ellipsoid_geometry,
     fit_quadric,
     fit_sphere,
     reference_total_G,
 )
-from bridge.calibration.sanity import MagCalStatus
+from bridge.calibration.fits.sanity import MagCalStatus
 from bridge.core.geometry import axis_angle_to_dcm, random_rotations
 from bridge.core.wmm import EarthField
 

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from handheld_rig import FIELD, Tumbled, collect, held, tumble
 
-from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.series import hann_kernel, motion_rms_g, runs, window_means
 from bridge.calibration.model import AffineCalibration, CalibrationResult
-from bridge.calibration.series import hann_kernel, motion_rms_g, runs, window_means
-from bridge.calibrator.report import fit_report
-from bridge.calibrator.state import Mode
+from bridge.calibration.sessions.report import fit_report
+from bridge.calibration.sessions.state import Mode
 from bridge.sim.physics import UnitErrors
 from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_G
 

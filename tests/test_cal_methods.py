@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.accel_faces import detect_face
-from bridge.calibration.methods import (
+from bridge.calibration.fits.accel_faces import detect_face
+from bridge.calibration.fits.methods import (
     BEST,
     METHOD_NAMES,
     METHODS,
@@ -17,8 +17,8 @@ from bridge.calibration.methods import (
     calibrate,
     canonical_name,
 )
+from bridge.calibration.fits.twelve_position import twelve_position_attitudes
 from bridge.calibration.model import AffineCalibration
-from bridge.calibration.twelve_position import twelve_position_attitudes
 from bridge.core.geometry import euler_to_dcm, random_rotations
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.minmax import fit_minmax
+from bridge.calibration.fits.minmax import fit_minmax
 from bridge.core import sensor
 from bridge.core.geometry import euler_to_dcm_batch
 from bridge.sim.physics import SensorModel, UnitErrors

@@ -7,8 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
 from bridge.core.geometry import euler_to_dcm
+from bridge.protocol.gmr import ParamsFrame
 
 
 def test_apply_batch_and_scalar_agree() -> None:
@@ -70,3 +71,36 @@ def test_calibration_dict_round_trip() -> None:
     assert Calibration.from_dict(cal.to_dict()) == cal
     with pytest.raises((KeyError, ValueError, TypeError)):
         Calibration.from_dict({"mag": {"offset": [1, 2]}, "accel": {}})
+
+
+# -- the views: one calibration seen as ArduPilot's parameters and as the device's flash page
+
+
+def test_the_parameter_view_is_the_ardupilot_view_by_name() -> None:
+    mag = AffineCalibration.from_arrays(
+        [0.12, -0.08, 0.21], euler_to_dcm(0.02, -0.01, 0.03) @ np.diag([1.1, 0.95, 1.0])
+    )
+    cal = Calibration(mag=mag)
+    view, params = cal.ardupilot_view(), cal.ardupilot_parameters()
+    assert [params[f"COMPASS_OFS_{a}"] for a in "XYZ"] == list(view.ofs_mG)
+    assert [params[f"COMPASS_DIA_{a}"] for a in "XYZ"] == list(view.diag)
+    assert params["COMPASS_SCALE"] == view.scale and params["COMPASS_ORIENT"] == 0.0
+    assert np.allclose([params[f"BRG_ALIGN_{a}"] for a in "XYZ"], view.rotation_rotvec)
+    assert view.rotation_deg == pytest.approx(np.degrees(np.linalg.norm(view.rotation_rotvec)))
+    back = Calibration.from_ardupilot_parameters(params)
+    assert np.allclose(back.mag.matrix_array, mag.matrix_array, atol=1e-12)
+    assert back.accel == AffineCalibration()  # the identity unless one is given
+
+
+def test_the_device_view_keeps_the_devices_level_reference() -> None:
+    cal = Calibration(mag=AffineCalibration.from_arrays([0.1, 0.0, -0.1], np.diag([1.0, 1.1, 0.9])))
+    mine = ParamsFrame(2400.0, 2400.0, 2400.0, 1.0, 1.0, 1.0, 2401.5, 2502.5, 2903.5)
+    page = cal.device_page(mine)
+    assert (page.xoff, page.yoff, page.zoff) == (2714.0, 2458.0, 2202.0)  # 2458 + 2560 * offset
+    assert (page.gxoff, page.gyoff, page.gzoff) == (2401.5, 2502.5, 2903.5)
+    factory = ParamsFrame.factory()
+    assert cal.device_page().values()[6:] == (factory.gxoff, factory.gyoff, factory.gzoff)
+    # a flash page seen the ArduPilot way: offsets as COMPASS_OFS (mG), gains as the diagonal
+    seen = ArduPilotView.of_device(page)
+    assert seen.ofs_mG == pytest.approx((-100.0, 0.0, 100.0))
+    assert seen.diag == (page.kx, page.ky, page.kz) and seen.rotation_deg == 0.0

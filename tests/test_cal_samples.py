@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.samples import (
+from bridge.calibration.fits.samples import (
     SampleAcceptor,
     acceptance_angle,
     acceptance_distance,

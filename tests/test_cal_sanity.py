@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from bridge.calibration.model import AffineCalibration
-from bridge.calibration.sanity import (
+from bridge.calibration.fits.sanity import (
     MagCalStatus,
     SanityLimits,
     check_accel_calibration,
     check_mag_calibration,
 )
+from bridge.calibration.model import AffineCalibration
 from bridge.core.geometry import axis_angle_to_dcm
 
 GOOD_OFFSET = (0.05, -0.12, 0.08)  # gauss: 50, -120, 80 mG of hard iron

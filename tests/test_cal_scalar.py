@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.scalar import (
+from bridge.calibration.fits.scalar import (
     ScalarParameters,
     field_spread_nT,
     fit_scalar,

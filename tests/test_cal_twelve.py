@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.twelve_position import (
+from bridge.calibration.fits.twelve_position import (
     TWELVE_POSITIONS,
     fit_twelve_position,
     twelve_position_attitudes,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from bridge.app.calibration.store import LEARNED_SOURCE, CalibrationStore
 from bridge.calibration.model import AffineCalibration, Calibration
-from bridge.calibrator.store import LEARNED_SOURCE, CalibrationStore
 from bridge.storage import StateStore
 
 

@@ -31,12 +31,12 @@ import pytest
 from helpers import load_calibration
 from test_mavlink_rig import FastClock  # the shared simulated-compass harness
 
+from bridge.app.calibration import CalibrationController
+from bridge.calibration.fits.sanity import MagCalStatus
 from bridge.calibration.model import Calibration
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import (
+from bridge.calibration.sessions import (
     INSTRUCTION_LEVEL_TURN,
     INSTRUCTION_SIDE_TURN,
-    CalibrationController,
     CalibratorSettings,
     CalibratorSnapshot,
     Failure,
@@ -594,7 +594,7 @@ def test_onboard_magcal_guided_and_ended_by_the_controller(
 def test_onboard_magcal_at_hand_pace_is_ended_by_the_bridge(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    # Issue 13: the datasheet's two-step motion done by hand -- a level turn in about 15 s,
+    # The datasheet's two-step motion done by hand -- a level turn in about 15 s,
     # tipped 90 deg to the right in 3 s, a turn on the side in about 15 s, wobbling and
     # shaking as a hand does. The bridge ends MAGCAL itself: nobody accepts.
     lead = 10.0

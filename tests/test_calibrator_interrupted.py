@@ -25,9 +25,9 @@ from test_calibrator import (
     rigs,  # noqa: F401 - the fixture
 )
 
+from bridge.app.calibration.keeper import RETRY_S
 from bridge.calibration.model import AffineCalibration, Calibration
-from bridge.calibrator import Phase, Result
-from bridge.calibrator.keeper import RETRY_S
+from bridge.calibration.sessions import Phase, Result
 from bridge.daemon import Daemon
 from bridge.link.serial_link import LinkState
 from bridge.sim.firmware import make_firmware

@@ -13,37 +13,34 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.accel_faces import Face
-from bridge.calibration.acceptance import Acceptance
-from bridge.calibration.coverage import section
-from bridge.calibration.methods import BEST, CalibrationData, calibrate
+from bridge.app.calibration.controller import (
+    CalibrationController,
+    CalibratorSettings,
+    Outcome,
+    Result,
+)
+from bridge.calibration.fits.accel_faces import Face
+from bridge.calibration.fits.acceptance import Acceptance
+from bridge.calibration.fits.coverage import section
+from bridge.calibration.fits.fixed_yaw import fixed_yaw_calibration
+from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.sanity import orientation_confidence
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
     CalibrationReport,
     CalibrationResult,
 )
-from bridge.calibrator.collect import (
+from bridge.calibration.sessions.collect import (
     FaceCollector,
     MagCollector,
     StillCollector,
     counts_to_nominal,
     sphere_step,
 )
-from bridge.calibrator.controller import (
-    CalibrationController,
-    CalibratorSettings,
-    Outcome,
-    Result,
-)
-from bridge.calibrator.onboard import OnboardMagTracker
-from bridge.calibrator.report import Failure, SessionReport, fit_report
-from bridge.calibrator.results import (
-    device_params_for,
-    fixed_yaw_calibration,
-    orientation_confidence,
-)
-from bridge.calibrator.state import Mode
+from bridge.calibration.sessions.onboard import OnboardMagTracker
+from bridge.calibration.sessions.report import Failure, SessionReport, fit_report
+from bridge.calibration.sessions.state import Mode
 from bridge.core.attitude import AttitudeEngine
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, random_rotations
 from bridge.core.mounting import Rotation, rotation_matrix
@@ -357,7 +354,7 @@ def _routine(
 
 
 def test_onboard_tracker_sees_the_routine_through_at_hand_pace() -> None:
-    # Issue 13: the datasheet's motion as a person does it -- a level turn in about 15 s,
+    # The datasheet's motion as a person does it -- a level turn in about 15 s,
     # tipped 90 deg to the right in 3 s, a turn on the side in about 15 s.
     hand = HandOnboardCalRotation(turn_s=15.0, tip_s=3.0, yaw0=0.3, seed=7)
     tr, said, answer = _routine(7, hand)
@@ -396,19 +393,20 @@ def test_device_params_from_a_host_calibration() -> None:
     R = axis_angle_to_dcm((0.3, -0.2, 0.9), math.radians(2.0))  # a little alignment
     S = np.diag([1.10, 0.99, 1.21])
     cal = AffineCalibration.from_arrays((0.1, -0.05, 0.02), R @ S)
-    p = device_params_for(cal)
-    assert (p.xoff, p.yoff, p.zoff) == (2714.0, 2330.0, 2509.2)  # 2458 + 2560 * offset
+    page = Calibration(mag=cal).device_page(ParamsFrame(1, 2, 3, 1, 1, 1, 2400.0, 2500.0, 2900.0))
+    assert (page.xoff, page.yoff, page.zoff) == (2714.0, 2330.0, 2509.2)  # 2458 + 2560 * offset
     assert (
-        p.kx == 1.0
-        and p.ky == pytest.approx(0.9, abs=1e-4)
-        and p.kz == pytest.approx(1.1, abs=1e-4)
+        page.kx == 1.0
+        and page.ky == pytest.approx(0.9, abs=1e-4)
+        and page.kz == pytest.approx(1.1, abs=1e-4)
     )
-    page = p.with_level_reference(ParamsFrame(1, 2, 3, 1, 1, 1, 2400.0, 2500.0, 2900.0))
     assert page.values() == (2714.0, 2330.0, 2509.2, 1.0, 0.9, 1.1, 2400.0, 2500.0, 2900.0)
     with pytest.raises(ValueError, match="outside the device"):
-        device_params_for(AffineCalibration.from_arrays((1.0, 0.0, 0.0), np.eye(3)))  # 5018 counts
+        Calibration(mag=AffineCalibration.from_arrays((1.0, 0.0, 0.0), np.eye(3))).device_page()
     with pytest.raises(ValueError, match="Kz"):
-        device_params_for(AffineCalibration.from_arrays((0, 0, 0), np.diag([1.0, 1.0, 20.0])))
+        Calibration(
+            mag=AffineCalibration.from_arrays((0, 0, 0), np.diag([1.0, 1.0, 20.0]))
+        ).device_page()
 
 
 # -- fixed yaw ---------------------------------------------------------------------------
@@ -529,6 +527,19 @@ def test_a_fit_report_holds_ardupilots_figures_and_reads_back_from_json() -> Non
     assert bad.failure is Failure.RADIUS and bad.reason.startswith("field radius 990")
     again = SessionReport.from_dict(bad.to_dict())
     assert again.failure is Failure.RADIUS and again.reason == bad.reason
+
+
+def test_a_reports_rotation_reads_back_as_its_angle() -> None:
+    """The JSON form keeps the fit's rotation as an angle (what front ends show); read
+    back, the report's ArduPilot figures turn by the same angle."""
+    R = axis_angle_to_dcm((0.3, -0.2, 0.9), math.radians(2.5))
+    mag = AffineCalibration.from_arrays((0.1, -0.05, 0.02), R @ np.diag([1.1, 0.9, 1.0]))
+    rep = fit_report(Mode.MAG, mag, CalibrationReport("ellipsoid_aligned", fitness_mG=1.5))
+    d = rep.to_dict()
+    assert rep.mag is not None and d["rotation_deg"] == pytest.approx(2.5, abs=1e-9)
+    back = SessionReport.from_dict(json.loads(json.dumps(d)))
+    assert back.mag is not None and back.mag.rotation_deg == pytest.approx(2.5, abs=1e-9)
+    assert (back.mag.ofs_mG, back.mag.diag) == (rep.mag.ofs_mG, rep.mag.diag)
 
 
 def test_outcome_and_settings_validation() -> None:

@@ -208,7 +208,6 @@ def test_version() -> None:
         (["run"], "run needs --config FILE"),
         (["run", "--simulate", "--log-level", "LOUD"], "invalid choice"),
         (["simulate"], "--link"),
-        (["bench"], "required: BENCH"),
     ],
 )
 def test_usage_errors_exit_2(
@@ -246,7 +245,7 @@ def test_sim_motions_match_the_simulator() -> None:
     assert set(SIM_MOTIONS) == set(MOTIONS)
 
 
-# --- simulate / record / bench wiring -------------------------------------------------------
+# --- simulate / record wiring -------------------------------------------------------
 
 
 def test_simulate_serves_a_pty_and_record_taps_it(tmp_path: Path) -> None:
@@ -274,11 +273,10 @@ def test_simulate_serves_a_pty_and_record_taps_it(tmp_path: Path) -> None:
     assert data.count(b"$PGMRA,") >= 5  # 10 Hz for a second, minus the edges
 
 
-def test_bench_accuracy_is_wired(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["bench", "accuracy", "--help"]) == 0
-    assert "usage: compass-bridge bench accuracy" in capsys.readouterr().out
-    assert main(["bench", "accuracy", "--units", "0"]) == 2  # its own validation, its own code
-    assert main(["run", "--simulate", "--units", "2"]) == 2  # passthrough is for bench only
+def test_a_subcommand_refuses_options_it_does_not_have(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["run", "--simulate", "--units", "2"]) == 2  # a benchmark's option, not run's
     assert "unrecognized arguments: --units 2" in capsys.readouterr().err
 
 
@@ -322,7 +320,7 @@ def test_simulate_unplugs_on_sigusr1_and_sends_noise_on_sigusr2(tmp_path: Path) 
     assert code == 0, err
 
 
-def test_simulate_takes_a_hard_iron_change_and_bench_drift_is_there() -> None:
+def test_simulate_takes_a_hard_iron_change() -> None:
     from bridge.cli import build_parser
 
     p = build_parser()
@@ -332,7 +330,6 @@ def test_simulate_takes_a_hard_iron_change_and_bench_drift_is_there() -> None:
     for bad in ("10,20@5", "a,b,c@1", "1,2,3@-1"):
         with pytest.raises(SystemExit):
             p.parse_args(["simulate", "--link", "/tmp/x", "--hard-iron-change", bad])
-    assert p.parse_args(["bench", "drift"]).bench == "drift"
 
 
 def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Hostile and clumsy configurations (issue 15): a clear error naming the file or key, at once.
+"""Hostile and clumsy configurations: a clear error naming the file or key, at once.
 
 Never a hang (devices, FIFOs), never unbounded memory, never a traceback, never a
 value accepted that can only fail later in a worker thread.
@@ -61,7 +61,8 @@ def specials(tmp_path: Path) -> dict[str, str]:
 def test_signing_key_file_that_is_no_small_regular_file(
     tmp_path: Path, specials: dict[str, str], which: str, why: str
 ) -> None:
-    """Issue 15 #1: `config` and `run` never returned, RSS grew ~170 MB/s."""
+    """A device, a FIFO, a directory or a huge file: `config` and `run` once never returned
+    (RSS grew ~170 MB/s)."""
     err = refused(tmp_path, f'[mavlink]\nsigning_key_file = "{specials[which]}"\n')
     assert err.key == "mavlink.signing_key_file"
     assert specials[which] in err.reason and why in err.reason
@@ -102,7 +103,7 @@ def test_signing_key_with_non_ascii_bytes(tmp_path: Path) -> None:
     ids=["utf8", "utf16", "arrays", "tables"],
 )
 def test_file_level_errors_name_the_file(tmp_path: Path, data: bytes, why: str) -> None:
-    """Issue 15 #6: these exited 1 with a bare codec / recursion message."""
+    """These once exited 1 with a bare codec / recursion message."""
     path = tmp_path / "c.toml"
     path.write_bytes(data)
     with pytest.raises(ConfigError) as info:
@@ -139,7 +140,7 @@ def test_nul_in_the_config_path(tmp_path: Path) -> None:
     ],
 )
 def test_nul_byte_in_any_string_is_refused(tmp_path: Path, line: str, key: str) -> None:
-    """Issue 15 #2 and #7: a NUL in storage.dir killed the MAVLink dispatch thread later."""
+    """A NUL in storage.dir once killed the MAVLink dispatch thread later."""
     err = refused(tmp_path, line)
     assert err.key == key and "NUL" in err.reason
 
@@ -165,7 +166,7 @@ def test_nul_byte_through_an_override(tmp_path: Path) -> None:
     ],
 )
 def test_mavlink_endpoints_that_can_never_work(tmp_path: Path, endpoint: str, why: str) -> None:
-    """Issue 15 #7: 999.1.1.1 went to DNS at run time and retried forever."""
+    """999.1.1.1 once went to DNS at run time and retried forever."""
     err = refused(tmp_path, "", f'mavlink.endpoints=["{endpoint}"]'.replace("\n", "\\n"))
     assert err.key == "mavlink.endpoints[0]" and why in err.reason, err
 

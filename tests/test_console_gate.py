@@ -9,9 +9,9 @@ from pathlib import Path
 
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.console import ConsoleOutput, TerminalGate, format_line
+from bridge.device import LinkCounters, LinkState
 from bridge.events import Event
 from bridge.mavlink.commands import CalibrationRelay
-from bridge.ports import LinkCounters, LinkState
 from bridge.storage import StateStore
 from bridge.tools.calhelp import PlainProgress, is_progress_text, no_bridge_hint
 
@@ -175,8 +175,8 @@ def test_piped_progress_lines_and_the_hint() -> None:
 
 def test_a_calibration_that_does_not_move_on_is_still_said_every_15_s() -> None:
     """A unit turned level only never reaches 20 %: MAVProxy must not stay silent."""
-    from bridge.calibrator.snapshot import CalibratorSnapshot
-    from bridge.calibrator.state import Phase
+    from bridge.calibration.sessions.snapshot import CalibratorSnapshot
+    from bridge.calibration.sessions.state import Phase
     from bridge.mavlink.commands import PROGRESS_TEXT_REMIND_S
 
     t = [100.0]

@@ -1,4 +1,4 @@
-"""The drift estimator and judge (bridge.calibration.drift): samples in, verdicts out.
+"""The drift estimator and judge (bridge.calibration.drift.estimator): samples in, verdicts out.
 
 The samples are a simulated unit driving (turns, +-15 deg roll and pitch, a
 vehicle's accelerations), calibrated with its true calibration, in memory: no
@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.calibration.drift import (
+from bridge.calibration.drift.estimator import (
     ZERO,
     DriftEstimate,
     DriftEstimator,
@@ -22,7 +22,7 @@ from bridge.calibration.drift import (
     heading_error_deg,
     with_offset_change,
 )
-from bridge.calibration.drift_judge import DriftJudge
+from bridge.calibration.drift.judge import DriftJudge
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field

@@ -12,22 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
-from bridge.app.drift import LEARNED
-from bridge.bench.drift import Unit
-from bridge.calibrator.store import CalibrationStore
+from benchmarks.drift import Unit
+from bridge.app.calibration.drift import LEARNED
+from bridge.app.calibration.store import CalibrationStore
 from bridge.config import config_from_mapping
 from bridge.core.wmm import earth_field
 from bridge.daemon import Daemon
+from bridge.device import Received
 from bridge.events import Event
-from bridge.fleet import schema
-from bridge.fleet.monitor import FleetView
-from bridge.fleet.services import calibration_state, run_calibration_command
 from bridge.link.transport import SimTransport
-from bridge.ports import Received
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.firmware import make_firmware
 from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.storage import StateStore
+from bridge.zenoh import schema
+from bridge.zenoh.monitor import FleetView
+from bridge.zenoh.services import calibration_state, run_calibration_command
 
 FIELD = earth_field(*DEFAULT_LOCATION)
 SEED = 5

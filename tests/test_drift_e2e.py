@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 from test_mavlink_rig import DEADLINE_S, FastClock, M, connect_gcs, free_port, make_config
 
-from bridge.calibrator.store import CalibrationStore
+from bridge.app.calibration.store import CalibrationStore
 from bridge.daemon import Daemon
+from bridge.device import LinkState
 from bridge.link.transport import SimTransport
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
-from bridge.ports import LinkState
 from bridge.sim.drive import Drive
 from bridge.sim.firmware import make_firmware
 from bridge.sim.physics import DEFAULT_LOCATION, UnitErrors

@@ -1,4 +1,4 @@
-"""The drift monitor (bridge.app.drift) fed simulated drives, and its place in the bridge.
+"""The drift monitor (bridge.app.calibration.drift) fed simulated drives, and its place in the bridge.
 
 The frames go through the real attitude engine to :meth:`DriftMonitor.observe`,
 as the pipeline does, with drive time as the samples' time: minutes of driving
@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bridge.app.drift import LEARNED, DriftMonitor, DriftStatus
+from benchmarks.drift import Unit
+from bridge.app.calibration.drift import LEARNED, DriftMonitor, DriftStatus
 from bridge.app.settings import EngineSettings
-from bridge.bench.drift import Unit
-from bridge.calibration.drift import DriftSettings
+from bridge.calibration.drift.estimator import DriftSettings
 from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine
 from bridge.core.wmm import earth_field

@@ -1,6 +1,6 @@
-"""Hostile and careless MAVLink input (issue 15): truthful acknowledgements, intervals that do
+"""Hostile and careless MAVLink input: truthful acknowledgements, intervals that do
 not fit MESSAGE_INTERVAL, the parameter list as an amplifier, and a property test of the
-handlers on random messages (the fast suite's share of the fuzzing; `compass-bridge bench
+handlers on random messages (the fast suite's share of the fuzzing; `python -m benchmarks
 fuzz` drives a running daemon with 10^5 of them)."""
 
 from __future__ import annotations

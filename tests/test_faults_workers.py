@@ -1,4 +1,4 @@
-"""No thread of the daemon dies silently (issue 15): a worker that ends with an exception is
+"""No thread of the daemon dies silently: a worker that ends with an exception is
 logged once and counted, and the watchdog stops pinging so the service manager restarts the
 bridge. The service runs in-process on the simulated compass; the service manager is a real
 unix datagram socket (tests/service_harness.py)."""

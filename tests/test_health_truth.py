@@ -29,10 +29,10 @@ from service_harness import (
     wait_for,
 )
 
-from bridge.fleet.monitor import MonitorOptions, run_monitor
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 from bridge.tools.status import run_status
+from bridge.zenoh.monitor import MonitorOptions, run_monitor
 
 pytestmark = pytest.mark.integration
 

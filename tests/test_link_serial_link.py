@@ -346,8 +346,8 @@ def test_seq_gaps_count_lost_frames_across_wrap(peer: Peer) -> None:
 
 
 def test_one_lost_frame_at_the_wrap_is_a_loss_not_a_reset(peer: Peer) -> None:
-    """Issue 15 #8: 65500..65534, 65535 lost, 0..39 read as a device reset and the
-    connect handshake ran again."""
+    """65500..65534, 65535 lost, 0..39 is a wrap with one frame lost (it was once read as a
+    device reset, and the connect handshake ran again)."""
     col = Collector()
     peer.lose = {65535}
     peer.set_seq(65500)

@@ -10,7 +10,7 @@ from typing import Any
 
 from test_mavlink_rig import M
 
-from bridge.bench.mavlink import STREAMS, TARGET_FPS, frame_lines, main, run
+from benchmarks.mavlink import STREAMS, TARGET_FPS, frame_lines, main, run
 
 
 def test_frames_are_real_pgmra_lines() -> None:

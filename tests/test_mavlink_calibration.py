@@ -359,7 +359,7 @@ def test_onboard_route_ends_with_the_compass_flash_updated(
     assert rig.daemon.engine.calibration == host_before
     assert not rig.fw.calibrating
     # In the compass's flash already, nothing to accept: the report is not repeated forever
-    # (it was, at 1 Hz: issue 26), a few times only, in case one datagram was lost.
+    # (it once was, at 1 Hz), a few times only, in case one datagram was lost.
     reports = [m for m in g.collect(5.0) if m.get_type() == "MAG_CAL_REPORT"]
     assert len(reports) <= ONBOARD_REPORTS - 1
     g.nothing("MAG_CAL_REPORT", None, 2.5)

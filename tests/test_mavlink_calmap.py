@@ -8,9 +8,10 @@ from typing import Any
 import pytest
 from test_mavlink_telemetry import decode, wire_text
 
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
-from bridge.calibrator.report import DeviceOutcome, FitQuality, MagParams
+from bridge.calibration.fits.sanity import MagCalStatus
+from bridge.calibration.model import ArduPilotView
+from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
+from bridge.calibration.sessions.report import DeviceOutcome, FitQuality
 from bridge.events import Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink.commands import ONBOARD_REPORTS, TEXT_BURST, TEXT_RATE_HZ, CalibrationRelay
@@ -48,7 +49,9 @@ def test_a_report_becomes_mag_cal_report() -> None:
         "ellipsoid_aligned",
         failure=Failure.RESIDUALS,
         reason="fitness 20.00 mG above COMPASS_CAL_FIT 16.0",
-        mag=MagParams((-100.0, 200.0, -50.0), (1.1, 0.9, 1.0), (0.01, -0.02, 0.0), 1.03, 2.0),
+        mag=ArduPilotView(
+            (-100.0, 200.0, -50.0), (1.1, 0.9, 1.0), (0.01, -0.02, 0.0), 1.03, (0.0, 0.0, 0.035)
+        ),
         fit=FitQuality(fitness_mG=20.0, orientation_confidence=7.5),
     )
     r = calmap.report_figures(rep)
@@ -64,7 +67,7 @@ def test_a_report_becomes_mag_cal_report() -> None:
         Mode.ONBOARD_MAG,
         "device MAGCAL",
         autosaved=True,
-        mag=MagParams((12.0, -3.0, 4.0), (1.0, 0.95, 1.02)),
+        mag=ArduPilotView((12.0, -3.0, 4.0), (1.0, 0.95, 1.02)),
         device=DeviceOutcome({"xoff": 2427.3}),
     )
     rd = calmap.report_figures(dev)
@@ -74,7 +77,9 @@ def test_a_report_becomes_mag_cal_report() -> None:
 def test_only_magnetometer_sessions_send_mag_cal_report() -> None:
     level = SessionReport(Mode.LEVEL, "level_trim", autosaved=True)
     assert calmap.event_report({"mode": "level", "report": level.to_dict()}) is None
-    mag = SessionReport(Mode.FIXED_YAW, "fixed_yaw", autosaved=True, mag=MagParams((1.0, 2.0, 3.0)))
+    mag = SessionReport(
+        Mode.FIXED_YAW, "fixed_yaw", autosaved=True, mag=ArduPilotView((1.0, 2.0, 3.0))
+    )
     r = calmap.event_report({"mode": "fixed_yaw", "report": mag.to_dict()})
     assert r is not None and r.ofs == (1.0, 2.0, 3.0) and r.cal_status == M.MAG_CAL_SUCCESS
     assert calmap.event_report({"mode": "mag", "report": {"mode": "nonsense"}}) is None
@@ -165,7 +170,7 @@ def test_event_statustexts_of_a_command_flood_are_paced() -> None:
 
 def _onboard_done() -> Event:
     rep = SessionReport(
-        Mode.ONBOARD_MAG, "device MAGCAL", autosaved=True, mag=MagParams((1.0, 2.0, 3.0))
+        Mode.ONBOARD_MAG, "device MAGCAL", autosaved=True, mag=ArduPilotView((1.0, 2.0, 3.0))
     )
     data = {"mode": "onboard_mag", "sensor": "mag", "onboard": True, "autosaved": True,
             "report": rep.to_dict()}  # fmt: skip

@@ -1,4 +1,4 @@
-"""MAVProxy, unmodified, against the daemon on the simulated compass (issue 13).
+"""MAVProxy, unmodified, against the daemon on the simulated compass.
 
 MAVProxy runs as a subprocess with its default modules, as a user starts it
 (``mavproxy.py --master=udpout:...``), and is driven by typing at its prompt.

@@ -30,7 +30,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect module
 from pymavlink import mavutil
 
-from bridge.calibrator import CalibratorSettings
+from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config, config_from_mapping
 from bridge.daemon import Daemon
 from bridge.link.serial_link import LinkState

@@ -203,7 +203,7 @@ def test_one_forged_far_future_packet_locks_pymavlinks_checker_out_but_not_ours(
 def test_a_packet_captured_before_a_restart_is_still_a_replay_after_it(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    """Issue 15: signed PARAM_SET 15 then 16, restart, the captured 15 sent again: still 16."""
+    """A replay across a restart: signed PARAM_SET 15 then 16, restart, the captured 15 sent again: still 16."""
     rig = signed_rig(tmp_path, rigs)
     g = gcs_with_key(rig, KEY)
 

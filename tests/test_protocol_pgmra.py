@@ -10,7 +10,7 @@ the oracle and with the same stream decoded in one piece ("offline"), or a byte 
 time (then every line goes through the splitter, not the one-match route for the
 whole lines a read opens with).
 
-The property tests at the end are issue 15's fuzzing in the fast suite: random,
+The property tests at the end are the fast suite's share of the fuzzing: random,
 truncated and corrupted chunks with valid frames mixed in give no false frame,
 lose no valid one, and leave counters that do not depend on how the stream was cut.
 """
@@ -440,7 +440,7 @@ def test_device_decoder_refuses_pgmra() -> None:
     assert dev.counters.dropped["unknown_id"] == 1
 
 
-# --------------------------------------------------------------------------- fuzzing (issue 15)
+# --------------------------------------------------------------------------- fuzzing
 
 FUZZ = settings(max_examples=300, deadline=None)
 

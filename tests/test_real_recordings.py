@@ -22,7 +22,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 from helpers import load_calibration
 from realdata import (
@@ -38,16 +37,14 @@ from realdata import (
     write_recording,
 )
 
-from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
-from bridge.calibration.methods import CalibrationData, calibrate
+from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
+from bridge.calibration.fits.methods import CalibrationData, calibrate
+from bridge.calibration.fits.series import runs
 from bridge.calibration.model import Calibration, CalibrationResult
-from bridge.calibration.series import runs
 from bridge.cli import main
 from bridge.core.attitude import tilt_compensated_heading
 from bridge.tools.calibrate import RecordedVectors, read_recording
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray
 
 SOURCES = {
     "ck_tumble": ck_tumble,
@@ -343,8 +340,8 @@ def test_a_min_max_leaving_a_fifth_of_the_field_is_condemned_by_the_heading_rule
     # written for: +-32 % of |B|, ~21 deg, said SUCCESS): a min/max of the first 40 of
     # PX4's samples, a cap of the sphere, judged on all of them. Even with
     # COMPASS_CAL_FIT at QGroundControl's 100 mG, the heading rule condemns it.
-    from bridge.calibration.acceptance import accept
-    from bridge.calibration.minmax import fit_minmax
+    from bridge.calibration.fits.acceptance import accept
+    from bridge.calibration.fits.minmax import fit_minmax
 
     _, v = recorded["px4_mag_data1"]
     res = fit_minmax(v.mag_G[:40])
@@ -388,7 +385,7 @@ def test_a_quiet_sensor_is_held_to_the_operators_target(
     assert rep.noise_mG < 1.0 and rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
     assert rep.ok and rep.predicted_heading_deg < rep.heading_limit_deg
     # the same samples judged against a target they cannot reach fail, saying why
-    from bridge.calibration.acceptance import Acceptance
+    from bridge.calibration.fits.acceptance import Acceptance
 
     tight = calibrate("ellipsoid", _data(v), Acceptance(heading_max_deg=0.01))
     assert not tight.report.ok and "turn the unit through more directions" in tight.report.reason
@@ -456,8 +453,8 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
     """
     import threading
 
-    from bridge.calibrator import CalibrationController
-    from bridge.calibrator.state import CalibratorSettings
+    from bridge.app.calibration import CalibrationController
+    from bridge.calibration.sessions.state import CalibratorSettings
     from bridge.core.attitude import AttitudeEngine
     from bridge.events import EventBus
     from bridge.protocol.gmr import AttitudeFrame, Flags

@@ -118,7 +118,7 @@ def test_unstorable_payload_is_a_storage_error_too(tmp_path: Path) -> None:
 
 
 def test_nul_byte_in_the_directory_is_a_storage_error(tmp_path: Path) -> None:
-    """Issue 15 #2: ValueError("embedded null byte") escaped save() and killed its caller."""
+    """ValueError("embedded null byte") once escaped save() and killed its caller."""
     store = StateStore(str(tmp_path / "var") + "\0state")
     with pytest.raises(StorageError, match="null byte") as info:
         store.save("params", {"a": 1})

@@ -1,5 +1,6 @@
-"""The shipped systemd files: the unit passes systemd 252's own checks, says what the issue
-asks for, starts a command line the CLI accepts; the sysusers file makes the service user.
+"""The shipped systemd files: the unit passes systemd 252's own checks, has what the
+service needs, starts a command line the CLI accepts; the sysusers file makes the service
+user.
 
 Needs systemd-analyze and systemd-sysusers (Debian: ``apt-get install systemd``; CI installs
 them itself).

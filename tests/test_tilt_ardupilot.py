@@ -15,7 +15,7 @@ rate asked for, lines up its ``time_boot_ms`` with ArduPilot's own TIMESYNC answ
 roll and pitch near ArduPilot's (level) and the heading near the truth, each sample with
 TILT_SRC 1 (autopilot). A test of the real interface, not of accuracy: the compass is
 ideal and SITL's rover at rest is exactly level (the accuracy figures are
-``compass-bridge bench tilt``'s, with an autopilot's noise, latency and misalignment).
+``python -m benchmarks tilt``'s, with an autopilot's noise, latency and misalignment).
 """
 
 from __future__ import annotations

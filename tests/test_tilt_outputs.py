@@ -19,12 +19,12 @@ from bridge.core.attitude import AttitudeEngine, FieldReference
 from bridge.core.geometry import euler_to_dcm
 from bridge.core.tilt import TiltEstimate
 from bridge.core.vectors import Vec3
-from bridge.fleet import schema
-from bridge.fleet.monitor import MonitorOptions
 from bridge.link.serial_link import LinkCounters, LinkState
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.sim.physics import SensorModel, UnitErrors
 from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
+from bridge.zenoh import schema
+from bridge.zenoh.monitor import MonitorOptions
 
 FIELD_NED_G = (0.21, 0.02, 0.43)
 TIMES = schema.SampleTimes(t_monotonic=12.5, t_unix=1_700_000_000.25)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from helpers import load_calibration
 
-from bridge.calibration.acceptance import DEFAULT_HEADING_MAX_DEG
-from bridge.calibration.coverage import N_SECTIONS
+from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG
+from bridge.calibration.fits.coverage import N_SECTIONS
 from bridge.cli import main
 from bridge.link.record import RecordingWriter
 from bridge.sim.firmware import make_firmware

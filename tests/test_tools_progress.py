@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from bridge.bench.accuracy import main as accuracy_main
+from benchmarks.accuracy import main as accuracy_main
 from bridge.cli import main
 from bridge.tools.progress import REDRAW_S, Progress, eta_seconds, format_duration, render_bar
 from bridge.tools.recording import format_bytes

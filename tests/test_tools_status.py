@@ -8,8 +8,8 @@ from pathlib import Path
 
 from test_zenoh_output import Bridge, free_port, wait_until
 
-from bridge.fleet.monitor import MonitorOptions
 from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
+from bridge.zenoh.monitor import MonitorOptions
 
 
 def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path) -> None:

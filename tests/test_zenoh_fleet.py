@@ -29,8 +29,8 @@ from test_zenoh_output import (
     wait_until,
 )
 
-from bridge.fleet import schema
-from bridge.fleet.monitor import FleetView, MonitorOptions, document_keys, run_monitor
+from bridge.zenoh import schema
+from bridge.zenoh.monitor import FleetView, MonitorOptions, document_keys, run_monitor
 
 # ---------------------------------------------------------------------------
 # The fleet test

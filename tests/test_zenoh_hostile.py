@@ -33,10 +33,10 @@ from test_zenoh_output import (
     wait_until,
 )
 
-from bridge.fleet import schema
-from bridge.fleet.commands import MAX_ARGUMENT_BYTES, parse_command_args
-from bridge.fleet.monitor import MonitorOptions, run_monitor
 from bridge.tools.status import run_status
+from bridge.zenoh import schema
+from bridge.zenoh.commands import MAX_ARGUMENT_BYTES, parse_command_args
+from bridge.zenoh.monitor import MonitorOptions, run_monitor
 
 pytestmark = pytest.mark.integration
 

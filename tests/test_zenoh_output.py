@@ -20,19 +20,19 @@ from typing import Any
 import pytest
 import zenoh
 
+from bridge.app.calibration.store import CALIBRATION_DOCUMENT
 from bridge.calibration.model import AffineCalibration, Calibration
-from bridge.calibrator.store import CALIBRATION_DOCUMENT
 from bridge.config import load_config
 from bridge.daemon import Daemon, build_outputs
-from bridge.fleet import schema
-from bridge.fleet.output import ZenohOutput
-from bridge.fleet.services import fleet_services
-from bridge.fleet.session import ZenohSettings
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.dialect import mavlink
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import MOTIONS, PtyCompass
 from bridge.storage import StateStore
+from bridge.zenoh import schema
+from bridge.zenoh.output import ZenohOutput
+from bridge.zenoh.services import fleet_services
+from bridge.zenoh.session import ZenohSettings
 
 DEADLINE_S = 10.0
 #: Test sessions and bridges talk over explicit endpoints only: nothing leaves the host.

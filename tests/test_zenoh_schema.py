@@ -21,10 +21,12 @@ from bridge.config import ConfigError, load_config
 from bridge.core.attitude import AttitudeEngine, FieldReference
 from bridge.core.geometry import euler_to_dcm, quaternion_to_dcm
 from bridge.events import Event, Severity
-from bridge.fleet import schema
-from bridge.fleet.mirror import MirrorMessage, mirror_key
-from bridge.fleet.pacing import Decimator, RateMeter
-from bridge.fleet.session import (
+from bridge.link.serial_link import LinkCounters, LinkState
+from bridge.sim.physics import SensorModel, UnitErrors
+from bridge.zenoh import schema
+from bridge.zenoh.mirror import MirrorMessage, mirror_key
+from bridge.zenoh.pacing import Decimator, RateMeter
+from bridge.zenoh.session import (
     CONNECT_RETRY,
     DEFAULT_LISTEN,
     ZenohSettings,
@@ -32,8 +34,6 @@ from bridge.fleet.session import (
     config_items,
     uses_default_listener,
 )
-from bridge.link.serial_link import LinkCounters, LinkState
-from bridge.sim.physics import SensorModel, UnitErrors
 
 FIELD_NED_G = (0.21, 0.02, 0.43)
 TIMES = schema.SampleTimes(t_monotonic=12.5, t_unix=1_700_000_000.25, zenoh_time="t/zid")
@@ -308,6 +308,17 @@ def test_a_config_file_passes_through_and_keeps_what_it_sets(tmp_path: Path) -> 
     assert not uses_default_listener(ZenohSettings(config_file=str(f)), cfg)
     plain = ZenohSettings()
     assert uses_default_listener(plain, build_config(plain))
+
+
+def test_import_zenoh_inside_the_adapter_is_the_library() -> None:
+    """The adapter's package is named bridge.zenoh; imports are absolute, so ``import zenoh``
+    inside it is Eclipse Zenoh: the configuration it builds is the library's."""
+    import zenoh
+
+    import bridge.zenoh
+
+    assert zenoh is not bridge.zenoh and zenoh.__name__ == "zenoh"
+    assert isinstance(build_config(ZenohSettings()), zenoh.Config)
 
 
 def test_settings_from_config_substitute_the_host_name() -> None:

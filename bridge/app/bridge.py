@@ -4,9 +4,9 @@
 the event bus, the calibration store and controller, the parameter store and
 the per-frame pipeline, and gives every adapter the same
 :class:`~bridge.app.services.BridgeServices`. It does no I/O of its own: the
-compass link and the state directory come in as ports
-(:class:`~bridge.ports.DevicePort` -- made by a factory, since the link calls
-the pipeline back -- and :class:`~bridge.ports.DocumentStore`), and
+compass link and the state directory come in as protocols
+(:class:`~bridge.device.DevicePort` -- made by a factory, since the link calls
+the pipeline back -- and :class:`~bridge.documents.DocumentStore`), and
 :mod:`bridge.daemon` wires it to the adapters.
 """
 
@@ -18,22 +18,24 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from bridge.app.drift import LEARN_MODES, DriftMonitor
+from bridge.app.calibration.controller import CalibrationController, CalibratorSettings
+from bridge.app.calibration.drift import DriftMonitor
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
 from bridge.app.paramspec import CONFIG_PARAMS, param_from_config
 from bridge.app.pipeline import Pipeline
-from bridge.app.sample import DaemonStatus, HeadingReference, Output
+from bridge.app.sample import DaemonStatus, Output
 from bridge.app.services import BridgeServices, MessageTap
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.app.tilt import TiltSources, frame_latency_s
 from bridge.calibration.model import Calibration
-from bridge.calibrator.controller import CalibrationController, CalibratorSettings
-from bridge.calibrator.store import CalibrationStore
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
+from bridge.device import DevicePort, LinkState, Received
+from bridge.documents import DocumentStore
 from bridge.events import EventBus
-from bridge.ports import DevicePort, DocumentStore, LinkState, Received
+from bridge.types import LEARN_MODES, HeadingReference
 
 log = logging.getLogger(__name__)
 
@@ -307,7 +309,7 @@ class Bridge:
 
     def undo_learned(self) -> tuple[bool, str]:
         """Back to the calibration learning started from (Zenoh ``cmd/calibration/undo``,
-        ``BRG_CAL_UNDO``); see :meth:`~bridge.app.drift.DriftMonitor.undo`."""
+        ``BRG_CAL_UNDO``); see :meth:`~bridge.app.calibration.drift.DriftMonitor.undo`."""
         return self.drift.undo()
 
     def _on_params(self, change: ParamChange) -> None:

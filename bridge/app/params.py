@@ -40,16 +40,14 @@ from bridge.app.paramspec import (
     ParamSpec,
     ParamTable,
     SetOutcome,
-    calibration_from_values,
     limits_from_values,
     mounting_from_values,
     same_calibration,
-    view_values,
 )
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.calibration.model import Calibration
+from bridge.documents import DocumentStore, StorageError
 from bridge.events import ChangeRefusedError, Event, EventBus, Severity, Subscribers
-from bridge.ports import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)
 
@@ -316,7 +314,7 @@ class ParamStore:
         group = spec.group
         if group == "cal":
             try:
-                cal = calibration_from_values(values, settings.calibration.accel)
+                cal = Calibration.from_ardupilot_parameters(values, settings.calibration.accel)
             except ValueError as e:
                 return f"the calibration it gives is unusable ({e})"
             if self._apply_calibration is None:
@@ -388,7 +386,7 @@ class ParamStore:
                     return  # made from our own values: they stay as set
                 self._own_calibration = None
                 before = {n: self._table.get(n) for n in CAL_PARAMS}
-                for n, v in view_values(cal.mag).items():
+                for n, v in cal.ardupilot_parameters().items():
                     self._table.put(n, v)
                 changed = [n for n in CAL_PARAMS if self._table.get(n) != before[n]]
             elif change.aspect == "reference" and self._show_wmm_declination():
@@ -409,12 +407,12 @@ class ParamStore:
     def _load(self, stored_view: Mapping[str, float] | None) -> None:
         """Restore persisted values (refusing, with a warning, what no longer validates)."""
         cal = self._settings.calibration
-        for name, v in view_values(cal.mag).items():
+        for name, v in cal.ardupilot_parameters().items():
             self._table.put(name, v)
         if stored_view is not None and set(CAL_PARAMS) <= set(stored_view):
             try:
                 same = same_calibration(
-                    calibration_from_values(stored_view, cal.accel), cal, tol=1e-5
+                    Calibration.from_ardupilot_parameters(stored_view, cal.accel), cal, tol=1e-5
                 )
             except ValueError:
                 same = False

@@ -8,8 +8,8 @@ adapter's business (:mod:`bridge.mavlink.paramproto`).
 
 The calibration group (COMPASS_OFS_*, COMPASS_DIA_*, COMPASS_ODI_*,
 COMPASS_SCALE, COMPASS_ORIENT, BRG_ALIGN_*) *is* the magnetometer
-calibration, written the ArduPilot way (see
-:meth:`bridge.calibration.model.AffineCalibration.ardupilot_view`)::
+calibration, written the ArduPilot way (the calibration's parameter view,
+:meth:`bridge.calibration.model.Calibration.ardupilot_parameters`)::
 
     corrected = COMPASS_SCALE * R(COMPASS_ORIENT) @ R(BRG_ALIGN) @ S @ (raw + COMPASS_OFS / 1000)
     S = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]
@@ -36,11 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
-from bridge.config import CALIBRATION_LEARN_MODES, HEADING_REFERENCES
-from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
-from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation, rotation_matrix
+from bridge.calibration.model import Calibration
+from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation
 from bridge.core.quality import QualityLimits
+from bridge.types import HEADING_REFERENCES, LEARN_MODES
 
 # ArduPilot's storage types, numbered as MAVLink's MAV_PARAM_TYPE (which the MAVLink
 # adapter puts on the wire, encoded as the ground station's flavour expects).
@@ -326,7 +325,7 @@ SPECS: tuple[ParamSpec, ...] = (
         "routing",
         config_key="calibration.onboard",
     ),
-    # -- calibration drift (bridge.app.drift)
+    # -- calibration drift (bridge.app.calibration.drift)
     ParamSpec(
         "BRG_CAL_LEARN",
         INT8,
@@ -337,7 +336,7 @@ SPECS: tuple[ParamSpec, ...] = (
         "",
         "learn",
         config_key="calibration.learn",
-        config_choices=CALIBRATION_LEARN_MODES,
+        config_choices=LEARN_MODES,
     ),
     ParamSpec(
         "BRG_CAL_UNDO",
@@ -524,71 +523,7 @@ class ParamTable:
         self._values[name] = value
 
 
-# ---------------------------------------------------------------------------- the calibration view
-
-_ORIENT_SPLIT_DEG = 45.0  # rotations beyond this are COMPASS_ORIENT + a residual
-
-
-def split_rotation(R: np.ndarray[Any, Any]) -> tuple[Rotation, np.ndarray[Any, Any]]:
-    """(nearest ArduPilot rotation, residual rotation vector) with ``R = M(orient) @ R(residual)``.
-
-    Rotations within 45 deg of identity stay whole (orientation NONE): a real
-    alignment error is a few degrees, a wrong mounting is a multiple of 45.
-    """
-    angle = math.degrees(float(np.linalg.norm(dcm_to_rotvec(R))))
-    if angle <= _ORIENT_SPLIT_DEG:
-        return Rotation.ROTATION_NONE, dcm_to_rotvec(R)
-    best, best_angle, best_res = Rotation.ROTATION_NONE, math.inf, dcm_to_rotvec(R)
-    for rot in ROTATION_EULER_DEG:
-        Mr = rotation_matrix(rot)
-        res = dcm_to_rotvec(Mr.T @ R)
-        a = float(np.linalg.norm(res))
-        if a < best_angle - 1e-9:
-            best, best_angle, best_res = rot, a, res
-    return best, best_res
-
-
-def view_values(mag: AffineCalibration) -> dict[str, float]:
-    """The calibration group's values for a magnetometer calibration."""
-    v = mag.ardupilot_view()
-    orient, residual = split_rotation(rotvec_to_dcm(v.rotation_rotvec))
-    return {
-        "COMPASS_OFS_X": v.ofs_mG[0],
-        "COMPASS_OFS_Y": v.ofs_mG[1],
-        "COMPASS_OFS_Z": v.ofs_mG[2],
-        "COMPASS_DIA_X": v.diag[0],
-        "COMPASS_DIA_Y": v.diag[1],
-        "COMPASS_DIA_Z": v.diag[2],
-        "COMPASS_ODI_X": v.offdiag[0],
-        "COMPASS_ODI_Y": v.offdiag[1],
-        "COMPASS_ODI_Z": v.offdiag[2],
-        "COMPASS_SCALE": v.scale,
-        "COMPASS_ORIENT": float(int(orient)),
-        "BRG_ALIGN_X": float(residual[0]),
-        "BRG_ALIGN_Y": float(residual[1]),
-        "BRG_ALIGN_Z": float(residual[2]),
-    }
-
-
-def mag_from_values(values: Mapping[str, float]) -> AffineCalibration:
-    """Inverse of :func:`view_values`; ``ValueError`` if the result is singular or not finite."""
-    g = values.__getitem__
-    R = rotation_matrix(int(g("COMPASS_ORIENT"))) @ rotvec_to_dcm(
-        [g("BRG_ALIGN_X"), g("BRG_ALIGN_Y"), g("BRG_ALIGN_Z")]
-    )
-    view = ArduPilotView(
-        ofs_mG=(g("COMPASS_OFS_X"), g("COMPASS_OFS_Y"), g("COMPASS_OFS_Z")),
-        diag=(g("COMPASS_DIA_X"), g("COMPASS_DIA_Y"), g("COMPASS_DIA_Z")),
-        offdiag=(g("COMPASS_ODI_X"), g("COMPASS_ODI_Y"), g("COMPASS_ODI_Z")),
-        scale=g("COMPASS_SCALE"),
-        rotation_rotvec=tuple(float(x) for x in dcm_to_rotvec(R)),  # type: ignore[arg-type]
-    )
-    return AffineCalibration.from_ardupilot(view)
-
-
-def calibration_from_values(values: Mapping[str, float], accel: AffineCalibration) -> Calibration:
-    """The full calibration the parameters describe (the accelerometer part is kept as given)."""
-    return Calibration(mag=mag_from_values(values), accel=accel)
+# ---------------------------------------------------------------------------- the calibration
 
 
 def same_calibration(a: Calibration, b: Calibration, tol: float = 1e-6) -> bool:

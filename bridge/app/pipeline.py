@@ -32,14 +32,15 @@ import math
 import time
 from collections.abc import Callable, Sequence
 
-from bridge.app.sample import CompassSample, HeadingReference, Output
+from bridge.app.sample import CompassSample, Output
 from bridge.core.aligned import FrameClock
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.geometry import wrap_degrees_360
+from bridge.device import LinkState, Received
 from bridge.events import Event, EventBus, Severity
-from bridge.ports import LinkState, Received
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.protocol.heading import HeadingFrame
+from bridge.types import HeadingReference
 
 log = logging.getLogger(__name__)
 

@@ -16,11 +16,10 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from bridge.core.attitude import AttitudeSolution
-from bridge.ports import LinkCounters, LinkState
+from bridge.device import LinkCounters, LinkState
+from bridge.types import HeadingReference
 
 log = logging.getLogger(__name__)
-
-HeadingReference = Literal["magnetic", "true"]
 
 
 # ---------------------------------------------------------------------------

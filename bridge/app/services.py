@@ -19,16 +19,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from bridge.app.drift import DriftMonitor
+from bridge.app.calibration.controller import CalibrationController
+from bridge.app.calibration.drift import DriftMonitor
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import ParamStore
 from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
 from bridge.app.tilt import TiltSources
 from bridge.calibration.model import corrects_iron
-from bridge.calibrator.controller import CalibrationController
-from bridge.calibrator.store import CalibrationStore
+from bridge.device import DevicePort
+from bridge.documents import DocumentStore
 from bridge.events import EventBus, Subscribers
-from bridge.ports import DevicePort, DocumentStore
 
 log = logging.getLogger(__name__)
 

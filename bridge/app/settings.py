@@ -29,11 +29,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 from bridge.calibration.model import Calibration
-from bridge.core.attitude import AttitudeEngine, FieldReference, HeadingReference
+from bridge.core.attitude import AttitudeEngine, FieldReference
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import ChangeRefusedError, Subscribers
+from bridge.types import HeadingReference
 
 log = logging.getLogger(__name__)
 

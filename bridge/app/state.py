@@ -1,8 +1,8 @@
 """What the state directory holds, in words an operator reads (console, ``config``, logs).
 
 The bridge keeps two documents there (``calibration.json``, ``params.json``;
-see :mod:`bridge.calibrator.store` and :mod:`bridge.app.params`); these read
-them through the :class:`~bridge.ports.DocumentStore` port without changing
+see :mod:`bridge.app.calibration.store` and :mod:`bridge.app.params`); these read
+them through the :class:`~bridge.documents.DocumentStore` port without changing
 anything, for the lines that say what a run will start from.
 """
 
@@ -12,9 +12,9 @@ import os
 import time
 from typing import Any
 
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMS_DOCUMENT
-from bridge.calibrator.store import CalibrationStore
-from bridge.ports import DocumentStore
+from bridge.documents import DocumentStore
 
 
 def home_relative(path: object) -> str:

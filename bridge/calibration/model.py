@@ -1,4 +1,4 @@
-"""The calibration parameters the whole package shares.
+"""The calibration: one type, :class:`Calibration`, with its ArduPilot and device views.
 
 Every method, whatever its error model, ends as an *affine* correction per
 sensor, applied after the nominal transfer (counts -> gauss or g)::
@@ -14,22 +14,37 @@ express (COMPASS_DIA_*, COMPASS_ODI_*); the polar decomposition
 
 ArduPilot's COMPASS_OFS_* are *added* to the raw field and are in milligauss,
 so ``COMPASS_OFS = -1000 * offset``; see :meth:`AffineCalibration.ardupilot_view`.
+
+:class:`Calibration` is the type the package passes around (the engine applies
+it, the store saves it, a fit returns it); :class:`AffineCalibration` is one
+sensor's half of it (``.mag``, ``.accel``), what a fit of one sensor makes.
+Its two other forms are views of it, not copies:
+
+* the ArduPilot view -- :meth:`Calibration.ardupilot_view` (an :class:`ArduPilotView`:
+  COMPASS_OFS / DIA / ODI / SCALE and the rotation) and
+  :meth:`Calibration.ardupilot_parameters` (the parameter group by name: those,
+  COMPASS_ORIENT and BRG_ALIGN_*), back with :meth:`Calibration.from_ardupilot_parameters`;
+* the device view -- :meth:`Calibration.device_page`: what the compass flash can hold
+  of it (offsets in counts and per-axis gains, ``$PGMRP`` / ``PAR,SET``), and
+  :meth:`ArduPilotView.of_device`: a flash page's magnetometer half in ArduPilot's terms.
+  The wire frame itself is the codec's :class:`~bridge.protocol.gmr.ParamsFrame`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from bridge.core import sensor
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
-
-FloatArray = npt.NDArray[np.float64]
-Vec3 = tuple[float, float, float]
-Mat3 = tuple[Vec3, Vec3, Vec3]
+from bridge.core.mounting import ROTATION_EULER_DEG, Rotation, rotation_matrix
+from bridge.protocol.gmr import OFFSET_RANGE, PAR_SET_GAIN_RANGE, ParamsFrame
+from bridge.types import FloatArray, Mat3, Vec3
 
 IDENTITY: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
@@ -46,19 +61,34 @@ def _mat3(m: npt.ArrayLike) -> Mat3:
 
 @dataclass(frozen=True, slots=True)
 class ArduPilotView:
-    """A calibration expressed in ArduPilot's terms (what MAG_CAL_REPORT / COMPASS_* carry).
+    """A magnetometer calibration in ArduPilot's terms (what MAG_CAL_REPORT / COMPASS_* carry).
 
     ``ofs_mG`` is COMPASS_OFS_X/Y/Z (added to raw, milligauss); ``diag`` is
     COMPASS_DIA_X/Y/Z and ``offdiag`` is COMPASS_ODI_X/Y/Z = (xy, xz, yz) of the
     symmetric part divided by ``scale`` (COMPASS_SCALE); ``rotation_rotvec`` is
     what the symmetric form cannot hold (the bridge's own alignment parameter).
+    The defaults are ArduPilot's: no soft iron, no scale, no rotation.
     """
 
     ofs_mG: Vec3
-    diag: Vec3
-    offdiag: Vec3
-    scale: float
-    rotation_rotvec: Vec3
+    diag: Vec3 = (1.0, 1.0, 1.0)
+    offdiag: Vec3 = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+    rotation_rotvec: Vec3 = (0.0, 0.0, 0.0)
+
+    @property
+    def rotation_deg(self) -> float:
+        """The rotation's angle (degrees): how far the magnetometer is turned against the
+        accelerometer."""
+        return math.degrees(float(np.linalg.norm(self.rotation_rotvec)))
+
+    @classmethod
+    def of_device(cls, page: ParamsFrame) -> ArduPilotView:
+        """A device flash page's magnetometer half (offsets in counts, gains) in these terms:
+        its offsets as COMPASS_OFS, its gains as the diagonal."""
+        z, per_g = sensor.ZERO_COUNTS, sensor.MAG_COUNTS_PER_GAUSS
+        ofs = [-1000.0 * (o - z) / per_g for o in (page.xoff, page.yoff, page.zoff)]
+        return cls(_vec3(ofs), (page.kx, page.ky, page.kz))
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,6 +218,116 @@ class Calibration:
         """Inverse of :meth:`to_dict`."""
         return cls(AffineCalibration.from_dict(d["mag"]), AffineCalibration.from_dict(d["accel"]))
 
+    # -- the ArduPilot view ----------------------------------------------------------------
+
+    def ardupilot_view(self) -> ArduPilotView:
+        """The magnetometer calibration as ArduPilot's COMPASS_* figures (and the rotation)."""
+        return self.mag.ardupilot_view()
+
+    def ardupilot_parameters(self) -> dict[str, float]:
+        """The calibration group's parameter values: COMPASS_OFS_*, COMPASS_DIA_*,
+        COMPASS_ODI_*, COMPASS_SCALE, COMPASS_ORIENT and BRG_ALIGN_* (the rotation the
+        symmetric form cannot hold; beyond 45 deg split as :func:`split_rotation` says)."""
+        v = self.ardupilot_view()
+        orient, residual = split_rotation(rotvec_to_dcm(v.rotation_rotvec))
+        return {
+            "COMPASS_OFS_X": v.ofs_mG[0],
+            "COMPASS_OFS_Y": v.ofs_mG[1],
+            "COMPASS_OFS_Z": v.ofs_mG[2],
+            "COMPASS_DIA_X": v.diag[0],
+            "COMPASS_DIA_Y": v.diag[1],
+            "COMPASS_DIA_Z": v.diag[2],
+            "COMPASS_ODI_X": v.offdiag[0],
+            "COMPASS_ODI_Y": v.offdiag[1],
+            "COMPASS_ODI_Z": v.offdiag[2],
+            "COMPASS_SCALE": v.scale,
+            "COMPASS_ORIENT": float(int(orient)),
+            "BRG_ALIGN_X": float(residual[0]),
+            "BRG_ALIGN_Y": float(residual[1]),
+            "BRG_ALIGN_Z": float(residual[2]),
+        }
+
+    @classmethod
+    def from_ardupilot_parameters(
+        cls, values: Mapping[str, float], accel: AffineCalibration | None = None
+    ) -> Calibration:
+        """Inverse of :meth:`ardupilot_parameters`: the calibration the parameters describe,
+        with ``accel`` as the accelerometer half (the identity if None). ``ValueError`` if
+        the magnetometer half is singular or not finite."""
+        g = values.__getitem__
+        R = rotation_matrix(int(g("COMPASS_ORIENT"))) @ rotvec_to_dcm(
+            [g("BRG_ALIGN_X"), g("BRG_ALIGN_Y"), g("BRG_ALIGN_Z")]
+        )
+        view = ArduPilotView(
+            ofs_mG=(g("COMPASS_OFS_X"), g("COMPASS_OFS_Y"), g("COMPASS_OFS_Z")),
+            diag=(g("COMPASS_DIA_X"), g("COMPASS_DIA_Y"), g("COMPASS_DIA_Z")),
+            offdiag=(g("COMPASS_ODI_X"), g("COMPASS_ODI_Y"), g("COMPASS_ODI_Z")),
+            scale=g("COMPASS_SCALE"),
+            rotation_rotvec=_vec3(dcm_to_rotvec(R)),
+        )
+        mag = AffineCalibration.from_ardupilot(view)
+        return cls(mag=mag, accel=AffineCalibration() if accel is None else accel)
+
+    # -- the device view -------------------------------------------------------------------
+
+    def device_page(self, current: ParamsFrame | None = None) -> ParamsFrame:
+        """The flash page that holds what the device can of this calibration: its model
+        ``H = K * (m - off)`` takes offsets and per-axis gains; the level reference
+        (Gxoff .. Gzoff) is the device's own, ``current``'s (the datasheet's factory
+        values when None: a page to check or show, not to write).
+
+        Offsets: ``2458 + 2560 * offset`` counts (the nominal transfer inverted).
+        Gains: the diagonal of the symmetric soft-iron part relative to x (the
+        device's heading is scale-free, and MAGCAL,END itself sets Kx = 1); the
+        rotation and the off-diagonal terms have no place in the device's model.
+        Values are rounded to the flash's grid (0.1 count, 0.0001). Raises
+        ``ValueError`` when an offset leaves 0-4095 counts or a gain leaves the
+        0.1-10 that PAR,SET accepts.
+        """
+        mag = self.mag
+        d = mag.ardupilot_view().diag
+        if not all(math.isfinite(v) and v > 0.0 for v in d):
+            raise ValueError(f"calibration diagonal {d} cannot be expressed as device gains")
+        offs = [round(sensor.ZERO_COUNTS + sensor.MAG_COUNTS_PER_GAUSS * o, 1) for o in mag.offset]
+        gains = [round(v / d[0], 4) for v in d]
+        lo, hi = OFFSET_RANGE
+        for axis, o in zip("XYZ", offs, strict=True):
+            if not lo <= o <= hi:
+                raise ValueError(f"{axis}off {o:.1f} counts outside the device's {lo:.0f}-{hi:.0f}")
+        glo, ghi = PAR_SET_GAIN_RANGE
+        for axis, k in zip("xyz", gains, strict=True):
+            if not glo <= k <= ghi:
+                raise ValueError(f"K{axis} {k:.4f} outside the device's {glo}-{ghi}")
+        level = ParamsFrame.factory() if current is None else current
+        return ParamsFrame(
+            offs[0], offs[1], offs[2], gains[0], gains[1], gains[2],
+            level.gxoff, level.gyoff, level.gzoff,
+        )  # fmt: skip
+
+
+_ORIENT_SPLIT_DEG = 45.0  # rotations beyond this are COMPASS_ORIENT + a residual
+
+
+def split_rotation(R: npt.ArrayLike) -> tuple[Rotation, FloatArray]:
+    """(nearest ArduPilot rotation, residual rotation vector) with ``R = M(orient) @ R(residual)``.
+
+    Rotations within 45 deg of identity stay whole (orientation NONE): a real
+    alignment error is a few degrees, a wrong mounting is a multiple of 45, as
+    ArduPilot's own calibrator reports a new orientation.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    angle = math.degrees(float(np.linalg.norm(dcm_to_rotvec(R))))
+    if angle <= _ORIENT_SPLIT_DEG:
+        return Rotation.ROTATION_NONE, dcm_to_rotvec(R)
+    best, best_angle, best_res = Rotation.ROTATION_NONE, math.inf, dcm_to_rotvec(R)
+    for rot in ROTATION_EULER_DEG:
+        Mr = rotation_matrix(rot)
+        res = dcm_to_rotvec(Mr.T @ R)
+        a = float(np.linalg.norm(res))
+        if a < best_angle - 1e-9:
+            best, best_angle, best_res = rot, a, res
+    return best, best_res
+
 
 @dataclass(frozen=True, slots=True)
 class CalibrationReport:
@@ -198,7 +338,7 @@ class CalibrationReport:
     (the seed paper's "+-700 nT -> +-100 nT"). ``status`` is a MAG_CAL_STATUS
     name ("MAG_CAL_SUCCESS", "MAG_CAL_BAD_RADIUS", ...).
 
-    Fits of a frame series (a hand-held tumble, :mod:`bridge.calibration.handheld`)
+    Fits of a frame series (a hand-held tumble, :mod:`bridge.calibration.fits.handheld`)
     also say how good the result is for the heading: ``heading_error_deg`` /
     ``tilt_error_deg`` the predicted RMS error the calibration itself leaves
     (any heading, tilt up to 60 deg), ``motion_g`` the linear acceleration seen
@@ -212,7 +352,7 @@ class CalibrationReport:
     ``n_frames`` counts every usable frame and ``field_spread_after_all_nT`` is
     the spread after over all of them. ``reason`` is the cause of a failure
     (empty on success); ``predicted_heading_deg`` / ``heading_limit_deg`` the
-    acceptance rule's verdict (:mod:`bridge.calibration.acceptance`).
+    acceptance rule's verdict (:mod:`bridge.calibration.fits.acceptance`).
     """
 
     method: str
@@ -239,7 +379,7 @@ class CalibrationReport:
     tilt_error_deg: float = math.nan
     motion_g: float = math.nan
     window_s: float = math.nan
-    # The acceptance rule's figures (bridge.calibration.acceptance): the cause of a
+    # The acceptance rule's figures (bridge.calibration.fits.acceptance): the cause of a
     # failure, the frames the figures cover, the sensor's noise, the heading error
     # predicted and its limit, the sphere sections the raw samples reach.
     reason: str = ""

@@ -40,7 +40,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -48,7 +48,6 @@ import numpy.typing as npt
 from bridge.calibration.model import Calibration
 from bridge.core import sensor
 from bridge.core.geometry import (
-    FloatArray,
     euler_to_quaternion,
     wrap_degrees_360,
     wrap_radians_pi,
@@ -57,9 +56,8 @@ from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits, QualityMonitor
 from bridge.core.tilt import TiltEstimate, TiltSource
 from bridge.core.wmm import EarthField, earth_field
+from bridge.types import FloatArray, HeadingReference, Vec3
 
-HeadingReference = Literal["magnetic", "true"]
-Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
 _DEG = 180.0 / math.pi

@@ -18,7 +18,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 GRAVITY_NED = np.array([0.0, 0.0, 1.0])  #: gravity direction in NED, in g
 

@@ -33,7 +33,8 @@ from enum import IntEnum
 
 import numpy as np
 
-from bridge.core.geometry import FloatArray, euler_to_dcm
+from bridge.core.geometry import euler_to_dcm
+from bridge.types import FloatArray
 
 
 class Rotation(IntEnum):

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from bridge.types import FloatArray
+
 ADC_BITS = 12
 ADC_MAX = 4095  #: a channel at 0 or ADC_MAX counts is saturated
 ADC_FULL_SCALE_V = 2.5
@@ -22,8 +24,6 @@ ACC_COUNTS_PER_G = 491.5
 GAUSS_TO_NT = 1e5
 GAUSS_TO_MGAUSS = 1e3
 STANDARD_GRAVITY = 9.80665  #: m/s^2 per g
-
-FloatArray = npt.NDArray[np.float64]
 
 
 def mag_counts_to_gauss(counts: npt.ArrayLike) -> FloatArray:

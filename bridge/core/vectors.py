@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-Vec3 = tuple[float, float, float]
+from bridge.types import Vec3
 
 
 def dot(a: Vec3, b: Vec3) -> float:

@@ -3,10 +3,10 @@
 :class:`Service` is what ``compass-bridge run`` runs in its main thread. Around
 the :class:`~bridge.daemon.wiring.Daemon` it adds:
 
-* **sd_notify** (:mod:`bridge.sdnotify`): ``READY=1`` once the compass streams
+* **sd_notify** (:mod:`bridge.systemd.notify`): ``READY=1`` once the compass streams
   (or after :data:`READY_TIMEOUT_S`, STATUS saying why not), ``STATUS=`` about
   once a second (link state, frame rate, heading, calibration state:
-  :class:`bridge.service.StatusText`), ``STOPPING=1`` on SIGTERM/SIGINT,
+  :class:`bridge.systemd.status.StatusText`), ``STOPPING=1`` on SIGTERM/SIGINT,
   ``RELOADING=1`` ... ``READY=1`` on SIGHUP.
 * **The watchdog**: ``WATCHDOG=1`` only while the serial reader (every return
   from a port call is a beat: :class:`bridge.link.observed.ObservedTransport`),
@@ -47,15 +47,15 @@ from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
 from bridge.console import TerminalGate
 from bridge.daemon.wiring import Daemon, build_outputs, make_transport
+from bridge.device import LinkState
 from bridge.events import ChangeRefusedError
 from bridge.link.observed import ObservedTransport
-from bridge.ports import LinkState
-from bridge.sdnotify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
-from bridge.service import StatusText
+from bridge.systemd.notify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
+from bridge.systemd.status import StatusText
+from bridge.types import Clock
 
 log = logging.getLogger(__name__)
 
-Clock = Callable[[], float]
 
 #: A watched part silent this long is taken as hung. Above the link's longest pause between
 #: two port calls (its reopen backoff, at most 2 s) with margin for a loaded board.

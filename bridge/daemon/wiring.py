@@ -8,12 +8,12 @@
 
 :class:`~bridge.app.bridge.Bridge` (the application layer) owns the state --
 engine settings, parameters, calibration store and controller, the pipeline;
-the adapters (:mod:`bridge.link`, :mod:`bridge.mavlink`, :mod:`bridge.fleet`,
-:mod:`bridge.console`, :mod:`bridge.service`) get its
+the adapters (:mod:`bridge.link`, :mod:`bridge.mavlink`, :mod:`bridge.zenoh`,
+:mod:`bridge.console`, :mod:`bridge.systemd`) get its
 :class:`~bridge.app.services.BridgeServices` and never each other.
 :class:`Daemon` builds them in that order and starts and stops them; the
 service-manager side (sd_notify, watchdog, reload) is
-:class:`bridge.service.Service`, which runs a :class:`Daemon`.
+:class:`bridge.daemon.runner.Service`, which runs a :class:`Daemon`.
 
 Threads: the link's reader thread (which runs the pipeline: one wake per
 frame) and handshake thread, the calibration worker, and the outputs' own.
@@ -28,6 +28,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from bridge.app.bridge import Bridge, BridgeOptions
+from bridge.app.calibration import CalibrationController
+from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMS_DOCUMENT, ParamChange, ParamStore
 from bridge.app.paramspec import CAL_PARAMS
 from bridge.app.sample import CompassSample, DaemonStatus, Output
@@ -35,15 +37,14 @@ from bridge.app.services import BridgeServices, magnetometer_calibrated
 from bridge.app.settings import EngineSettings
 from bridge.app.state import home_relative, state_summary, stored_parameters, value_text
 from bridge.calibration.model import Calibration
-from bridge.calibrator import CalibrationController, CalibratorSettings
-from bridge.calibrator.store import CalibrationStore
+from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config
 from bridge.console import ConsoleOutput, TerminalGate
 from bridge.core.attitude import AttitudeEngine
+from bridge.device import LinkState, Received
 from bridge.events import Event, EventBus
 from bridge.link.serial_link import CompassLink
 from bridge.link.transport import Transport, open_transport
-from bridge.ports import LinkState, Received
 from bridge.storage import StateStore
 
 log = logging.getLogger(__name__)
@@ -362,9 +363,9 @@ def build_outputs(
         outputs.append(MavlinkOutput(MavlinkSettings.from_config(cfg), services))
     if cfg.zenoh.enabled:
         # Imported here: zenoh (a native runtime) loads only when it is asked for.
-        from bridge.fleet.output import ZenohOutput
-        from bridge.fleet.services import fleet_services
-        from bridge.fleet.session import ZenohSettings
+        from bridge.zenoh.output import ZenohOutput
+        from bridge.zenoh.services import fleet_services
+        from bridge.zenoh.session import ZenohSettings
 
         outputs.append(ZenohOutput(ZenohSettings.from_config(cfg.zenoh), fleet_services(services)))
     return outputs

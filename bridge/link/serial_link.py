@@ -47,14 +47,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Literal, Protocol, TypeAlias
 
-from bridge.link.transactions import (
-    COMMAND_DEADLINES_S,
-    DEFAULT_DEADLINE_S,
-    Routed,
-    Transactions,
-)
-from bridge.link.transport import EndOfRecording, Transport
-from bridge.ports import (
+from bridge.device import (
     CommandError,
     CommandLate,
     CommandNotSupported,
@@ -65,6 +58,13 @@ from bridge.ports import (
     LinkState,
     Received,
 )
+from bridge.link.transactions import (
+    COMMAND_DEADLINES_S,
+    DEFAULT_DEADLINE_S,
+    Routed,
+    Transactions,
+)
+from bridge.link.transport import EndOfRecording, Transport
 from bridge.protocol.framing import MAX_LINE_BYTES
 from bridge.protocol.gmr import (
     AckFrame,

@@ -7,8 +7,8 @@ the command's deadline plus ``late_window``: the time its answer may still
 come from a device slower than its datasheet. Three rules follow:
 
 * **An answer after the deadline is a time-out**, never a success and never
-  news of something else (a reset): the caller gets :class:`~bridge.ports.CommandLate`
-  (a :class:`~bridge.ports.CommandTimeout` carrying the answer), the link counts
+  news of something else (a reset): the caller gets :class:`~bridge.device.CommandLate`
+  (a :class:`~bridge.device.CommandTimeout` carrying the answer), the link counts
   a time-out and a late answer.
 * **No command is sent again while its answer may still come**: a retry goes
   out only once the previous attempt's slot has expired with no answer (the
@@ -30,11 +30,7 @@ import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from bridge.ports import (
-    CommandLate,
-    CommandTimeout,
-    LinkDown,
-)
+from bridge.device import CommandLate, CommandTimeout, LinkDown
 from bridge.protocol.gmr import AckFrame, CommandFrame, GmrFrame, ParamsFrame, VersionFrame
 
 log = logging.getLogger(__name__)

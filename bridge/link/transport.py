@@ -29,12 +29,12 @@ from typing import Any, Protocol, runtime_checkable
 import serial
 
 from bridge.link.record import Chunk, RecordingReader
+from bridge.types import Clock
 
 _POLLNVAL = select.POLLNVAL  # a module constant: read() tests it for every frame
 
 log = logging.getLogger(__name__)
 
-Clock = Callable[[], float]
 Sleep = Callable[[float], None]
 
 

@@ -1,8 +1,8 @@
 """The calibrator's neutral state and reports in MAVLink's terms.
 
-The calibrator speaks of a :class:`~bridge.calibrator.Phase` (with the
-session's step), a :class:`~bridge.calibrator.Failure` and a typed
-:class:`~bridge.calibrator.SessionReport`, and its event texts are plain
+The calibrator speaks of a :class:`~bridge.calibration.sessions.Phase` (with the
+session's step), a :class:`~bridge.calibration.sessions.Failure` and a typed
+:class:`~bridge.calibration.sessions.SessionReport`, and its event texts are plain
 sentences. Here they become what ground stations read:
 
 * MAG_CAL_STATUS (:func:`mag_cal_status`): waiting -> WAITING_TO_START;
@@ -26,9 +26,9 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from bridge.calibration.sanity import MagCalStatus
-from bridge.calibrator import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
-from bridge.calibrator.report import MagParams
+from bridge.calibration.fits.sanity import MagCalStatus
+from bridge.calibration.model import ArduPilotView
+from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
 from bridge.events import Event
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.telemetry import STATUSTEXT_LEN, MagCalReport, mag_cal_progress
@@ -89,7 +89,7 @@ def progress_message(snap: CalibratorSnapshot, compass_id: int) -> Message:
 
 def report_figures(report: SessionReport) -> MagCalReport:
     """A magnetometer session's report as MAG_CAL_REPORT's figures."""
-    m = report.mag if report.mag is not None else MagParams((0.0, 0.0, 0.0))
+    m = report.mag if report.mag is not None else ArduPilotView((0.0, 0.0, 0.0))
     fit = report.fit
     fitness = fit.fitness_mG if fit is not None else math.nan
     confidence = fit.orientation_confidence if fit is not None else math.nan

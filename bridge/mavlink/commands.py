@@ -3,7 +3,7 @@
 * :class:`Command` normalises COMMAND_LONG and COMMAND_INT (whose param5/6
   are the int32 ``x``/``y`` and param7 the float ``z``) and says whether it
   is addressed to us;
-* :func:`result_code` maps a :class:`~bridge.calibrator.Outcome` to MAV_RESULT;
+* :func:`result_code` maps a :class:`~bridge.calibration.sessions.Outcome` to MAV_RESULT;
 * :class:`CalibrationRelay` turns the calibration controller's events into
   what each ground-station flow expects:
 
@@ -40,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from bridge.calibrator import CalibratorSnapshot, Outcome, Result
+from bridge.calibration.sessions import CalibratorSnapshot, Outcome, Result
 from bridge.events import Event
 from bridge.mavlink import calmap
 from bridge.mavlink.dialect import Message

@@ -28,7 +28,8 @@ from bridge import __version__
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices
 from bridge.calibration.model import Calibration
-from bridge.calibrator import CalibratorSnapshot, Outcome, Result
+from bridge.calibration.sessions import CalibratorSnapshot, Outcome, Result
+from bridge.device import LinkState
 from bridge.events import ChangeRefusedError, Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink import commands as C  # noqa: N812 - short
@@ -38,7 +39,6 @@ from bridge.mavlink.autopilot import AutopilotWatch
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.endpoints import Link
 from bridge.mavlink.paramproto import ParamProtocol
-from bridge.ports import LinkState
 
 log = logging.getLogger(__name__)
 

@@ -46,7 +46,8 @@ from typing import Any, cast
 from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
-from bridge.calibrator import CalibratorSnapshot
+from bridge.calibration.sessions import CalibratorSnapshot
+from bridge.documents import StorageError
 from bridge.events import Event
 from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
@@ -62,7 +63,6 @@ from bridge.mavlink.pacing import PacedLink, Pacer
 from bridge.mavlink.paramproto import ParamEncoding, ParamProtocol
 from bridge.mavlink.settings import MavlinkSettings
 from bridge.mavlink.signing import Signing, Verdict
-from bridge.ports import StorageError
 
 log = logging.getLogger(__name__)
 

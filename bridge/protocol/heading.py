@@ -46,19 +46,18 @@ from bridge.protocol.framing import (
     parse_decimal,
     render_line,
 )
+from bridge.types import HeadingReference
 
 __all__ = [
     "HPR_STATUS",
     "HeadingDecoder",
     "HeadingFrame",
     "HeadingProtocol",
-    "Reference",
     "decode_body",
     "encode",
     "encode_body",
 ]
 
-Reference: TypeAlias = Literal["magnetic", "true"]
 HeadingProtocol: TypeAlias = Literal["nmea", "os5000"]
 
 #: ``$PTNTHPR`` status letters.
@@ -108,7 +107,7 @@ class HeadingFrame:
     """
 
     heading_deg: float | None
-    reference: Reference
+    reference: HeadingReference
     pitch_deg: float | None = None
     roll_deg: float | None = None
     deviation_deg: float | None = None
@@ -206,7 +205,7 @@ class HeadingFrame:
         pitch_deg: float | None,
         roll_deg: float | None,
         status: tuple[str, str, str] = ("N", "N", "N"),
-        reference: Reference = "magnetic",
+        reference: HeadingReference = "magnetic",
     ) -> HeadingFrame:
         """``$PTNTHPR`` (values None where the device nulls them)."""
         return cls(
@@ -226,7 +225,7 @@ class HeadingFrame:
         pitch_deg: float | None = None,
         roll_deg: float | None = None,
         temperature_c: float | None = None,
-        reference: Reference = "magnetic",
+        reference: HeadingReference = "magnetic",
     ) -> HeadingFrame:
         """OceanServer ``$C<hdg>[P<pitch>][R<roll>][T<temp>]``."""
         return cls(
@@ -362,7 +361,7 @@ def _expect(fields: list[str], n: int, what: str) -> None:
         raise DecodeError(DropReason.FIELDS, f"{what} needs {n} fields, got {len(fields)}")
 
 
-def _decode_nmea(body: str, reference: Reference) -> HeadingFrame:
+def _decode_nmea(body: str, reference: HeadingReference) -> HeadingFrame:
     ident, _, rest = body.partition(",")
     fields = rest.split(",") if "," in body else []
     if ident == "PTNTHPR":
@@ -402,7 +401,7 @@ def _decode_nmea(body: str, reference: Reference) -> HeadingFrame:
     )
 
 
-def _decode_hpr(fields: list[str], reference: Reference) -> HeadingFrame:
+def _decode_hpr(fields: list[str], reference: HeadingReference) -> HeadingFrame:
     _expect(fields, 6, "PTNTHPR")
     hdg, hs, pitch, ps, roll, rs = fields
     for letter in (hs, ps, rs):
@@ -419,7 +418,7 @@ def _decode_hpr(fields: list[str], reference: Reference) -> HeadingFrame:
     )
 
 
-def _decode_os5000(body: str, reference: Reference) -> HeadingFrame:
+def _decode_os5000(body: str, reference: HeadingReference) -> HeadingFrame:
     tags = [(m.group(1), m.group(2)) for m in _OS5000_TAG_RE.finditer(body)]
     if not body.startswith("C") or not tags or tags[0][0] != "C":
         raise DecodeError(DropReason.UNKNOWN_ID, f"{body[:8]!r} is not an OS5000 $C sentence")
@@ -438,7 +437,7 @@ def _decode_os5000(body: str, reference: Reference) -> HeadingFrame:
 
 
 def decode_body(
-    body: str, protocol: HeadingProtocol = "nmea", reference: Reference = "magnetic"
+    body: str, protocol: HeadingProtocol = "nmea", reference: HeadingReference = "magnetic"
 ) -> HeadingFrame:
     """Decode one checksum-verified body; DecodeError (with ``.reason``) if invalid.
 
@@ -460,14 +459,14 @@ class HeadingDecoder:
     __slots__ = ("_protocol", "_reference", "_splitter", "counters", "last_error")
 
     def __init__(
-        self, protocol: HeadingProtocol = "nmea", reference: Reference = "magnetic"
+        self, protocol: HeadingProtocol = "nmea", reference: HeadingReference = "magnetic"
     ) -> None:
         if protocol not in ("nmea", "os5000"):
             raise ValueError(f"protocol must be 'nmea' or 'os5000', got {protocol!r}")
         if reference not in ("magnetic", "true"):
             raise ValueError(f"reference must be 'magnetic' or 'true', got {reference!r}")
         self._protocol: HeadingProtocol = protocol
-        self._reference: Reference = reference
+        self._reference: HeadingReference = reference
         self.counters = CodecCounters()
         self._splitter = LineSplitter(self.counters.dropped)
         #: The last sentence-level rejection (for logs), None until one happens.

@@ -33,8 +33,7 @@ import numpy.typing as npt
 
 from bridge.core.geometry import dcm_to_euler, dcm_to_rotvec, euler_to_dcm
 from bridge.sim.motion import Motion
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 
 @dataclass(frozen=True, slots=True)

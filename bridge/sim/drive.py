@@ -10,12 +10,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import numpy.typing as npt
 
 from bridge.core.geometry import euler_to_dcm
 from bridge.sim.motion import MotionBase
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 
 class Drive(MotionBase):

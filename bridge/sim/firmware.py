@@ -80,8 +80,7 @@ from bridge.protocol.gmr import (
 from bridge.sim.flash import Flash, FlashPage
 from bridge.sim.motion import Motion, YawTurns, linear_acc_of
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 DEFAULT_RATE_HZ = 10
 RESET_SILENCE_S = 0.3

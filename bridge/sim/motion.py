@@ -31,8 +31,8 @@ from bridge.core.geometry import (
     wrap_degrees_360,
 )
 from bridge.sim.physics import default_field_ned_G
+from bridge.types import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 Euler = tuple[float, float, float]
 
 _ZERO3 = np.zeros(3)

@@ -37,10 +37,7 @@ from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.geometry import GRAVITY_NED, axis_angle_to_dcm
 from bridge.core.sensor import ACC_COUNTS_PER_G, ADC_MAX, MAG_COUNTS_PER_GAUSS, ZERO_COUNTS
 from bridge.core.wmm import earth_field
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
+from bridge.types import BoolArray, FloatArray, IntArray
 
 #: (latitude_deg, longitude_deg, altitude_m): PX4 SITL's default home, Zurich.
 DEFAULT_LOCATION: tuple[float, float, float] = (47.397742, 8.545594, 488.0)

@@ -39,8 +39,7 @@ from typing import Any
 from bridge.sim.drive import Drive
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import Motion, Still, Tumble, YawTurns, with_shake
-
-Clock = Callable[[], float]
+from bridge.types import Clock
 
 _MAX_WAIT_S = 0.05  # upper bound of a select(): stop/unplug requests are seen this fast anyway
 _JOIN_TIMEOUT_S = 5.0

@@ -13,7 +13,7 @@ from __future__ import annotations
 import re
 from typing import Any, TextIO
 
-from bridge.calibration.coverage import N_SECTIONS
+from bridge.calibration.fits.coverage import N_SECTIONS
 
 #: A line every this many per cent when the bar is off.
 STEP_PCT = 20

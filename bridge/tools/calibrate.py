@@ -5,7 +5,7 @@ Two ways:
 * **offline** (``--recording FILE``): a ``compass-bridge record`` recording is
   replayed through the GMR decoder, every ``$PGMRA`` frame's raw vectors are
   collected (saturated frames flagged, never fitted), and any engine method
-  (``--method``, a name of :mod:`bridge.calibration.methods`) is run on them.
+  (``--method``, a name of :mod:`bridge.calibration.fits.methods`) is run on them.
   No daemon needed. Accepting writes the result where the daemon loads it
   (``--state-dir``: ``calibration.json`` there, with the report).
 * **live over MAVLink** (``--mavlink URL``): the ArduPilot flow against a
@@ -42,9 +42,9 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.acceptance import raw_sections
-from bridge.calibration.coverage import N_SECTIONS, mask_sections
-from bridge.calibration.methods import CalibrationData, calibrate
+from bridge.calibration.fits.acceptance import raw_sections
+from bridge.calibration.fits.coverage import N_SECTIONS, mask_sections
+from bridge.calibration.fits.methods import CalibrationData, calibrate
 from bridge.calibration.model import (
     AffineCalibration,
     ArduPilotView,
@@ -66,8 +66,7 @@ from bridge.tools.calreport import (
     progress_note,
     report_lines,
 )
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.types import FloatArray
 
 # ---------------------------------------------------------------------------
 # Offline: a recording
@@ -150,7 +149,7 @@ def fit_recording(
     """Run ``method`` on the recorded vectors; returns the result and its predicted heading error.
 
     The result is judged by the engine's acceptance rule (the heading error it
-    is predicted to leave, :mod:`bridge.calibration.acceptance`), the same for
+    is predicted to leave, :mod:`bridge.calibration.fits.acceptance`), the same for
     every method and the same as a live calibration's.
     """
     res = calibrate(method, recording_data(vectors, location))
@@ -183,8 +182,8 @@ def raw_missing(data: CalibrationData) -> frozenset[int]:
 def offline_report(res: CalibrationResult) -> dict[str, Any]:
     """The fit as the bridge reports a calibration (the calibrator's report, JSON form) with
     ``cal_status``, the MAG_CAL_STATUS name a live calibration's MAG_CAL_REPORT gives."""
-    from bridge.calibrator.report import fit_report
-    from bridge.calibrator.state import Mode
+    from bridge.calibration.sessions.report import fit_report
+    from bridge.calibration.sessions.state import Mode
     from bridge.mavlink.calmap import report_status
 
     report = fit_report(Mode.MAG, res.calibration.mag, res.report)
@@ -206,7 +205,7 @@ def ask_accept(question: str, stdin: TextIO, out: TextIO) -> bool:
 
 def save_offline(state_dir: str, res: CalibrationResult, report: dict[str, Any]) -> None:
     """Write the calibration where the daemon loads it (the calibration store, with its report)."""
-    from bridge.calibrator.store import CalibrationStore
+    from bridge.app.calibration.store import CalibrationStore
     from bridge.storage import StateStore
 
     CalibrationStore(StateStore(state_dir)).save(
@@ -304,7 +303,7 @@ def add_live_figures(
     horizontal field: the WMM's at ``location``, else the one the calibrated
     samples show (their mean ``|B|`` and the dip between field and gravity).
     """
-    from bridge.calibration.scalar import field_spread_nT
+    from bridge.calibration.fits.scalar import field_spread_nT
 
     fitness = float(report.get("fitness") or math.nan)
     try:

@@ -19,9 +19,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.coverage import N_SECTIONS, sections
-
-FloatArray = npt.NDArray[np.float64]
+from bridge.calibration.fits.coverage import N_SECTIONS, sections
+from bridge.types import FloatArray
 
 #: Rows x columns of the terminal coverage map (latitude bands x longitude sectors).
 MAP_ROWS, MAP_COLS = 9, 36

@@ -62,7 +62,7 @@ def _file_sets(path: str | None, section: str, key: str) -> bool:
 def reset_state(state_dir: str) -> str:
     """``run --simulate --reset``: delete the stored documents; returns what it did, in words.
 
-    Raises :class:`~bridge.ports.StorageError` when a file cannot go.
+    Raises :class:`~bridge.documents.StorageError` when a file cannot go.
     """
     removed = StateStore(state_dir).clear()
     what = ", ".join(p.name for p in removed) if removed else "nothing was stored"

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any, TextIO
 
 from bridge.core.quality import heading_usable
-from bridge.fleet.monitor import DEFAULT_CONNECT, MonitorOptions, monitor_config
+from bridge.zenoh.monitor import DEFAULT_CONNECT, MonitorOptions, monitor_config
 
 #: What ``status`` asks when no key expression is given: every bridge's status.
 DEFAULT_STATUS_KEYEXPR = "fleet/**/status"
@@ -117,14 +117,14 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
         "tilt": _tilt_record((a.heading or {}).get("tilt"), st.get("tilt")),
         "errors": list(a.errors),
     }
-    # The drift monitor's verdict (bridge.app.drift, issue 17) as the status document has
+    # The drift monitor's verdict (bridge.app.calibration.drift) as the status document has
     # it; a drifted calibration leaves the bridge "healthy" (it streams a usable heading)
     # but is said on its own line, as `monitor` flags it DRIFT.
     drift = cal_state.get("drift")
     rec["drift"] = dict(drift) if isinstance(drift, dict) else None
     rec["calibrated"] = cal_state.get("calibrated")
     shared = (st.get("zenoh") or {}).get("duplicate_prefix")
-    if shared:  # bridge.fleet.instances: the key prefix is not this bridge's alone
+    if shared:  # bridge.zenoh.instances: the key prefix is not this bridge's alone
         rec["errors"].append(f"key prefix shared with {len(shared)} other bridge(s): {shared}")
     rec["healthy"] = bool(
         state == "streaming"

@@ -1,0 +1,178 @@
+"""The calibration in use, kept: saved at once, saved again as soon as storage takes it.
+
+:class:`CalibrationKeeper` holds what the controller knows of the calibration in
+use -- where it came from, when it was accepted, whether it is on disk -- and
+saves it through the :class:`~bridge.app.calibration.store.CalibrationStore`. A save
+that fails (a full, read-only or missing state directory) leaves the
+calibration in force and *pending*: :meth:`CalibrationKeeper.retry` (the
+controller's worker, every :data:`RETRY_S`) saves the newest pending one as
+soon as the directory takes it again, so an accepted or learned calibration is
+not lost on the next restart once space returns. Until then every status says
+"NOT saved".
+
+:class:`StrayCalibration` notices a compass left in its own calibration mode
+(the ``CAL`` flag on every frame) with no session of ours running it: an
+on-board MAGCAL interrupted by an unplug, a lost link, a crash or an error.
+The controller then sends ``MAGCAL,ABORT`` -- as soon as the device can hear
+it (frames with the flag are coming, so it can) -- and at shutdown.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from bridge.app.calibration.store import CalibrationStore
+from bridge.calibration.model import Calibration
+from bridge.device import CommandError
+from bridge.documents import StorageError
+
+log = logging.getLogger(__name__)
+
+#: A calibration not saved is tried again this often (seconds).
+RETRY_S = 5.0
+#: The CAL flag seen this long with no session of ours: the device was left calibrating.
+STRAY_HOLD_S = 1.0
+#: ``MAGCAL,ABORT`` for a stray calibration mode at most this often.
+STRAY_RETRY_S = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class _Unsaved:
+    calibration: Calibration
+    source: str
+    accepted_unix: float
+    report: Mapping[str, Any] | None
+    view: Mapping[str, float] | None
+
+
+class CalibrationKeeper:
+    """The calibration in use, its origin and whether it is saved (thread-safe).
+
+    ``store`` None keeps nothing (no state directory): every save "fails" with
+    that reason and is never retried.
+    """
+
+    def __init__(self, store: CalibrationStore | None, source: str = "") -> None:
+        self._store = store
+        self._lock = threading.Lock()
+        self.source = source  #: where the calibration in use came from
+        self.accepted_unix: float | None = None  #: when it was accepted (None: unknown)
+        self.saved = False  #: it is on disk
+        self.error = ""  #: why the last save failed
+        self._unsaved: _Unsaved | None = None
+        self._retry_at = math.inf
+        if store is not None:
+            stored = store.load()  # never raises
+            if stored.stored:
+                self.accepted_unix = stored.accepted_unix
+                self.saved = True
+
+    @property
+    def pending(self) -> bool:
+        """A calibration in use waits to be saved."""
+        return self._unsaved is not None
+
+    def retry_due(self, now: float) -> float:
+        """When :meth:`retry` next has something to do (``inf``: nothing pending)."""
+        return self._retry_at
+
+    def keep(
+        self,
+        calibration: Calibration,
+        *,
+        source: str,
+        accepted_unix: float,
+        report: Mapping[str, Any] | None,
+        view: Mapping[str, float] | None,
+        now: float,
+    ) -> str:
+        """``calibration`` is the one in use from now on: save it; the error ("" if saved)."""
+        item = _Unsaved(calibration, source, accepted_unix, report, view)
+        with self._lock:
+            self.source, self.accepted_unix = source, accepted_unix
+            return self._save(item, now)
+
+    def retry(self, now: float) -> bool:
+        """Try the pending save again if it is due; True when it was saved just now."""
+        with self._lock:
+            item = self._unsaved
+            if item is None or now < self._retry_at:
+                return False
+            return not self._save(item, now)
+
+    def _save(self, item: _Unsaved, now: float) -> str:
+        if self._store is None:
+            self.saved, self.error = False, "no state directory configured"
+            self._unsaved, self._retry_at = None, math.inf  # nowhere to save it, ever
+            return self.error
+        try:
+            self._store.save(
+                item.calibration,
+                source=item.source,
+                accepted_unix=item.accepted_unix,
+                report=item.report,
+                view=item.view,
+            )
+        except StorageError as e:
+            first = self._unsaved is None
+            self.saved, self.error = False, str(e)
+            self._unsaved, self._retry_at = item, now + RETRY_S
+            if first:
+                log.error("calibration NOT saved (%s): retried every %.0f s", e, RETRY_S)
+            return self.error
+        self.saved, self.error = True, ""
+        self._unsaved, self._retry_at = None, math.inf
+        return ""
+
+
+class StrayCalibration:
+    """Says when to abort a device calibration mode no session of ours runs (PURE: times in).
+
+    :meth:`frame` takes every attitude frame's CAL flag and whether one of our
+    sessions runs the device's MAGCAL now; it answers True when ``MAGCAL,ABORT``
+    should go out: the flag has stayed on for :data:`STRAY_HOLD_S` with no
+    session of ours (the frames of a session that just ended do not count),
+    at most once per :data:`STRAY_RETRY_S` while it stays on.
+    """
+
+    def __init__(self) -> None:
+        self._since: float | None = None
+        self._sent_at = -math.inf
+        self.last_cal_at = -math.inf  #: the last frame that carried the flag
+        self.aborts = 0  #: aborts asked for
+
+    def frame(self, cal: bool, ours: bool, now: float) -> bool:
+        """One attitude frame; True: send ``MAGCAL,ABORT`` now."""
+        if cal:
+            self.last_cal_at = now
+        if not cal or ours:
+            self._since = None
+            return False
+        if self._since is None:
+            self._since = now
+        if now - self._since < STRAY_HOLD_S or now - self._sent_at < STRAY_RETRY_S:
+            return False
+        self._sent_at = now
+        self.aborts += 1
+        return True
+
+    def abort(self, command: Callable[..., Any]) -> None:
+        """``MAGCAL,ABORT`` through ``command`` (the controller's worker); a failure is
+        retried by the next :meth:`frame` that asks for it."""
+        log.warning(
+            "compass is in its calibration mode (CAL flag) and no calibration runs: "
+            "an interrupted on-board MAGCAL; aborting it (MAGCAL,ABORT)"
+        )
+        try:
+            command("MAGCAL", "ABORT", retries=0)
+        except CommandError as e:
+            log.info("MAGCAL,ABORT of the left-over calibration mode: %s (tried again)", e)
+
+    def calibrating(self, now: float) -> bool:
+        """The device's frames carried the CAL flag a moment ago (at shutdown: abort it)."""
+        return now - self.last_cal_at < STRAY_HOLD_S
