@@ -40,7 +40,7 @@ def _sample(hdg: float, ref: str = "magnetic", device: float | None = 321.2) -> 
 
 def test_the_line_shows_the_truth_and_how_far_off_in_the_published_reference() -> None:
     line = format_line(_sample(5.52), _status(), truth_deg=5.5)
-    assert "[host, device hdg 321.2 mag]  [sim truth   5.5 mag, off  +0.0]" in line
+    assert "[host, device hdg 321.2 mag]  tilt device  [sim truth   5.5 mag, off  +0.0]" in line
     assert "off -44.3]" in format_line(_sample(321.2), _status(), truth_deg=5.5)  # wraps at 360
     # BRG_HDG_REF = 1: the heading is true; the device's own stays magnetic, and says so
     true = format_line(_sample(155.1, "true", 160.2), _status(), truth_deg=155.3)
