@@ -45,7 +45,7 @@ def test_the_line_shows_the_truth_and_how_far_off_in_the_published_reference() -
     # BRG_HDG_REF = 1: the heading is true; the device's own stays magnetic, and says so
     true = format_line(_sample(155.1, "true", 160.2), _status(), truth_deg=155.3)
     assert true.startswith("hdg 155.1 true  pitch")
-    assert "device hdg 160.2 mag]  [sim truth 155.3 true, off  -0.2]" in true
+    assert "device hdg 160.2 mag]  tilt device  [sim truth 155.3 true, off  -0.2]" in true
     assert "sim truth" not in format_line(_sample(5.5), _status())  # a real compass: no truth
 
 
