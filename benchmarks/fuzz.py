@@ -491,9 +491,14 @@ def false_frames(
 
 
 def _config(tmp: Path, device: str, udp_port: int) -> Path:
+    # Tilt frame by frame from the accelerometer: the false-frame judge decodes offline and
+    # needs every ATTITUDE to be a function of one frame. Under "auto" a fuzzed frame whose
+    # accelerometer reads far from 1 g (a boundary token with its checksum made right) is
+    # acceleration, so the tilt is held and matched to the field (docs/tilt.md) and the next
+    # ATTITUDEs rightly match no single frame.
     cfg = tmp / "fuzz.toml"
     cfg.write_text(
-        f'[device]\nport = "{device}"\nrate_hz = 100\n'
+        f'[device]\nport = "{device}"\nrate_hz = 100\n[heading]\ntilt = "accelerometer"\n'
         f'[mavlink]\nendpoints = ["udpin:127.0.0.1:{udp_port}"]\nrate_attitude_hz = 50.0\n'
         f'[zenoh]\nenabled = false\n[storage]\ndir = "{tmp / "state"}"\n'
     )

@@ -46,8 +46,14 @@ from pymavlink import mavutil
 mavutil.set_dialect("ardupilotmega")
 M: Any = mavutil.mavlink
 
-#: ``../shared/autopilots`` beside the checkout, as in CI.
-AUTOPILOTS = Path(__file__).resolve().parent.parent.parent / "shared" / "autopilots"
+#: ``../shared`` beside the checkout, as on a developer's machine and in CI. ``.ci/run`` tests
+#: a scratch copy of the tree elsewhere, so it names the checkout's ``../shared`` in
+#: ``COMPASS_BRIDGE_SHARED``.
+SHARED = Path(
+    os.environ.get("COMPASS_BRIDGE_SHARED")
+    or Path(__file__).resolve().parent.parent.parent / "shared"
+)
+AUTOPILOTS = SHARED / "autopilots"
 DEADLINE_S = 30.0  #: the longest any single wait on an autopilot may take
 _LOCK_DIR = Path(tempfile.gettempdir())
 #: ArduPilot's home in the tests (Canberra, the SITL default), yaw in degrees true.

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from autopilots import AUTOPILOTS
 from test_mavlink_rig import Rig, connect_gcs, rig_factory, wait_until
 
 from bridge.core.geometry import euler_to_dcm
@@ -45,7 +46,7 @@ from bridge.sim.physics import DEFAULT_LOCATION
 
 pytestmark = pytest.mark.integration
 
-ARDUPILOT = Path(__file__).resolve().parent.parent.parent / "shared" / "autopilots" / "ardupilot"
+ARDUPILOT = AUTOPILOTS / "ardupilot"
 PARAMS = {"SERIAL1_PROTOCOL": 2, "MAV2_EXTRA1": 20, "ARMING_CHECK": 0}
 YAW_DEG = 75.0  #: the compass's vehicle heading (ArduPilot's own yaw plays no part)
 PUSH_G = 0.25
