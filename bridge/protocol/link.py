@@ -423,13 +423,13 @@ class LinkMachine:
                         self._backoff = self._backoff_initial
             if answers or self._generation != self._handshaken_gen:
                 self._pump(now)  # an answer may end a command; a reset redoes the handshake
-        if now - self._last_attitude >= self._stale_after and self._open:
+        if now >= self._last_attitude + self._stale_after and self._open:
             self._go_stale(now)
         return out
 
     def tick(self, now: float) -> None:
         """Time passes: staleness, command deadlines, retries and the handshake."""
-        if self._open and now - self._last_attitude >= self._stale_after:
+        if self._open and now >= self._last_attitude + self._stale_after:
             self._go_stale(now)
         self._pump(now)
 

@@ -1,17 +1,17 @@
-"""CompassLink over real pseudo-terminals: a scripted device peer driven by the test.
+"""The link's driver (CompassLink) on real pseudo-terminals: a scripted device peer driven by
+the test, or the simulated firmware behind a pty (and in process, through SimTransport).
 
-The peer is a real pty whose master end this test drives (the link opens the
-slave through pyserial, exactly as it would a USB adapter). It streams
-``$PGMRA`` frames and answers ``$PGMRQ`` commands according to a per-test
-script, so retries, timeouts, late answers, seq gaps and resets can be staged
-deterministically. Every wait is bounded by a deadline.
+What the link decides is tested in memory (test_link_machine.py, on tests/harness.py); these
+few prove the driver on a real port: it opens the slave through pyserial as it would a USB
+adapter, streams, runs the handshake and commands with their real deadlines, goes stale and
+reopens, survives an unplugged adapter, and closes within its bound, releasing the port.
+Every wait is bounded by a deadline.
 """
 
 from __future__ import annotations
 
 import contextlib
 import heapq
-import itertools
 import os
 import select
 import threading
@@ -24,9 +24,6 @@ import pytest
 
 from bridge.link.serial_link import (
     CommandLate,
-    CommandNotSupported,
-    CommandRejected,
-    CommandTimeout,
     CompassLink,
     LinkDown,
     LinkState,
@@ -43,10 +40,10 @@ from bridge.protocol.gmr import (
     VersionFrame,
     encode,
 )
-from bridge.protocol.heading import HeadingFrame
-from bridge.protocol.heading import encode as encode_heading
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
+
+pytestmark = pytest.mark.integration
 
 VERSION = VersionFrame("2.1.0", "B3", "GMR-000417")
 PARAMS = ParamsFrame(2460.5, 2455.0, 2470.0, 1.0, 1.0213, 0.9876, 2458.0, 2458.0, 2949.5)
@@ -266,9 +263,6 @@ def handshake_done(peer: Peer) -> bool:
     return len(peer.received("PAR,GET")) >= 1
 
 
-# ---------------------------------------------------------------------------- streaming
-
-
 def test_streams_frames_runs_handshake_and_counts(peer: Peer) -> None:
     col = Collector()
     with make_link(peer.path, col, rate_hz=20) as link:
@@ -291,118 +285,6 @@ def test_streams_frames_runs_handshake_and_counts(peer: Peer) -> None:
     assert col.states[0] == (LinkState.ABSENT, LinkState.OPENING)
 
 
-def test_garbage_is_counted_by_reason_and_frames_keep_flowing(peer: Peer) -> None:
-    col = Collector()
-    with make_link(peer.path, col) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        before = len(col.seqs())
-        good = frame(7)
-        bad_cs = good[:-4] + (b"00" if good[-4:-2] != b"00" else b"11") + b"\r\n"
-        peer.send(bad_cs)  # wrong checksum
-        peer.send(b"\x00\xff\xfe binary junk \x01")  # noise
-        peer.send(b"$PGMRA,1,2,3*" + b"\r\n")  # malformed checksum
-        peer.send(encode_body_line("PGMRA,5,87.3,-1.2,0.4,3101,2470,3311,2470,2452,2950"))  # fields
-        peer.send(encode_body_line("PGMRA,5,87.3,-1.2,0.4,3101,2470,3311,2470,2452,9999,06"))
-        assert wait_until(lambda: link.counters.bad_lines_total >= 5, 5.0)
-        assert wait_until(lambda: len(col.seqs()) >= before + 20, 5.0)
-        bad = link.counters.bad_lines
-        assert bad["checksum"] == 1
-        assert bad["noise"] == 1
-        assert bad["no_checksum"] == 1
-        assert bad["fields"] == 1
-        assert bad["range"] == 1
-        assert link.counters.lost_frames == 0  # garbage between frames loses no frame
-        assert link.state is LinkState.STREAMING
-
-
-def encode_body_line(body: str) -> bytes:
-    from bridge.protocol.framing import render_line
-
-    return render_line(body)
-
-
-def test_seq_gaps_count_lost_frames_across_wrap(peer: Peer) -> None:
-    col = Collector()
-    peer.set_seq(65530)  # the gaps below straddle the 65535 -> 0 wrap
-    with make_link(peer.path, col) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        assert wait_until(lambda: len(col.seqs()) >= 3, 5.0)
-        peer.skip(4)
-        n = len(col.seqs())
-        assert wait_until(lambda: len(col.seqs()) >= n + 3, 5.0)
-        peer.skip(11)
-        n = len(col.seqs())
-        assert wait_until(lambda: len(col.seqs()) >= n + 3, 5.0)
-        seqs = col.seqs()
-        expected_lost = sum((b - a - 1) % 65536 for a, b in itertools.pairwise(seqs))
-        assert expected_lost == 15
-        assert link.counters.lost_frames == 15
-        assert 65535 in seqs or any(s < 100 for s in seqs)  # it did wrap
-        assert link.counters.device_resets == 0
-
-
-def test_one_lost_frame_at_the_wrap_is_a_loss_not_a_reset(peer: Peer) -> None:
-    """65500..65534, 65535 lost, 0..39 is a wrap with one frame lost (it was once read as a
-    device reset, and the connect handshake ran again)."""
-    col = Collector()
-    peer.lose = {65535}
-    peer.set_seq(65500)
-    with make_link(peer.path, col) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        assert wait_until(lambda: 39 in col.seqs(), 5.0)
-        seqs = col.seqs()
-        first = seqs[0]
-        assert 65500 <= first < 65534  # the link saw the frames before the wrap
-        assert seqs[: seqs.index(39) + 1] == [*range(first, 65535), *range(40)]
-        c = link.counters
-        assert c.lost_frames == 1
-        assert c.device_resets == 0 and c.seq_discontinuities == 0
-        time.sleep(0.3)  # a re-run handshake would have sent its VER by now
-        assert len(peer.received("VER")) == 1 and len(peer.received("PAR,GET")) == 1
-
-
-def test_seq_restart_at_0_from_far_away_is_still_a_reset(peer: Peer) -> None:
-    """Next to the wrap rule: 0 after a frame well before 65535 is the reboot rule's."""
-    col = Collector()
-    peer.set_seq(65000)  # 535 frames before the wrap: not loss a streaming link shows
-    with make_link(peer.path, col) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        assert wait_until(lambda: len(col.seqs()) > 5, 5.0)
-        peer.set_seq(0)
-        assert wait_until(lambda: link.counters.device_resets == 1, 5.0)
-        assert wait_until(lambda: len(peer.received("PAR,GET")) == 2, 5.0)  # handshake again
-        assert link.counters.lost_frames == 0
-
-
-def test_device_reset_by_unasked_version_and_by_seq_restart(peer: Peer) -> None:
-    col = Collector()
-    with make_link(peer.path, col) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        time.sleep(1.3)  # past the window in which a $PGMRV may still answer our VER
-        assert wait_until(lambda: len(col.seqs()) > 20, 5.0)
-        # A reboot as the datasheet describes it: $PGMRV unasked, then seq from 0.
-        peer.reboot(0.3)
-        assert wait_until(lambda: link.counters.device_resets == 1, 5.0)
-        # The rebooted device is back at 10 Hz: the link redoes VER/RATE/PAR,GET.
-        assert wait_until(lambda: len(peer.received("PAR,GET")) == 2, 5.0)
-        assert len(peer.received("RATE")) == 2
-        time.sleep(1.3)
-        # A reboot whose $PGMRV was lost on the line: seq restarts at 0 all the same.
-        assert wait_until(lambda: peer.seq > 20, 5.0)
-        peer.set_seq(0)
-        assert wait_until(lambda: link.counters.device_resets == 2, 5.0)
-        assert link.counters.lost_frames == 0  # restarts are not losses
-        assert link.counters.unsolicited_answers == 0
-
-
-# ---------------------------------------------------------------------------- loss, stale
-
-
 def test_silent_port_goes_stale_then_recovers(peer: Peer) -> None:
     col = Collector()
     with make_link(peer.path, col, stale_after=0.4) as link:
@@ -421,18 +303,6 @@ def test_silent_port_goes_stale_then_recovers(peer: Peer) -> None:
     assert len(stale_changes) == 1
 
 
-def test_garbage_only_port_goes_stale(peer: Peer) -> None:
-    with make_link(peer.path, stale_after=0.4) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        peer.streaming = False
-        stop = time.monotonic() + 1.5
-        while time.monotonic() < stop and link.state is not LinkState.STALE:
-            peer.send(b"$PGMRA,garbage*00\r\n\x13\x37")
-            time.sleep(0.05)
-        assert link.state is LinkState.STALE
-        assert link.counters.bad_lines_total > 0
-
-
 def test_close_is_bounded_and_releases_the_port(peer: Peer) -> None:
     link = make_link(peer.path).start()
     assert link.wait_state(LinkState.STREAMING, 5.0)
@@ -444,9 +314,6 @@ def test_close_is_bounded_and_releases_the_port(peer: Peer) -> None:
     again = SerialTransport(str(peer.path), 115200)
     again.open()
     again.close()
-
-
-# ---------------------------------------------------------------------------- commands
 
 
 def test_lost_command_is_retried(peer: Peer) -> None:
@@ -465,88 +332,6 @@ def test_lost_command_is_retried(peer: Peer) -> None:
         assert ans == AckFrame.success("MAGCAL")
         assert len(peer.received("MAGCAL,START")) == 2
         assert link.counters.command_retries == 3
-
-
-def test_command_times_out_after_all_attempts(peer: Peer) -> None:
-    peer.handlers["ACCCAL"] = lambda cmd, n: None
-    with make_link(peer.path) as link:
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        t0 = time.monotonic()
-        with pytest.raises(CommandTimeout):
-            link.command("ACCCAL", timeout=0.15, retries=2)
-        assert time.monotonic() - t0 >= 0.45
-        assert len(peer.received("ACCCAL")) == 3
-        assert link.counters.command_timeouts == 1
-        assert link.state is LinkState.STREAMING  # frames kept flowing
-
-
-def test_err_answer_raises_rejected_without_retry(peer: Peer) -> None:
-    peer.handlers["MAGCAL,END"] = lambda cmd, n: [
-        (0.0, encode(AckFrame.failure("MAGCAL", "RANGE")))
-    ]
-    with make_link(peer.path) as link:
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        with pytest.raises(CommandRejected) as err:
-            link.command("MAGCAL", "END")
-        assert err.value.reason == "RANGE"
-        assert len(peer.received("MAGCAL,END")) == 1
-        assert link.counters.command_rejections == 1
-
-
-def test_default_timeouts_follow_the_datasheet(peer: Peer) -> None:
-    # ACCCAL may take 1.5 s: an answer after 0.9 s is on time, no retry.
-    acccal = AckFrame.acccal_ok(2458.0, 2459.0, 2949.5)
-    peer.handlers["ACCCAL"] = lambda cmd, n: [(0.9, encode(acccal))]
-    col = Collector()
-    with make_link(peer.path, col) as link:
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        n0 = len(col.seqs())
-        assert link.command("ACCCAL") == acccal
-        assert len(peer.received("ACCCAL")) == 1
-        assert len(col.seqs()) - n0 >= 20  # ~45 frames at 50 Hz arrived meanwhile
-        # A plain command has 200 ms: an answer after 0.9 s is too late -- a time-out --
-        # and, since it could still come, the command is not sent a second time.
-        peer.handlers["VER"] = lambda cmd, n: [(0.9, encode(VERSION))]
-        with pytest.raises(CommandLate) as late:
-            link.command("VER", retries=1)
-        assert late.value.answer == VERSION and late.value.late_s > 0.5
-        assert len(peer.received("VER")) == 2  # handshake + 1 attempt
-        assert link.counters.command_timeouts == 1 and link.counters.device_resets == 0
-
-
-def test_late_answer_is_not_taken_for_a_later_command_with_the_same_word(peer: Peer) -> None:
-    # MAGCAL,START's OK arrives after the link gave up; the next MAGCAL command's own
-    # answer is ERR,STATE. Taking the late OK for it would report a false success.
-    peer.handlers["MAGCAL,START"] = lambda cmd, n: [(0.35, encode(AckFrame.success("MAGCAL")))]
-    peer.handlers["MAGCAL,ABORT"] = lambda cmd, n: [
-        (0.0, encode(AckFrame.failure("MAGCAL", "STATE")))
-    ]
-    with make_link(peer.path) as link:
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        with pytest.raises(CommandTimeout):
-            link.command("MAGCAL", "START", timeout=0.2, retries=0)
-        with pytest.raises(CommandRejected) as err:
-            link.command("MAGCAL", "ABORT", timeout=0.2, retries=0)
-        assert err.value.reason == "STATE"
-        assert link.counters.late_answers == 1
-        # ABORT went out only after START's answer was accounted for.
-        t_abort = next(t for t, c in peer.commands if c.key == "MAGCAL,ABORT")
-        t_start = next(t for t, c in peer.commands if c.key == "MAGCAL,START")
-        assert t_abort - t_start >= 0.35
-
-
-def test_late_answer_to_another_command_is_absorbed(peer: Peer) -> None:
-    peer.handlers["RATE"] = lambda cmd, n: [(0.3, encode(AckFrame.rate_ok(int(cmd.args[0]))))]
-    peer.handlers["PAR,GET"] = lambda cmd, n: [(0.1, encode(PARAMS))]
-    with make_link(peer.path, rate_hz=None) as link:
-        assert wait_until(lambda: handshake_done(peer), 5.0)
-        assert wait_until(lambda: link.params is not None, 5.0)
-        with pytest.raises(CommandTimeout):
-            link.command("RATE", 50, timeout=0.2, retries=0)
-        # The RATE ack lands while PAR,GET is pending: it is neither its answer nor lost.
-        assert link.command("PAR", "GET", timeout=0.5, retries=0) == PARAMS
-        assert wait_until(lambda: link.counters.late_answers == 1, 2.0)
-        assert link.counters.unsolicited_answers == 0
 
 
 def test_a_late_answer_is_a_timeout_and_the_command_is_not_sent_twice(peer: Peer) -> None:
@@ -571,28 +356,6 @@ def test_command_argument_and_protocol_errors(peer: Peer) -> None:
     link = make_link(peer.path)
     with pytest.raises(LinkDown):  # not started: no port
         link.command("VER")
-
-
-def test_heading_only_compass_streams_without_commands(peer: Peer) -> None:
-    peer.streaming = False
-    col = Collector()
-    with make_link(peer.path, col, protocol="nmea", stale_after=1.0) as link:
-        with pytest.raises(CommandNotSupported):
-            link.command("VER")
-        for i in range(10):
-            peer.send(encode_heading(HeadingFrame.hdm(100.0 + i)), delay=0.05 * i)
-        peer.send(encode(AttitudeFrame(1, 1.0, 0.0, 0.0, 1, 1, 1, 1, 1, 1, Flags(0))))
-        assert wait_until(lambda: len(col.items) == 10, 5.0)
-        # Its heading sentences are its stream (kept up for a quarter of stale_after).
-        assert link.state is LinkState.STREAMING
-        assert link.counters.attitude_frames == 10
-        headings = [i.frame.heading_deg for i in col.items if isinstance(i.frame, HeadingFrame)]
-        assert headings == [100.0 + i for i in range(10)]
-        assert wait_until(lambda: link.counters.bad_lines["unknown_id"] == 1, 2.0)
-    assert peer.received() == []  # no handshake sent to a heading-only compass
-
-
-# ---------------------------------------------------------------------------- simulated device
 
 
 def test_in_process_sim_handshake_rate_and_reset() -> None:
@@ -678,3 +441,38 @@ def test_pty_compass_unplug_replug(sim_path: Path, power_cycle: bool) -> None:
     i = changes.index(LinkState.ABSENT)
     assert changes[i:] == [LinkState.ABSENT, LinkState.OPENING, LinkState.STREAMING]
     assert c.open_failures >= 1
+
+
+def test_a_failing_consumer_is_counted_and_a_waiting_command_ends_on_close(peer: Peer) -> None:
+    """on_frame raising costs no frame (counted); close() ends a command still waiting."""
+    errors: list[BaseException] = []
+    seen: list[Received] = []
+
+    def on_frame(item: Received) -> None:
+        seen.append(item)
+        try:
+            link.command("VER")  # from the reader thread: refused, it would deadlock
+        except RuntimeError as e:
+            errors.append(e)
+        raise ValueError("a consumer bug")
+
+    peer.handlers["ACCCAL"] = lambda cmd, n: None
+    link = CompassLink(SerialTransport(str(peer.path), 115200), on_frame=on_frame, stale_after=0.5)
+    with link:
+        assert wait_until(lambda: len(seen) >= 20, 5.0)
+        assert link.counters.callback_errors >= 20
+        assert errors and "reader thread" in str(errors[0])
+        assert link.state is LinkState.STREAMING
+        ended: list[BaseException] = []
+
+        def waiter() -> None:
+            try:
+                link.command("ACCCAL", timeout=5.0, retries=0)
+            except Exception as e:
+                ended.append(e)
+
+        th = threading.Thread(target=waiter)
+        th.start()
+        assert wait_until(lambda: len(peer.received("ACCCAL")) == 1, 5.0)
+    th.join(3.0)
+    assert not th.is_alive() and isinstance(ended[0], LinkDown)
