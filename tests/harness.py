@@ -253,6 +253,45 @@ class ScriptedCompass:
         self._now = max(self._now, now)
 
 
+class LinePlayer:
+    """A device that plays ``lines`` one every ``period`` s, round and round (sans-I/O).
+
+    What the host writes is kept in :attr:`host_bytes`; :meth:`inject` sends
+    extra bytes once, before the next line.
+    """
+
+    def __init__(self, lines: list[bytes], period: float = 0.02) -> None:
+        self.lines = list(lines)
+        self.period = period
+        self.host_bytes = bytearray()
+        self.sent = 0
+        self._extra: list[bytes] = []
+        self._next: float | None = None
+        self._out = bytearray()
+
+    def inject(self, data: bytes) -> None:
+        self._extra.append(data)
+
+    def receive(self, data: bytes, now: float) -> None:
+        self.host_bytes += data
+
+    def poll(self, now: float) -> bytes:
+        if self._next is None:
+            self._next = now
+        while self._next <= now:
+            if self._extra:
+                self._out += self._extra.pop(0)
+            self._out += self.lines[self.sent % len(self.lines)]
+            self.sent += 1
+            self._next += self.period
+        out = bytes(self._out)
+        self._out.clear()
+        return out
+
+    def next_event_at(self) -> float | None:
+        return self._next
+
+
 # ---------------------------------------------------------------------------- the harness
 
 
@@ -287,6 +326,7 @@ class LinkHarness:
         self.machine = LinkMachine(**machine)
         self.collector = Collector()
         self.on_frame = on_frame
+        self.on_state: Callable[[LinkState, LinkState], None] | None = None
         self.plugged = True
         self.open_count = 0
         self.notices: list[Notice] = []
@@ -413,6 +453,8 @@ class LinkHarness:
                 elif type(ev) is StateChanged:
                     self.collector.on_state(ev.old, ev.new)
                     self.reasons.append(ev.reason)
+                    if self.on_state is not None:
+                        self.on_state(ev.old, ev.new)
                 elif type(ev) is Notice:
                     self.notices.append(ev)
                     log.log(ev.level, "%s", ev.message)
@@ -475,6 +517,25 @@ class HarnessPort:
         return self.h.command(name, *args, timeout=timeout, retries=retries)
 
 
+def bridge_on(harness: LinkHarness, cfg: Any, **kw: Any) -> Any:
+    """The application (:class:`bridge.app.bridge.Bridge`) built from ``cfg`` with the
+    harness as its compass (:class:`HarnessPort`) and the harness's clock: every frame goes
+    through its pipeline as the link hands it on. ``kw`` goes to Bridge (``calibration``,
+    ``calibrator_settings``, ...). Start the harness afterwards (``start=False``)."""
+    from bridge.app.bridge import Bridge, BridgeOptions
+    from bridge.storage import StateStore
+
+    def make_link(
+        on_frame: Callable[[Received], None], on_state: Callable[[LinkState, LinkState], None]
+    ) -> HarnessPort:
+        harness.on_frame = on_frame
+        harness.on_state = on_state
+        return HarnessPort(harness)
+
+    kw.setdefault("documents", StateStore(cfg.storage.dir))
+    return Bridge(BridgeOptions.from_config(cfg), make_link, clock=harness.clock, **kw)
+
+
 __all__ = [
     "PARAMS",
     "T0",
@@ -483,11 +544,13 @@ __all__ = [
     "CommandError",
     "Device",
     "HarnessPort",
+    "LinePlayer",
     "LinkHarness",
     "LinkProtocol",
     "LinkState",
     "ManualClock",
     "ScriptedCompass",
     "attitude_line",
+    "bridge_on",
     "default_reply",
 ]
