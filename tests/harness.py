@@ -361,6 +361,27 @@ class LinkHarness:
         self._n += 1
         heapq.heappush(self._timers, (self.clock.t + delay, self._n, action))
 
+    def every(self, period: float, action: Callable[[], None]) -> None:
+        """Run ``action`` every ``period`` simulated seconds from now on (a worker's tick).
+
+        Not re-entered: an action that runs the harness itself (a blocking device command)
+        skips the ticks that fall inside it.
+        """
+        busy = False
+
+        def tick() -> None:
+            nonlocal busy
+            self.at(period, tick)
+            if busy:
+                return
+            busy = True
+            try:
+                action()
+            finally:
+                busy = False
+
+        self.at(period, tick)
+
     def unplug(self) -> None:
         """The adapter vanishes: the open port fails, opens fail until :meth:`replug`."""
         self.plugged = False
@@ -515,6 +536,11 @@ class HarnessPort:
         if not self.h.machine.is_open:
             raise LinkDown(f"{self.name} is not open")
         return self.h.command(name, *args, timeout=timeout, retries=retries)
+
+    def close(self) -> None:
+        """The link closes (the compass goes silent for the application)."""
+        self.h.machine.close(self.h.clock.t)
+        self.h._settle()
 
 
 def bridge_on(harness: LinkHarness, cfg: Any, **kw: Any) -> Any:

@@ -147,6 +147,7 @@ class CalibrationController:
         self._recent: deque[tuple[float, AttitudeFrame]] = deque(maxlen=256)
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         self._worker: threading.Thread | None = None
+        self._inline = False  # the owner of the clock runs the jobs (step), no worker
         self._stop = threading.Event()
         self.errors = 0  #: unexpected exceptions caught (logged once)
         self._keeper = CalibrationKeeper(self._store, calibration_source)
@@ -157,7 +158,7 @@ class CalibrationController:
     def start(self) -> CalibrationController:
         """Start the worker thread (idempotent; commands also start it)."""
         with self._lock:
-            if self._worker is None and not self._stop.is_set():
+            if self._worker is None and not self._stop.is_set() and not self._inline:
                 self._worker = threading.Thread(
                     target=self._run, name="calibration-worker", daemon=True
                 )
@@ -185,6 +186,37 @@ class CalibrationController:
             w.join(timeout)
             if w.is_alive():
                 log.error("calibration worker did not stop within %.1f s", timeout)
+
+    def run_inline(self) -> None:
+        """No worker thread: whoever owns the clock calls :meth:`step` instead.
+
+        For a caller that runs the compass on its own clock (the in-memory test
+        harness, a simulation): the jobs and ticks run in its thread, in order.
+        """
+        with self._lock:
+            if self._worker is not None:
+                raise RuntimeError("the worker thread already runs")
+            self._inline = True
+
+    def step(self) -> None:
+        """What the worker does, once, in this thread: every queued job, a tick, a save retry."""
+        while True:
+            try:
+                job = self._jobs.get_nowait()
+            except queue.Empty:
+                break
+            if job is None:
+                continue
+            try:
+                job()
+            except Exception:
+                self._internal_error("worker job")
+        try:
+            self._tick()
+            self._retry_save()
+        except Exception:
+            self._internal_error("tick")
+        self._flush()
 
     def __enter__(self) -> CalibrationController:
         return self.start()
