@@ -357,12 +357,14 @@ class CompassLink:
             self._wake.clear()  # before the deadline is read: a later command sets it again
             with self._cond:
                 now = clock()
-                machine.tick(now)
+                deadline = machine.next_deadline()
+                if deadline is not None and now >= deadline:
+                    machine.tick(now)  # staleness, a command's deadline, a retry
+                    deadline = machine.next_deadline()
                 if machine.has_events:
                     self._run_events(machine.take_events())
                 is_open = machine.is_open
                 open_due = machine.open_due(now)
-                deadline = machine.next_deadline()
             if self._states:
                 self._dispatch_states()
             if not is_open:
