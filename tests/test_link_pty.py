@@ -10,17 +10,13 @@ Every wait is bounded by a deadline.
 
 from __future__ import annotations
 
-import contextlib
-import heapq
-import os
-import select
 import threading
 import time
-import tty
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from harness import PARAMS, VERSION, Collector, ScriptedCompass, default_reply
 
 from bridge.link.serial_link import (
     CommandLate,
@@ -32,24 +28,14 @@ from bridge.link.serial_link import (
 from bridge.link.transport import SerialTransport, SimTransport
 from bridge.protocol.gmr import (
     AckFrame,
-    AttitudeFrame,
     CommandFrame,
-    Flags,
-    GmrDecoder,
     ParamsFrame,
-    VersionFrame,
     encode,
 )
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
 pytestmark = pytest.mark.integration
-
-VERSION = VersionFrame("2.1.0", "B3", "GMR-000417")
-PARAMS = ParamsFrame(2460.5, 2455.0, 2470.0, 1.0, 1.0213, 0.9876, 2458.0, 2458.0, 2949.5)
-
-Reply = list[tuple[float, bytes]]  # (delay after the command arrived, bytes to send)
-Handler = Callable[[CommandFrame, int], Reply | None]  # (command, how many times seen) -> reply
 
 
 def wait_until(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bool:
@@ -62,166 +48,30 @@ def wait_until(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> 
     return pred()
 
 
-def frame(seq: int) -> bytes:
-    return encode(AttitudeFrame(seq, 87.3, -1.2, 0.4, 3101, 2470, 3311, 2470, 2452, 2950, Flags(6)))
-
-
-def default_reply(cmd: CommandFrame) -> Reply:
-    if cmd.command == "VER":
-        return [(0.0, encode(VERSION))]
-    if cmd.command == "RATE":
-        return [(0.0, encode(AckFrame.rate_ok(int(cmd.args[0]))))]
-    if cmd.key == "PAR,GET":
-        return [(0.0, encode(PARAMS))]
-    return [(0.0, encode(AckFrame.failure(cmd.command, "UNKNOWN")))]
-
-
 class Peer:
-    """A scripted GMR device on the master side of a real pty, reachable at ``path``."""
+    """The harness's scripted compass (sans-I/O) served on a real pty at ``path``."""
 
-    def __init__(self, path: Path, rate_hz: float = 50.0) -> None:
+    def __init__(self, path: Path) -> None:
         self.path = path
-        self.period = 1.0 / rate_hz
-        self.streaming = True
-        self.seq = 0
-        self.handlers: dict[str, Handler] = {}
-        self.commands: list[tuple[float, CommandFrame]] = []
-        self.sent_seqs: list[int] = []
-        self.lose: set[int] = set()  #: seqs never sent (lost on the line)
-        self._seen: dict[str, int] = {}
-        self._decoder = GmrDecoder(direction="device")
-        self._sched: list[tuple[float, int, bytes]] = []
-        self._n = 0
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._reboot_at: float | None = None
-        self._master = -1
-        self._slave = -1
-        self._plug()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    # -- pty management
-    def _plug(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        os.symlink(os.ttyname(slave), tmp)
-        os.replace(tmp, self.path)
-        with self._lock:
-            self._master, self._slave = master, slave
-
-    def unplug(self) -> None:
-        """The adapter vanishes: both ends closed, the path removed."""
-        with self._lock:
-            master, slave = self._master, self._slave
-            self._master = self._slave = -1
-        os.close(master)
-        os.close(slave)
-        self.path.unlink()
-
-    def replug(self) -> None:
-        """A new pty (another /dev/pts/N) appears at the same path."""
-        self._plug()
-
-    # -- scripting
-    def send(self, data: bytes, delay: float = 0.0) -> None:
-        with self._lock:
-            self._n += 1
-            heapq.heappush(self._sched, (time.monotonic() + delay, self._n, data))
-
-    def set_seq(self, seq: int) -> None:
-        """The next frame carries ``seq`` (frames in between are "lost")."""
-        with self._lock:
-            self.seq = seq % 65536
-
-    def skip(self, n: int) -> None:
-        """Lose the next ``n`` frames."""
-        with self._lock:
-            self.seq = (self.seq + n) % 65536
-
-    def reboot(self, silence: float = 0.3) -> None:
-        """RESET as the datasheet has it: silence, then $PGMRV and frames from seq 0."""
-        with self._lock:
-            self._reboot_at = time.monotonic() + silence
+        self.dev = ScriptedCompass()
+        self.handlers = self.dev.handlers
+        self.sim = PtyCompass(self.dev, path).start()  # type: ignore[arg-type]
 
     def received(self, key: str | None = None) -> list[CommandFrame]:
-        with self._lock:
-            return [c for _, c in self.commands if key is None or c.key == key]
+        with self.sim._lock:  # the serve thread owns the device
+            return self.dev.received(key)
 
-    def _on_command(self, cmd: CommandFrame, now: float) -> None:
-        with self._lock:
-            self.commands.append((now, cmd))
-            n = self._seen[cmd.key] = self._seen.get(cmd.key, 0) + 1
-            handler = self.handlers.get(cmd.key)
-        reply = handler(cmd, n) if handler is not None else default_reply(cmd)
-        for delay, data in reply or []:
-            self.send(data, delay)
+    @property
+    def streaming(self) -> bool:
+        return self.dev.streaming
 
-    def _write(self, data: bytes) -> None:
-        with self._lock:
-            fd = self._master
-        if fd < 0:
-            return
-        # Nobody reading (port closed) and the buffer full: the bytes are lost, as on a wire.
-        with contextlib.suppress(OSError):
-            os.write(fd, data)
-
-    def _run(self) -> None:
-        next_frame = time.monotonic()
-        while not self._stop.is_set():
-            with self._lock:
-                fd = self._master
-                due = self._sched[0][0] if self._sched else float("inf")
-            now = time.monotonic()
-            wait = max(0.0, min(0.02, due - now, next_frame - now if self.streaming else 0.02))
-            if fd < 0:
-                time.sleep(wait or 0.005)
-                continue
-            try:
-                ready, _, _ = select.select([fd], [], [], wait)
-                data = os.read(fd, 4096) if ready else b""
-            except OSError:
-                data = b""  # slave side closed (link reopening) or fd swapped under us
-            now = time.monotonic()
-            for cmd in self._decoder.feed(data):
-                if isinstance(cmd, CommandFrame):
-                    self._on_command(cmd, now)
-            out = b""
-            with self._lock:
-                if self._reboot_at is not None and now >= self._reboot_at:
-                    # Back from a reboot: $PGMRV first, then frames from seq 0.
-                    self._reboot_at = None
-                    out += encode(VERSION)
-                    self.seq = 0
-                    next_frame = now
-                if self.streaming and self._reboot_at is None and now >= next_frame:
-                    if self.seq in self.lose:
-                        self.seq = (self.seq + 1) % 65536
-                    self.sent_seqs.append(self.seq)
-                    out += frame(self.seq)
-                    self.seq = (self.seq + 1) % 65536
-                    next_frame = max(next_frame + self.period, now)
-                elif not self.streaming:
-                    next_frame = now
-            if out:
-                self._write(out)
-            while True:
-                with self._lock:
-                    if not self._sched or self._sched[0][0] > now:
-                        break
-                    _, _, out = heapq.heappop(self._sched)
-                self._write(out)
+    @streaming.setter
+    def streaming(self, on: bool) -> None:
+        with self.sim._lock:
+            self.dev.streaming = on
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        with self._lock:
-            fds = [fd for fd in (self._master, self._slave) if fd >= 0]
-            self._master = self._slave = -1
-        for fd in fds:
-            os.close(fd)
+        self.sim.stop()
 
 
 @pytest.fixture
@@ -229,23 +79,6 @@ def peer(tmp_path: Path) -> Iterator[Peer]:
     p = Peer(tmp_path / "ttyGMR")
     yield p
     p.close()
-
-
-class Collector:
-    """on_frame consumer that keeps everything (runs in the reader thread: appends only)."""
-
-    def __init__(self) -> None:
-        self.items: list[Received] = []
-        self.states: list[tuple[LinkState, LinkState]] = []
-
-    def on_frame(self, item: Received) -> None:
-        self.items.append(item)
-
-    def on_state(self, old: LinkState, new: LinkState) -> None:
-        self.states.append((old, new))
-
-    def seqs(self) -> list[int]:
-        return [i.frame.seq for i in self.items if isinstance(i.frame, AttitudeFrame)]
 
 
 def make_link(path: Path, col: Collector | None = None, **kw: object) -> CompassLink:
