@@ -114,6 +114,12 @@ def test_streams_frames_runs_handshake_and_counts(peer: Peer) -> None:
         assert c.command_retries == 0 and c.late_answers == 0 and c.unsolicited_answers == 0
         seqs = col.seqs()
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # in order, none missing
+        # A command's caller is woken by its answer, not by a poll: ten answered at once
+        # take nowhere near ten poll periods (a waiter once slept a second each).
+        t0 = time.monotonic()
+        for _ in range(10):
+            assert link.command("PAR", "GET") == PARAMS
+        assert time.monotonic() - t0 < 5.0
     assert (LinkState.OPENING, LinkState.STREAMING) in col.states
     assert col.states[0] == (LinkState.ABSENT, LinkState.OPENING)
 

@@ -117,7 +117,8 @@ class CompassLink:
         self._wake = threading.Event()  # a command was queued: the reader's wait is stale
         self._ended = threading.Event()
         self._reader: threading.Thread | None = None
-        self._states: list[StateChanged] = []  # for the reader to hand to on_state
+        self._said: list[StateChanged | Notice] = []  # to log (and hand to on_state) unlocked
+        self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
 
     # ------------------------------------------------------------------ public API
 
@@ -184,7 +185,7 @@ class CompassLink:
             raise RuntimeError("link already started")
         with self._lock:
             self._machine.start(self._clock())
-            self._run_events(self._machine.take_events())
+            self._act()
         self._reader = threading.Thread(target=self._run, name="compass-link-reader", daemon=True)
         self._reader.start()
         return self
@@ -201,8 +202,10 @@ class CompassLink:
         with self._cond:
             # Every command still waiting ends in LinkDown.
             self._machine.close(self._clock())
-            self._run_events(self._machine.take_events())
+            self._act()
             self._cond.notify_all()
+        if t is None or not t.is_alive():
+            self._report()  # the reader is gone: what is left is said here
         self._close_port()
 
     def __enter__(self) -> CompassLink:
@@ -242,7 +245,7 @@ class CompassLink:
             if self._stop.is_set():
                 raise LinkDown("link is closed")
             txn = self._machine.submit(cmd, self._clock(), per_try, retries)
-            self._run_events(self._machine.take_events())
+            self._act()
             self._wake.set()  # the reader's wait may end later than this command's deadline
             while not txn.done:
                 # The reader ends it (answer, deadline) or close() does; the bound only
@@ -251,7 +254,7 @@ class CompassLink:
                     self._reader is None or not self._reader.is_alive()
                 ):
                     self._machine.close(self._clock())
-                    self._run_events(self._machine.take_events())
+                    self._act()
         return txn.result()
 
     def default_timeout(self, cmd: CommandFrame) -> float:
@@ -261,50 +264,54 @@ class CompassLink:
 
     # ------------------------------------------------------------------ the driver
 
-    def _run_events(self, events: list[LinkEvent]) -> None:
-        """Do what the machine asked (the lock held): writes, closes, log lines.
-
-        State changes are kept for the reader thread's ``on_state`` (and logged here).
-        """
+    def _act(self) -> None:
+        """Do what the machine asks (the lock held): writes and closes at once; state changes
+        and log lines kept for :meth:`_report` (nothing is logged or called back under the
+        lock); command waiters woken when a transaction ended."""
+        m = self._machine
+        events: list[LinkEvent] = m.take_events() if m.has_events else []
         for ev in events:
             if type(ev) is Write:
                 try:
                     self._transport.write(ev.data)
                 except OSError as e:
                     # The reader notices a lost port on its next read: fail this command.
-                    self._machine.write_failed(ev, str(e), self._clock())
-                    events.extend(self._machine.take_events())
+                    m.write_failed(ev, str(e), self._clock())
+                    events.extend(m.take_events())
             elif type(ev) is ClosePort:
                 with contextlib.suppress(OSError):
                     self._transport.close()
-            elif type(ev) is StateChanged:
-                suffix = f" ({ev.reason})" if ev.reason else ""
-                level = (
-                    logging.WARNING
-                    if ev.new in (LinkState.ABSENT, LinkState.STALE)
-                    else logging.INFO
-                )
-                log.log(
-                    level, "compass %s: %s -> %s%s", self.name, ev.old.value, ev.new.value, suffix
-                )
-                self._states.append(ev)
-                self._cond.notify_all()
-            elif type(ev) is Notice:
-                log.log(ev.level, "%s", ev.message)
-        if any(type(ev) is not Notice for ev in events):
-            self._cond.notify_all()  # a command may have ended
+            elif isinstance(ev, StateChanged | Notice):
+                self._said.append(ev)
+        if events or m.commands_ended != self._ended_seen:
+            self._ended_seen = m.commands_ended
+            self._cond.notify_all()
 
-    def _dispatch_states(self) -> None:
-        """on_state for the changes seen (reader thread, lock not held)."""
+    def _report(self) -> None:
+        """Log what the machine said; state changes to ``on_state`` (reader thread, or close()
+        once the reader is gone; the lock not held)."""
         with self._lock:
-            states, self._states = self._states, []
-        if self._on_state is None:
-            return
-        for ev in states:
-            try:
-                self._on_state(ev.old, ev.new)
-            except Exception:
-                log.exception("compass %s: on_state callback failed", self.name)
+            said, self._said = self._said, []
+        for ev in said:
+            if type(ev) is Notice:
+                log.log(ev.level, "%s", ev.message)
+                continue
+            assert type(ev) is StateChanged
+            suffix = f" ({ev.reason})" if ev.reason else ""
+            bad = ev.new in (LinkState.ABSENT, LinkState.STALE)
+            log.log(
+                logging.WARNING if bad else logging.INFO,
+                "compass %s: %s -> %s%s",
+                self.name,
+                ev.old.value,
+                ev.new.value,
+                suffix,
+            )
+            if self._on_state is not None:
+                try:
+                    self._on_state(ev.old, ev.new)
+                except Exception:
+                    log.exception("compass %s: on_state callback failed", self.name)
 
     def _close_port(self) -> None:
         with self._lock, contextlib.suppress(OSError):
@@ -319,9 +326,9 @@ class CompassLink:
             with self._cond:
                 self._machine.lost(self._clock(), "reader crashed")
                 self._machine.close(self._clock())
-                self._run_events(self._machine.take_events())
+                self._act()
         finally:
-            self._dispatch_states()
+            self._report()
             self._close_port()
 
     def _open(self) -> bool:
@@ -331,13 +338,13 @@ class CompassLink:
         except EndOfRecording as e:
             with self._cond:
                 self._machine.end(self._clock(), str(e))
-                self._run_events(self._machine.take_events())
+                self._act()
             self._ended.set()
             return False
         except OSError as e:
             with self._cond:
                 self._machine.open_failed(self._clock(), str(e))
-                self._run_events(self._machine.take_events())
+                self._act()
             return True
         baud = getattr(self._transport, "baud", None)
         with self._cond:
@@ -346,7 +353,7 @@ class CompassLink:
                 interactive=self._transport.interactive,
                 baud=baud if isinstance(baud, int) else None,
             )
-            self._run_events(self._machine.take_events())
+            self._act()
         return True
 
     def _read_loop(self) -> None:
@@ -361,12 +368,11 @@ class CompassLink:
                 if deadline is not None and now >= deadline:
                     machine.tick(now)  # staleness, a command's deadline, a retry
                     deadline = machine.next_deadline()
-                if machine.has_events:
-                    self._run_events(machine.take_events())
+                self._act()
                 is_open = machine.is_open
                 open_due = machine.open_due(now)
-            if self._states:
-                self._dispatch_states()
+            if self._said:
+                self._report()
             if not is_open:
                 if open_due:
                     if not self._open():
@@ -383,20 +389,19 @@ class CompassLink:
             except EndOfRecording as e:
                 with self._cond:
                     machine.end(clock(), str(e))
-                    self._run_events(machine.take_events())
+                    self._act()
                 self._ended.set()
                 return
             except OSError as e:
                 with self._cond:
                     machine.lost(clock(), str(e))
-                    self._run_events(machine.take_events())
+                    self._act()
                 continue
             if not data:
                 continue
             with self._lock:
                 received = machine.receive(data, clock())
-                if machine.has_events:
-                    self._run_events(machine.take_events())
+                self._act()
             for item in received:
                 try:
                     on_frame(item)

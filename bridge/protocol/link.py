@@ -232,6 +232,8 @@ class LinkMachine:
             warn=self._warn,
         )
         self._done: list[Command] = []
+        #: Transactions ended so far (a driver wakes its command waiters when it moves).
+        self.commands_ended = 0
         self._generation = 0
         self._handshake: Command | None = None  # the handshake's command in flight
         self._handshake_gen = 0  # the generation it serves
@@ -621,6 +623,7 @@ class LinkMachine:
     def _after_commands(self) -> None:
         """Commands that ended: the handshake's next step (or its end)."""
         done, self._done = self._done, []
+        self.commands_ended += len(done)
         hs = self._handshake
         if hs is None or hs not in done:
             return
