@@ -567,7 +567,9 @@ def test_bad_commands_get_clear_answers_and_junk_is_ignored() -> None:
     bus = EventBus()
     seen: list[str] = []
     bus.subscribe(lambda e: seen.append(e.kind))
-    with CalibrationController(AttitudeEngine(), bus) as ctl:  # host only: no link, no store
+    ctl = CalibrationController(AttitudeEngine(), bus)  # host only: no link, no store
+    ctl.run_inline()  # no worker thread: nothing here needs one
+    with ctl:
         assert ctl.start_mag(mask=2).result is Result.FAILED  # no compass 1 here
         assert ctl.start_mag(mask=1.5).result is Result.FAILED
         assert ctl.start_mag(delay_s=math.nan).result is Result.FAILED
@@ -598,6 +600,8 @@ def test_bad_commands_get_clear_answers_and_junk_is_ignored() -> None:
 
 def test_heading_only_compass_cannot_be_calibrated() -> None:
     link = HarnessPort(LinkHarness(ScriptedCompass(), protocol="nmea", rate_hz=None))
-    with CalibrationController(AttitudeEngine(), EventBus(), link=link) as ctl:
+    ctl = CalibrationController(AttitudeEngine(), EventBus(), link=link)
+    ctl.run_inline()
+    with ctl:
         for out in (ctl.start_mag(), ctl.start_accel(), ctl.start_level(), ctl.fixed_yaw(0.0)):
             assert out.result is Result.FAILED and "heading-only" in out.message
