@@ -265,6 +265,7 @@ class LinePlayer:
         self.period = period
         self.host_bytes = bytearray()
         self.sent = 0
+        self.silent = False  #: True: the device sends nothing (its lines are not sent later)
         self._extra: list[bytes] = []
         self._next: float | None = None
         self._out = bytearray()
@@ -279,6 +280,9 @@ class LinePlayer:
         if self._next is None:
             self._next = now
         while self._next <= now:
+            if self.silent:
+                self._next += self.period
+                continue
             if self._extra:
                 self._out += self._extra.pop(0)
             self._out += self.lines[self.sent % len(self.lines)]
@@ -382,11 +386,20 @@ class LinkHarness:
 
         self.at(period, tick)
 
+    def clear_timers(self) -> None:
+        """Forget every scripted action still to come (:meth:`at`, :meth:`every`)."""
+        self._timers.clear()
+
     def unplug(self) -> None:
         """The adapter vanishes: the open port fails, opens fail until :meth:`replug`."""
         self.plugged = False
         if self.machine.is_open:
             self.machine.lost(self.clock.t, "read failed: [Errno 5] Input/output error")
+        self._settle()
+
+    def end(self, why: str = "end of recording") -> None:
+        """The port ends for good (a replay played to its end)."""
+        self.machine.end(self.clock.t, why)
         self._settle()
 
     def replug(self) -> None:

@@ -273,7 +273,7 @@ def test_a_compass_streaming_in_short_bursts_stays_stale() -> None:
     assert len(restored) <= 2, h.collector.states
     assert h.state is not LinkState.STREAMING
     # Frames that keep coming bring it back.
-    h._timers.clear()
+    h.clear_timers()
     dev.streaming = True
     assert h.run_until(lambda: streaming(h), 5.0)
 
@@ -529,8 +529,7 @@ def test_a_replay_gets_no_handshake_and_ends_absent_for_good() -> None:
     assert h.run_until(lambda: streaming(h))
     h.run_for(0.5)
     assert dev.received() == []  # writes would go nowhere: none are made
-    h.machine.end(h.now, "end of recording")
-    h._settle()
+    h.end("end of recording")
     assert h.state is LinkState.ABSENT and h.machine.ended
     assert h.machine.next_deadline() is None and not h.machine.open_due(h.now + 10)
 
