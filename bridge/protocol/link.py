@@ -292,11 +292,6 @@ class LinkMachine:
         """The port has ended for good (a replay played to its end)."""
         return self._ended
 
-    @property
-    def handshaking(self) -> bool:
-        """The connect handshake is running (or due)."""
-        return self._handshake is not None or self._handshake_pending()
-
     def count(self, name: str, n: int = 1) -> None:
         """Bump counter ``name`` (a :class:`~bridge.device.LinkCounters` field) by ``n``."""
         self._c[name] += n
