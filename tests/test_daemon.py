@@ -315,6 +315,27 @@ def test_a_silent_compass_is_lost_and_restored_on_the_bus(tmp_path: Path) -> Non
     assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
 
 
+def test_an_unplugged_adapter_is_counted_and_the_stream_comes_back(tmp_path: Path) -> None:
+    """USB unplugged and back: the status counts the reconnect; samples carry on."""
+    h, _, out, app = in_memory(
+        config(tmp_path, "/dev/ttyUSB0"), gmr_lines(UnitErrors.ideal(), [0.0, 90.0])
+    )
+    kinds: list[str] = []
+    app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    run_samples(h, out, 3)
+    h.unplug()
+    h.at(2.5, h.replug)
+    assert app.status().state is LinkState.ABSENT  # type: ignore[attr-defined]
+    n = len(out.samples)
+    h.run_for(2.0)
+    assert len(out.samples) == n  # nothing while it is away
+    run_samples(h, out, n + 5)
+    status = app.status()  # type: ignore[attr-defined]
+    assert status.state is LinkState.STREAMING and status.counters.reconnects == 1
+    assert status.counters.open_failures >= 3
+    assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
+
+
 class Stuck(LatestSampleWorker):
     """An output whose I/O hangs (a dead network peer) until released."""
 

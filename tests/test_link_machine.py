@@ -660,3 +660,22 @@ def test_a_slow_compass_runs_magcal_start_once_and_abort_leaves_it() -> None:
         h.command("MAGCAL", "ABORT", retries=1)
     assert not fw.calibrating  # left as found
     assert h.counters.command_retries == 0 and h.counters.device_resets == 0
+
+
+def test_a_wrong_baud_rate_is_noise_counted_never_a_stream() -> None:
+    """A compass at 115200 read at 9600: a trickle of meaningless bytes -- counted as bad
+    lines, the link STALE and reopening, no frame taken for real."""
+    from harness import LinePlayer
+    from test_faults_serial import uart_as_read_at
+
+    line = attitude_line(1)
+    garbled = uart_as_read_at(line * 4, 115200, 9600)
+    assert garbled and b"\n" not in garbled
+    dev = LinePlayer([garbled + b"\r\n"], period=0.05)  # and a line end now and then
+    h = LinkHarness(dev, rate_hz=10, stale_after=1.0)
+    h.run_for(5.0)
+    c = h.counters
+    assert c.bad_lines_total > 0 and c.attitude_frames == 0 and c.frames == 0
+    assert h.state is LinkState.STALE and c.stale_events >= 2
+    assert h.collector.new_states() == [LinkState.OPENING, LinkState.STALE]
+    assert "no attitude frame for 1 s" in h.reasons[-1]
