@@ -15,9 +15,13 @@ from __future__ import annotations
 import enum
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, TypeAlias
 
-from bridge.protocol.gmr import AckFrame, ParamsFrame, VersionFrame
+from bridge.protocol.gmr import AckFrame, GmrFrame, ParamsFrame, VersionFrame
+from bridge.protocol.heading import HeadingFrame
+
+#: What the link hands on: a GMR sentence, or a heading-only compass's sentence.
+LinkFrame: TypeAlias = GmrFrame | HeadingFrame
 
 # ---------------------------------------------------------------------------
 # The compass link
@@ -48,7 +52,6 @@ class LinkCounters:
     open_failures: int = 0
     stale_events: int = 0
     device_resets: int = 0  #: unasked $PGMRV, or seq restarting at 0
-    consumer_drops: int = 0  #: oldest frames dropped because the consumer lagged
     callback_errors: int = 0
     commands_sent: int = 0  #: attempts written, retries included
     command_retries: int = 0
@@ -66,7 +69,7 @@ class LinkCounters:
 class Received(NamedTuple):
     """A decoded frame and the monotonic time its last byte was read (the link's output)."""
 
-    frame: Any
+    frame: LinkFrame
     t: float
 
 

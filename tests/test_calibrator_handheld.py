@@ -81,9 +81,8 @@ def calibrate_live(
     ``fit_limit_mG`` is COMPASS_CAL_FIT (None: ArduPilot's default, 16 mG)."""
     clock, events, bus = Clock(), Events(), EventBus()
     bus.subscribe(events)
-    ctl = CalibrationController(
-        AttitudeEngine(), bus, field=FIELD, settings=settings, clock=clock
-    ).start()
+    ctl = CalibrationController(AttitudeEngine(), bus, field=FIELD, settings=settings, clock=clock)
+    ctl.run_inline()  # the fits run in this thread, on the tumble's clock
     if fit_limit_mG is not None:
         ctl.fitness_limit_mG = fit_limit_mG
     assert ctl.start_mag().ok
@@ -93,13 +92,15 @@ def calibrate_live(
         ctl.feed(_frame(i, rec, i))
         snap = ctl.snapshot()
         if step_one and snap.completion_pct >= 33.2:
-            # step one's buffer is full: let the worker fit its sphere before going on
+            # step one's buffer is full: the worker fits its sphere before going on
             step_one = False
-            assert ctl.wait_for(lambda s: s.step != 1 or not s.running, WAIT_S)
+            ctl.step()
+            assert ctl.snapshot().step != 1 or not ctl.snapshot().running
         if not snap.running or (snap.step == 2 and snap.completion_pct >= 98.9):
             break
-    done = ctl.wait_for(lambda s: not s.running, WAIT_S)
-    assert done is not None, ctl.snapshot()
+    ctl.step()  # the final fit
+    done = ctl.snapshot()
+    assert not done.running, done
     events.wait_any(("calibration.done", "calibration.failed"))
     before = ctl._engine.calibration
     if done.phase is Phase.SUCCEEDED:

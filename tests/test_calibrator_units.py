@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pytest
+from harness import HarnessPort, LinkHarness, ScriptedCompass
 
 from bridge.app.calibration.controller import (
     CalibrationController,
@@ -45,8 +46,6 @@ from bridge.core.attitude import AttitudeEngine
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, random_rotations
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.events import EventBus
-from bridge.link.serial_link import CompassLink
-from bridge.link.transport import SimTransport
 from bridge.protocol.gmr import (
     AckFrame,
     AttitudeFrame,
@@ -568,7 +567,9 @@ def test_bad_commands_get_clear_answers_and_junk_is_ignored() -> None:
     bus = EventBus()
     seen: list[str] = []
     bus.subscribe(lambda e: seen.append(e.kind))
-    with CalibrationController(AttitudeEngine(), bus) as ctl:  # host only: no link, no store
+    ctl = CalibrationController(AttitudeEngine(), bus)  # host only: no link, no store
+    ctl.run_inline()  # no worker thread: nothing here needs one
+    with ctl:
         assert ctl.start_mag(mask=2).result is Result.FAILED  # no compass 1 here
         assert ctl.start_mag(mask=1.5).result is Result.FAILED
         assert ctl.start_mag(delay_s=math.nan).result is Result.FAILED
@@ -598,7 +599,9 @@ def test_bad_commands_get_clear_answers_and_junk_is_ignored() -> None:
 
 
 def test_heading_only_compass_cannot_be_calibrated() -> None:
-    link = CompassLink(SimTransport(make_firmware(1)), protocol="nmea", rate_hz=None)
-    with CalibrationController(AttitudeEngine(), EventBus(), link=link) as ctl:
+    link = HarnessPort(LinkHarness(ScriptedCompass(), protocol="nmea", rate_hz=None))
+    ctl = CalibrationController(AttitudeEngine(), EventBus(), link=link)
+    ctl.run_inline()
+    with ctl:
         for out in (ctl.start_mag(), ctl.start_accel(), ctl.start_level(), ctl.fixed_yaw(0.0)):
             assert out.result is Result.FAILED and "heading-only" in out.message

@@ -7,6 +7,8 @@ import io
 import time
 from pathlib import Path
 
+import pytest
+
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.console import ConsoleOutput, TerminalGate, format_line
 from bridge.device import LinkCounters, LinkState
@@ -56,6 +58,7 @@ def _wait(cond: object, what: str) -> None:
     assert cond(), what  # type: ignore[operator]
 
 
+@pytest.mark.integration
 def test_in_the_background_the_console_says_its_intro_then_holds_everything() -> None:
     fg = [False]
     out = io.StringIO()

@@ -1,9 +1,13 @@
-"""Daemon wiring on real pseudo-terminals: link -> calibration -> attitude engine -> outputs.
+"""The daemon's frame path: link -> calibration -> attitude engine -> outputs.
 
-A feeder thread plays datasheet sentences into the master side of a pty; the
-daemon opens the slave through pyserial exactly as it would a USB adapter.
-Expected headings come from the simulator's physics (ground truth attitude ->
-ADC counts), not from the engine under test.
+In memory (tests/harness.py): the link machine plays datasheet sentences from a
+device on a manual clock into the application (the real Bridge, pipeline,
+engine and storage), no threads. On real pseudo-terminals (``integration``): a
+feeder thread plays them into the master side of a pty and the whole daemon
+opens the slave through pyserial exactly as it would a USB adapter; and the
+replays, the console and the threaded outputs. Expected headings come from the
+simulator's physics (ground truth attitude -> ADC counts), not from the engine
+under test.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from harness import LinePlayer, LinkHarness, bridge_on
 from helpers import load_calibration
 
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
@@ -156,9 +161,35 @@ def running() -> Iterator[Callable[[Daemon], Daemon]]:
         d.stop(timeout=3.0)
 
 
+def in_memory(
+    cfg: Config, lines: Sequence[bytes], period: float = 0.02, **bridge: object
+) -> tuple[LinkHarness, LinePlayer, Collect, object]:
+    """The application on the harness: ``lines`` played round and round into its link."""
+    dev = LinePlayer(list(lines), period)
+    protocol = cfg.device.protocol
+    h = LinkHarness(
+        dev,
+        start=False,
+        protocol=protocol,
+        rate_hz=cfg.device.rate_hz if protocol == "gmr" else None,
+        stale_after=cfg.device.stale_after,
+    )
+    app = bridge_on(h, cfg, **bridge)
+    out = Collect()
+    app.set_outputs([out])
+    h.start()
+    return h, dev, out, app
+
+
+def run_samples(h: LinkHarness, out: Collect, n: int) -> list[CompassSample]:
+    assert h.run_until(lambda: len(out.samples) >= n, 10.0), f"only {len(out.samples)} samples"
+    return list(out.samples)
+
+
 # --- the GMR path -------------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_host_heading_follows_the_attitude(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -190,22 +221,39 @@ def _max_error(samples: Sequence[CompassSample], yaws: Sequence[float]) -> float
     return max(abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) for s in samples)
 
 
-def test_stored_calibration_is_applied(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
+def test_host_heading_follows_the_attitude_in_memory(tmp_path: Path) -> None:
+    yaws = [0.0, 45.0, 90.0, 135.0, 200.0, 300.0]
+    lines = gmr_lines(UnitErrors.ideal(), yaws, pitch_deg=10.0, roll_deg=-20.0)
+    h, dev, out, app = in_memory(config(tmp_path, "/dev/ttyUSB0"), lines)
+    samples = run_samples(h, out, 2 * len(yaws))
+    assert h.state is LinkState.STREAMING
+    assert app.calibration_source == "none (identity)"  # type: ignore[attr-defined]
+    for s in samples:
+        assert s.source == "host" and s.heading_reference == "magnetic"
+        assert s.seq is not None and s.device_heading_deg is not None
+        assert abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq]))) < 0.5, (s.seq, s.heading_deg)
+        assert s.pitch_deg == pytest.approx(10.0, abs=0.5)
+        assert s.roll_deg == pytest.approx(-20.0, abs=0.5)
+        assert s.heading_true_deg is None  # no [location]: no declination
+    assert {s.seq for s in samples} == set(range(len(yaws)))
+    # Each sample carries the instant its frame was read, on the link's clock.
+    assert [s.t for s in samples[:3]] == pytest.approx([h.clock.t - 0.02 * i for i in (11, 10, 9)])
+    # The handshake was written to the device: VER, RATE, PAR,GET.
+    assert bytes(dev.host_bytes).startswith(b"$PGMRQ,VER*")
+
+
+def test_stored_calibration_is_applied(tmp_path: Path) -> None:
     unit = _hard_iron_unit()
     yaws = [10.0, 100.0, 190.0, 280.0]
     lines = gmr_lines(unit, yaws)
     # Without calibration the hard iron bends the heading by tens of degrees ...
-    with PtyFeeder(lines) as pty:
-        raw = Collect()
-        running(Daemon(config(tmp_path, pty.path), [raw]))
-        assert _max_error(raw.wait_for(8), yaws) > 10.0
+    h, _, raw, _ = in_memory(config(tmp_path, "/dev/ttyUSB0"), lines)
+    assert _max_error(run_samples(h, raw, 8), yaws) > 10.0
     # ... with the true calibration stored in the state directory it is gone.
     StateStore(tmp_path / "state").save("calibration", unit.true_calibration().to_dict())
-    with PtyFeeder(lines) as pty:
-        cal = Collect()
-        d = running(Daemon(config(tmp_path, pty.path), [cal]))
-        assert d.calibration_source == "stored"
-        assert _max_error(cal.wait_for(8), yaws) < 0.5
+    h, _, cal, app = in_memory(config(tmp_path, "/dev/ttyUSB0"), lines)
+    assert app.calibration_source == "stored"  # type: ignore[attr-defined]
+    assert _max_error(run_samples(h, cal, 8), yaws) < 0.5
 
 
 def test_corrupt_calibration_falls_back_to_identity(tmp_path: Path) -> None:
@@ -224,39 +272,68 @@ def test_corrupt_calibration_falls_back_to_identity(tmp_path: Path) -> None:
     assert load_calibration(str(state)) == (good, "stored")
 
 
-def test_declination_from_location(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
+def test_declination_from_location(tmp_path: Path) -> None:
     lat, lon = 47.4, 8.5
     decl = earth_field(lat, lon, 0.0).declination_deg
-    with PtyFeeder(gmr_lines(UnitErrors.ideal(), [30.0])) as pty:
-        out = Collect()
-        cfg = config(tmp_path, pty.path, f"location.latitude={lat}", f"location.longitude={lon}")
-        running(Daemon(cfg, [out]))
-        s = out.wait_for(3)[-1]
+    cfg = config(tmp_path, "/dev/ttyUSB0", f"location.latitude={lat}", f"location.longitude={lon}")
+    h, _, out, _ = in_memory(cfg, gmr_lines(UnitErrors.ideal(), [30.0]))
+    s = run_samples(h, out, 3)[-1]
     assert s.declination_deg == pytest.approx(decl, abs=1e-6)
     assert s.heading_true_deg == pytest.approx((s.heading_deg + decl) % 360.0, abs=1e-6)
     assert s.heading_reference == "magnetic"
 
 
-def test_noise_on_the_line_is_counted_and_dropped(
-    tmp_path: Path, running: Callable[[Daemon], Daemon]
-) -> None:
+def test_noise_on_the_line_is_counted_and_dropped(tmp_path: Path) -> None:
     yaws = [0.0, 90.0]
-    with PtyFeeder(gmr_lines(UnitErrors.ideal(), yaws)) as pty:
-        out = Collect()
-        d = running(Daemon(config(tmp_path, pty.path), [out]))
-        out.wait_for(2)
-        pty.inject(b"\x00\xffgarbage$PGMRA,1,2,3*00\r\n")  # binary junk + a bad checksum
-        pty.inject(nmea("PGMRA,5,999.0,0.0,0.0,1,2,3,4,5,6,06"))  # heading out of range
-        deadline = time.monotonic() + DEADLINE_S
-        while d.link.counters.bad_lines_total < 2 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        n = len(out.samples)
-        out.wait_for(n + 4)  # and it keeps going
-    assert d.link.counters.bad_lines_total >= 2
-    assert d.pipeline_errors == 0
+    h, dev, out, app = in_memory(
+        config(tmp_path, "/dev/ttyUSB0"), gmr_lines(UnitErrors.ideal(), yaws)
+    )
+    run_samples(h, out, 2)
+    dev.inject(b"\x00\xffgarbage$PGMRA,1,2,3*00\r\n")  # binary junk + a bad checksum
+    dev.inject(nmea("PGMRA,5,999.0,0.0,0.0,1,2,3,4,5,6,06"))  # heading out of range
+    assert h.run_until(lambda: h.counters.bad_lines_total >= 2, 1.0)
+    run_samples(h, out, len(out.samples) + 4)  # and it keeps going
+    assert app.pipeline.errors == 0  # type: ignore[attr-defined]
     assert all(
         abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) < 0.5 for s in out.samples
     )
+
+
+def test_a_silent_compass_is_lost_and_restored_on_the_bus(tmp_path: Path) -> None:
+    """The pipeline hears the link's state changes: lost when the stream stops, restored."""
+    h, dev, out, app = in_memory(
+        config(tmp_path, "/dev/ttyUSB0"), gmr_lines(UnitErrors.ideal(), [0.0])
+    )
+    kinds: list[str] = []
+    app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    run_samples(h, out, 3)
+    dev.silent = True  # the compass stops
+    assert h.run_until(lambda: h.state is LinkState.STALE, 5.0)
+    dev.silent = False
+    assert h.run_until(lambda: h.state is LinkState.STREAMING, 5.0)
+    assert app.status().state is LinkState.STREAMING  # type: ignore[attr-defined]
+    assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
+
+
+def test_an_unplugged_adapter_is_counted_and_the_stream_comes_back(tmp_path: Path) -> None:
+    """USB unplugged and back: the status counts the reconnect; samples carry on."""
+    h, _, out, app = in_memory(
+        config(tmp_path, "/dev/ttyUSB0"), gmr_lines(UnitErrors.ideal(), [0.0, 90.0])
+    )
+    kinds: list[str] = []
+    app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    run_samples(h, out, 3)
+    h.unplug()
+    h.at(2.5, h.replug)
+    assert app.status().state is LinkState.ABSENT  # type: ignore[attr-defined]
+    n = len(out.samples)
+    h.run_for(2.0)
+    assert len(out.samples) == n  # nothing while it is away
+    run_samples(h, out, n + 5)
+    status = app.status()  # type: ignore[attr-defined]
+    assert status.state is LinkState.STREAMING and status.counters.reconnects == 1
+    assert status.counters.open_failures >= 3
+    assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
 
 
 class Stuck(LatestSampleWorker):
@@ -272,6 +349,7 @@ class Stuck(LatestSampleWorker):
         self.release.wait(DEADLINE_S)
 
 
+@pytest.mark.integration
 def test_a_stuck_output_does_not_stall_the_others(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -301,6 +379,7 @@ class Wedged(Collect):
             self.release.wait(DEADLINE_S)
 
 
+@pytest.mark.integration
 def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -315,8 +394,6 @@ def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
         time.sleep(0.3)
         assert d.pipeline_alive_at == stuck_at  # frozen while the frame is inside
         assert time.monotonic() - stuck_at >= 0.3
-        assert d.link.get(timeout=0.1) is None  # no consumer queue
-        assert d.link.counters.consumer_drops == 0
         out.release.set()
         out.wait_for(10)
         assert time.monotonic() - d.pipeline_alive_at < 0.1  # idle between frames: alive now
@@ -326,24 +403,20 @@ def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
 # --- heading-only compasses -----------------------------------------------------------
 
 
-def test_nmea_heading_is_forwarded_with_declination(
-    tmp_path: Path, running: Callable[[Daemon], Daemon]
-) -> None:
+def test_nmea_heading_is_forwarded_with_declination(tmp_path: Path) -> None:
     lat, lon = -33.9, 151.2  # Sydney: declination about +13 deg
     decl = earth_field(lat, lon, 0.0).declination_deg
     lines = [nmea("HCHDM,123.4,M"), nmea("HEHDT,200.0,T")]
-    with PtyFeeder(lines) as pty:
-        out = Collect()
-        cfg = config(
-            tmp_path,
-            pty.path,
-            "device.protocol=nmea",
-            f"location.latitude={lat}",
-            f"location.longitude={lon}",
-        )
-        d = running(Daemon(cfg, [out]))
-        samples = out.wait_for(6)
-    assert d.link.protocol == "nmea"
+    cfg = config(
+        tmp_path,
+        "/dev/ttyUSB0",
+        "device.protocol=nmea",
+        f"location.latitude={lat}",
+        f"location.longitude={lon}",
+    )
+    h, _, out, _ = in_memory(cfg, lines)
+    samples = run_samples(h, out, 6)
+    assert h.machine.protocol == "nmea"
     hdm = next(s for s in samples if s.heading_magnetic_deg == pytest.approx(123.4))
     assert hdm.source == "device" and hdm.attitude is None
     assert hdm.heading_true_deg == pytest.approx(123.4 + decl, abs=1e-6)
@@ -352,23 +425,19 @@ def test_nmea_heading_is_forwarded_with_declination(
     assert hdt.heading_deg == hdt.heading_magnetic_deg  # magnetic is published when known
 
 
-def test_hdg_variation_is_used_without_location(
-    tmp_path: Path, running: Callable[[Daemon], Daemon]
-) -> None:
-    with PtyFeeder([nmea("HCHDG,100.0,,,4.5,W")]) as pty:
-        out = Collect()
-        running(Daemon(config(tmp_path, pty.path, "device.protocol=nmea"), [out]))
-        s = out.wait_for(2)[-1]
+def test_hdg_variation_is_used_without_location(tmp_path: Path) -> None:
+    cfg = config(tmp_path, "/dev/ttyUSB0", "device.protocol=nmea")
+    h, dev, out, _ = in_memory(cfg, [nmea("HCHDG,100.0,,,4.5,W")])
+    s = run_samples(h, out, 2)[-1]
     assert s.heading_magnetic_deg == pytest.approx(100.0)
     assert s.heading_true_deg == pytest.approx(95.5)  # west variation is negative
-    assert pty.host_bytes == b""  # a heading-only compass gets no commands
+    assert dev.host_bytes == b""  # a heading-only compass gets no commands
 
 
-def test_os5000_pitch_roll_forwarded(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
-    with PtyFeeder([nmea("C271.5P-3.0R12.5T21.0")]) as pty:
-        out = Collect()
-        running(Daemon(config(tmp_path, pty.path, "device.protocol=os5000"), [out]))
-        s = out.wait_for(2)[-1]
+def test_os5000_pitch_roll_forwarded(tmp_path: Path) -> None:
+    cfg = config(tmp_path, "/dev/ttyUSB0", "device.protocol=os5000")
+    h, _, out, _ = in_memory(cfg, [nmea("C271.5P-3.0R12.5T21.0")])
+    s = run_samples(h, out, 2)[-1]
     assert (s.heading_deg, s.pitch_deg, s.roll_deg) == (271.5, -3.0, 12.5)
     assert s.heading_true_deg is None
 
@@ -376,6 +445,7 @@ def test_os5000_pitch_roll_forwarded(tmp_path: Path, running: Callable[[Daemon],
 # --- replay and the run loop ------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_replay_runs_to_the_end_and_exits_zero(tmp_path: Path) -> None:
     rec = tmp_path / "run.cbrec"
     lines = gmr_lines(UnitErrors.ideal(), [float(y) for y in range(0, 360, 30)])
@@ -392,6 +462,7 @@ def test_replay_runs_to_the_end_and_exits_zero(tmp_path: Path) -> None:
     assert done == [0]
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("realtime", [True, False])
 def test_replay_pace_follows_device_replay_realtime(
     tmp_path: Path, running: Callable[[Daemon], Daemon], realtime: bool
@@ -427,6 +498,7 @@ def _sample(heading: float) -> CompassSample:
     return CompassSample(0.0, "host", heading, "magnetic", heading, None, None, 1.5, -2.0)
 
 
+@pytest.mark.integration
 def test_console_line_pipe_mode() -> None:
     stream = io.StringIO()
     con = ConsoleOutput(_status, stream, tty=False, interval=0.05)
@@ -443,6 +515,7 @@ def test_console_line_pipe_mode() -> None:
     assert "streaming" in lines[-1]
 
 
+@pytest.mark.integration
 def test_console_line_tty_mode_rewrites_in_place() -> None:
     stream = io.StringIO()
     con = ConsoleOutput(lambda: _status(LinkState.STALE), stream, tty=True, interval=0.02)
@@ -473,6 +546,7 @@ def _wait(cond: Callable[[], bool]) -> None:
         time.sleep(0.01)
 
 
+@pytest.mark.integration
 def test_publish_driven_output_emits_each_new_sample_once() -> None:
     out = Record()
     out.start()

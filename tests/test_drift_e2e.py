@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_mavlink_rig import DEADLINE_S, FastClock, M, connect_gcs, free_port, make_config
 
 from bridge.app.calibration.store import CalibrationStore
@@ -27,6 +28,8 @@ from bridge.storage import StateStore
 SPEED = 20.0  #: simulated seconds per real second (as the other fast rigs: a loaded
 #: machine that starves the reader for 2 simulated seconds loses frames)
 SEED = 4
+
+pytestmark = pytest.mark.integration  # a real UDP ground station, the daemon's threads
 
 
 def test_a_hard_iron_change_mid_drive_reaches_the_ground_station(tmp_path: Path) -> None:

@@ -171,6 +171,7 @@ def test_undo_goes_back_to_where_learning_started_once() -> None:
     assert rig.monitor.undo()[0] is False  # a repeated request finds nothing to undo
 
 
+@pytest.mark.integration
 def test_the_monitor_thread_processes_the_blocks() -> None:
     rig = Rig()
     seen = threading.Event()

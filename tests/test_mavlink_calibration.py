@@ -47,6 +47,8 @@ from bridge.sim.motion import (
     Tumble,
 )
 
+pytestmark = pytest.mark.integration  # real sockets, processes or threads
+
 
 @pytest.fixture
 def rigs() -> Iterator[Callable[..., Rig]]:

@@ -80,6 +80,7 @@ def test_a_compass_mask_is_checked_then_uint8_cast(value: float, expected: int |
     assert _mask(value) == expected
 
 
+@pytest.mark.integration
 def test_mavsdk_style_commands_with_nan_parameters(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -121,6 +122,7 @@ def test_mavsdk_style_commands_with_nan_parameters(
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
 
 
+@pytest.mark.integration
 def test_an_outcome_from_another_thread_during_the_work_neither_blocks_nor_reorders() -> None:
     """The work (the calibration controller) emits events from its own threads; waiting for
     them must not block on the dispatcher (it deadlocked a live accept), and the final ack

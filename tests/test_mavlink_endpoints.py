@@ -19,6 +19,8 @@ from bridge.mavlink.endpoints import Endpoint, Link, open_endpoint
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.signing import Signing
 
+pytestmark = pytest.mark.integration  # real sockets, processes or threads
+
 KEY = bytes(range(32))
 
 

@@ -33,6 +33,8 @@ from bridge.sim.firmware import Firmware
 from bridge.sim.motion import Tumble
 from bridge.sim.truth import truth_heading_deg
 
+pytestmark = pytest.mark.integration  # real sockets, processes or threads
+
 PROGRAM = str(Path(sys.executable).with_name("compass-bridge"))
 
 

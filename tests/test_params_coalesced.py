@@ -9,6 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from bridge.app.params import PARAMS_DOCUMENT, SAVE_INTERVAL_S, ParamStore
 from bridge.app.settings import EngineSettings
 from bridge.calibration.model import Calibration
@@ -16,6 +18,8 @@ from bridge.core.attitude import AttitudeEngine
 from bridge.documents import LoadResult
 from bridge.events import Event, EventBus
 from bridge.storage import StateStore
+
+pytestmark = pytest.mark.integration  # real sockets, processes or threads
 
 
 class CountingStore:

@@ -476,7 +476,8 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
     settings = CalibratorSettings(capacity=20, no_data_timeout_s=60.0)
     ctl = CalibrationController(
         AttitudeEngine(), bus, field=None, settings=settings, clock=lambda: clock[0]
-    ).start()
+    )
+    ctl.run_inline()  # its fits run in this thread, on the recording's clock
     try:
         assert ctl.start_mag().ok
         for i, c in enumerate(counts.astype(int)):
@@ -486,9 +487,11 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
             if not snap.running:
                 break
             if snap.step == 1 and snap.completion_pct >= 33.0:
-                assert ctl.wait_for(lambda s: s.step != 1 or not s.running, 30.0) is not None
-        done = ctl.wait_for(lambda s: not s.running, 30.0)
-        assert done is not None and ended.wait(10.0) and len(final) == 1
+                ctl.step()  # step one's fit, before the frames go on
+                assert ctl.snapshot().step != 1 or not ctl.snapshot().running
+        ctl.step()  # the final fit
+        done = ctl.snapshot()
+        assert not done.running and ended.wait(10.0) and len(final) == 1
         ev = final[0]
         data = ev.data  # type: ignore[attr-defined]
         return done.phase.value, data, ev.text  # type: ignore[attr-defined]

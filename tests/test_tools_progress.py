@@ -77,6 +77,7 @@ def test_detail_block_is_redrawn_in_place_under_the_bar() -> None:
     assert text.endswith("\n")
 
 
+@pytest.mark.integration
 def test_a_ticking_spinner_turns_without_updates_and_stops_on_close() -> None:
     s = io.StringIO()
     p = Progress("fit", None, stream=s, enabled=True, tick=True)
@@ -92,6 +93,7 @@ def test_a_ticking_spinner_turns_without_updates_and_stops_on_close() -> None:
     assert not any(t.name == "progress" for t in threading.enumerate())
 
 
+@pytest.mark.integration
 def test_record_shows_a_bar_with_bytes_and_stops_at_its_duration(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -107,6 +109,7 @@ def test_record_shows_a_bar_with_bytes_and_stops_at_its_duration(
     assert shown and format_bytes(size) == " ".join(shown[-1])  # the final size, as on disk
 
 
+@pytest.mark.integration
 def test_bench_accuracy_counts_units_on_its_bar(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["--units", "2", "--samples", "300", "--eval-samples", "100", "--timing-samples", "0"]
     accuracy_main([*args, "--progress"])

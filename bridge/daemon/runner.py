@@ -383,8 +383,10 @@ class Service:
                 log.warning("reload: [location] not applied: %s", e)
         if transport is not None:
             log.info("reload: reopening the compass port with the new settings")
-            d.link.rate_hz = new.device.rate_hz if new.device.protocol == "gmr" else None
-            d.link.stale_after = new.device.stale_after
+            d.link.set_rate(
+                new.device.rate_hz if new.device.protocol == "gmr" else None,
+                new.device.stale_after,
+            )
             self.transport.replace(transport)
         if plan.outputs:
             self._swap_outputs(plan.outputs, keep_new)

@@ -162,7 +162,6 @@ class Daemon:
                 on_state=on_state,
                 # The pipeline runs in the link's reader thread: no queue, no second thread
                 # to wake for every frame (see bridge.app.pipeline).
-                queue_size=0,
                 on_frame=on_frame,
             )
 

@@ -1,9 +1,10 @@
-"""The serial-link adapter: transports, the CompassLink reader, recording and replay.
+"""The serial-link adapter: transports, the CompassLink driver, recording and replay.
 
 ``open_transport(port, baud)`` turns a configured port string into a
 :class:`Transport` (a serial device, ``"sim"``, or ``"replay:PATH"``);
-:class:`CompassLink` reads it on one thread, keeps it alive and runs command
-transactions (:mod:`~bridge.link.transactions`); :func:`record`
+:class:`CompassLink` runs the sans-I/O link machine
+(:mod:`bridge.protocol.link`: state, handshake, command transactions) on it,
+on one reader thread; :func:`record`
 (:mod:`~bridge.link.recorder`) taps a port into a recording
 (:mod:`~bridge.link.record`, the file format) that ``replay:PATH`` plays back.
 """

@@ -1,40 +1,19 @@
-"""CompassLink: the one reader of the compass port, its state machine and command transactions.
+"""CompassLink: the driver that runs the link machine on a real port, on one reader thread.
 
-Threads (and why there are two):
+Everything the link decides -- its states, the handshake, command
+transactions, sequence tracking -- is the sans-I/O
+:class:`bridge.protocol.link.LinkMachine`. This module only does what the
+machine asks: it opens the port when :meth:`~bridge.protocol.link.LinkMachine.open_due`,
+reads it (waking no later than the machine's next deadline), hands the bytes
+and ``now`` in, writes the :class:`~bridge.protocol.link.Write` events, closes
+the port on :class:`~bridge.protocol.link.ClosePort`, logs the notices, and
+hands every frame to ``on_frame`` and every state change to ``on_state``.
 
-* the **reader** opens the transport, reads, feeds the decoder, tracks
-  sequence numbers, routes command answers and hands every frame to the
-  consumer. It never waits on anything but the port: a lagging consumer loses
-  its oldest frames (counted) instead of stalling the reader.
-* the **handshake worker** runs ``VER``, ``RATE,<rate_hz>``, ``PAR,GET`` after
-  every (re)connect and after a detected device reset. It must be a separate
-  thread because the answers it waits for arrive through the reader.
-
-Link states (:class:`LinkState`), each change logged once. Only **attitude
-frames** count (``$PGMRA``; for a heading-only compass its heading sentences):
-a compass that answers commands but streams nothing is not streaming.
-
-* ``OPENING``   -- opening the port, or open and waiting for attitude frames
-* ``STREAMING`` -- attitude frames arrive
-* ``STALE``     -- the port is open but no attitude frame came for ``stale_after`` s;
-  the link closes and reopens it (with backoff) and stays STALE until frames come back
-* ``ABSENT``    -- the port cannot be opened or went away; reopened with backoff, quietly
-
-Hysteresis, so the state never flaps: the link becomes STREAMING on the
-second attitude frame of a run; but once a STREAMING spell has ended stale
-within ``10 * stale_after``, frames must keep coming for ``stale_after / 2``
-first, and that while doubles with each further short spell (up to
-``4 * stale_after``); a spell that lasts resets it. A compass that streams in
-short bursts stays STALE instead of going lost / restored forever.
-
-A device reset is what the datasheet says it looks like: a ``$PGMRV`` nobody
-asked for *and* frames starting again at ``seq`` 0 (or ``seq`` 0 alone, when
-the ``$PGMRV`` was lost). A ``$PGMRV`` after which the frames carry on is a
-late or stray answer, not a reset.
-
-Command transactions (GMR protocol only) are serialised; how an answer is matched
-to its command, and a late answer kept from passing for a later command's, is
-:mod:`bridge.link.transactions`.
+One reader thread, which never waits on anything but the port: a command
+caller's thread submits its transaction to the machine (under the link's
+lock, writing its first attempt itself) and waits for the reader to see it
+end. The machine is not thread-safe, so every call into it holds the lock;
+the callbacks run outside it, in the reader thread.
 """
 
 from __future__ import annotations
@@ -43,9 +22,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Sequence
-from typing import Literal, Protocol, TypeAlias
+from collections.abc import Callable
 
 from bridge.device import (
     CommandError,
@@ -58,29 +35,20 @@ from bridge.device import (
     LinkState,
     Received,
 )
-from bridge.link.transactions import (
-    COMMAND_DEADLINES_S,
-    DEFAULT_DEADLINE_S,
-    Routed,
-    Transactions,
-)
 from bridge.link.transport import EndOfRecording, Transport
-from bridge.protocol.framing import MAX_LINE_BYTES
-from bridge.protocol.gmr import (
-    AckFrame,
-    AttitudeFrame,
-    CommandFrame,
-    GmrDecoder,
-    GmrFrame,
-    ParamsFrame,
-    VersionFrame,
-    encode,
+from bridge.protocol.gmr import CommandFrame, GmrFrame, ParamsFrame, VersionFrame
+from bridge.protocol.link import (
+    DEFAULT_LATE_ANSWER_WINDOW_S,
+    ClosePort,
+    LinkEvent,
+    LinkMachine,
+    LinkProtocol,
+    Notice,
+    StateChanged,
+    Write,
 )
 
 __all__ = [
-    "COMMAND_DEADLINES_S",
-    "DEFAULT_DEADLINE_S",
-    "DEFAULT_LATE_ANSWER_WINDOW_S",
     "CommandError",
     "CommandLate",
     "CommandNotSupported",
@@ -93,58 +61,25 @@ __all__ = [
     "LinkState",
     "Received",
 ]
-from bridge.protocol.heading import HeadingDecoder, HeadingFrame
-
-Frame: TypeAlias = GmrFrame | HeadingFrame
 
 log = logging.getLogger(__name__)
 
-LinkProtocol: TypeAlias = Literal["gmr", "nmea", "os5000"]
-
-SEQ_MODULUS = 65536
-#: A forward seq gap this large cannot be frame loss on a link that would have gone stale
-#: long before (at 100 Hz it is 5.5 minutes): count it as a discontinuity instead.
-_MAX_PLAUSIBLE_GAP = SEQ_MODULUS // 2
-#: ``seq`` 0 after a frame at most this many frames before the wrap is frame loss across
-#: the wrap (65534, [65535 lost], 0), not a reboot. A reboot restarts at 0 "from far
-#: away"; one in the last 64 frames of a 65536-frame cycle (0.1 % of them) whose
-#: ``$PGMRV`` was lost as well reads as loss -- its ``$PGMRV`` is what normally tells.
-#: 64 frames: 0.64 s at 100 Hz, longer than any loss that keeps a 100 Hz link streaming
-#: within the default stale_after.
-_WRAP_LOSS_WINDOW = 64
-
-#: How long after its deadline a command's answer may still come (a device slower than
-#: its datasheet): no retry meanwhile, and an answer that late is a time-out, not news.
-DEFAULT_LATE_ANSWER_WINDOW_S = 2.0
-#: After a short spell, STREAMING needs attitude frames for ``stale_after / _CONFIRM_DIVISOR``
-_CONFIRM_DIVISOR = 2.0
-#: (a spell is short when it ended stale sooner than ``_FLAP_SPELLS * stale_after``),
-_FLAP_SPELLS = 10.0
-#: doubled for each further short spell, up to this many times.
-_CONFIRM_MAX_FACTOR = 8.0
-
-_READ_TIMEOUT_S = 0.05  # bounds how late the reader notices close() and staleness
+#: Longest single read: bounds how late the reader notices close() (the machine's own
+#: deadlines wake it on time).
+_READ_TIMEOUT_S = 0.05
 _READ_CHUNK = 4096
-
-
-_LIVE = (LinkState.OPENING, LinkState.STREAMING)
-
-
-class _Decoder(Protocol):
-    def feed(self, data: bytes) -> Sequence[Frame]: ...
 
 
 class CompassLink:
     """Reads one compass port, keeps it alive, and runs command transactions on it.
 
     ``transport`` is a :class:`~bridge.link.transport.Transport` (not yet
-    open). Frames go to a bounded queue read with :meth:`get` and, if given,
-    to ``on_frame(received)`` -- called in the reader thread, so it must be
-    quick and must never block (the daemon's whole per-frame pipeline runs
-    there: decode, attitude, non-blocking output hand-offs). ``queue_size=0``
-    keeps no queue (for an ``on_frame`` consumer; :meth:`get` then always
-    returns None).
-    ``on_state(old, new)`` is called in the reader thread on each state change.
+    open). Every frame goes to ``on_frame(received)``, called in the reader
+    thread, so it must be quick and must never block (the daemon's whole
+    per-frame pipeline runs there: decode, attitude, non-blocking output
+    hand-offs). ``on_state(old, new)`` is called in the reader thread on each
+    state change. The rest (``protocol``, ``rate_hz``, ``stale_after``, the
+    backoff, the late-answer window) is the :class:`~bridge.protocol.link.LinkMachine`'s.
     Use as a context manager or call :meth:`start` / :meth:`close`.
     """
 
@@ -152,90 +87,38 @@ class CompassLink:
         self,
         transport: Transport,
         *,
+        on_frame: Callable[[Received], None],
         protocol: LinkProtocol = "gmr",
         rate_hz: int | None = 10,
         stale_after: float = 2.0,
-        queue_size: int = 256,
-        on_frame: Callable[[Received], None] | None = None,
         on_state: Callable[[LinkState, LinkState], None] | None = None,
         backoff_initial: float = 0.1,
         backoff_max: float = 2.0,
         late_answer_window: float = DEFAULT_LATE_ANSWER_WINDOW_S,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        if protocol not in ("gmr", "nmea", "os5000"):
-            raise ValueError(f"protocol must be 'gmr', 'nmea' or 'os5000', got {protocol!r}")
-        if rate_hz is not None:
-            CommandFrame.rate(rate_hz)  # ValueError for a rate the device does not offer
-        if not stale_after > 0:
-            raise ValueError(f"stale_after must be positive, got {stale_after}")
-        if queue_size < 0:
-            raise ValueError(f"queue_size must be at least 0, got {queue_size}")
-        if queue_size == 0 and on_frame is None:
-            raise ValueError("queue_size=0 needs an on_frame consumer (frames would go nowhere)")
-        if not 0 < backoff_initial <= backoff_max:
-            raise ValueError("need 0 < backoff_initial <= backoff_max")
+        self._machine = LinkMachine(
+            name=transport.name,
+            protocol=protocol,
+            rate_hz=rate_hz,
+            stale_after=stale_after,
+            backoff_initial=backoff_initial,
+            backoff_max=backoff_max,
+            late_answer_window=late_answer_window,
+        )
         self._transport = transport
-        self.protocol: LinkProtocol = protocol
-        self.rate_hz = rate_hz
-        self.stale_after = stale_after
         self._on_frame = on_frame
         self._on_state = on_state
-        self._backoff_initial = backoff_initial
-        self._backoff_max = backoff_max
         self._clock = clock
-
-        self._decoder: _Decoder = self._make_decoder()
+        # One lock for the machine and the port's writes/closes; waiters on its condition.
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
         self._stop = threading.Event()
+        self._wake = threading.Event()  # a command was queued: the reader's wait is stale
         self._ended = threading.Event()
         self._reader: threading.Thread | None = None
-        self._worker: threading.Thread | None = None
-
-        # State (written by the reader; read anywhere under the condition).
-        self._state_cond = threading.Condition()
-        self._state = LinkState.ABSENT
-
-        # Counters: one dict of ints. Each key has one kind of writer: the per-frame ones
-        # (bytes_read, frames, attitude_frames) only the reader, which bumps them without
-        # the lock (a store to another key cannot lose them; the snapshot copies under the
-        # lock); every other key is written under _stats_lock by whoever counts it.
-        self._stats_lock = threading.Lock()
-        self._c: dict[str, int] = {
-            f: 0 for f in LinkCounters.__dataclass_fields__ if f != "bad_lines"
-        }
-
-        # Consumer queue: drop-oldest, never blocks the reader.
-        self._queue: deque[Received] = deque()
-        self._queue_size = queue_size
-        self._queue_cond = threading.Condition()
-
-        # Port: writes (command callers) vs close/reopen (reader).
-        self._write_lock = threading.Lock()
-        self._port_open = False
-
-        # Command transactions (callers' threads; the reader routes the answers).
-        self._txns = Transactions(
-            name=transport.name,
-            write=self._write,
-            count=self._count,
-            clock=clock,
-            late_window=late_answer_window,
-            stop=self._stop,
-        )
-
-        # Sequence tracking (reader only).
-        self._last_seq: int | None = None
-        self._restart_expected = False  # an unasked $PGMRV came: the next seq tells
-        # Hysteresis (reader only): 0 -- two frames make a stream; else how many times
-        # stale_after / _CONFIRM_DIVISOR attitude frames must keep coming (after short spells).
-        self._confirm_factor = 0.0
-
-        # Handshake hand-off: the reader bumps the generation, the worker follows it.
-        self._gen_cond = threading.Condition()
-        self._generation = 0
-        self._handshaken_gen = 0  # worker only
-        self._version: VersionFrame | None = None
-        self._params: ParamsFrame | None = None
+        self._said: list[StateChanged | Notice] = []  # to log (and hand to on_state) unlocked
+        self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
 
     # ------------------------------------------------------------------ public API
 
@@ -245,28 +128,47 @@ class CompassLink:
         return self._transport.name
 
     @property
+    def protocol(self) -> LinkProtocol:
+        """``"gmr"`` or a heading-only protocol."""
+        return self._machine.protocol
+
+    @property
+    def rate_hz(self) -> int | None:
+        """The output rate the connect handshake asks for."""
+        return self._machine.rate_hz
+
+    @property
+    def stale_after(self) -> float:
+        """Seconds without an attitude frame after which the port is reopened."""
+        return self._machine.stale_after
+
+    def set_rate(self, rate_hz: int | None, stale_after: float | None = None) -> None:
+        """A new output rate (and silence limit): see :meth:`LinkMachine.set_rate`."""
+        with self._lock:
+            self._machine.set_rate(rate_hz, stale_after)
+        self._wake.set()
+
+    @property
     def state(self) -> LinkState:
         """The current :class:`LinkState`."""
-        with self._state_cond:
-            return self._state
+        with self._lock:
+            return self._machine.state
 
     @property
     def counters(self) -> LinkCounters:
         """A consistent snapshot of the counters."""
-        dropped = getattr(getattr(self._decoder, "counters", None), "dropped", None)
-        bad = dict(dropped.snapshot()) if dropped is not None else {}
-        with self._stats_lock:
-            return LinkCounters(bad_lines=bad, **self._c)
+        with self._lock:
+            return self._machine.counters
 
     @property
     def version(self) -> VersionFrame | None:
         """The last ``$PGMRV`` seen (asked for or not), None before any."""
-        return self._version
+        return self._machine.version
 
     @property
     def params(self) -> ParamsFrame | None:
         """The last ``$PGMRP`` seen, None before any."""
-        return self._params
+        return self._machine.params
 
     @property
     def ended(self) -> bool:
@@ -278,33 +180,32 @@ class CompassLink:
         return self._ended.wait(timeout)
 
     def start(self) -> CompassLink:
-        """Start the reader and handshake threads (once)."""
+        """Start the reader thread (once)."""
         if self._reader is not None:
             raise RuntimeError("link already started")
-        self._set_state(LinkState.OPENING, "starting")
+        with self._lock:
+            self._machine.start(self._clock())
+            self._act()
         self._reader = threading.Thread(target=self._run, name="compass-link-reader", daemon=True)
-        self._worker = threading.Thread(
-            target=self._handshake_loop, name="compass-link-handshake", daemon=True
-        )
         self._reader.start()
-        self._worker.start()
         return self
 
     def close(self, timeout: float = 2.0) -> None:
-        """Stop the threads (within about ``timeout`` s) and close the port."""
+        """Stop the reader (within about ``timeout`` s) and close the port."""
         self._stop.set()
-        self._txns.wake()
-        for cond in (self._gen_cond, self._queue_cond, self._state_cond):
-            with cond:
-                cond.notify_all()
-        deadline = time.monotonic() + timeout
-        for t in (self._reader, self._worker):
-            if t is not None and t is not threading.current_thread():
-                t.join(max(0.0, deadline - time.monotonic()))
-                if t.is_alive():
-                    log.error(
-                        "%s: thread %s did not stop within %.1f s", self.name, t.name, timeout
-                    )
+        self._wake.set()
+        t = self._reader
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout)
+            if t.is_alive():
+                log.error("%s: thread %s did not stop within %.1f s", self.name, t.name, timeout)
+        with self._cond:
+            # Every command still waiting ends in LinkDown.
+            self._machine.close(self._clock())
+            self._act()
+            self._cond.notify_all()
+        if t is None or not t.is_alive():
+            self._report()  # the reader is gone: what is left is said here
         self._close_port()
 
     def __enter__(self) -> CompassLink:
@@ -313,136 +214,108 @@ class CompassLink:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def get(self, timeout: float | None = None) -> Received | None:
-        """The oldest queued frame, waiting up to ``timeout`` s (None: forever); None if none."""
-        if not self._queue_size:
-            return None  # no queue (an on_frame consumer takes every frame)
-        with self._queue_cond:
-            if not self._queue and timeout != 0:
-                self._queue_cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout)
-            return self._queue.popleft() if self._queue else None
-
     def wait_state(self, state: LinkState, timeout: float) -> bool:
         """Wait up to ``timeout`` s for the link to be in ``state``; True if it is."""
-        with self._state_cond:
-            return self._state_cond.wait_for(
-                lambda: self._state is state or self._stop.is_set(), timeout
-            ) and (self._state is state)
+        with self._cond:
+            return self._cond.wait_for(
+                lambda: self._machine.state is state or self._stop.is_set(), timeout
+            ) and (self._machine.state is state)
 
     def command(
         self, name: str, *args: object, timeout: float | None = None, retries: int = 2
     ) -> GmrFrame:
-        """Send ``$PGMRQ,<name>,<args>`` and return the device's answer.
+        """Run one command transaction (``$PGMRQ,<name>,<args>``) and return its answer.
 
-        The answer is the matching ``$PGMRK,<name>,OK...`` (``$PGMRV`` for VER,
-        ``$PGMRP`` for PAR,GET). Each attempt waits ``timeout`` s -- by default
-        the datasheet's deadline for the command (200 ms; MAGCAL,END and
-        PAR,SET 500 ms; ACCCAL 1.5 s) plus the time a command and an answer
-        line take on the wire at the port's baud -- and is resent up to
-        ``retries`` times, each time only once the previous attempt's answer can
-        no longer come (``late_answer_window`` after its deadline). Raises
-        :class:`CommandRejected` on ``ERR``, :class:`CommandLate` (a
-        :class:`CommandTimeout`) when the answer came after the deadline,
-        :class:`CommandTimeout` when nothing matching came, :class:`LinkDown`
-        when the port is not open, :class:`CommandNotSupported` for
-        heading-only protocols, ValueError for a malformed command. Frames
-        keep flowing to the consumer meanwhile. Must not be called from the
-        reader thread (that is, from ``on_frame``/``on_state``).
+        ``timeout`` is per attempt (default: the datasheet's deadline for the
+        command plus the line times). Raises :class:`CommandRejected` on an ERR
+        answer, :class:`CommandTimeout` (:class:`CommandLate` when the answer
+        came after the deadline), :class:`LinkDown` when the port is not open or
+        the link closes, :class:`CommandNotSupported` on a heading-only compass.
         """
-        if self.protocol != "gmr":
+        if self._machine.protocol != "gmr":
             raise CommandNotSupported(
-                f"protocol {self.protocol!r} is a heading-only compass: it takes no commands"
+                f"protocol {self._machine.protocol!r} is a heading-only compass: "
+                "it takes no commands"
             )
         if threading.current_thread() is self._reader:
             raise RuntimeError("command() called from the link's reader thread would deadlock")
-        if retries < 0:
-            raise ValueError("retries must be >= 0")
         cmd = CommandFrame(name, tuple(str(a) for a in args))  # ValueError if malformed
-        line = encode(cmd)
         per_try = timeout if timeout is not None else self.default_timeout(cmd)
-        if not per_try > 0:
-            raise ValueError(f"timeout must be positive, got {per_try}")
-        answer = self._txns.run(cmd, line, per_try, retries)
-        if isinstance(answer, AckFrame) and not answer.ok:
-            self._count("command_rejections")
-            reason = answer.fields[0] if answer.fields else "?"
-            raise CommandRejected(cmd.key, reason, answer)
-        return answer
+        with self._cond:
+            if self._stop.is_set():
+                raise LinkDown("link is closed")
+            txn = self._machine.submit(cmd, self._clock(), per_try, retries)
+            self._act()
+            self._wake.set()  # the reader's wait may end later than this command's deadline
+            while not txn.done:
+                # The reader ends it (answer, deadline) or close() does; the bound only
+                # guards against a reader that died.
+                if not self._cond.wait(1.0) and (
+                    self._reader is None or not self._reader.is_alive()
+                ):
+                    self._machine.close(self._clock())
+                    self._act()
+        return txn.result()
 
     def default_timeout(self, cmd: CommandFrame) -> float:
         """Per-attempt timeout for ``cmd``: datasheet deadline + line times at the port's baud."""
-        deadline = COMMAND_DEADLINES_S.get(cmd.key, DEFAULT_DEADLINE_S)
         baud = getattr(self._transport, "baud", None)
-        if isinstance(baud, int) and baud > 0:
-            # The device's clock starts when the command has arrived, and the answer must
-            # still cross the wire: 10 bits per byte (8N1), a full line each way at worst.
-            deadline += 2 * MAX_LINE_BYTES * 10 / baud
-        return deadline
+        return self._machine.default_timeout(cmd, baud if isinstance(baud, int) else None)
 
-    # ------------------------------------------------------------------ commands
+    # ------------------------------------------------------------------ the driver
 
-    def _write(self, data: bytes) -> None:
-        with self._write_lock:
-            if not self._port_open:
-                raise LinkDown(f"{self.name} is not open")
-            try:
-                self._transport.write(data)
-            except OSError as e:
-                # The reader will notice the loss on its next read; just fail this command.
-                raise LinkDown(f"{self.name}: write failed: {e}") from e
+    def _act(self) -> None:
+        """Do what the machine asks (the lock held): writes and closes at once; state changes
+        and log lines kept for :meth:`_report` (nothing is logged or called back under the
+        lock); command waiters woken when a transaction ended."""
+        m = self._machine
+        events: list[LinkEvent] = m.take_events() if m.has_events else []
+        for ev in events:
+            if type(ev) is Write:
+                try:
+                    self._transport.write(ev.data)
+                except OSError as e:
+                    # The reader notices a lost port on its next read: fail this command.
+                    m.write_failed(ev, str(e), self._clock())
+                    events.extend(m.take_events())
+            elif type(ev) is ClosePort:
+                with contextlib.suppress(OSError):
+                    self._transport.close()
+            elif isinstance(ev, StateChanged | Notice):
+                self._said.append(ev)
+        if events or m.commands_ended != self._ended_seen:
+            self._ended_seen = m.commands_ended
+            self._cond.notify_all()
 
-    def _route_answer(self, frame: GmrFrame, now: float) -> None:
-        """Reader side: an answer-type frame to the transactions; a reboot's $PGMRV to us."""
-        # Only a version nobody asked for lately, from a device already seen streaming on
-        # this connection, may be a reset (a power-up announcement is not one we saw); the
-        # next attitude frame's seq decides (see _track_seq).
-        if self._txns.route(frame, now) is Routed.VERSION and self._last_seq is not None:
-            self._restart_expected = True
-
-    # ------------------------------------------------------------------ reader
-
-    def _make_decoder(self) -> _Decoder:
-        if self.protocol == "gmr":
-            return GmrDecoder(direction="host")
-        return HeadingDecoder(self.protocol)
-
-    def _count(self, name: str, n: int = 1) -> None:
-        with self._stats_lock:
-            self._c[name] += n
-
-    def _set_state(self, new: LinkState, reason: str = "") -> None:
-        with self._state_cond:
-            old = self._state
-            if new is old:
-                return
-            self._state = new
-            self._state_cond.notify_all()
-        suffix = f" ({reason})" if reason else ""
-        if new in (LinkState.ABSENT, LinkState.STALE):
-            log.warning("compass %s: %s -> %s%s", self.name, old.value, new.value, suffix)
-        else:
-            log.info("compass %s: %s -> %s%s", self.name, old.value, new.value, suffix)
-        if self._on_state is not None:
-            try:
-                self._on_state(old, new)
-            except Exception:
-                log.exception("compass %s: on_state callback failed", self.name)
+    def _report(self) -> None:
+        """Log what the machine said; state changes to ``on_state`` (reader thread, or close()
+        once the reader is gone; the lock not held)."""
+        with self._lock:
+            said, self._said = self._said, []
+        for ev in said:
+            if type(ev) is Notice:
+                log.log(ev.level, "%s", ev.message)
+                continue
+            assert type(ev) is StateChanged
+            suffix = f" ({ev.reason})" if ev.reason else ""
+            bad = ev.new in (LinkState.ABSENT, LinkState.STALE)
+            log.log(
+                logging.WARNING if bad else logging.INFO,
+                "compass %s: %s -> %s%s",
+                self.name,
+                ev.old.value,
+                ev.new.value,
+                suffix,
+            )
+            if self._on_state is not None:
+                try:
+                    self._on_state(ev.old, ev.new)
+                except Exception:
+                    log.exception("compass %s: on_state callback failed", self.name)
 
     def _close_port(self) -> None:
-        with self._write_lock:
-            self._port_open = False
-            with contextlib.suppress(OSError):
-                self._transport.close()
-
-    def _open_port(self) -> None:
-        with self._write_lock:
-            self._transport.open()
-            self._port_open = True
-
-    def _bump_generation(self) -> None:
-        with self._gen_cond:
-            self._generation += 1
-            self._gen_cond.notify_all()
+        with self._lock, contextlib.suppress(OSError):
+            self._transport.close()
 
     def _run(self) -> None:
         try:
@@ -450,228 +323,91 @@ class CompassLink:
         except Exception:
             # A bug must not leave a zombie link that looks alive: say so loudly.
             log.exception("compass %s: reader crashed", self.name)
-            self._set_state(LinkState.ABSENT, "reader crashed")
+            with self._cond:
+                self._machine.lost(self._clock(), "reader crashed")
+                self._machine.close(self._clock())
+                self._act()
         finally:
+            self._report()
             self._close_port()
 
+    def _open(self) -> bool:
+        """Open the port for the machine; False when it has ended for good."""
+        try:
+            self._transport.open()
+        except EndOfRecording as e:
+            with self._cond:
+                self._machine.end(self._clock(), str(e))
+                self._act()
+            self._ended.set()
+            return False
+        except OSError as e:
+            with self._cond:
+                self._machine.open_failed(self._clock(), str(e))
+                self._act()
+            return True
+        baud = getattr(self._transport, "baud", None)
+        with self._cond:
+            self._machine.opened(
+                self._clock(),
+                interactive=self._transport.interactive,
+                baud=baud if isinstance(baud, int) else None,
+            )
+            self._act()
+        return True
+
     def _read_loop(self) -> None:
-        backoff = self._backoff_initial
-        opened_before = False
-        is_open = False
-        last_attitude = 0.0  # when the last attitude frame came (or the port opened)
-        last_frame = -float("inf")  # when the last frame of any kind came
-        run_start: float | None = None  # first attitude frame of the current run
-        run_frames = 0
-        streaming_since = 0.0
-        c = self._c
+        machine = self._machine
+        on_frame = self._on_frame
+        clock = self._clock
         while not self._stop.is_set():
+            self._wake.clear()  # before the deadline is read: a later command sets it again
+            with self._cond:
+                now = clock()
+                deadline = machine.next_deadline()
+                if deadline is not None and now >= deadline:
+                    machine.tick(now)  # staleness, a command's deadline, a retry
+                    deadline = machine.next_deadline()
+                self._act()
+                is_open = machine.is_open
+                open_due = machine.open_due(now)
+            if self._said:
+                self._report()
             if not is_open:
-                try:
-                    self._open_port()
-                except EndOfRecording as e:
-                    self._end_of_recording(str(e))
-                    return
-                except OSError as e:
-                    self._count("open_failures")
-                    log.debug("compass %s: open failed: %s", self.name, e)
-                    self._set_state(LinkState.ABSENT, str(e))
-                    self._stop.wait(backoff)
-                    backoff = min(2 * backoff, self._backoff_max)
+                if open_due:
+                    if not self._open():
+                        return
                     continue
-                is_open = True
-                if opened_before:
-                    self._count("reconnects")
-                opened_before = True
-                reset = getattr(self._decoder, "reset", None)
-                if callable(reset):
-                    reset()  # a partial line from the old connection is not a bad line
-                self._last_seq = None
-                self._restart_expected = False
-                last_attitude = self._clock()
-                run_start = None
-                if self.state is LinkState.ABSENT:
-                    self._set_state(LinkState.OPENING, "port open")
-                self._bump_generation()
+                wait = _READ_TIMEOUT_S * 20 if deadline is None else deadline - now
+                if wait > 0:
+                    self._wake.wait(wait)
+                continue
+            timeout = _READ_TIMEOUT_S if deadline is None else deadline - now
+            timeout = min(max(timeout, 0.0), _READ_TIMEOUT_S)
             try:
-                data = self._transport.read(_READ_CHUNK, _READ_TIMEOUT_S)
+                data = self._transport.read(_READ_CHUNK, timeout)
             except EndOfRecording as e:
-                self._close_port()
-                self._end_of_recording(str(e))
+                with self._cond:
+                    machine.end(clock(), str(e))
+                    self._act()
+                self._ended.set()
                 return
             except OSError as e:
-                self._close_port()
-                is_open = False
-                self._set_state(LinkState.ABSENT, f"port lost: {e}")
-                self._stop.wait(backoff)
-                backoff = min(2 * backoff, self._backoff_max)
+                with self._cond:
+                    machine.lost(clock(), str(e))
+                    self._act()
                 continue
-            now = self._clock()
-            if data:
-                c["bytes_read"] += len(data)  # reader-only key: no lock (see __init__)
-                frames = self._decoder.feed(data)
-                if frames:
-                    last_frame = now
-                    before = c["attitude_frames"]
-                    self._handle(frames, now)
-                    # Only attitude frames make a stream: command answers do not.
-                    if c["attitude_frames"] != before:
-                        last_attitude = now
-                        # Only this thread writes the state: a plain read, not the lock.
-                        if self._state is not LinkState.STREAMING:
-                            if run_start is None:
-                                run_start, run_frames = now, 0
-                            run_frames += c["attitude_frames"] - before
-                            if run_frames >= 2 and now - run_start >= self._confirm_s():
-                                self._set_state(LinkState.STREAMING)
-                                streaming_since = now
-                                backoff = self._backoff_initial
-            if now - last_attitude > self.stale_after:
-                self._count("stale_events")
-                if self._state is LinkState.STREAMING:
-                    # A short spell between two silences: the next one must last longer.
-                    short = now - streaming_since < _FLAP_SPELLS * self.stale_after
-                    factor = min(2.0 * self._confirm_factor, _CONFIRM_MAX_FACTOR)
-                    self._confirm_factor = max(1.0, factor) if short else 0.0
-                what = "attitude frame" if self.protocol == "gmr" else "heading sentence"
-                why = f"no {what} for {self.stale_after:g} s"
-                if now - last_frame <= self.stale_after:
-                    why += " (the compass answers, but streams nothing)"
-                self._set_state(LinkState.STALE, f"{why}; reopening")
-                self._close_port()
-                is_open = False
-                run_start = None
-                self._stop.wait(backoff)
-                backoff = min(2 * backoff, self._backoff_max)
-
-    def _confirm_s(self) -> float:
-        """How long attitude frames must keep coming before the link says STREAMING."""
-        return self.stale_after / _CONFIRM_DIVISOR * self._confirm_factor
-
-    def _end_of_recording(self, why: str) -> None:
-        self._ended.set()
-        self._set_state(LinkState.ABSENT, why)
-
-    def _handle(self, frames: Sequence[Frame], now: float) -> None:
-        c = self._c
-        c["frames"] += len(frames)  # reader-only key: no lock (see __init__)
-        for frame in frames:
-            if type(frame) is AttitudeFrame:
-                # _track_seq's common case inline (per frame: a call costs more than this).
-                last = self._last_seq
-                c["attitude_frames"] += 1  # reader-only key: no lock (see __init__)
-                if last is not None and frame.seq == last + 1 and not self._restart_expected:
-                    self._last_seq = frame.seq
-                else:
-                    self._track_seq(frame.seq)
-            elif type(frame) is HeadingFrame:
-                c["attitude_frames"] += 1  # a heading-only compass's stream
-            elif isinstance(frame, VersionFrame | ParamsFrame | AckFrame):
-                if isinstance(frame, VersionFrame):
-                    self._version = frame
-                elif isinstance(frame, ParamsFrame):
-                    self._params = frame
-                self._route_answer(frame, now)
-            item = Received(frame, now)
-            if self._queue_size:
-                self._enqueue(item)
-            if self._on_frame is not None:
+            if not data:
+                continue
+            with self._lock:
+                received = machine.receive(data, clock())
+                self._act()
+            for item in received:
                 try:
-                    self._on_frame(item)
+                    on_frame(item)
                 except Exception:
-                    self._count("callback_errors")
-                    if self.counters.callback_errors == 1:
+                    with self._lock:
+                        machine.count("callback_errors")
+                        first = machine.counters.callback_errors == 1
+                    if first:
                         log.exception("compass %s: on_frame callback failed", self.name)
-
-    def _track_seq(self, seq: int) -> None:
-        """A $PGMRA frame's sequence number (counted in attitude_frames by the caller)."""
-        last = self._last_seq
-        self._last_seq = seq
-        if last is None:
-            return  # the first frame of a connection: no gap to count
-        expected = (last + 1) % SEQ_MODULUS
-        if self._restart_expected:
-            # An unasked $PGMRV came: a reboot restarts the sequence, anything else does not.
-            self._restart_expected = False
-            if seq == expected:
-                self._count("unsolicited_answers")
-                log.debug("compass %s: a $PGMRV nobody asked for; frames went on", self.name)
-            else:
-                self._device_reset("$PGMRV unasked, seq restarted")
-            return
-        if seq == expected:
-            return
-        gap = (seq - expected) % SEQ_MODULUS
-        if seq == 0 and gap >= _WRAP_LOSS_WINDOW:
-            # The datasheet's RESET restarts the counter at 0 (its $PGMRV, which normally
-            # announces it, may have been lost on the line).
-            self._device_reset("seq restarted at 0")
-            return
-        if gap < _MAX_PLAUSIBLE_GAP:
-            self._count("lost_frames", gap)
-        else:
-            self._count("seq_discontinuities")
-            log.debug("compass %s: seq jumped from %d to %d", self.name, last, seq)
-
-    def _device_reset(self, why: str) -> None:
-        """A reboot seen in the stream: this frame starts its new sequence."""
-        self._count("device_resets")
-        log.warning("compass %s: device reset detected (%s)", self.name, why)
-        # A rebooted device runs at 10 Hz again: the handshake (VER, RATE, PAR,GET) runs
-        # again as after a reconnect.
-        self._bump_generation()
-
-    def _enqueue(self, item: Received) -> None:
-        with self._queue_cond:
-            if len(self._queue) >= self._queue_size:
-                self._queue.popleft()
-                dropped = True
-            else:
-                dropped = False
-            self._queue.append(item)
-            self._queue_cond.notify()
-        if dropped:
-            self._count("consumer_drops")
-
-    # ------------------------------------------------------------------ handshake
-
-    def _handshake_loop(self) -> None:
-        while not self._stop.is_set():
-            with self._gen_cond:
-                self._gen_cond.wait_for(self._handshake_due, timeout=1.0)
-                gen = self._generation
-            if self._stop.is_set() or gen == self._handshaken_gen:
-                continue
-            self._handshaken_gen = gen
-            if self.protocol != "gmr" or not self._transport.interactive:
-                continue
-            try:
-                self._handshake()
-            except CommandError as e:
-                with self._gen_cond:
-                    superseded = self._generation != gen
-                # A port that died mid-handshake is already logged as ABSENT/STALE, and the
-                # next connection redoes the handshake: only a live port's failure is news.
-                quiet = superseded or self._stop.is_set() or self.state not in _LIVE
-                (log.debug if quiet else log.warning)(
-                    "compass %s: connect handshake failed: %s", self.name, e
-                )
-            except Exception:
-                log.exception("compass %s: connect handshake crashed", self.name)
-
-    def _handshake_due(self) -> bool:
-        return self._generation != self._handshaken_gen or self._stop.is_set()
-
-    def _handshake(self) -> None:
-        version = self.command("VER")
-        assert isinstance(version, VersionFrame)
-        if self.rate_hz is not None:
-            self.command("RATE", self.rate_hz)
-        self.command("PAR", "GET")
-        log.info(
-            "compass %s: firmware %s, hardware %s, serial %s, rate %s Hz",
-            self.name,
-            version.firmware,
-            version.hardware,
-            version.serial,
-            self.rate_hz if self.rate_hz is not None else "unchanged",
-        )

@@ -1,9 +1,12 @@
-"""Serial protocol codecs: pure, no I/O.
+"""Serial protocol codecs, and the compass link as a state machine: pure, no I/O.
 
 * :mod:`bridge.protocol.framing` -- ``$...*CS\\r\\n`` line splitter, checksum, drop counters.
 * :mod:`bridge.protocol.gmr` -- the GMR compass sentences (``$PGMR*``).
 * :mod:`bridge.protocol.heading` -- heading-only compasses (NMEA HDT/HDG/HDM, ``$PTNTHPR``,
   OceanServer ``$C``).
+* :mod:`bridge.protocol.link` -- the compass link as a sans-I/O state machine (bytes and
+  ``now`` in; frames, state changes, bytes to write, the next deadline out).
+* :mod:`bridge.protocol.transactions` -- its command transactions.
 """
 
 from bridge.protocol.framing import (

@@ -147,6 +147,7 @@ class CalibrationController:
         self._recent: deque[tuple[float, AttitudeFrame]] = deque(maxlen=256)
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         self._worker: threading.Thread | None = None
+        self._inline = False  # the owner of the clock runs the jobs (step), no worker
         self._stop = threading.Event()
         self.errors = 0  #: unexpected exceptions caught (logged once)
         self._keeper = CalibrationKeeper(self._store, calibration_source)
@@ -157,7 +158,7 @@ class CalibrationController:
     def start(self) -> CalibrationController:
         """Start the worker thread (idempotent; commands also start it)."""
         with self._lock:
-            if self._worker is None and not self._stop.is_set():
+            if self._worker is None and not self._stop.is_set() and not self._inline:
                 self._worker = threading.Thread(
                     target=self._run, name="calibration-worker", daemon=True
                 )
@@ -185,6 +186,18 @@ class CalibrationController:
             w.join(timeout)
             if w.is_alive():
                 log.error("calibration worker did not stop within %.1f s", timeout)
+
+    def run_inline(self) -> None:
+        """No worker thread: the owner of the clock (a simulation) calls :meth:`step`."""
+        self._inline = True
+
+    def step(self) -> None:
+        """What the worker does, in this thread: the queued jobs, a tick after each."""
+        jobs = []
+        while not self._jobs.empty():
+            jobs.append(self._jobs.get_nowait())
+        for job in jobs or [None]:
+            self._work(job)
 
     def __enter__(self) -> CalibrationController:
         return self.start()
@@ -460,22 +473,6 @@ class CalibrationController:
                 calibration_saved=k.saved,
             )
 
-    def wait_for(
-        self, predicate: Callable[[CalibratorSnapshot], bool], timeout: float
-    ) -> CalibratorSnapshot | None:
-        """Block until ``predicate(snapshot())`` holds (None after ``timeout`` seconds)."""
-        deadline = time.monotonic() + timeout
-        with self._changed:
-            while True:
-                snap = self.snapshot()
-                if predicate(snap):
-                    return snap
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                # Progress does not always notify: wake now and then to re-check.
-                self._changed.wait(min(left, 0.1))
-
     # ------------------------------------------------------------------ running sessions
 
     def _link_problem(self, *, need_device: bool) -> str:
@@ -584,17 +581,21 @@ class CalibrationController:
                 job = None
             if job is None and self._stop.is_set():
                 break
-            if job is not None:
-                try:
-                    job()
-                except Exception:
-                    self._internal_error("worker job")
+            self._work(job)
+
+    def _work(self, job: Callable[[], None] | None) -> None:
+        """One job (if any), then the tick and a save retry; events delivered."""
+        if job is not None:
             try:
-                self._tick()
-                self._retry_save()
+                job()
             except Exception:
-                self._internal_error("tick")
-            self._flush()
+                self._internal_error("worker job")
+        try:
+            self._tick()
+            self._retry_save()
+        except Exception:
+            self._internal_error("tick")
+        self._flush()
 
     def _tick(self) -> None:
         """Time-outs and delayed starts (worker thread, every 0.1 s)."""
