@@ -16,6 +16,7 @@ from benchmarks.fuzz import Effects, MavlinkFuzz, SerialFuzz, false_frames, main
 from bridge.protocol.gmr import AttitudeFrame, GmrDecoder
 
 
+@pytest.mark.integration
 def test_small_run_against_the_daemon_finds_nothing(tmp_path: Path) -> None:
     """A daemon that crashed, leaked a traceback, decoded a false frame, changed state no
     message asked for or grew by 16 MB fails this run (each is a figure that must be 0)."""

@@ -15,6 +15,7 @@ import pytest
 from benchmarks.pipeline import Figure, _proc_cpu_s, live, main, match_latencies
 
 
+@pytest.mark.integration
 def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     code = main(
@@ -34,6 +35,7 @@ def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
     assert code == (0 if doc["passed"] else 1)
 
 
+@pytest.mark.integration
 def test_live_daemon_run_matches_every_attitude_to_its_frame() -> None:
     figs = {f.name: f for f in live(1.0)}
     lat = figs["latency_p99"]
@@ -51,6 +53,7 @@ def test_live_daemon_run_matches_every_attitude_to_its_frame() -> None:
     assert lat.detail["attitude_hz"] == figs["daemon_cpu_att50"].detail["attitude_hz"]
 
 
+@pytest.mark.integration
 def test_daemon_cpu_is_read_to_the_millisecond() -> None:
     # A child burns CPU, reports its own CPU clock and waits; the bench's reading from
     # outside must agree with it far more closely than /proc/PID/stat's 10 ms ticks could.

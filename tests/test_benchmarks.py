@@ -43,6 +43,7 @@ def test_bench_drift_is_there() -> None:
     assert set(BENCHMARKS) == {"accuracy", "pipeline", "fuzz", "drift", "tilt"}
 
 
+@pytest.mark.integration
 def test_run_from_a_checkout_as_a_module() -> None:
     r = subprocess.run(
         [sys.executable, "-m", "benchmarks", "--help"],

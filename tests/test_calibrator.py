@@ -631,6 +631,7 @@ def test_onboard_magcal_at_hand_pace_is_ended_by_the_bridge(
     assert rig.ctl.accept().result is Result.ACCEPTED  # nothing left to accept
 
 
+@pytest.mark.integration
 def test_onboard_range_failure_over_a_real_pty(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     fw = make_firmware(11, motion=Still(), location=DEFAULT_LOCATION)
     link_path = tmp_path / "ttyGMR"

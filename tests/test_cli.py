@@ -108,6 +108,7 @@ def run(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.Completed
 # --- run --simulate --------------------------------------------------------------------
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_run_simulate_shows_changing_heading_and_stops_on_signal(
     tmp_path: Path, sig: signal.Signals
@@ -136,6 +137,7 @@ def test_run_simulate_shows_changing_heading_and_stops_on_signal(
     assert "Traceback" not in err
 
 
+@pytest.mark.integration
 def test_run_simulate_can_show_the_uncalibrated_unit(tmp_path: Path) -> None:
     proc = spawn(tmp_path, "run", "--simulate", "--set", "sim.calibrated=false")
     try:
@@ -150,6 +152,7 @@ def test_run_simulate_can_show_the_uncalibrated_unit(tmp_path: Path) -> None:
     assert any(abs(d - 10.0) > 3.0 for d in steps), headings
 
 
+@pytest.mark.integration
 def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Path) -> None:
     """--simulate must not load (or later overwrite) a real unit's calibration in the state dir."""
     from bridge.storage import StateStore
@@ -175,6 +178,7 @@ def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Pat
     assert str(real_state) not in err
 
 
+@pytest.mark.integration
 def test_run_with_a_bad_config_exits_2_naming_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[device]\nport = "sim"\nbaud = 1234\n')
@@ -187,6 +191,7 @@ def test_run_with_a_bad_config_exits_2_naming_the_key(tmp_path: Path) -> None:
     assert res.stdout == ""
 
 
+@pytest.mark.integration
 def test_version() -> None:
     res = subprocess.run(
         [sys.executable, "-m", "bridge", "--version"], capture_output=True, text=True, timeout=30
@@ -248,6 +253,7 @@ def test_sim_motions_match_the_simulator() -> None:
 # --- simulate / record wiring -------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_simulate_serves_a_pty_and_record_taps_it(tmp_path: Path) -> None:
     link = tmp_path / "compass"
     sim = spawn(tmp_path, "simulate", "--link", str(link), "--seed", "3", "--motion", "still")
@@ -280,6 +286,7 @@ def test_a_subcommand_refuses_options_it_does_not_have(
     assert "unrecognized arguments: --units 2" in capsys.readouterr().err
 
 
+@pytest.mark.integration
 def test_simulate_unplugs_on_sigusr1_and_sends_noise_on_sigusr2(tmp_path: Path) -> None:
     from bridge.protocol.gmr import GmrDecoder
 
@@ -332,6 +339,7 @@ def test_simulate_takes_a_hard_iron_change() -> None:
             p.parse_args(["simulate", "--link", "/tmp/x", "--hard-iron-change", bad])
 
 
+@pytest.mark.integration
 def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None:
     """A --config file's [storage] dir is the simulator's state directory (said in the log);
     without one the simulator keeps its own per-user directory."""
@@ -357,6 +365,7 @@ def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None
     assert str(tmp_path / "xdg") not in err
 
 
+@pytest.mark.integration
 def test_a_southern_latitude_parses_as_a_location(tmp_path: Path) -> None:
     """``--location -35.36,149.16``: a value starting with a minus sign is not an option."""
     from bridge.cli import build_parser

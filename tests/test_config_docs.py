@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from bridge.app.paramdocs import reference_markdown
 from bridge.config import section_types, settings_of, type_name
 from bridge.configkit.loader import toml_value
@@ -52,6 +54,7 @@ def test_rows_hold_no_unescaped_pipe() -> None:
             assert len(re.findall(r"(?<!\\)\|", line)) == want, line
 
 
+@pytest.mark.integration
 def test_cli_prints_the_reference() -> None:
     res = subprocess.run(
         [sys.executable, "-m", "bridge", "config", "--docs"],

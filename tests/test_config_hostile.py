@@ -242,6 +242,7 @@ def _cli(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("command", ["config", "run"])
 def test_cli_refuses_a_device_as_signing_key(tmp_path: Path, command: str) -> None:
     cfg = tmp_path / "c.toml"
@@ -255,6 +256,7 @@ def test_cli_refuses_a_device_as_signing_key(tmp_path: Path, command: str) -> No
     assert res.stdout == ""
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("data", "why"),
     [
@@ -277,6 +279,7 @@ def test_cli_file_level_errors_exit_2_in_one_line(
     assert why in lines[0] and "Traceback" not in res.stderr
 
 
+@pytest.mark.integration
 def test_cli_bad_endpoint_exits_2_naming_the_key(tmp_path: Path) -> None:
     res = _cli(tmp_path, "config", "--set", 'mavlink.endpoints=["udpout:999.1.1.1:14550"]')
     assert res.returncode == 2
@@ -284,6 +287,7 @@ def test_cli_bad_endpoint_exits_2_naming_the_key(tmp_path: Path) -> None:
     assert "not a valid IPv4 address" in res.stderr and len(res.stderr.splitlines()) == 1
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("feed", ["px4_odometry", "ardupilot_vision"])
 def test_a_heading_feed_is_not_refused_for_ids_the_autopilot_may_not_have(
     tmp_path: Path, feed: str

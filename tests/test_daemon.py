@@ -159,6 +159,7 @@ def running() -> Iterator[Callable[[Daemon], Daemon]]:
 # --- the GMR path -------------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_host_heading_follows_the_attitude(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -190,6 +191,7 @@ def _max_error(samples: Sequence[CompassSample], yaws: Sequence[float]) -> float
     return max(abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) for s in samples)
 
 
+@pytest.mark.integration
 def test_stored_calibration_is_applied(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
     unit = _hard_iron_unit()
     yaws = [10.0, 100.0, 190.0, 280.0]
@@ -224,6 +226,7 @@ def test_corrupt_calibration_falls_back_to_identity(tmp_path: Path) -> None:
     assert load_calibration(str(state)) == (good, "stored")
 
 
+@pytest.mark.integration
 def test_declination_from_location(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
     lat, lon = 47.4, 8.5
     decl = earth_field(lat, lon, 0.0).declination_deg
@@ -237,6 +240,7 @@ def test_declination_from_location(tmp_path: Path, running: Callable[[Daemon], D
     assert s.heading_reference == "magnetic"
 
 
+@pytest.mark.integration
 def test_noise_on_the_line_is_counted_and_dropped(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -272,6 +276,7 @@ class Stuck(LatestSampleWorker):
         self.release.wait(DEADLINE_S)
 
 
+@pytest.mark.integration
 def test_a_stuck_output_does_not_stall_the_others(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -301,6 +306,7 @@ class Wedged(Collect):
             self.release.wait(DEADLINE_S)
 
 
+@pytest.mark.integration
 def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -326,6 +332,7 @@ def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
 # --- heading-only compasses -----------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_nmea_heading_is_forwarded_with_declination(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -352,6 +359,7 @@ def test_nmea_heading_is_forwarded_with_declination(
     assert hdt.heading_deg == hdt.heading_magnetic_deg  # magnetic is published when known
 
 
+@pytest.mark.integration
 def test_hdg_variation_is_used_without_location(
     tmp_path: Path, running: Callable[[Daemon], Daemon]
 ) -> None:
@@ -364,6 +372,7 @@ def test_hdg_variation_is_used_without_location(
     assert pty.host_bytes == b""  # a heading-only compass gets no commands
 
 
+@pytest.mark.integration
 def test_os5000_pitch_roll_forwarded(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
     with PtyFeeder([nmea("C271.5P-3.0R12.5T21.0")]) as pty:
         out = Collect()
@@ -376,6 +385,7 @@ def test_os5000_pitch_roll_forwarded(tmp_path: Path, running: Callable[[Daemon],
 # --- replay and the run loop ------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_replay_runs_to_the_end_and_exits_zero(tmp_path: Path) -> None:
     rec = tmp_path / "run.cbrec"
     lines = gmr_lines(UnitErrors.ideal(), [float(y) for y in range(0, 360, 30)])

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_mavlink_rig import DEADLINE_S, FastClock, M, connect_gcs, free_port, make_config
 
 from bridge.app.calibration.store import CalibrationStore
@@ -23,6 +24,8 @@ from bridge.sim.drive import Drive
 from bridge.sim.firmware import make_firmware
 from bridge.sim.physics import DEFAULT_LOCATION, UnitErrors
 from bridge.storage import StateStore
+
+pytestmark = pytest.mark.integration
 
 SPEED = 20.0  #: simulated seconds per real second (as the other fast rigs: a loaded
 #: machine that starves the reader for 2 simulated seconds loses frames)

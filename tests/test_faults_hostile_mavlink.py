@@ -36,6 +36,7 @@ def rigs() -> Iterator[Callable[..., Rig]]:
 # ------------------------------------------------------------------ acknowledgements tell the truth
 
 
+@pytest.mark.integration
 def test_preflight_storage_write_answers_failed_when_nothing_could_be_saved(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -50,6 +51,7 @@ def test_preflight_storage_write_answers_failed_when_nothing_could_be_saved(
     assert g.command(M.MAV_CMD_PREFLIGHT_STORAGE, 3).result == FAILED  # identity, not saved
 
 
+@pytest.mark.integration
 def test_preflight_storage_write_answers_accepted_when_everything_was_saved(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -66,6 +68,7 @@ def test_preflight_storage_write_answers_accepted_when_everything_was_saved(
 # ------------------------------------------------------------------ MESSAGE_INTERVAL fits its field
 
 
+@pytest.mark.integration
 def test_intervals_that_do_not_fit_an_int32_are_refused_or_clamped(
     tmp_path: Path, rigs: Callable[..., Rig], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -86,6 +89,7 @@ def test_intervals_that_do_not_fit_an_int32_are_refused_or_clamped(
 # ------------------------------------------------------------------ the parameter list amplifier
 
 
+@pytest.mark.integration
 def test_a_peer_gets_one_whole_list_per_interval(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     rig = rigs(tmp_path)
     now = [1000.0]

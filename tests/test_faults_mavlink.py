@@ -26,6 +26,8 @@ from service_harness import (
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
+pytestmark = pytest.mark.integration
+
 DEADLINE_S = 20.0
 
 

@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 import zenoh
 from service_harness import (
     DaemonProcess,
@@ -23,6 +24,8 @@ from service_harness import (
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
+
+pytestmark = pytest.mark.integration
 
 DEADLINE_S = 20.0
 

@@ -15,6 +15,7 @@ import tty
 from pathlib import Path
 from typing import Any
 
+import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
 from service_harness import (
     DaemonProcess,
@@ -46,6 +47,7 @@ def _start(tmp: Path, manager: FakeServiceManager, port: Path, **cfg: object) ->
     return DaemonProcess(path, manager, tmp / "daemon.log", watchdog_usec=WATCHDOG_USEC)
 
 
+@pytest.mark.integration
 def test_usb_unplug_and_return(tmp_path: Path, manager: FakeServiceManager) -> None:
     with PtyCompass(make_firmware(5), tmp_path / "compass") as sim:
         d = _start(tmp_path, manager, sim.link_path)
@@ -67,6 +69,7 @@ def test_usb_unplug_and_return(tmp_path: Path, manager: FakeServiceManager) -> N
             d.kill()
 
 
+@pytest.mark.integration
 def test_compass_reboots_mid_stream(tmp_path: Path, manager: FakeServiceManager) -> None:
     with PtyCompass(make_firmware(6), tmp_path / "compass") as sim:
         d = _start(tmp_path, manager, sim.link_path, rate_hz=20)
@@ -93,6 +96,7 @@ def test_compass_reboots_mid_stream(tmp_path: Path, manager: FakeServiceManager)
             d.kill()
 
 
+@pytest.mark.integration
 def test_garbage_bursts_are_counted_not_fatal(tmp_path: Path, manager: FakeServiceManager) -> None:
     with PtyCompass(make_firmware(8), tmp_path / "compass") as sim:
         d = _start(tmp_path, manager, sim.link_path)
@@ -184,6 +188,7 @@ class WrongBaudCompass:
             os.close(fd)
 
 
+@pytest.mark.integration
 def test_wrong_baud_rate_is_reported_not_fatal(tmp_path: Path, manager: FakeServiceManager) -> None:
     dev = WrongBaudCompass(tmp_path / "compass")
     gcs = GroundStation()
@@ -215,6 +220,7 @@ def test_wrong_baud_rate_is_reported_not_fatal(tmp_path: Path, manager: FakeServ
         gcs.close()
 
 
+@pytest.mark.integration
 def test_sigterm_while_port_absent_is_quick(tmp_path: Path, manager: FakeServiceManager) -> None:
     d = _start(tmp_path, manager, tmp_path / "never-there")
     try:

@@ -36,6 +36,8 @@ from bridge.sim.motion import Still
 from bridge.sim.pty import PtyCompass
 from bridge.storage import StateStore
 
+pytestmark = pytest.mark.integration
+
 DEADLINE_S = 20.0
 PR_CAPBSET_DROP = 24
 CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH = 1, 2

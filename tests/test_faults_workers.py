@@ -16,6 +16,8 @@ from service_harness import FakeServiceManager
 from bridge.config import load_config
 from bridge.daemon import Service, build_outputs, runner
 
+pytestmark = pytest.mark.integration
+
 DEADLINE_S = 15.0
 
 

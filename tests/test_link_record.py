@@ -189,6 +189,7 @@ def wait_until(pred: object, timeout: float) -> bool:
     return bool(pred())
 
 
+@pytest.mark.integration
 def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
     feeder = PtyFeeder(tmp_path / "ttyREC")
     out = tmp_path / "rec.cbrec"
@@ -231,6 +232,7 @@ def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
         assert abs(r.header.start_wall - time.time()) < 60
 
 
+@pytest.mark.integration
 def test_record_stops_on_sigint_and_restores_the_handler(tmp_path: Path) -> None:
     feeder = PtyFeeder(tmp_path / "ttyREC")
     before = signal.getsignal(signal.SIGINT)
@@ -264,6 +266,7 @@ def replay_through_link(path: Path, realtime: bool) -> tuple[list[GmrFrame], flo
     return frames, elapsed, link
 
 
+@pytest.mark.integration
 def test_record_a_simulated_compass_and_replay_it(tmp_path: Path) -> None:
     dev = tmp_path / "ttySIM"
     out = tmp_path / "sim.cbrec"

@@ -48,6 +48,9 @@ from bridge.protocol.heading import encode as encode_heading
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
+# Every test but the in-process simulator's runs the link on a real pseudo-terminal.
+pytestmark = pytest.mark.integration
+
 VERSION = VersionFrame("2.1.0", "B3", "GMR-000417")
 PARAMS = ParamsFrame(2460.5, 2455.0, 2470.0, 1.0, 1.0213, 0.9876, 2458.0, 2458.0, 2949.5)
 

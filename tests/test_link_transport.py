@@ -53,6 +53,7 @@ def read_all(t: SerialTransport, n: int, timeout: float = 3.0) -> bytes:
     return out
 
 
+@pytest.mark.integration
 def test_serial_reads_writes_and_times_out(pty_pair: tuple[int, Path]) -> None:
     master, path = pty_pair
     t = SerialTransport(str(path), 115200)
@@ -88,6 +89,7 @@ def test_serial_reads_writes_and_times_out(pty_pair: tuple[int, Path]) -> None:
         t.close()
 
 
+@pytest.mark.integration
 def test_vanished_port_raises_instead_of_empty_reads(pty_pair: tuple[int, Path]) -> None:
     master, path = pty_pair
     t = SerialTransport(str(path), 115200)
@@ -104,6 +106,7 @@ def test_vanished_port_raises_instead_of_empty_reads(pty_pair: tuple[int, Path])
     t.close()  # idempotent
 
 
+@pytest.mark.integration
 def test_open_failures_are_transport_errors(pty_pair: tuple[int, Path], tmp_path: Path) -> None:
     _, path = pty_pair
     with pytest.raises(TransportError, match="cannot open"):

@@ -165,6 +165,7 @@ def test_limiter_rejects_nonsense() -> None:
         RateLimiter(interval_s=0.0)
 
 
+@pytest.mark.integration
 def test_journal_prefixes_in_a_real_process_whose_stderr_is_the_stream(tmp_path: Path) -> None:
     """A child whose stderr matches $JOURNAL_STREAM writes <N> prefixes; redirected, it does not."""
     code = (

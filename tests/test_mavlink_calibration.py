@@ -47,6 +47,8 @@ from bridge.sim.motion import (
     Tumble,
 )
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.fixture
 def rigs() -> Iterator[Callable[..., Rig]]:

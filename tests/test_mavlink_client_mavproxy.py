@@ -25,6 +25,8 @@ from test_mavlink_rig import Rig, rig_factory, wait_until
 from bridge.app.paramspec import REAL32
 from bridge.sim.motion import Tumble
 
+pytestmark = pytest.mark.integration
+
 #: Words MAVProxy uses when it warns; none may appear while it talks to a healthy bridge.
 WARNINGS = ("fence", "breach", "fail", "error", "unhealthy", "timed out", "traceback", "bad ")
 #: How soon after "Detected vehicle" the parameter list must be complete: MAVProxy checks

@@ -39,6 +39,8 @@ from bridge.calibration.model import Calibration
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.sim.motion import SixFaces, Still, Tumble
 
+pytestmark = pytest.mark.integration
+
 CAL_DEADLINE_S = 60.0
 PX4 = {"autopilot": "px4"}
 

@@ -22,6 +22,8 @@ from test_mavlink_rig import DEADLINE_S, GCS_COMPID, GCS_SYSID, M, Rig, mavutil,
 from bridge.mavlink.paramproto import FLAVOURS
 from bridge.sim.motion import Still
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.fixture
 def rigs() -> Iterator[Callable[..., Rig]]:

@@ -39,6 +39,8 @@ from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.signing import Signing
 
+pytestmark = pytest.mark.integration
+
 #: Every per-sample stream on: all of them fall due on the first sample, in this order.
 ALL_STREAMS = ["ATTITUDE", "ATTITUDE_QUATERNION", "VFR_HUD", "SCALED_IMU", "RAW_IMU", "HIGHRES_IMU"]
 #: The first frame's: ATTITUDE with its tilt source beside it (TILT_SRC, then once a second).

@@ -29,6 +29,8 @@ from test_mavlink_rig import DEADLINE_S, Gcs, M, Rig, connect_gcs, rig_factory
 from bridge.mavlink.output import COMPANION_COMPASS_ID
 from bridge.sim.motion import Still
 
+pytestmark = pytest.mark.integration
+
 AP = (1, 1)
 BRIDGE = (1, 200)
 ACCEPTED, FAILED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_FAILED

@@ -80,6 +80,7 @@ def test_a_compass_mask_is_checked_then_uint8_cast(value: float, expected: int |
     assert _mask(value) == expected
 
 
+@pytest.mark.integration
 def test_mavsdk_style_commands_with_nan_parameters(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:

@@ -259,6 +259,7 @@ ALL_OFF = {
 }
 
 
+@pytest.mark.integration
 def test_half_the_frames_do_no_mavlink_work(bench: Callable[..., Bench]) -> None:
     b = bench(**{**ALL_OFF, "rate_attitude_hz": 50.0})
     calls = 0
@@ -275,6 +276,7 @@ def test_half_the_frames_do_no_mavlink_work(bench: Callable[..., Bench]) -> None
     assert calls == 100  # the other 100 frames stopped at the comparison
 
 
+@pytest.mark.integration
 def test_the_average_rate_through_the_output(bench: Callable[..., Bench]) -> None:
     b = bench(**{**ALL_OFF, "rate_attitude_hz": 30.0, "rate_vfr_hud_hz": 4.0})
     rng = random.Random(3)
@@ -287,6 +289,7 @@ def test_the_average_rate_through_the_output(bench: Callable[..., Bench]) -> Non
     assert b.peer.wait("ATTITUDE").get_srcSystem() == 1
 
 
+@pytest.mark.integration
 def test_message_interval_takes_effect_on_the_next_sample(bench: Callable[..., Bench]) -> None:
     b = bench(**{**ALL_OFF, "rate_attitude_hz": 2.0})
     assert S.ATTITUDE in b.frame()
@@ -307,6 +310,7 @@ def test_message_interval_takes_effect_on_the_next_sample(bench: Callable[..., B
     assert S.VFR_HUD in b.frame()
 
 
+@pytest.mark.integration
 def test_a_rate_parameter_takes_effect_on_the_next_sample(bench: Callable[..., Bench]) -> None:
     b = bench(**ALL_OFF)  # every sample stream off: the output never needs to look again
     assert not any(b.frame() for _ in range(20))
@@ -325,6 +329,7 @@ def test_a_rate_parameter_takes_effect_on_the_next_sample(bench: Callable[..., B
     assert b.frame() == {S.HIGHRES_IMU}
 
 
+@pytest.mark.integration
 def test_the_heading_feed_switches_on_the_next_sample(bench: Callable[..., Bench]) -> None:
     b = bench(**ALL_OFF, rate_heading_feed_hz=10.0)
     assert not any(b.frame() for _ in range(20))  # feed off

@@ -38,6 +38,8 @@ from bridge.core.mounting import Rotation
 from bridge.core.wmm import earth_field
 from bridge.sim.motion import Still
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.fixture
 def rigs() -> Iterator[Callable[..., Rig]]:

@@ -41,6 +41,8 @@ from bridge.sim.motion import Motion, YawTurns
 from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.sim.pty import PtyCompass
 
+pytestmark = pytest.mark.integration
+
 mavutil.set_dialect("ardupilotmega")
 M: Any = mavutil.mavlink
 

@@ -62,6 +62,7 @@ def interval_of(g: Gcs, msgid: int) -> int:
     return int(g.wait("MESSAGE_INTERVAL", lambda m: m.message_id == msgid).interval_us)
 
 
+@pytest.mark.integration
 def test_outgoing_is_signed_and_a_signed_ground_station_may_do_everything(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -78,6 +79,7 @@ def test_outgoing_is_signed_and_a_signed_ground_station_may_do_everything(
     assert rig.out.signing is not None and rig.out.signing.accepted >= 3
 
 
+@pytest.mark.integration
 def test_unsigned_and_wrongly_signed_commands_are_refused(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -104,6 +106,7 @@ def test_unsigned_and_wrongly_signed_commands_are_refused(
     assert rig.out.dispatcher.commands == 0
 
 
+@pytest.mark.integration
 def test_replayed_and_stale_commands_are_refused(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     rig = signed_rig(tmp_path, rigs)
     g = gcs_with_key(rig, KEY)
@@ -200,6 +203,7 @@ def test_one_forged_far_future_packet_locks_pymavlinks_checker_out_but_not_ours(
     assert [ours.verify(p, GCS_SYSID, GCS_COMPID) for p in later] == [Verdict.OK] * 3
 
 
+@pytest.mark.integration
 def test_a_packet_captured_before_a_restart_is_still_a_replay_after_it(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:

@@ -33,6 +33,8 @@ from bridge.sim.motion import Still
 from bridge.sim.physics import SensorModel, UnitErrors
 from bridge.sim.pty import PtyCompass, run_simulator
 
+pytestmark = pytest.mark.integration
+
 
 class Reader:
     """A host: pyserial port + host decoder, with bounded waits."""

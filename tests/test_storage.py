@@ -197,6 +197,7 @@ while True:
 """
 
 
+@pytest.mark.integration
 def test_kill_9_during_saves_never_loses_calibration(tmp_path: Path) -> None:
     """kill -9 a process that saves in a tight loop, many times: a valid copy always loads."""
     store = StateStore(tmp_path)

@@ -74,6 +74,7 @@ def test_address_forms() -> None:
     assert notify_address("relative") is None
 
 
+@pytest.mark.integration
 def test_path_socket_messages(tmp_path: Path) -> None:
     mgr = FakeManager(str(tmp_path / "notify"))
     try:
@@ -90,6 +91,7 @@ def test_path_socket_messages(tmp_path: Path) -> None:
         mgr.close()
 
 
+@pytest.mark.integration
 def test_abstract_socket_and_reloading_carries_monotonic_usec(
     abstract_manager: tuple[FakeManager, str],
 ) -> None:
@@ -110,6 +112,7 @@ def test_no_socket_is_a_silent_no_op() -> None:
     assert n.errors == 0
 
 
+@pytest.mark.integration
 def test_missing_manager_is_counted_not_raised(tmp_path: Path) -> None:
     n = Notifier(str(tmp_path / "nobody-listens"))
     assert n.watchdog() is False
@@ -117,6 +120,7 @@ def test_missing_manager_is_counted_not_raised(tmp_path: Path) -> None:
     assert n.errors == 2
 
 
+@pytest.mark.integration
 def test_full_manager_queue_never_blocks(tmp_path: Path) -> None:
     mgr = FakeManager(str(tmp_path / "notify"))  # bound, but never read
     try:
@@ -129,6 +133,7 @@ def test_full_manager_queue_never_blocks(tmp_path: Path) -> None:
         mgr.close()
 
 
+@pytest.mark.integration
 def test_status_is_one_line_and_bounded(tmp_path: Path) -> None:
     mgr = FakeManager(str(tmp_path / "notify"))
     try:
@@ -189,6 +194,7 @@ def _service(
     )
 
 
+@pytest.mark.integration
 def test_ready_when_streaming_then_status_and_pings(
     abstract_manager: tuple[FakeManager, str],
 ) -> None:
@@ -211,6 +217,7 @@ def test_ready_when_streaming_then_status_and_pings(
         svc.close()
 
 
+@pytest.mark.integration
 def test_ready_after_bounded_wait_says_why(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
     clock, lv, streaming = ManualClock(), Liveness(), [False]
@@ -226,6 +233,7 @@ def test_ready_after_bounded_wait_says_why(abstract_manager: tuple[FakeManager, 
         svc.close()
 
 
+@pytest.mark.integration
 def test_pings_stop_while_a_part_is_silent_and_resume(
     abstract_manager: tuple[FakeManager, str],
 ) -> None:
@@ -261,6 +269,7 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
         svc.close()
 
 
+@pytest.mark.integration
 def test_stopping_suppresses_later_status(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
     clock, lv, streaming = ManualClock(), Liveness(), [True]

@@ -80,6 +80,7 @@ def running(tmp_path: Path) -> Iterator[Running]:
             r.close()
 
 
+@pytest.mark.integration
 def test_each_section_restarts_only_its_part(running: Running) -> None:
     svc = running.service
     daemon, link = svc.daemon, svc.daemon.link

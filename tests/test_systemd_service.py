@@ -22,6 +22,8 @@ from service_harness import DaemonProcess, FakeServiceManager, Message, toml_con
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
+pytestmark = pytest.mark.integration
+
 WATCHDOG_USEC = 1_000_000  # pings due every 1/3 s
 
 

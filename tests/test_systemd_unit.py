@@ -69,6 +69,7 @@ def _check(unit: Path, *env: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.integration
 def test_unit_passes_verify_and_security_score() -> None:
     r = _check(UNIT)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -77,6 +78,7 @@ def test_unit_passes_verify_and_security_score() -> None:
     assert score <= 2.0
 
 
+@pytest.mark.integration
 def test_check_fails_on_a_bad_unit(tmp_path: Path) -> None:
     """The CI check can fail: an unknown directive, or a weaker sandbox, is caught."""
     bad = tmp_path / "compass-bridge.service"
@@ -129,6 +131,7 @@ def test_exec_start_is_a_command_line_the_cli_accepts() -> None:
     assert (ROOT / "config" / "compass-bridge.toml").exists()  # what gets installed there
 
 
+@pytest.mark.integration
 def test_sysusers_makes_a_service_user_in_dialout(tmp_path: Path) -> None:
     tool = _tool("systemd-sysusers")
     etc = tmp_path / "etc"

@@ -75,6 +75,7 @@ def calibrate_live(rig: Rig, *extra: str, url: str = "") -> int:
     )  # fmt: skip
 
 
+@pytest.mark.integration
 def test_live_calibration_accepted_changes_the_bridge_and_is_plotted(
     tmp_path: Path, rigs: Callable[..., Rig], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -114,6 +115,7 @@ def test_live_calibration_accepted_changes_the_bridge_and_is_plotted(
     assert msg.interval_us == 500_000
 
 
+@pytest.mark.integration
 def test_live_calibration_declined_leaves_the_bridge_as_it_was(
     tmp_path: Path, rigs: Callable[..., Rig], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -133,6 +135,7 @@ def test_live_calibration_declined_leaves_the_bridge_as_it_was(
     assert load_calibration(str(tmp_path / "state"))[1] != "stored"
 
 
+@pytest.mark.integration
 def test_ctrl_c_during_the_motion_cancels_the_calibration_on_the_bridge(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -160,6 +163,7 @@ def test_ctrl_c_during_the_motion_cancels_the_calibration_on_the_bridge(
     assert rig.daemon.engine.calibration == before
 
 
+@pytest.mark.integration
 def test_no_bridge_on_the_link_is_a_clear_error_in_bounded_time(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -224,6 +228,7 @@ def test_a_report_without_parameters_gives_no_figures_not_a_crash() -> None:
         report_mag_calibration(rep)
 
 
+@pytest.mark.integration
 def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
     tmp_path: Path, rigs: Callable[..., Rig], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -242,6 +247,7 @@ def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
     assert rig.daemon.engine.calibration == before
 
 
+@pytest.mark.integration
 def test_the_tool_keeps_the_bridge_listening_through_a_long_tumble(
     tmp_path: Path,
     rigs: Callable[..., Rig],

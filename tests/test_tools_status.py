@@ -6,12 +6,14 @@ import io
 import json
 from pathlib import Path
 
+import pytest
 from test_zenoh_output import Bridge, free_port, wait_until
 
 from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
 from bridge.zenoh.monitor import MonitorOptions
 
 
+@pytest.mark.integration
 def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path) -> None:
     port = free_port()
     with Bridge(tmp_path, "boat7", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
@@ -41,6 +43,7 @@ def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path
     assert f"{b.prefix}: UNCALIBRATED" in text and "streaming on" in text and "frames/s" in text
 
 
+@pytest.mark.integration
 def test_no_bridge_answering_exits_1(tmp_path: Path) -> None:
     opts = MonitorOptions(keyexpr="fleet/**", connect=(f"tcp/127.0.0.1:{free_port()}",))
     out = io.StringIO()

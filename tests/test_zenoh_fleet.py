@@ -37,6 +37,7 @@ from bridge.zenoh.monitor import FleetView, MonitorOptions, document_keys, run_m
 # ---------------------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_ten_bridges_at_20hz_into_one_subscriber_lose_nothing(tmp_path: Path) -> None:
     port = free_port()
     rx = Received()
@@ -198,6 +199,7 @@ def monitor(*args: str, timeout: float = 20.0) -> subprocess.CompletedProcess[st
     )
 
 
+@pytest.mark.integration
 def test_monitor_once_shows_a_running_bridge(tmp_path: Path) -> None:
     port = free_port()
     with Bridge(tmp_path, "m1", listen=[f"tcp/127.0.0.1:{port}"]) as b:
@@ -213,6 +215,7 @@ def test_monitor_once_shows_a_running_bridge(tmp_path: Path) -> None:
     assert float(cells[4]) == pytest.approx(20.0, rel=0.25)  # HZ: headings received
 
 
+@pytest.mark.integration
 def test_monitor_once_without_bridges_exits_1() -> None:
     port = free_port()
     with peer(listen=[f"tcp/127.0.0.1:{port}"]):
@@ -221,6 +224,7 @@ def test_monitor_once_without_bridges_exits_1() -> None:
     assert "(no compass bridge seen yet)" in proc.stdout
 
 
+@pytest.mark.integration
 def test_monitor_marks_a_bridge_that_goes_away(tmp_path: Path) -> None:
     port = free_port()
     out = io.StringIO()
@@ -243,6 +247,7 @@ def test_monitor_marks_a_bridge_that_goes_away(tmp_path: Path) -> None:
     assert not th.is_alive() and result == [0]
 
 
+@pytest.mark.integration
 def test_monitor_refuses_bad_arguments() -> None:
     proc = monitor("fleet//x", "--once")
     assert proc.returncode == 2 and "not a key expression" in proc.stderr
@@ -250,6 +255,7 @@ def test_monitor_refuses_bad_arguments() -> None:
     assert proc.returncode == 2 and "not a zenoh endpoint" in proc.stderr
 
 
+@pytest.mark.integration
 def test_monitor_on_a_terminal_redraws_in_place() -> None:
     port = free_port()
     out = io.StringIO()

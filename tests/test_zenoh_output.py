@@ -34,6 +34,8 @@ from bridge.zenoh.output import ZenohOutput
 from bridge.zenoh.services import fleet_services
 from bridge.zenoh.session import ZenohSettings
 
+pytestmark = pytest.mark.integration
+
 DEADLINE_S = 10.0
 #: Test sessions and bridges talk over explicit endpoints only: nothing leaves the host.
 NO_SCOUTING = (
