@@ -282,10 +282,12 @@ def test_every_publication_arrives_with_a_valid_schema(tmp_path: Path) -> None:
         # The IMU stream carries the frame's raw counts beside the calibrated vectors.
         imu = rx.docs(b.key("imu"))[-1]
         assert imu["raw"]["mag"] is not None and imu["raw"]["accel"] is not None
-        # The status reports the live link and the device's frame rate (20 Hz asked).
+        # The status reports the live link and the device's frame rate (frames over the
+        # host's clock, so a busy machine moves it: its arithmetic is checked on set times
+        # in test_zenoh_schema.py; here, that it is the frames' rate, not the documents').
         last = rx.docs(b.key("status"))[-1]
         assert last["link"]["state"] == "streaming"
-        assert last["link"]["frame_rate_hz"] == pytest.approx(20.0, rel=0.15)
+        assert 10.0 < last["link"]["frame_rate_hz"] < 40.0  # 20 Hz asked; not 60 (3 streams)
 
 
 def test_the_pipeline_puts_each_sample_before_publish_returns(tmp_path: Path) -> None:
@@ -721,15 +723,19 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
             wait_until(lambda: rx.count(f"{key}/attitude") >= 20, what="attitudes")
             # The mirror found the MAVLink output the configuration built.
             wait_until(lambda: rx.count("mavlink/1/1/HEARTBEAT") >= 1, what="a mirrored HEARTBEAT")
-            h0, a0, t0 = rx.count(f"{key}/heading"), rx.count(f"{key}/attitude"), time.monotonic()
-            time.sleep(2.0)
-            dt = time.monotonic() - t0
-            heading_hz = (rx.count(f"{key}/heading") - h0) / dt
-            attitude_hz = (rx.count(f"{key}/attitude") - a0) / dt
+            # 3 s of the device's frames, counted by its own sequence numbers (not timed: a
+            # busy machine delays them, it does not change how many there are)
+            a0 = rx.count(f"{key}/attitude")
+            wait_until(lambda: rx.count(f"{key}/attitude") >= a0 + 60, what="60 more attitudes")
         finally:
             daemon.stop()
-    assert heading_hz == pytest.approx(5.0, abs=1.0)  # capped by zenoh.heading_rate_hz
-    assert attitude_hz == pytest.approx(20.0, rel=0.15)  # every frame of the 20 Hz device
+    seqs = [d["seq"] for d in rx.docs(f"{key}/attitude")][a0:]
+    assert contiguous(seqs)  # every frame of the 20 Hz device
+    first, last = seqs[0], seqs[-1]
+    span = last - first + 1
+    headings = [d for d in rx.docs(f"{key}/heading") if first <= d["seq"] <= last]
+    # capped by zenoh.heading_rate_hz: 5 of the device's 20 frames a second (within 1 Hz)
+    assert len(headings) == pytest.approx(span * 5.0 / 20.0, abs=span / 20.0)
 
 
 # ---------------------------------------------------------------------------
