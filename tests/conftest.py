@@ -26,6 +26,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from service_harness import FakeServiceManager
@@ -83,9 +84,15 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     )  # fmt: skip
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    # (xdist's controller) a worker's own options say dist "no": tell it the real mode.
+    node.workerinput["compass_bridge_dist"] = node.config.getoption("dist")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     workerinput = getattr(config, "workerinput", None)
-    if workerinput is None or config.getoption("dist") != "worksteal":
+    if workerinput is None or workerinput.get("compass_bridge_dist") != "worksteal":
         return
     n = int(workerinput["workercount"])
     slow = [it for it in items if it.get_closest_marker("slow") is not None]
