@@ -20,6 +20,7 @@ pyproject's ``addopts`` are then accepted and ignored.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import subprocess
@@ -72,16 +73,18 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     if not _stale_test_modules():
         return
     # The workers start after this hook (xdist's own sessionstart starts them).
-    subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
-         "--numprocesses", "0", *config.args],
-        cwd=config.rootpath,
-        env={**os.environ, "COMPASS_BRIDGE_WARMING": "1"},
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        timeout=120,
-        check=False,
-    )  # fmt: skip
+    # (A failure here only costs the workers the time it would have saved them.)
+    with contextlib.suppress(subprocess.SubprocessError, OSError):
+        subprocess.run(
+            [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+             "--numprocesses", "0", *config.args],
+            cwd=config.rootpath,
+            env={**os.environ, "COMPASS_BRIDGE_WARMING": "1"},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            timeout=120,
+            check=False,
+        )  # fmt: skip
 
 
 @pytest.hookimpl(optionalhook=True)
