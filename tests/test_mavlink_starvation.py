@@ -31,7 +31,7 @@ from service_harness import DaemonProcess, free_port, free_udp_port, toml_config
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+pytestmark = pytest.mark.integration
 
 KEY = bytes.fromhex("5a" * 32)
 ATT_HZ = 10.0  #: BRG_SR_ATT's default
