@@ -8,7 +8,7 @@ and both UDP and TCP carry a conversation.
   with an inbox, so a test can wait for one message without losing the others,
   and every wait has a deadline.
 * :func:`start_rig` builds a :class:`Rig`: configuration from a mapping, the
-  simulated compass in process (``fast``: on a :class:`SimClock`, up to ``SPEED`` times real time,
+  simulated compass in process (``fast``: on a clock ``SPEED`` times real time,
   with the calibration controller rebuilt on that clock, as the calibrator's
   own tests do), the daemon with a :class:`MavlinkOutput`, started.
 """
@@ -74,32 +74,6 @@ class FastClock:
 
     def sleep(self, seconds: float) -> None:
         time.sleep(max(0.0, seconds) / self.speed)
-
-
-class SimClock:
-    """The fast rigs' clock: simulated time that moves only while the simulated compass waits
-    for its next event, each wait taking ``1/speed`` of its length in real time.
-
-    So the simulation runs at most ``speed`` times real time and, on a busy machine, slower:
-    never ahead of its own frames. (Wall time times ``speed`` ran ahead: with both cores
-    busy the daemon read the frames late, and a six-face calibration timed out at 180
-    simulated seconds with its faces still queued.) Only the simulator's transport sleeps
-    on it; everything else reads it.
-    """
-
-    def __init__(self, speed: float) -> None:
-        self.speed = speed
-        self._t = time.monotonic()
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        return self._t
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0.0:
-            time.sleep(seconds / self.speed)
-            with self._lock:
-                self._t += seconds
 
 
 class Gcs:
@@ -325,7 +299,7 @@ def start_rig(
     )
     server: PtyCompass | None = None
     transport: SimTransport | None = None
-    fc = SimClock(SPEED)
+    fc = FastClock(SPEED)
     if pty:
         server = PtyCompass(fw, link_path).start()
     elif fast:
