@@ -1,11 +1,130 @@
-"""Fixtures shared by the test modules."""
+"""Fixtures shared by the test modules, and how the suite is spread over pytest-xdist workers.
+
+Three things here keep the whole suite (real autopilots included) short on two cores:
+
+* **Bytecode is written** even under ``PYTHONDONTWRITEBYTECODE``: without it every xdist
+  worker re-parses and assertion-rewrites all ~110 test modules (about 7 s of CPU each,
+  8.8 s against 1.7 s with the cache), and every ``compass-bridge`` subprocess recompiles
+  the package. The caches go where Python puts them (``__pycache__``, ignored by git).
+* **The controller warms that cache once** before the workers start (a collection in a
+  subprocess, only when a test module is newer than its rewritten copy), so a fresh
+  checkout (CI) does not have eight workers rewriting the same modules at once.
+* **Tests marked ``slow``** (tens of seconds of wall time: real-time autopilots, long
+  scenarios) are put at the head of each worker's first share of the collection
+  (``--dist worksteal`` splits the collection into one contiguous share a worker), so they
+  start at once, side by side, and the short tests fill the time around them.
+
+``-p no:xdist`` (the in-memory tier's command) works too: the xdist options in
+pyproject's ``addopts`` are then accepted and ignored.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import itertools
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
 import pytest
+from hypothesis import settings
 from service_harness import FakeServiceManager
+
+# Before any test module (and the package under test) is imported by this process.
+sys.dont_write_bytecode = False
+
+# Hypothesis's per-example deadline (200 ms) is a wall-clock bound: with both cores busy the
+# first example (lazy imports, caches) misses it and the test fails for the machine, not
+# the code. Speed is shown by the benchmarks; the properties here are about results.
+settings.register_profile("compass-bridge", deadline=None)
+settings.load_profile("compass-bridge")
+
+_TESTS = Path(__file__).resolve().parent
+
+
+def pytest_addoption(parser: pytest.Parser, pluginmanager: pytest.PytestPluginManager) -> None:
+    if not pluginmanager.has_plugin("xdist"):
+        # pyproject's addopts name xdist's options; without the plugin they mean nothing.
+        group = parser.getgroup("xdist (not loaded)")
+        group.addoption("--numprocesses", default=None, help="ignored: xdist is not loaded")
+        group.addoption("--dist", default="no", help="ignored: xdist is not loaded")
+
+
+def _stale_test_modules() -> list[Path]:
+    """Test modules whose assertion-rewritten bytecode is missing or older than the source."""
+    try:
+        from _pytest.assertion.rewrite import PYC_TAIL
+    except ImportError:  # pytest moved it: warm every time rather than guess the name
+        return sorted(_TESTS.glob("test_*.py"))
+    stale = []
+    for src in sorted(_TESTS.glob("test_*.py")):
+        pyc = src.parent / "__pycache__" / (src.name[:-3] + PYC_TAIL)
+        if not pyc.exists() or pyc.stat().st_mtime < src.stat().st_mtime:
+            stale.append(src)
+    return stale
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionstart(session: pytest.Session) -> None:
+    config = session.config
+    if hasattr(config, "workerinput") or os.environ.get("COMPASS_BRIDGE_WARMING"):
+        return
+    workers = (
+        config.getoption("numprocesses", None) if config.pluginmanager.has_plugin("xdist") else None
+    )
+    if not workers or config.getoption("collectonly"):
+        return
+    if not _stale_test_modules():
+        return
+    # The workers start after this hook (xdist's own sessionstart starts them).
+    # (A failure here only costs the workers the time it would have saved them.)
+    with contextlib.suppress(subprocess.SubprocessError, OSError):
+        subprocess.run(
+            [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+             "--numprocesses", "0", str(_TESTS)],
+            cwd=config.rootpath,
+            env={**os.environ, "COMPASS_BRIDGE_WARMING": "1"},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            timeout=120,
+            check=False,
+        )  # fmt: skip
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    # (xdist's controller) a worker's own options say dist "no": tell it the real mode.
+    node.workerinput["compass_bridge_dist"] = node.config.getoption("dist")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    workerinput = getattr(config, "workerinput", None)
+    if workerinput is None or workerinput.get("compass_bridge_dist") != "worksteal":
+        return
+    n = int(workerinput["workercount"])
+    slow = [it for it in items if it.get_closest_marker("slow") is not None]
+    if not slow or n < 2:
+        return
+    rest = [it for it in items if it.get_closest_marker("slow") is None]
+    # xdist's WorkStealingScheduling gives idle node i (of n) len(pending) // (n - i)
+    # consecutive items; rebuild the collection share by share, slow tests first.
+    sizes, left = [], len(items)
+    for i in range(n):
+        sizes.append(left // (n - i))
+        left -= sizes[-1]
+    shares: list[list[pytest.Item]] = [[] for _ in range(n)]
+    for k, it in enumerate(slow):
+        shares[k % n].append(it)
+    out: list[pytest.Item] = []
+    it_rest = iter(rest)
+    for share, size in zip(shares, sizes, strict=True):
+        out += share
+        out += itertools.islice(it_rest, max(0, size - len(share)))
+    out += it_rest
+    items[:] = out
 
 
 @pytest.fixture

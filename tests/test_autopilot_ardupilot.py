@@ -56,7 +56,7 @@ from bridge.app.calibration.store import LEARNED_SOURCE
 from bridge.calibration.drift.estimator import with_offset_change
 from bridge.core.wmm import earth_field
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HOME = ARDUPILOT_HOME
 COMPASS_YAW = 200.0  #: the compass lies still at this true heading (the vehicle points 120)

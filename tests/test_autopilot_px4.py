@@ -45,7 +45,7 @@ from autopilots import (
 from bridge.app.calibration.store import LEARNED_SOURCE
 from bridge.calibration.drift.estimator import with_offset_change
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HOME = (47.397742, 8.545594, 488.0)  #: SIH's default home (Zurich)
 COMPASS_YAW = 200.0

@@ -22,12 +22,7 @@ from bridge.sim.autopilot import AutopilotAttitude
 from bridge.sim.drive import MANOEUVRES, ManoeuvreDrive
 
 
-@pytest.fixture(scope="module")
-def result() -> dict:
-    return run(TiltBenchConfig(units=4, holds=12))
-
-
-def test_the_three_tilt_sources_on_the_same_frames(result: dict) -> None:
+def check_the_three_tilt_sources_on_the_same_frames(result: dict) -> None:
     acc = result["accelerating"]
     # the bounds of the issue, with margin
     assert acc["companion"]["rms_deg"] <= 0.8 * COMPANION_BAR_DEG
@@ -45,7 +40,7 @@ def test_the_three_tilt_sources_on_the_same_frames(result: dict) -> None:
     assert all(t["pass"] for t in result["targets"]), result["targets"]
 
 
-def test_still_and_hand_held_are_no_worse(result: dict) -> None:
+def check_still_and_hand_held_are_no_worse(result: dict) -> None:
     for name in ("still", "hand-held"):
         h = result["holds"][name]
         assert h["standalone"]["rms_deg"] <= 1.02 * h["accelerometer"]["rms_deg"]
@@ -54,6 +49,7 @@ def test_still_and_hand_held_are_no_worse(result: dict) -> None:
     assert still["standalone"]["rms_deg"] <= 1.15 * still["floor"]["rms_deg"]
 
 
+@pytest.mark.slow
 def test_at_50_hz_the_autopilot_carries_the_tilt_and_a_hand_is_still_averaged() -> None:
     """At 50 Hz a hand's shake is smooth from one frame to the next: the accelerometer's noise
     is learnt between frames 0.1 s apart, so the tilt path still averages it out."""
@@ -66,11 +62,30 @@ def test_at_50_hz_the_autopilot_carries_the_tilt_and_a_hand_is_still_averaged() 
     assert hand["standalone"]["rms_deg"] <= 0.9 * hand["accelerometer"]["rms_deg"]
 
 
-def test_the_report_prints_the_figures_side_by_side(result: dict) -> None:
+def check_the_report_prints_the_figures_side_by_side(result: dict) -> None:
     text = format_report(result)
     for label in ("accelerometer (before)", "companion (autopilot)", "standalone (magnetometer)"):
         assert label in text
     assert "PASS  companion" in text and "FAIL" not in text
+
+
+@pytest.mark.slow
+def test_one_bench_run_of_four_units_holds_its_bounds() -> None:
+    """One run of the bench (seconds of CPU), every check on it, each reported on its own.
+    One test, not a module-scoped fixture: pytest-xdist would run the bench again on each
+    worker that took one of the fixture's tests."""
+    result = run(TiltBenchConfig(units=4, holds=12))
+    failed = []
+    for check in (
+        check_the_three_tilt_sources_on_the_same_frames,
+        check_still_and_hand_held_are_no_worse,
+        check_the_report_prints_the_figures_side_by_side,
+    ):
+        try:
+            check(result)
+        except AssertionError as e:
+            failed.append(f"{check.__name__}: {e}")
+    assert not failed, "\n\n".join(failed)
 
 
 def test_the_command_line_runs_and_exits_by_its_targets(capsys: pytest.CaptureFixture[str]) -> None:

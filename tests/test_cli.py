@@ -108,6 +108,7 @@ def run(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.Completed
 # --- run --simulate --------------------------------------------------------------------
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 @pytest.mark.integration
 def test_run_simulate_shows_changing_heading_and_stops_on_signal(

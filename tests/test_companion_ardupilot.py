@@ -30,7 +30,7 @@ from mavlink_clients import MavProxy
 
 from bridge.events import Event, Severity
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HOME = ARDUPILOT_HOME[:3]
 LONG_TEXT = "Compass bridge test: " + "a long status text in several chunks; " * 4

@@ -35,7 +35,7 @@ from mavsdk.plugins.param.param import Param, ParamError, ParamResult, ProtocolV
 
 from bridge.events import Event, Severity
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HOME = (47.397742, 8.545594, 488.0)
 LONG_TEXT = "Compass bridge test: " + "a long status text in several chunks; " * 4

@@ -242,6 +242,7 @@ def _cli(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("command", ["config", "run"])
 @pytest.mark.integration
 def test_cli_refuses_a_device_as_signing_key(tmp_path: Path, command: str) -> None:
@@ -256,6 +257,7 @@ def test_cli_refuses_a_device_as_signing_key(tmp_path: Path, command: str) -> No
     assert res.stdout == ""
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("data", "why"),
     [
@@ -287,6 +289,7 @@ def test_cli_bad_endpoint_exits_2_naming_the_key(tmp_path: Path) -> None:
     assert "not a valid IPv4 address" in res.stderr and len(res.stderr.splitlines()) == 1
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("feed", ["px4_odometry", "ardupilot_vision"])
 @pytest.mark.integration
 def test_a_heading_feed_is_not_refused_for_ids_the_autopilot_may_not_have(

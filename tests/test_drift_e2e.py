@@ -25,6 +25,8 @@ from bridge.sim.firmware import make_firmware
 from bridge.sim.physics import DEFAULT_LOCATION, UnitErrors
 from bridge.storage import StateStore
 
+pytestmark = pytest.mark.integration
+
 SPEED = 20.0  #: simulated seconds per real second (as the other fast rigs: a loaded
 #: machine that starves the reader for 2 simulated seconds loses frames)
 SEED = 4

@@ -34,7 +34,7 @@ from bridge.sim.pty import PtyCompass
 from bridge.tools.status import run_status
 from bridge.zenoh.monitor import MonitorOptions, run_monitor
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 ACTIVE, CRITICAL = 4, 5  # MAV_STATE
 

@@ -83,6 +83,7 @@ def recv_udp(sock: socket.socket, n: int, timeout: float = DEADLINE_S) -> list[b
     return out
 
 
+@pytest.mark.integration
 def test_udpout_sends_and_hears_replies(endpoints: Callable[..., Endpoint]) -> None:
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", 0))
@@ -109,6 +110,7 @@ def test_udpout_sends_and_hears_replies(endpoints: Callable[..., Endpoint]) -> N
     assert c.packets_sent == 5 and c.packets_received == 1 and c.errors == 0
 
 
+@pytest.mark.integration
 def test_udpin_learns_peers_and_answers_each_on_its_own(
     endpoints: Callable[..., Endpoint], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -142,6 +144,7 @@ def test_udpin_learns_peers_and_answers_each_on_its_own(
         b.close()
 
 
+@pytest.mark.integration
 def test_tcp_client_reconnects_after_the_server_drops_it(
     endpoints: Callable[..., Endpoint],
 ) -> None:
@@ -173,6 +176,7 @@ def test_tcp_client_reconnects_after_the_server_drops_it(
         srv.close()
 
 
+@pytest.mark.integration
 def test_tcp_to_nobody_never_blocks_the_sender(endpoints: Callable[..., Endpoint]) -> None:
     ep = endpoints(f"tcp:127.0.0.1:{free_port(socket.SOCK_STREAM)}")
     t0 = time.monotonic()
@@ -183,6 +187,7 @@ def test_tcp_to_nobody_never_blocks_the_sender(endpoints: Callable[..., Endpoint
     assert ep.counters().packets_unsent >= 1000
 
 
+@pytest.mark.integration
 def test_tcpin_serves_several_clients_each_with_its_own_sequence(
     endpoints: Callable[..., Endpoint],
 ) -> None:
@@ -221,6 +226,7 @@ def _read_packets(sock: socket.socket, n: int) -> list[Any]:
     return out
 
 
+@pytest.mark.integration
 def test_a_stuck_tcp_client_costs_only_its_own_queue(endpoints: Callable[..., Endpoint]) -> None:
     tport = free_port(socket.SOCK_STREAM)
     stuck_ep = endpoints(f"tcpin:127.0.0.1:{tport}", queue_packets=32)
@@ -257,6 +263,7 @@ def test_a_stuck_tcp_client_costs_only_its_own_queue(endpoints: Callable[..., En
         udp_peer.close()
 
 
+@pytest.mark.integration
 def test_serial_endpoint_over_a_pty(endpoints: Callable[..., Endpoint]) -> None:
     master, slave = os.openpty()
     tty.setraw(slave)
@@ -293,6 +300,7 @@ def test_a_missing_serial_device_is_retried_quietly(
     assert ep.links == []
 
 
+@pytest.mark.integration
 def test_signed_endpoint_output_verifies_in_pymavlink(endpoints: Callable[..., Endpoint]) -> None:
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", 0))
@@ -309,6 +317,7 @@ def test_signed_endpoint_output_verifies_in_pymavlink(endpoints: Callable[..., E
         parse_all(data, bytes(32))
 
 
+@pytest.mark.integration
 def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -360,6 +369,7 @@ def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
 # bridge does instead"). These pin pymavlink's behaviour: if one fails, pymavlink changed.
 
 
+@pytest.mark.integration
 def test_pymavlink_udpin_sends_every_packet_to_every_address_it_ever_heard(
     endpoints: Callable[..., Endpoint],
 ) -> None:
@@ -410,6 +420,7 @@ def test_pymavlink_udpin_sends_every_packet_to_every_address_it_ever_heard(
             s.close()
 
 
+@pytest.mark.integration
 def test_pymavlink_tcp_loses_silently_what_a_slow_peer_cannot_take() -> None:
     """mavutil's ``tcp`` link never blocks (its socket is non-blocking), but every packet
     that does not fit the socket's buffers is dropped without an error or a count -- a

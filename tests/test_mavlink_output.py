@@ -23,6 +23,7 @@ from test_mavlink_rig import (
     GCS_SYSID,
     LAT,
     LON,
+    Gcs,
     M,
     Rig,
     connect_gcs,
@@ -52,6 +53,20 @@ ACCEPTED, DENIED, UNSUPPORTED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_DENIED, M.MA
 
 def rate(msgs: list[Any], mtype: str, seconds: float) -> float:
     return sum(1 for m in msgs if m.get_type() == mtype) / seconds
+
+
+def collect_frames(rig: Rig, g: Gcs, seconds: float) -> tuple[list[Any], float]:
+    """What ``g`` receives while the simulated compass sends ``seconds`` of its frames, and
+    those seconds as the compass counts them (its frames over its rate): a rate measured
+    on the device's own clock, which a busy machine delays but does not shorten."""
+    hz = rig.cfg.device.rate_hz
+    f0 = rig.fw.frames_sent
+    msgs: list[Any] = []
+    deadline = time.monotonic() + seconds + DEADLINE_S
+    while rig.fw.frames_sent < f0 + round(seconds * hz):
+        assert time.monotonic() < deadline, "the simulated compass stopped sending"
+        msgs += g.collect(0.05)
+    return msgs, (rig.fw.frames_sent - f0) / hz
 
 
 # =====================================================================================
@@ -116,7 +131,8 @@ def test_message_interval_and_request_message(tmp_path: Path, rigs: Callable[...
     g.command(M.MAV_CMD_GET_MESSAGE_INTERVAL, att)
     assert g.wait("MESSAGE_INTERVAL").interval_us == 500_000
     g.flush()
-    assert 1.0 <= rate(g.collect(3.0), "ATTITUDE", 3.0) <= 3.0  # 2 Hz now
+    msgs, secs = collect_frames(rig, g, 3.0)
+    assert 1.0 <= rate(msgs, "ATTITUDE", secs) <= 3.0  # 2 Hz now
     assert g.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, att, -1).result == ACCEPTED
     g.flush()
     assert rate(g.collect(1.5), "ATTITUDE", 1.5) == 0.0  # off
@@ -239,7 +255,8 @@ def test_parameter_protocol(
     assert rig.daemon.params.get("BRG_SR_HUD") == 2.0
     # the new rate is in force
     g.flush()
-    assert 1.0 <= rate(g.collect(2.0), "VFR_HUD", 2.0) <= 3.0
+    msgs, secs = collect_frames(rig, g, 2.0)
+    assert 1.0 <= rate(msgs, "VFR_HUD", secs) <= 3.0
 
 
 def test_compass_parameters_are_the_calibration_the_engine_applies(
@@ -444,8 +461,8 @@ def test_heading_feed_for_the_autopilot(
     g = rig.gcs("udp")
     mtype = "ODOMETRY" if feed == "px4_odometry" else "VISION_POSITION_ESTIMATE"
     g.flush()
-    msgs = g.collect(2.0)
-    assert 7.0 <= rate(msgs, mtype, 2.0) <= 11.5
+    msgs, secs = collect_frames(rig, g, 2.0)
+    assert 7.0 <= rate(msgs, mtype, secs) <= 11.5
     decl = earth_field(LAT, LON).declination_deg
     atts = {m.time_boot_ms: m for m in msgs if m.get_type() == "ATTITUDE"}
     # The feed's time stamps are wall-clock (Unix epoch) microseconds, ATTITUDE's are
@@ -548,8 +565,8 @@ def test_a_dead_and_a_stuck_endpoint_do_not_slow_the_others(
         g = rig.gcs("udp")
         samples0 = rig.daemon.samples
         g.flush()
-        msgs = g.collect(3.0)
-        assert 7.0 <= rate(msgs, "ATTITUDE", 3.0) <= 11.0  # the compass's 10 Hz, all of it
+        msgs, secs = collect_frames(rig, g, 3.0)
+        assert 7.0 <= rate(msgs, "ATTITUDE", secs) <= 11.0  # the compass's 10 Hz, all of it
         assert rig.daemon.samples - samples0 >= 25  # the pipeline never waited
         counters = rig.out.endpoint_counters()
         assert counters[dead].errors >= 1 and counters[dead].packets_unsent > 0

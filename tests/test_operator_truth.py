@@ -301,6 +301,7 @@ def test_simulate_says_where_it_serves(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
 
 
+@pytest.mark.integration
 def test_config_says_when_it_cannot_read_the_stored_parameters(tmp_path: Path) -> None:
     state = tmp_path / "state"
     (state / "params.json").mkdir(parents=True)  # unreadable as a document (as a 0750 dir is)

@@ -397,6 +397,7 @@ def test_tilt_sources_align_the_autopilot_to_the_frame() -> None:
             ts.tilt(mag, noisy, t + 0.06 + ts.frame_latency, field_ok=True)
     st = ts.status()
     assert st["autopilot"]["clock"] == "timesync" and st["autopilot"]["messages"] == 1200
+    assert st["autopilot"]["rate_hz"] == pytest.approx(20.0, rel=0.01)  # one every 50 ms
     assert ts.residual.rotation_deg() == pytest.approx(3.0, abs=0.3)
     # now the compass accelerates: the autopilot's down, aligned, carries the tilt
     t = 60.0

@@ -44,7 +44,7 @@ from bridge.core.wmm import earth_field
 from bridge.sim.motion import MotionBase
 from bridge.sim.physics import DEFAULT_LOCATION
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 ARDUPILOT = AUTOPILOTS / "ardupilot"
 PARAMS = {"SERIAL1_PROTOCOL": 2, "MAV2_EXTRA1": 20, "ARMING_CHECK": 0}

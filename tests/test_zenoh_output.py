@@ -282,10 +282,12 @@ def test_every_publication_arrives_with_a_valid_schema(tmp_path: Path) -> None:
         # The IMU stream carries the frame's raw counts beside the calibrated vectors.
         imu = rx.docs(b.key("imu"))[-1]
         assert imu["raw"]["mag"] is not None and imu["raw"]["accel"] is not None
-        # The status reports the live link and the device's frame rate (20 Hz asked).
+        # The status reports the live link and the device's frame rate (frames over the
+        # host's clock, so a busy machine moves it: its arithmetic is checked on set times
+        # in test_zenoh_schema.py; here, that it is the frames' rate, not the documents').
         last = rx.docs(b.key("status"))[-1]
         assert last["link"]["state"] == "streaming"
-        assert last["link"]["frame_rate_hz"] == pytest.approx(20.0, rel=0.15)
+        assert 10.0 < last["link"]["frame_rate_hz"] < 40.0  # 20 Hz asked; not 60 (3 streams)
 
 
 def test_the_pipeline_puts_each_sample_before_publish_returns(tmp_path: Path) -> None:
@@ -431,15 +433,21 @@ def test_publishing_resumes_within_2s_of_the_peer_returning(tmp_path: Path) -> N
             _s = s.declare_subscriber(b.key("heading"), rx)
             wait_until(lambda: rx.count(b.key("heading")) >= 5, what="headings")
             wait_until(lambda: gcs.count("ATTITUDE") >= 5, what="MAVLink ATTITUDE")
-        # The peer is gone. Neither the pipeline nor MAVLink may notice.
-        before, mav_before = b.daemon.samples, gcs.count("ATTITUDE")
-        time.sleep(2.0)
-        during, mav_during = b.daemon.samples - before, gcs.count("ATTITUDE") - mav_before
-        assert during >= 0.8 * 20 * 2.0, f"pipeline slowed while zenoh was down: {during}"
-        # ATTITUDE streams at BRG_SR_ATT (default 10 Hz) whatever zenoh does.
+        # The peer is gone. Neither the pipeline nor MAVLink may notice: over 2 s of the
+        # device's own frames (its count, not the wall clock, which a busy machine stretches)
+        # the pipeline takes every frame and MAVLink sends its ATTITUDE at BRG_SR_ATT
+        # (default 10 Hz, 1 in 2 frames) whatever zenoh does.
+        fw = b.sim.firmware
+        f0, before, mav_before = fw.frames_sent, b.daemon.samples, gcs.count("ATTITUDE")
+        wait_until(lambda: fw.frames_sent >= f0 + 40, what="2 s of the device's frames")
+        sent = fw.frames_sent - f0
+        wait_until(
+            lambda: b.daemon.samples - before >= sent, 1.0, "the pipeline to take every frame"
+        )
         assert b.mavlink is not None
         att_hz = b.daemon.params.get("BRG_SR_ATT")
-        assert mav_during >= 0.8 * att_hz * 2.0, f"MAVLink slowed: {mav_during} ATTITUDE in 2 s"
+        wanted = 0.8 * att_hz * sent / 20.0  # (0.5 s for the last datagrams to be read)
+        wait_until(lambda: gcs.count("ATTITUDE") - mav_before >= wanted, 0.5, "ATTITUDE")
         rx2 = Received()
         with peer(listen=[endpoint]) as s:
             t0 = time.monotonic()
@@ -475,19 +483,23 @@ def test_a_stalled_subscriber_does_not_slow_the_daemon(tmp_path: Path) -> None:
                 key = b.key("heading")
                 wait_until(lambda: healthy.count(key) >= 50, what="the healthy subscriber")
                 wait_until(lambda: b.daemon.status().counters.attitude_frames > 0)
-                # Measure over a window well after the stall began.
-                time.sleep(0.5)
-                n0, h0, t0 = b.daemon.samples, healthy.count(key), time.monotonic()
+                # Measure over a window well after the stall began: 3 s of the device's own
+                # frames (its count, not the wall clock, which a busy machine stretches).
+                fw = b.sim.firmware
+                f0 = fw.frames_sent
+                wait_until(lambda: fw.frames_sent >= f0 + 50, what="0.5 s of frames")
+                f0, n0, h0 = fw.frames_sent, b.daemon.samples, healthy.count(key)
                 m0 = gcs.count("ATTITUDE")
-                time.sleep(3.0)
-                n1, h1, t1 = b.daemon.samples, healthy.count(key), time.monotonic()
-                m1 = gcs.count("ATTITUDE")
-                rate = (n1 - n0) / (t1 - t0)
-                assert rate >= 90.0, f"the pipeline ran at {rate:.1f} Hz, the device at 100"
+                wait_until(lambda: fw.frames_sent >= f0 + 300, what="3 s of the device's frames")
+                sent = fw.frames_sent - f0
+                # the pipeline takes every frame of the 100 Hz device (1 s for the
+                # last ones in flight), MAVLink sends its ATTITUDE at BRG_SR_ATT
+                wait_until(lambda: b.daemon.samples - n0 >= sent, 1.0, "every frame")
                 assert b.mavlink is not None
                 att_hz = b.daemon.params.get("BRG_SR_ATT")
-                mav_rate = (m1 - m0) / (t1 - t0)
-                assert mav_rate >= 0.9 * att_hz, f"MAVLink ATTITUDE at {mav_rate:.1f} Hz"
+                wanted = 0.9 * att_hz * sent / 100.0
+                wait_until(lambda: gcs.count("ATTITUDE") - m0 >= wanted, 0.5, "ATTITUDE")
+                n1, h1 = b.daemon.samples, healthy.count(key)
                 assert h1 - h0 >= 0.95 * (n1 - n0), "the healthy subscriber lost headings"
                 seqs = [d["seq"] for d in healthy.docs(key)]
                 assert contiguous(seqs[len(seqs) // 2 :])
@@ -509,9 +521,12 @@ def test_bad_endpoints_and_config_never_stop_the_bridge(tmp_path: Path) -> None:
         config_file=str(tmp_path / "missing.json5"),
     ) as b:
         wait_until(lambda: b.output.counters.open_failures >= 2, what="retried opens")
-        before = b.daemon.samples
-        time.sleep(1.0)
-        assert b.daemon.samples - before >= 15  # 20 Hz carries on
+        # 20 Hz carries on: 1 s of the device's frames all taken (counted, not timed)
+        fw = b.sim.firmware
+        f0, before = fw.frames_sent, b.daemon.samples
+        wait_until(lambda: fw.frames_sent >= f0 + 20, what="1 s of the device's frames")
+        sent = fw.frames_sent - f0
+        wait_until(lambda: b.daemon.samples - before >= sent, 1.0, "every frame taken")
         assert not b.output.connected.is_set()
         t0 = time.monotonic()
     assert time.monotonic() - t0 < 3.0  # and it still stops promptly
@@ -721,15 +736,19 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
             wait_until(lambda: rx.count(f"{key}/attitude") >= 20, what="attitudes")
             # The mirror found the MAVLink output the configuration built.
             wait_until(lambda: rx.count("mavlink/1/1/HEARTBEAT") >= 1, what="a mirrored HEARTBEAT")
-            h0, a0, t0 = rx.count(f"{key}/heading"), rx.count(f"{key}/attitude"), time.monotonic()
-            time.sleep(2.0)
-            dt = time.monotonic() - t0
-            heading_hz = (rx.count(f"{key}/heading") - h0) / dt
-            attitude_hz = (rx.count(f"{key}/attitude") - a0) / dt
+            # 3 s of the device's frames, counted by its own sequence numbers (not timed: a
+            # busy machine delays them, it does not change how many there are)
+            a0 = rx.count(f"{key}/attitude")
+            wait_until(lambda: rx.count(f"{key}/attitude") >= a0 + 60, what="60 more attitudes")
         finally:
             daemon.stop()
-    assert heading_hz == pytest.approx(5.0, abs=1.0)  # capped by zenoh.heading_rate_hz
-    assert attitude_hz == pytest.approx(20.0, rel=0.15)  # every frame of the 20 Hz device
+    seqs = [d["seq"] for d in rx.docs(f"{key}/attitude")][a0:]
+    assert contiguous(seqs)  # every frame of the 20 Hz device
+    first, last = seqs[0], seqs[-1]
+    span = last - first + 1
+    headings = [d for d in rx.docs(f"{key}/heading") if first <= d["seq"] <= last]
+    # capped by zenoh.heading_rate_hz: 5 of the device's 20 frames a second (within 1 Hz)
+    assert len(headings) == pytest.approx(span * 5.0 / 20.0, abs=span / 20.0)
 
 
 # ---------------------------------------------------------------------------
