@@ -40,14 +40,13 @@ from operator import itemgetter
 from typing import Literal
 
 from bridge.core.tilt_settings import TiltSettings
-from bridge.core.vectors import Vec3, angle_deg, cross, dot, unit
+from bridge.core.vectors import Vec3, angle_deg, cross, dot, norm, unit
 
 TiltSource = Literal["accelerometer", "autopilot", "magnetometer"]
 #: The tilt sources, in the order MAVLink's ``TILT_SRC`` value numbers them (0, 1, 2).
 TILT_SOURCES: tuple[TiltSource, ...] = ("accelerometer", "autopilot", "magnetometer")
 
 _DEG = math.pi / 180.0
-_RAD_TO_DEG = 180.0 / math.pi  # math.degrees' own factor: x * it is math.degrees(x)
 #: Steady frames (10 Hz ones' worth) before the learnt dip is used (matching, the alarm).
 _DIP_FRAMES = 50
 #: The accelerometer's white noise is learnt from frames at least this far apart (10 Hz).
@@ -313,10 +312,8 @@ class TiltFilter:
         disturbed (the dip is only learnt and used then).
         """
         st = self.settings
-        # vectors.norm / vectors.unit inline (the same arithmetic): this runs every frame.
-        gx, gy, gz = accel
-        an = math.sqrt(gx * gx + gy * gy + gz * gz)
-        ahat = (gx / an, gy / an, gz / an) if an > 1e-6 else (0.0, 0.0, 1.0)
+        an = norm(accel)
+        ahat = unit(accel) if an > 1e-6 else (0.0, 0.0, 1.0)
         if self._d is None or self._t is None:
             self._d, self._t = ahat, t
         else:  # frames read in one burst share their arrival: half the mean interval apart
@@ -365,9 +362,7 @@ class TiltFilter:
             if lg is not None
             else ahat
         )
-        mx, my, mz = mag
-        mn = math.sqrt(mx * mx + my * my + mz * mz)
-        mhat = (mx / mn, my / mn, mz / mn) if mn > 0.0 else (0.0, 0.0, 0.0)
+        mhat = unit(mag) if norm(mag) > 0.0 else (0.0, 0.0, 0.0)
         self._m_now = mhat
         if not self.manoeuvre and self._history and t - self._history[0][0] >= st.drift_s:
             # The estimate of drift_s ago (the newest kept that old, or the oldest).
@@ -635,22 +630,15 @@ class TiltFilter:
             max(0.0, 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy))
         )
         hs = sigma
-        m0, m1, m2 = mhat
-        if m0 != 0.0 or m1 != 0.0 or m2 != 0.0:
-            # cross(nd, mhat), norm, dot inline (the same arithmetic: every frame).
-            n0, n1, n2 = nd
-            c0, c1, c2 = n1 * m2 - n2 * m1, n2 * m0 - n0 * m2, n0 * m1 - n1 * m0
-            en = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if mhat != (0.0, 0.0, 0.0):
+            east = cross(nd, mhat)
+            en = norm(east)
             if en > 1e-3:
                 var = sxx
                 if basis is not None:
-                    b, c = basis
-                    f1 = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / en
-                    f2 = (c0 * c[0] + c1 * c[1] + c2 * c[2]) / en
+                    f1, f2 = dot(east, basis[0]) / en, dot(east, basis[1]) / en
                     var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
-                hs = math.sqrt(max(0.0, var)) * abs(m0 * n0 + m1 * n1 + m2 * n2) / en
+                hs = math.sqrt(max(0.0, var)) * abs(dot(mhat, nd)) / en
         off = 0.0 if nd is ahat else angle_deg(ahat, nd)
-        held = self.held
-        return TiltEstimate(
-            nd, source, sigma * _RAD_TO_DEG, hs * _RAD_TO_DEG, off, held[0] or held[1]
-        )
+        sig, h = math.degrees(sigma), math.degrees(hs)
+        return TiltEstimate(nd, source, sig, h, off, self.manoeuvre)
