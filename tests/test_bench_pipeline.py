@@ -20,14 +20,21 @@ def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     code = main(
         ["--frames", "300", "--repeat", "1", "--fit-samples", "500", "--skip-live",
-         "--json", str(out), "--no-progress"]
+         "--cold-frames", "20", "--json", str(out), "--no-progress"]
     )  # fmt: skip
     doc = json.loads(out.read_text())
     figs = {f["name"]: f for f in doc["figures"]}
-    assert set(figs) == {"throughput", "calibration_fit"}
+    assert set(figs) == {"throughput", "calibration_fit", "cold_frame"}
+    cold = figs["cold_frame"]
+    d = cold["detail"]
+    assert cold["target"] is None and cold["passed"] is None and d["frames"] == 20
+    assert d["sleep_ms"] == 10.0 and min(d["decode_us"], d["process_us"]) > 0.0
+    assert cold["value"] == pytest.approx(d["decode_us"] + d["process_us"], abs=0.11)
+    hot = d["hot_decode_us"] + d["hot_process_us"]
+    assert d["cold_over_hot"] == pytest.approx(cold["value"] / hot, abs=0.06)
     t = figs["throughput"]
-    assert t["value"] > 0 and t["target"] == 5000 and t["target_is"] == "min"
-    assert t["passed"] is (t["value"] >= 5000)
+    assert t["value"] > 0 and t["target"] == 10000 and t["target_is"] == "min"
+    assert t["passed"] is (t["value"] >= 10000)
     assert t["detail"]["frames"] == 300 and t["detail"]["zenoh_puts_per_frame"] == 3.0
     assert t["detail"]["zenoh_received"] > 0  # the puts really crossed the loopback link
     assert figs["calibration_fit"]["detail"]["status"] == "MAG_CAL_SUCCESS"

@@ -10,6 +10,7 @@ import pytest
 
 from bridge.app.tilt import TiltSources, frame_latency_s
 from bridge.core.aligned import (
+    DEVICE_RATES_HZ,
     AttitudeSample,
     AttitudeTrack,
     ClockMap,
@@ -371,6 +372,22 @@ def test_frame_clock_places_frames_by_seq_not_by_arrival() -> None:
     for k in range(1, 60):
         t = fc.at(k, 200.0 + k * 0.1 + 0.01)
     assert fc.rate_hz == 10.0 and t == pytest.approx(200.0 + 59 * 0.1 + 0.01, abs=1e-6)
+
+
+@pytest.mark.parametrize("rate", DEVICE_RATES_HZ)
+def test_frame_clock_snaps_a_measured_rate_to_the_nearest_device_rate_in_ratio(rate: int) -> None:
+    """Frames counted at a rate between two of the device's go to the nearer in ratio
+    (|log(seen / rate)| smallest): just below the geometric mean to the next one, the lower."""
+    rates = list(DEVICE_RATES_HZ)
+    i = rates.index(rate)
+    lo = math.sqrt(rates[i - 1] * rate) if i > 0 else 0.5 * rate
+    hi = math.sqrt(rate * rates[i + 1]) if i + 1 < len(rates) else 4.0 * rate
+    for seen in (lo * 1.001, rate * 0.97, rate, rate * 1.03, hi * 0.999):
+        fc = FrameClock()
+        dt = 1.0 / seen
+        for k in range(int(3.0 * seen) + 3):  # past half the rate window
+            fc.at(k, 10.0 + k * dt)
+        assert fc.rate_hz == pytest.approx(rate), seen
 
 
 # -- the application's owner --------------------------------------------------------------

@@ -25,6 +25,7 @@ is left between the two: a degree of it is a degree of tilt error, two of headin
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -348,6 +349,17 @@ class MountingResidual:
 
 #: The output rates a ``$PGMRA`` compass runs at (``RATE,<hz>``), frames per second.
 DEVICE_RATES_HZ = (1, 2, 5, 10, 20, 50, 100)
+# Where the snap goes from one rate to the next: the geometric mean of the two (the
+# rate nearest in ratio, |log(seen / r)| smallest), so a frame costs a few comparisons.
+_RATE_EDGES = tuple((math.sqrt(a * b), a) for a, b in itertools.pairwise(DEVICE_RATES_HZ))
+
+
+def _snap_rate(seen: float) -> int:
+    """The device rate nearest in ratio to ``seen`` frames per second."""
+    for edge, rate in _RATE_EDGES:
+        if seen < edge:
+            return rate
+    return DEVICE_RATES_HZ[-1]
 
 
 class FrameClock:
@@ -408,7 +420,7 @@ class FrameClock:
         a0, n0 = arr[0]
         if arrival - a0 >= 0.5 * self.RATE_WINDOW_S and n > n0:
             seen = (n - n0) / (arrival - a0)
-            rate = min(DEVICE_RATES_HZ, key=lambda r: abs(math.log(seen / r)))
+            rate = _snap_rate(seen)
             if self._period is None or abs(rate * self._period - 1.0) > 1e-9:
                 self._period = 1.0 / rate
                 self._anchor.clear()

@@ -1,0 +1,391 @@
+"""The bridge against the program an integrator would write instead: ``python -m benchmarks versus``.
+
+Both programs read the same simulated compass (ideal unit, turning at 300 deg/s so
+every frame has its own yaw) at 100 Hz on a pseudo-terminal and send MAVLink
+ATTITUDE to a UDP socket of this process:
+
+* **bridge** -- ``python -m bridge run`` with MAVLink (one ``udpout``) and Zenoh
+  (a TCP listener on 127.0.0.1) on, at the shipped stream rates
+  (config/compass-bridge.toml: ATTITUDE 10 Hz, ...);
+* **forwarder** -- :mod:`benchmarks.forwarder`, ~40 lines: pyserial ``readline``,
+  a regex, the datasheet's formulas, ``mavutil`` ``udpout``, one ATTITUDE a frame.
+
+Runs are interleaved (bridge, forwarder, bridge, forwarder, ...; ``--rounds`` of
+each, the first program alternating between rounds) and each figure is the median
+of its program's runs. A run: start the program, wait for its first ATTITUDE, let
+it settle 2 s, then measure over ``--duration`` seconds:
+
+* **CPU** -- user+system time of the whole process (its CPU-time clock, all its
+  threads) over the window, % of one core; per thread, the run time from
+  ``/proc/PID/task/TID/schedstat`` and the context switches from ``.../status``;
+* **latency** -- from the instant the frame's first byte was written to the pty to
+  the arrival of the ATTITUDE datagram carrying its yaw (p50, p99 of the window);
+* **the machine** -- its busy share over the window from ``/proc/stat`` (both
+  cores; the measured program included) and the load average, since other
+  processes share the two cores.
+
+Targets: the bridge's CPU <= 0.35x the forwarder's, its p99 <= 0.4x.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from benchmarks.pipeline import (
+    LIVE_RATE_HZ,
+    Figure,
+    _expected_yaws,
+    _free_port,
+    _percentile,
+    _proc_cpu_s,
+    _TimedPty,
+    match_latencies,
+    report,
+)
+
+log = logging.getLogger(__name__)
+
+TARGET_CPU_RATIO = 0.35
+TARGET_P99_RATIO = 0.4
+PROGRAMS = ("bridge", "forwarder")
+
+#: Builds a program's command line from (the pty's path, the UDP port, a scratch directory).
+Command = Callable[[Path, int, Path], list[str]]
+
+
+def bridge_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
+    """The daemon with MAVLink and Zenoh on, the shipped stream rates, 100 Hz."""
+    cfg = tmp / "bench.toml"
+    cfg.write_text(
+        "\n".join(
+            [
+                "[device]",
+                f'port = "{link}"',
+                f"rate_hz = {LIVE_RATE_HZ}",
+                "[mavlink]",
+                f'endpoints = ["udpout:127.0.0.1:{udp_port}"]',
+                "[zenoh]",
+                "enabled = true",
+                f'listen = ["tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]',
+                'key_prefix = "bench/compass"',
+                "[storage]",
+                f'dir = "{tmp}/state"',
+                "",
+            ]
+        )
+    )
+    return [sys.executable, "-m", "bridge", "run", "--config", str(cfg)]
+
+
+def forwarder_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
+    """The naive forwarder (:mod:`benchmarks.forwarder`)."""
+    return [
+        sys.executable,
+        "-m",
+        "benchmarks.forwarder",
+        str(link),
+        "--udp",
+        f"127.0.0.1:{udp_port}",
+    ]
+
+
+COMMANDS: dict[str, Command] = {"bridge": bridge_command, "forwarder": forwarder_command}
+
+
+@dataclass(slots=True)
+class ThreadCpu:
+    """One thread's share of a window."""
+
+    tid: int
+    name: str
+    cpu_s: float
+    voluntary: int
+    involuntary: int
+
+
+@dataclass(slots=True)
+class LiveRun:
+    """What one run of one program gave."""
+
+    program: str
+    cpu_pct: float
+    p50_ms: float
+    p99_ms: float
+    latencies_ms: list[float]
+    unmatched: int
+    attitude_hz: float
+    machine_busy_pct: float  #: both cores, % of one core (0..200), the program included
+    loadavg: str
+    rss_mb: float
+    threads: list[ThreadCpu] = field(default_factory=list)
+
+
+def _threads(pid: int) -> dict[int, tuple[str, int, int, int]]:
+    """tid -> (name, run ns, voluntary, involuntary switches) of every live thread."""
+    out: dict[int, tuple[str, int, int, int]] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            run_ns = int((task / "schedstat").read_text().split()[0])
+            name = (task / "comm").read_text().strip()
+            vol = inv = 0
+            for line in (task / "status").read_text().splitlines():
+                if line.startswith("voluntary_ctxt_switches:"):
+                    vol = int(line.split()[1])
+                elif line.startswith("nonvoluntary_ctxt_switches:"):
+                    inv = int(line.split()[1])
+        except (OSError, ValueError, IndexError):
+            continue  # the thread ended meanwhile
+        out[int(task.name)] = (name, run_ns, vol, inv)
+    return out
+
+
+def _machine_jiffies() -> tuple[int, int]:
+    """(busy, total) jiffies of all cores so far (/proc/stat's cpu line)."""
+    v = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = v[3] + (v[4] if len(v) > 4 else 0)  # idle + iowait
+    total = sum(v[:8])  # guest time is already in user
+    return total - idle, total
+
+
+def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float = 2.0) -> LiveRun:
+    """Run ``program`` on the simulated compass at 100 Hz and measure one window."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    with tempfile.TemporaryDirectory(prefix="cb-versus-") as tmpname:
+        tmp = Path(tmpname)
+        link = tmp / "compass"
+        rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        rx.bind(("127.0.0.1", 0))
+        rx.settimeout(0.2)
+        cmd = COMMANDS[program](link, rx.getsockname()[1], tmp)
+        timed = _TimedPty(link, seed)
+        timed.pty.start()
+        received: list[tuple[float, float]] = []
+        stop = threading.Event()
+
+        def receive() -> None:
+            parser = mav.MAVLink(None)
+            parser.robust_parsing = True
+            while not stop.is_set():
+                try:
+                    data = rx.recv(4096)
+                except TimeoutError:
+                    continue
+                except OSError:
+                    return
+                t = time.monotonic()
+                try:
+                    msgs = parser.parse_buffer(data) or []
+                except mav.MAVError:
+                    continue
+                received.extend((t, float(m.yaw)) for m in msgs if m.get_type() == "ATTITUDE")
+
+        th = threading.Thread(target=receive, name="versus-udp", daemon=True)
+        th.start()
+        env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=Path.cwd()
+        )
+        try:
+            deadline = time.monotonic() + 20.0
+            while not received and time.monotonic() < deadline and proc.poll() is None:
+                time.sleep(0.02)
+            if not received:
+                raise RuntimeError(f"{program}: no ATTITUDE within 20 s (exit {proc.poll()})")
+            time.sleep(settle_s)
+            n0 = len(received)
+            th0, (b0, j0) = _threads(proc.pid), _machine_jiffies()
+            c0, w0 = _proc_cpu_s(proc.pid), time.monotonic()
+            time.sleep(duration_s)
+            c1, w1 = _proc_cpu_s(proc.pid), time.monotonic()
+            th1, (b1, j1) = _threads(proc.pid), _machine_jiffies()
+            n1 = len(received)
+            loadavg = " ".join(Path("/proc/loadavg").read_text().split()[:3])
+            rss = math.nan
+            for line in Path(f"/proc/{proc.pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    rss = int(line.split()[1]) / 1024.0
+        finally:
+            proc.terminate()
+            try:
+                _, err = proc.communicate(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                _, err = proc.communicate(timeout=5.0)
+            stop.set()
+            th.join(2.0)
+            rx.close()
+            timed.pty.stop()
+        if err:
+            log.debug("%s stderr: %s", program, err.decode(errors="replace")[-2000:])
+    window = received[n0:n1]
+    lat, unmatched = match_latencies(_expected_yaws(timed.writes), window)
+    ms = [1000.0 * x for x in lat]
+    wall = w1 - w0
+    threads = []
+    for tid, (name, ns, vol, inv) in th1.items():
+        _n, ns0, vol0, inv0 = th0.get(tid, (name, 0, 0, 0))
+        threads.append(ThreadCpu(tid, name, (ns - ns0) / 1e9, vol - vol0, inv - inv0))
+    threads.sort(key=lambda x: -x.cpu_s)
+    return LiveRun(
+        program=program,
+        cpu_pct=100.0 * (c1 - c0) / wall,
+        p50_ms=_percentile(ms, 50),
+        p99_ms=_percentile(ms, 99),
+        latencies_ms=ms,
+        unmatched=unmatched,
+        attitude_hz=len(window) / wall,
+        machine_busy_pct=100.0 * (os.cpu_count() or 1) * (b1 - b0) / max(1, j1 - j0),
+        loadavg=loadavg,
+        rss_mb=rss,
+        threads=threads,
+    )
+
+
+def describe(run: LiveRun, wall_s: float, top: int = 4) -> str:
+    """One run in two lines: figures, then its busiest threads."""
+    head = (
+        f"{run.program:<9} cpu {run.cpu_pct:6.3f} %  p50 {run.p50_ms:6.3f} ms  "
+        f"p99 {run.p99_ms:6.3f} ms  ATTITUDE {run.attitude_hz:5.1f}/s "
+        f"(unmatched {run.unmatched})  machine {run.machine_busy_pct:5.1f} %  load {run.loadavg}"
+    )
+    threads = ", ".join(
+        f"{t.name}[{t.tid}] {100.0 * t.cpu_s / wall_s:.2f} % "
+        f"({t.voluntary / wall_s:.0f}+{t.involuntary / wall_s:.0f} sw/s)"
+        for t in run.threads[:top]
+    )
+    return f"{head}\n{'':<9} {threads}"
+
+
+def interleaved(
+    rounds: int, duration_s: float, programs: tuple[str, ...] = PROGRAMS, echo: bool = True
+) -> dict[str, list[LiveRun]]:
+    """``rounds`` runs of each program, interleaved; the first alternates between rounds."""
+    runs: dict[str, list[LiveRun]] = {p: [] for p in programs}
+    for r in range(rounds):
+        order = programs if r % 2 == 0 else tuple(reversed(programs))
+        for p in order:
+            run = run_once(p, duration_s)
+            runs[p].append(run)
+            if echo:
+                print(f"round {r + 1}: {describe(run, duration_s)}", flush=True)
+    return runs
+
+
+def figures(runs: dict[str, list[LiveRun]]) -> list[Figure]:
+    """Medians per program, and the bridge's against the forwarder's."""
+
+    def med(p: str, attr: str) -> float:
+        return statistics.median(getattr(r, attr) for r in runs[p])
+
+    def pooled_p99(p: str) -> float:
+        return _percentile([x for r in runs[p] for x in r.latencies_ms], 99)
+
+    out: list[Figure] = []
+    for p in runs:
+        out.append(
+            Figure(
+                f"{p}_cpu",
+                med(p, "cpu_pct"),
+                "% of one core",
+                detail={"runs": [round(r.cpu_pct, 3) for r in runs[p]]},
+            )
+        )
+        out.append(
+            Figure(
+                f"{p}_p99",
+                med(p, "p99_ms"),
+                "ms",
+                detail={
+                    "runs": [round(r.p99_ms, 3) for r in runs[p]],
+                    "pooled_p99_ms": round(pooled_p99(p), 3),
+                    "p50_ms": round(med(p, "p50_ms"), 3),
+                    "samples": sum(len(r.latencies_ms) for r in runs[p]),
+                },
+            )
+        )
+    if "bridge" in runs and "forwarder" in runs:
+        busy = [r.machine_busy_pct for rs in runs.values() for r in rs]
+        out.append(
+            Figure(
+                "cpu_ratio",
+                med("bridge", "cpu_pct") / med("forwarder", "cpu_pct"),
+                "bridge / forwarder",
+                TARGET_CPU_RATIO,
+            )
+        )
+        out.append(
+            Figure(
+                "p99_ratio",
+                med("bridge", "p99_ms") / med("forwarder", "p99_ms"),
+                "bridge / forwarder",
+                TARGET_P99_RATIO,
+                detail={
+                    "pooled": round(pooled_p99("bridge") / pooled_p99("forwarder"), 3),
+                    "machine_busy_pct_median": round(statistics.median(busy), 1),
+                },
+            )
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks versus``: print every run and the medians; exit 1 on a miss."""
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks versus",
+        description="The bridge against a naive forwarder: CPU and latency, interleaved runs.",
+    )
+    ap.add_argument("--rounds", type=int, default=5, help="runs of each program")
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds measured per run")
+    ap.add_argument("--only", choices=PROGRAMS, help="run one program only (its figures, no ratio)")
+    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
+    args = ap.parse_args(argv)
+    if args.rounds < 1 or args.duration <= 0:
+        ap.error("--rounds >= 1, --duration > 0")
+    logging.disable(logging.WARNING)
+    programs = (args.only,) if args.only else PROGRAMS
+    runs = interleaved(args.rounds, args.duration, programs, echo=args.json != "-")
+    logging.disable(logging.NOTSET)
+    extra: dict[str, Any] = {
+        "runs": {
+            p: [
+                {
+                    "cpu_pct": round(r.cpu_pct, 3),
+                    "p50_ms": round(r.p50_ms, 3),
+                    "p99_ms": round(r.p99_ms, 3),
+                    "unmatched": r.unmatched,
+                    "attitude_hz": round(r.attitude_hz, 1),
+                    "machine_busy_pct": round(r.machine_busy_pct, 1),
+                    "loadavg": r.loadavg,
+                    "rss_mb": round(r.rss_mb, 1),
+                    "threads": [
+                        {"name": t.name, "cpu_s": round(t.cpu_s, 4), "switches": t.voluntary}
+                        for t in r.threads[:6]
+                    ],
+                }
+                for r in rs
+            ]
+            for p, rs in runs.items()
+        },
+        "duration_s": args.duration,
+        "cpu_count": os.cpu_count(),
+    }
+    return report(figures(runs), args.json, **extra)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
