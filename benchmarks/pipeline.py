@@ -577,11 +577,19 @@ def live(
     def cpu(run: _ChildRun) -> float:
         return 100.0 * run.cpu_s / run.wall_s
 
+    def per_frame(run: _ChildRun) -> float:
+        # ATTITUDE per compass frame written during the window: the stream rate on the
+        # compass's own clock (a rate over wall time moves with how busy the machine is).
+        t0, t1 = run.window[0][0], run.window[-1][0]
+        frames = sum(1 for t, _ in run.writes if t0 <= t <= t1)
+        return round((len(run.window) - 1) / frames, 3) if frames else 0.0
+
     def cpu_detail(run: _ChildRun) -> dict[str, Any]:
         return {
             "window_s": round(run.wall_s, 1),
             "cpu_s": round(run.cpu_s, 4),
             "attitude_hz": round(len(run.window) / run.wall_s, 1),
+            "attitude_per_frame": per_frame(run),
         }
 
     worst_rss = max((fast, shipped), key=lambda r: r.rss_mb)
@@ -597,6 +605,7 @@ def live(
                 "matched": len(ms),
                 "unmatched": unmatched,
                 "attitude_hz": round(len(fast.window) / fast.wall_s, 1),
+                "attitude_per_frame": per_frame(fast),
             },
         ),
         Figure(
