@@ -52,7 +52,8 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import fuzz_hostile
-from benchmarks.pipeline import Figure, _proc_rss_mb, report
+from benchmarks.pipeline import Figure, report
+from benchmarks.procstat import process_rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -562,7 +563,7 @@ def run(
                 raise RuntimeError(f"the daemon sent no ATTITUDE within 20 s (log: {errlog})")
             params_before = peer.read_params()
             files_before = _state_files(tmp / "state")
-            rss_before = _proc_rss_mb(proc.pid)[0]
+            rss_before = process_rss_mb(proc.pid)[0]
             stop_frames.set()
             frames.join(2.0)
 
@@ -612,7 +613,7 @@ def run(
             params_after = final.read_params() if alive else {}
             responsive = alive and bool(params_after)
             final.close()
-            rss_after = _proc_rss_mb(proc.pid)[0] if alive else math.nan
+            rss_after = process_rss_mb(proc.pid)[0] if alive else math.nan
             files_after = _state_files(tmp / "state")
         finally:
             stop_frames.set()

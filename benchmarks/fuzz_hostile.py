@@ -43,7 +43,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from benchmarks.pipeline import Figure, _proc_rss_mb
+from benchmarks.pipeline import Figure
+from benchmarks.procstat import process_rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -308,7 +309,7 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
             if not _wait(lambda: bool(list(session.get(f"{prefix}/status", timeout=0.5))), 30.0):
                 raise RuntimeError(f"the daemon's Zenoh did not answer (log: {errlog})")
             time.sleep(1.0)
-            rss0 = _proc_rss_mb(proc.pid)[0]
+            rss0 = process_rss_mb(proc.pid)[0]
             malformed = [
                 b"x" * 65536,
                 b'{"what": ' + b"[" * 2000 + b"]" * 2000 + b"}",
@@ -321,7 +322,7 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
             for i in range(queries):
                 if i == min(20, queries // 5):  # past the allocator's warm-up
                     time.sleep(0.5)
-                    rss_warm = _proc_rss_mb(proc.pid)[0]
+                    rss_warm = process_rss_mb(proc.pid)[0]
                 payload = huge if i % 2 else malformed[(i // 2) % len(malformed)]
                 replies = list(session.get(key, payload=payload, timeout=2.0))
                 ok = [r.ok for r in replies if r.ok is not None]
@@ -341,7 +342,7 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
             )
             del giant
             time.sleep(1.0)
-            rss1 = _proc_rss_mb(proc.pid)[0]
+            rss1 = process_rss_mb(proc.pid)[0]
         finally:
             if session is not None:
                 session.close()

@@ -56,6 +56,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.procstat import process_cpu_s, process_rss_mb
+
 log = logging.getLogger(__name__)
 
 TARGET_FPS = 10000.0
@@ -368,33 +370,6 @@ def match_latencies(
     return lat, unmatched
 
 
-def _proc_cpu_s(pid: int) -> float:
-    """User+system CPU seconds of process ``pid`` so far, all its threads, exited ones too.
-
-    Read from the process's CPU-time clock, to the nanosecond: the clock id is what
-    clock_getcpuclockid(3) returns on Linux (the pid, complemented, shifted past the
-    clock type; 2 = CPUCLOCK_SCHED). /proc/PID/stat, the fallback, counts whole 10 ms
-    ticks: 0.1 % steps over the 10 s window, too coarse for a 3 % target.
-    """
-    try:
-        return time.clock_gettime((~pid << 3) | 2)
-    except OSError:
-        pass
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    # utime, stime are fields 14, 15 (1-based) of stat; after the ")" they are 12th/13th.
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _proc_rss_mb(pid: int) -> tuple[float, float]:
-    rss = hwm = math.nan
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            rss = int(line.split()[1]) / 1024.0
-        elif line.startswith("VmHWM:"):
-            hwm = int(line.split()[1]) / 1024.0
-    return rss, hwm
-
-
 def _percentile(values: list[float], q: float) -> float:
     if not values:
         return math.nan
@@ -503,13 +478,13 @@ def _run_child(
             first_s = first[0] - t_spawn
             time.sleep(2.0)  # past start-up work (imports done, zenoh session open)
             n0 = len(received)
-            c0, w0 = _proc_cpu_s(proc.pid), time.monotonic()
+            c0, w0 = process_cpu_s(proc.pid), time.monotonic()
             end = w0 + duration_s
             while time.monotonic() < end and proc.poll() is None:
                 time.sleep(0.1)
                 step(min(1.0, (time.monotonic() - w0) / duration_s), f"daemon at 100 Hz ({label})")
-            c1, w1 = _proc_cpu_s(proc.pid), time.monotonic()
-            rss, hwm = _proc_rss_mb(proc.pid)
+            c1, w1 = process_cpu_s(proc.pid), time.monotonic()
+            rss, hwm = process_rss_mb(proc.pid)
             n1 = len(received)
         finally:
             proc.terminate()

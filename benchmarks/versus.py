@@ -51,11 +51,11 @@ from benchmarks.pipeline import (
     _expected_yaws,
     _free_port,
     _percentile,
-    _proc_cpu_s,
     _TimedPty,
     match_latencies,
     report,
 )
+from benchmarks.procstat import process_cpu_s
 
 log = logging.getLogger(__name__)
 
@@ -209,9 +209,9 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
             time.sleep(settle_s)
             n0 = len(received)
             th0, (b0, j0) = _threads(proc.pid), _machine_jiffies()
-            c0, w0 = _proc_cpu_s(proc.pid), time.monotonic()
+            c0, w0 = process_cpu_s(proc.pid), time.monotonic()
             time.sleep(duration_s)
-            c1, w1 = _proc_cpu_s(proc.pid), time.monotonic()
+            c1, w1 = process_cpu_s(proc.pid), time.monotonic()
             th1, (b1, j1) = _threads(proc.pid), _machine_jiffies()
             n1 = len(received)
             loadavg = " ".join(Path("/proc/loadavg").read_text().split()[:3])

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.pipeline import Figure, _proc_cpu_s, live, main, match_latencies
+from benchmarks.pipeline import Figure, live, main, match_latencies
+from benchmarks.procstat import process_cpu_s
 
 
 @pytest.mark.integration
@@ -80,12 +81,12 @@ def test_daemon_cpu_is_read_to_the_millisecond() -> None:
         assert child.stdout is not None
         own = float(child.stdout.readline())
         time.sleep(0.05)  # the child is blocked in read(): its clock stands still
-        outside = _proc_cpu_s(child.pid)
+        outside = process_cpu_s(child.pid)
     finally:
         child.communicate("", timeout=10)
     assert own >= 0.237
     assert abs(outside - own) < 0.003, (outside, own)
-    assert _proc_cpu_s(os.getpid()) > 0.0
+    assert process_cpu_s(os.getpid()) > 0.0
 
 
 def test_match_latencies_pairs_each_datagram_with_its_frame() -> None:
