@@ -173,6 +173,18 @@ class PtyFeeder:
         tty.setraw(self.slave)
         self.path.symlink_to(os.ttyname(self.slave))
 
+    def opened_elsewhere(self) -> bool:
+        """Whether another descriptor of this process (the recorder's) has the pty open.
+
+        pyserial flushes the input on open, so bytes fed before the recorder has the port
+        open are lost: the test waits for this instead of sleeping."""
+        name = os.ttyname(self.slave)
+        n = 0
+        for fd in os.listdir("/proc/self/fd"):
+            with contextlib.suppress(OSError):
+                n += os.readlink(f"/proc/self/fd/{fd}") == name
+        return n > 1  # the feeder's own slave descriptor is one
+
     def close(self) -> None:
         for fd in (self.master, self.slave):
             with contextlib.suppress(OSError):
@@ -189,6 +201,11 @@ def wait_until(pred: object, timeout: float) -> bool:
     return bool(pred())
 
 
+def _recorded(path: Path) -> bytes:
+    """The bytes a recording holds so far (a chunk being written is not counted yet)."""
+    return b"".join(c.data for c in read(path)[0])
+
+
 @pytest.mark.integration
 def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
     feeder = PtyFeeder(tmp_path / "ttyREC")
@@ -203,16 +220,16 @@ def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
     th.start()
     try:
         assert wait_until(out.exists, 5.0)
-        time.sleep(0.2)  # the recorder has opened the port
+        assert wait_until(feeder.opened_elsewhere, 5.0)
         feeder.feed(20)
         first = bytes(feeder.sent)
         assert wait_until(lambda: len(out.read_bytes()) > len(first), 5.0)
         feeder.unplug()
-        time.sleep(0.3)
+        time.sleep(0.3)  # unplugged for a while, as a cable is
         feeder.replug()
-        time.sleep(1.0)  # backoff has reopened it (0.1 s, then 0.2 s, ...)
+        assert wait_until(feeder.opened_elsewhere, 10.0)  # the backoff has reopened it
         feeder.feed(20)
-        time.sleep(0.3)
+        assert wait_until(lambda: _recorded(out) == bytes(feeder.sent), 5.0)
     finally:
         stop.set()
         th.join(5.0)
