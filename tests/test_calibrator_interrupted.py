@@ -28,7 +28,7 @@ from test_calibrator import (
 from bridge.app.calibration.keeper import RETRY_S
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.calibration.sessions import Phase, Result
-from bridge.daemon import Daemon
+from bridge.daemon import Daemon, build_daemon
 from bridge.link.serial_link import LinkState
 from bridge.sim.firmware import make_firmware
 from bridge.sim.motion import Still, YawTurns
@@ -50,9 +50,9 @@ def pty_rig(tmp_path: Path) -> Iterator[tuple[Daemon, PtyCompass, EventLog]]:
         device={"port": str(sim.link_path), "stale_after": 1.0},
         calibration={"onboard": True},
     )
-    daemon = Daemon(cfg)
+    daemon = build_daemon(cfg)
     log = EventLog()
-    daemon.events.subscribe(log)
+    daemon.bridge.events.subscribe(log)
     daemon.start()
     try:
         assert daemon.link.wait_state(LinkState.STREAMING, DEADLINE_S)
@@ -67,7 +67,7 @@ def test_unplugged_during_an_onboard_magcal_the_device_is_aborted_on_return(
     pty_rig: tuple[Daemon, PtyCompass, EventLog],
 ) -> None:
     daemon, sim, _log = pty_rig
-    fw, ctl = sim.firmware, daemon.calibrator
+    fw, ctl = sim.firmware, daemon.bridge.calibrator
     assert ctl.start_mag().result is Result.IN_PROGRESS
     assert _wait(lambda: fw.calibrating and ctl.snapshot().running)
     sim.unplug(4.0, power_cycle=False)  # the cable, not the power: it stays in MAGCAL
@@ -103,7 +103,7 @@ def test_a_slow_compass_fails_the_onboard_magcal_cleanly_and_is_left_as_found(
     pty_rig: tuple[Daemon, PtyCompass, EventLog],
 ) -> None:
     daemon, sim, _log = pty_rig
-    fw, ctl = sim.firmware, daemon.calibrator
+    fw, ctl = sim.firmware, daemon.bridge.calibrator
     fw.answer_delay_s = 0.6  # three times its 200 ms
     assert ctl.start_mag().result is Result.IN_PROGRESS
     snap = ctl.wait_for(lambda s: s.phase is Phase.FAILED, DEADLINE_S)
@@ -120,7 +120,7 @@ def test_fixed_yaw_refuses_implausible_values(
 ) -> None:
     rig = rigs(tmp_path, Still.from_deg(0.0, 0.0, 30.0), fast=False)
     assert _wait(lambda: len(rig.fw.truth) > 15)
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     for yaw, lat, lon, why in [
         (1e9, None, None, "bad yaw"),
         (10**400, None, None, "bad yaw"),
@@ -132,7 +132,7 @@ def test_fixed_yaw_refuses_implausible_values(
         out = rig.ctl.fixed_yaw(yaw, latitude_deg=lat, longitude_deg=lon)  # type: ignore[arg-type]
         assert out.result is Result.FAILED and why in out.message, (yaw, lat, out)
         assert len(out.message) < 300
-    assert rig.daemon.engine.calibration == before  # nothing applied
+    assert rig.daemon.bridge.engine.calibration == before  # nothing applied
     near = rig.ctl.fixed_yaw(30.0, latitude_deg=LAT + 0.2, longitude_deg=LON - 0.3)
     assert near.result is Result.ACCEPTED, near  # a plausible one still works
 

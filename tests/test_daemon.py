@@ -28,7 +28,7 @@ from bridge.config import Config, load_config
 from bridge.console import ConsoleOutput
 from bridge.core.geometry import angle_diff_deg, euler_to_dcm
 from bridge.core.wmm import earth_field
-from bridge.daemon import Daemon, run_daemon
+from bridge.daemon import Daemon, build_daemon, run_daemon
 from bridge.link.record import RecordingWriter
 from bridge.link.serial_link import LinkCounters, LinkState
 from bridge.sim.physics import SensorModel, UnitErrors
@@ -165,10 +165,10 @@ def test_host_heading_follows_the_attitude(
     yaws = [0.0, 45.0, 90.0, 135.0, 200.0, 300.0]
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), yaws, pitch_deg=10.0, roll_deg=-20.0)) as pty:
         out = Collect()
-        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        d = running(build_daemon(config(tmp_path, pty.path), [out]))
         samples = out.wait_for(2 * len(yaws))
         assert d.link.state is LinkState.STREAMING
-    assert d.calibration_source == "none (identity)"
+    assert d.bridge.calibration_source == "none (identity)"
     for s in samples:
         assert s.source == "host" and s.heading_reference == "magnetic"
         assert s.seq is not None and s.device_heading_deg is not None
@@ -197,14 +197,14 @@ def test_stored_calibration_is_applied(tmp_path: Path, running: Callable[[Daemon
     # Without calibration the hard iron bends the heading by tens of degrees ...
     with PtyFeeder(lines) as pty:
         raw = Collect()
-        running(Daemon(config(tmp_path, pty.path), [raw]))
+        running(build_daemon(config(tmp_path, pty.path), [raw]))
         assert _max_error(raw.wait_for(8), yaws) > 10.0
     # ... with the true calibration stored in the state directory it is gone.
     StateStore(tmp_path / "state").save("calibration", unit.true_calibration().to_dict())
     with PtyFeeder(lines) as pty:
         cal = Collect()
-        d = running(Daemon(config(tmp_path, pty.path), [cal]))
-        assert d.calibration_source == "stored"
+        d = running(build_daemon(config(tmp_path, pty.path), [cal]))
+        assert d.bridge.calibration_source == "stored"
         assert _max_error(cal.wait_for(8), yaws) < 0.5
 
 
@@ -230,7 +230,7 @@ def test_declination_from_location(tmp_path: Path, running: Callable[[Daemon], D
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), [30.0])) as pty:
         out = Collect()
         cfg = config(tmp_path, pty.path, f"location.latitude={lat}", f"location.longitude={lon}")
-        running(Daemon(cfg, [out]))
+        running(build_daemon(cfg, [out]))
         s = out.wait_for(3)[-1]
     assert s.declination_deg == pytest.approx(decl, abs=1e-6)
     assert s.heading_true_deg == pytest.approx((s.heading_deg + decl) % 360.0, abs=1e-6)
@@ -243,7 +243,7 @@ def test_noise_on_the_line_is_counted_and_dropped(
     yaws = [0.0, 90.0]
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), yaws)) as pty:
         out = Collect()
-        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        d = running(build_daemon(config(tmp_path, pty.path), [out]))
         out.wait_for(2)
         pty.inject(b"\x00\xffgarbage$PGMRA,1,2,3*00\r\n")  # binary junk + a bad checksum
         pty.inject(nmea("PGMRA,5,999.0,0.0,0.0,1,2,3,4,5,6,06"))  # heading out of range
@@ -253,7 +253,7 @@ def test_noise_on_the_line_is_counted_and_dropped(
         n = len(out.samples)
         out.wait_for(n + 4)  # and it keeps going
     assert d.link.counters.bad_lines_total >= 2
-    assert d.pipeline_errors == 0
+    assert d.bridge.pipeline.errors == 0
     assert all(
         abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) < 0.5 for s in out.samples
     )
@@ -277,7 +277,7 @@ def test_a_stuck_output_does_not_stall_the_others(
 ) -> None:
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), [0.0, 90.0]), period=0.01) as pty:
         stuck, out = Stuck(), Collect()
-        running(Daemon(config(tmp_path, pty.path), [stuck, out]))
+        running(build_daemon(config(tmp_path, pty.path), [stuck, out]))
         out.wait_for(30)
         assert stuck.emitted == 1  # still inside its first emit
         assert stuck.skipped >= 20  # it only ever holds the latest sample
@@ -309,18 +309,18 @@ def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
     that never comes out, then moves again once it does."""
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), [0.0, 90.0]), period=0.01) as pty:
         out = Wedged()
-        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        d = running(build_daemon(config(tmp_path, pty.path), [out]))
         assert out.entered.wait(DEADLINE_S)
-        stuck_at = d.pipeline_alive_at
+        stuck_at = d.bridge.pipeline.alive_at
         time.sleep(0.3)
-        assert d.pipeline_alive_at == stuck_at  # frozen while the frame is inside
+        assert d.bridge.pipeline.alive_at == stuck_at  # frozen while the frame is inside
         assert time.monotonic() - stuck_at >= 0.3
         assert d.link.get(timeout=0.1) is None  # no consumer queue
         assert d.link.counters.consumer_drops == 0
         out.release.set()
         out.wait_for(10)
-        assert time.monotonic() - d.pipeline_alive_at < 0.1  # idle between frames: alive now
-        assert d.pipeline_errors == 0
+        assert time.monotonic() - d.bridge.pipeline.alive_at < 0.1  # idle between frames: alive now
+        assert d.bridge.pipeline.errors == 0
 
 
 # --- heading-only compasses -----------------------------------------------------------
@@ -341,7 +341,7 @@ def test_nmea_heading_is_forwarded_with_declination(
             f"location.latitude={lat}",
             f"location.longitude={lon}",
         )
-        d = running(Daemon(cfg, [out]))
+        d = running(build_daemon(cfg, [out]))
         samples = out.wait_for(6)
     assert d.link.protocol == "nmea"
     hdm = next(s for s in samples if s.heading_magnetic_deg == pytest.approx(123.4))
@@ -357,7 +357,7 @@ def test_hdg_variation_is_used_without_location(
 ) -> None:
     with PtyFeeder([nmea("HCHDG,100.0,,,4.5,W")]) as pty:
         out = Collect()
-        running(Daemon(config(tmp_path, pty.path, "device.protocol=nmea"), [out]))
+        running(build_daemon(config(tmp_path, pty.path, "device.protocol=nmea"), [out]))
         s = out.wait_for(2)[-1]
     assert s.heading_magnetic_deg == pytest.approx(100.0)
     assert s.heading_true_deg == pytest.approx(95.5)  # west variation is negative
@@ -367,7 +367,7 @@ def test_hdg_variation_is_used_without_location(
 def test_os5000_pitch_roll_forwarded(tmp_path: Path, running: Callable[[Daemon], Daemon]) -> None:
     with PtyFeeder([nmea("C271.5P-3.0R12.5T21.0")]) as pty:
         out = Collect()
-        running(Daemon(config(tmp_path, pty.path, "device.protocol=os5000"), [out]))
+        running(build_daemon(config(tmp_path, pty.path, "device.protocol=os5000"), [out]))
         s = out.wait_for(2)[-1]
     assert (s.heading_deg, s.pitch_deg, s.roll_deg) == (271.5, -3.0, 12.5)
     assert s.heading_true_deg is None
@@ -405,7 +405,7 @@ def test_replay_pace_follows_device_replay_realtime(
     out = Collect()
     cfg = config(tmp_path, f"replay:{rec}", f"device.replay_realtime={str(realtime).lower()}")
     t0 = time.monotonic()
-    running(Daemon(cfg, [out]))
+    running(build_daemon(cfg, [out]))
     samples = out.wait_for(len(lines))
     took = time.monotonic() - t0
     assert len(samples) >= len(lines)

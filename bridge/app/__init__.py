@@ -1,6 +1,7 @@
 """The application layer: the running bridge's state and its owners.
 
-* :mod:`~bridge.app.bridge`    -- :class:`Bridge`, which builds and holds the parts below
+* :mod:`~bridge.app.bridge`    -- :class:`Bridge`, which holds the parts below (built by
+  :func:`bridge.daemon.wiring.build_daemon`) and reacts to their changes
 * :mod:`~bridge.app.sample`    -- what outputs receive: :class:`CompassSample`,
   :class:`DaemonStatus`, the :class:`Output` contract
 * :mod:`~bridge.app.settings`  -- :class:`EngineSettings`, the one writer of the engine's settings

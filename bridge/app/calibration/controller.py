@@ -154,6 +154,10 @@ class CalibrationController:
 
     # ------------------------------------------------------------------ lifecycle
 
+    def use_device(self, link: DevicePort) -> None:
+        """Run device commands over ``link`` (built after this controller: it feeds it frames)."""
+        self._link = link
+
     def start(self) -> CalibrationController:
         """Start the worker thread (idempotent; commands also start it)."""
         with self._lock:
