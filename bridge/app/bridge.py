@@ -9,7 +9,7 @@ builds each one after what it needs, the compass link
 (:class:`~bridge.device.DevicePort`) and the state directory
 (:class:`~bridge.documents.DocumentStore`) among them, and hands them in.
 The functions below are the few hooks between the parts, named, so that the
-wiring passes bound functions and no lambda.
+wiring binds them to parts already built and never reaches one built later.
 """
 
 from __future__ import annotations

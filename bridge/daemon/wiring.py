@@ -339,6 +339,7 @@ def build_daemon(
     pipeline.set_outputs(outputs)
 
     # -- the compass link: it feeds the pipeline, and the controller commands over it
+    # H1-seam: the link's constructor (queue mode, callbacks) is the link rewrite's to change.
     link = CompassLink(
         port,
         protocol=cfg.device.protocol,  # type: ignore[arg-type]  # validated by config
