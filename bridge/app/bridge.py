@@ -9,7 +9,7 @@ builds each one after what it needs, the compass link
 (:class:`~bridge.device.DevicePort`) and the state directory
 (:class:`~bridge.documents.DocumentStore`) among them, and hands them in.
 The functions below are the few hooks between the parts, named, so that the
-wiring binds them to parts already built and never reaches one built later.
+wiring passes bound functions (no lambda) to parts already built.
 """
 
 from __future__ import annotations

@@ -318,7 +318,7 @@ def build_daemon(
         settings,
         events,
         apply=functools.partial(apply_learned, calibrator),
-        calibrating=lambda: calibrator.calibrating,  # the controller exists: its property, read
+        calibrating=calibrator.calibrating,
         store=calibrations,
         mode=options.learn,
         on_mode=functools.partial(learning_lowered, params),
@@ -333,7 +333,7 @@ def build_daemon(
         engine,
         events,
         feed=calibrator.feed,
-        calibrating=lambda: calibrator.calibrating,
+        calibrating=calibrator.calibrating,
         observe=observe,
     )
     pipeline.set_outputs(outputs)

@@ -234,7 +234,6 @@ class CalibrationController:
         """The Earth field fits are scaled to."""
         return self._field
 
-    @property
     def calibrating(self) -> bool:
         """A session is waiting, collecting or fitting (a cheap, lock-free read for the pipeline)."""
         s = self._session
