@@ -58,7 +58,7 @@ def test_a_hard_iron_change_mid_drive_reaches_the_ground_station(tmp_path: Path)
         )
         assert msg.severity == M.MAV_SEVERITY_WARNING
         assert fc() - (fw.motion_epoch or 0.0) > 20.0  # after the change (timing: the bench)
-        status = daemon.bridge.services.drift.status()  # type: ignore[union-attr]
+        status = daemon.bridge.services.drift.status()
         assert status.state == "drift" and status.change_mG is not None
         # what the fit knows of the change by then: all of it, or its horizontal part
         truth = 1000.0 * good.mag.matrix_array @ (0.02, -0.025, 0.015)
