@@ -120,7 +120,7 @@ SIM_RESET_COMMAND = "compass-bridge run --simulate --reset"
 
 
 def _simulator_calibration(
-    cfg: Config, simulator: Firmware | None, documents: StateStore
+    cfg: Config, simulator: Firmware | None, documents: StateStore, stored: bool
 ) -> tuple[Calibration | None, str, str]:
     """The simulated compass's calibration and the console's intro lines about it.
 
@@ -129,6 +129,7 @@ def _simulator_calibration(
     what a good calibration gives), unless ``[sim] calibrated = false`` asks for the
     raw unit. A stored calibration (one the user made) is used as for a real compass.
     The second line names the state directory, what it holds and how to empty it.
+    ``stored``: the state directory holds a calibration.
     """
     seed = f"seed {cfg.sim.seed}"
     where = home_relative(cfg.storage.dir)
@@ -136,7 +137,7 @@ def _simulator_calibration(
         f"State (calibration, parameters set over MAVLink): {where}, holding "
         f"{state_summary(documents)}. A fresh start: {SIM_RESET_COMMAND}"
     )
-    if CalibrationStore(documents).load().stored:
+    if stored:
         return (
             None,
             "",
@@ -279,12 +280,14 @@ def build_daemon(
     port = ObservedTransport(transport, on_read)
     documents = StateStore(cfg.storage.dir)
     options = BridgeOptions.from_config(cfg)
+    calibrations = CalibrationStore(documents)
+    stored = calibrations.load()
     intro = ""
     source = "given"
     if cfg.device.port == "sim" and calibration is None:
-        calibration, source, intro = _simulator_calibration(cfg, simulator, documents)
-    calibrations = CalibrationStore(documents)
-    stored = calibrations.load()
+        calibration, source, intro = _simulator_calibration(
+            cfg, simulator, documents, stored.stored
+        )
     if calibration is None:
         calibration, source = stored.calibration, stored.description
 
@@ -351,6 +354,8 @@ def build_daemon(
         queue_size=0,
         on_frame=pipeline.on_frame,
     )
+    # The one loop, the compass's own (frames link -> pipeline -> controller, commands
+    # controller -> link), closed here, once, now that both ends exist.
     calibrator.use_device(link)
 
     bridge = Bridge(
