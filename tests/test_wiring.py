@@ -17,6 +17,7 @@ import pytest
 
 from bridge.app.sample import CompassSample, Output
 from bridge.app.settings import SettingsChange
+from bridge.calibration.sessions.state import Result
 from bridge.config import Config, config_from_mapping
 from bridge.daemon import Daemon, Service, build_daemon, make_simulator
 from bridge.daemon.wiring import make_transport
@@ -206,6 +207,19 @@ def test_the_parts_are_wired_to_each_other_not_to_copies(tmp_path: Path) -> None
         # a parameter set through the services reaches the calibration controller
         assert svc.params.set("BRG_CAL_ONBOARD", 1).accepted and b.calibrator.onboard
         assert b.status().port == d.link.name
+    finally:
+        d.stop(timeout=1.0)
+
+
+def test_the_calibration_controller_commands_the_compass_the_link_talks_to(
+    tmp_path: Path,
+) -> None:
+    # A heading-only compass sends no raw vectors: the controller, wired to that link,
+    # refuses to calibrate it (without the link it would start a host session).
+    d = build_daemon(config(tmp_path / "state", device={"port": "sim", "protocol": "nmea"}))
+    try:
+        out = d.bridge.calibrator.start_mag()
+        assert out.result is Result.FAILED and "heading-only" in out.message
     finally:
         d.stop(timeout=1.0)
 
