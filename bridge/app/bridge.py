@@ -4,23 +4,25 @@
 bus, the calibration store and controller, the drift monitor, the parameter
 store and the per-frame pipeline, reacts to their changes, and gives every
 adapter the same :class:`~bridge.app.services.BridgeServices`. It does no I/O
-of its own and builds none of its parts: :func:`bridge.daemon.wiring.build_daemon`
-builds each one after what it needs, the compass link
-(:class:`~bridge.device.DevicePort`) and the state directory
-(:class:`~bridge.documents.DocumentStore`) among them, and hands them in.
-The functions below are the few hooks between the parts, named, so that the
-wiring passes bound functions (no lambda) to parts already built.
+of its own: :func:`build_bridge` builds its parts, each after what it needs,
+on the state directory (:class:`~bridge.documents.DocumentStore`); the compass
+(:class:`~bridge.device.DevicePort`: the serial link, or the in-memory tests'
+harness), built after the pipeline it feeds, is connected last
+(:meth:`Bridge.connect`). :func:`bridge.daemon.wiring.build_daemon` does both
+for the daemon. The functions below are the few hooks between the parts,
+named, so that the parts get bound functions (no lambda) of parts already built.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from bridge.app.calibration.controller import CalibrationController
+from bridge.app.calibration.controller import CalibrationController, CalibratorSettings
 from bridge.app.calibration.drift import DriftMonitor
 from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
@@ -32,12 +34,12 @@ from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.app.tilt import TiltSources, frame_latency_s
 from bridge.calibration.model import Calibration
 from bridge.config import Config
-from bridge.core.attitude import AttitudeEngine
+from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
 from bridge.device import DevicePort
 from bridge.documents import DocumentStore
 from bridge.events import EventBus
-from bridge.types import LEARN_MODES, HeadingReference
+from bridge.types import LEARN_MODES, Clock, HeadingReference
 
 log = logging.getLogger(__name__)
 
@@ -146,11 +148,16 @@ def learning_lowered(params: ParamStore, mode: str) -> None:
 class Bridge:
     """The running bridge's state (see the module docstring).
 
-    Every part comes in built; ``calibration_source`` says where the calibration
-    the bridge started with came from. Built, it subscribes to the settings and
-    the parameters and applies the stored parameters (so an adapter built on
-    :attr:`services` sees them in force).
+    Every part comes in built (:func:`build_bridge` builds them);
+    ``calibration_source`` says where the calibration the bridge started with
+    came from. Built, it subscribes to the settings and the parameters and
+    applies the stored parameters. The compass comes last, through
+    :meth:`connect`: it is built after the pipeline it feeds, and
+    :attr:`device` and :attr:`services` exist from then on.
     """
+
+    device: DevicePort  #: the compass (set by :meth:`connect`)
+    services: BridgeServices  #: what every adapter is built with (set by :meth:`connect`)
 
     def __init__(
         self,
@@ -165,7 +172,6 @@ class Bridge:
         params: ParamStore,
         drift: DriftMonitor,
         pipeline: Pipeline,
-        device: DevicePort,
         documents: DocumentStore | None = None,
     ) -> None:
         self.events = events
@@ -179,21 +185,8 @@ class Bridge:
         self.params = params
         self.drift = drift
         self.pipeline = pipeline
-        self.device = device
+        self.documents = documents
         self.mavlink_tap = MessageTap()
-        self.services = BridgeServices(
-            status=self.status,
-            settings=settings,
-            params=params,
-            calibrator=calibrator,
-            calibrations=calibrations,
-            events=events,
-            device=device,
-            mavlink_tap=self.mavlink_tap,
-            documents=documents,
-            drift=drift,
-            tilt=tilt,
-        )
         settings.subscribe(self._on_settings)
         params.subscribe(self._on_params)
         params.start()
@@ -202,6 +195,27 @@ class Bridge:
         drift.set_mode(LEARN_MODES[int(params.get("BRG_CAL_LEARN"))])
         if params.get("BRG_CAL_UNDO") != 0:  # a request left over from a crash
             params.set("BRG_CAL_UNDO", 0, source="start")
+
+    def connect(self, device: DevicePort) -> None:
+        """The compass, built after the pipeline (it hands its frames to
+        ``pipeline.on_frame``): the calibration controller commands it, the adapters
+        get it with :attr:`services`. The graph's one loop -- frames device -> pipeline
+        -> controller, commands controller -> device -- is closed here, once."""
+        self.device = device
+        self.calibrator.use_device(device)
+        self.services = BridgeServices(
+            status=self.status,
+            settings=self.settings,
+            params=self.params,
+            calibrator=self.calibrator,
+            calibrations=self.calibrations,
+            events=self.events,
+            device=device,
+            mavlink_tap=self.mavlink_tap,
+            documents=self.documents,
+            drift=self.drift,
+            tilt=self.tilt,
+        )
 
     # -- lifecycle -----------------------------------------------------------------
 
@@ -263,3 +277,86 @@ class Bridge:
             # nothing): it reads back 1, as every ground station checks a SET's echo, until
             # set to 0 (or a restart); a repeated request finds nothing learned to undo.
             self.undo_learned()
+
+
+def build_bridge(
+    options: BridgeOptions,
+    *,
+    documents: DocumentStore | None = None,
+    calibration: Calibration | None = None,
+    calibration_source: str = "",
+    calibrator_settings: CalibratorSettings | None = None,
+    clock: Clock | None = None,
+) -> Bridge:
+    """The application, each part built after what it needs; connect the compass next
+    (:meth:`Bridge.connect`).
+
+    ``calibration`` overrides the stored one (tests, replays, the simulator's true
+    calibration), ``calibration_source`` says where it came from. The hooks between
+    the parts are bound methods and the functions above, never a lambda to a part
+    built later. ``calibrator_settings`` tune the calibration controller; ``clock``
+    (a test's simulated clock) times the controller and the drift monitor's
+    samples, which otherwise keep their frame's arrival time.
+    """
+    calibrations = CalibrationStore(documents)
+    stored = calibrations.load()
+    if calibration is None:
+        calibration, source = stored.calibration, stored.description
+    else:
+        source = calibration_source or "given"
+    events = EventBus()
+    engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
+    tilt = TiltSources(frame_latency=options.frame_latency_s)
+    if options.tilt != "accelerometer":
+        engine.set_tilt_policy(tilt)
+    field = location_field(options.location)
+    settings = EngineSettings(engine, field=field)
+    calibrator = CalibrationController(
+        settings,
+        events,
+        store=documents,
+        field=field,
+        onboard=options.onboard,
+        settings=calibrator_settings or CalibratorSettings(timeout_s=options.calibration_timeout_s),
+        calibration_source=source,
+        clock=clock or time.monotonic,
+    )
+    params = ParamStore(
+        settings,
+        documents,
+        defaults=options.param_defaults,
+        apply_calibration=functools.partial(apply_from_parameters, calibrator),
+        stored_view=stored.view if stored.calibration == calibration else None,
+        events=events,
+    )
+    drift = DriftMonitor(
+        settings,
+        events,
+        apply=functools.partial(apply_learned, calibrator),
+        calibrating=calibrator.calibrating,
+        store=calibrations,
+        mode=options.learn,
+        on_mode=functools.partial(learning_lowered, params),
+    )
+    observe: Callable[[AttitudeSolution, float, bool], None] = drift.observe
+    if clock is not None:  # a simulated clock: the drift monitor keeps the drive's time
+
+        def observe(a: AttitudeSolution, t: float, saturated: bool) -> None:
+            drift.observe(a, clock(), saturated)
+
+    pipeline = Pipeline(
+        engine, events, feed=calibrator.feed, calibrating=calibrator.calibrating, observe=observe
+    )
+    return Bridge(
+        events=events,
+        engine=engine,
+        tilt=tilt,
+        settings=settings,
+        calibrations=calibrations,
+        calibration_source=source,
+        calibrator=calibrator,
+        params=params,
+        drift=drift,
+        pipeline=pipeline,
+        documents=documents,
+    )

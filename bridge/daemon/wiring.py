@@ -6,22 +6,24 @@
         --> Pipeline.on_frame, in the reader thread (bridge.app.pipeline)
         --> CompassSample --> every Output.publish(sample): MAVLink, Zenoh, console
 
-:func:`build_daemon` builds every part from the configuration, each one after
-what it needs, in one function that reads top to bottom: the port, the
-application's owners (engine, settings, calibration controller, parameters,
-drift monitor, pipeline), the compass link that feeds the pipeline, then
-:class:`~bridge.app.bridge.Bridge`, which holds them and gives the adapters
-(:mod:`bridge.mavlink`, :mod:`bridge.zenoh`, :mod:`bridge.console`,
-:mod:`bridge.systemd`) its :class:`~bridge.app.services.BridgeServices`; they
-never see each other. :func:`build_outputs` builds the adapters the
-configuration asks for. :class:`Daemon` is what comes out: the parts by name,
-and the order they start and stop in. The service-manager side (sd_notify,
-watchdog, reload) is :class:`bridge.daemon.runner.Service`, which runs one.
+:func:`build_daemon` builds the running bridge from the configuration, each
+part after what it needs, top to bottom: the port; the application
+(:func:`bridge.app.bridge.build_bridge`: engine, settings, calibration
+controller, parameters, drift monitor, pipeline, held by a
+:class:`~bridge.app.bridge.Bridge`); the compass link that feeds the pipeline,
+connected to the application last (:meth:`~bridge.app.bridge.Bridge.connect`).
+The adapters (:mod:`bridge.mavlink`, :mod:`bridge.zenoh`, :mod:`bridge.console`,
+:mod:`bridge.systemd`) get the bridge's
+:class:`~bridge.app.services.BridgeServices` and never see each other;
+:func:`build_outputs` builds those the configuration asks for. :class:`Daemon`
+is what comes out: the parts by name, and the order they start and stop in.
+The service-manager side (sd_notify, watchdog, reload) is
+:class:`bridge.daemon.runner.Service`, which runs one.
 
 The graph has one loop, and it is the compass's: frames go link -> pipeline ->
-calibration controller, device commands go controller -> link. The controller
-is built first (the pipeline and the drift monitor feed it) and is handed the
-link once the link exists (:meth:`~bridge.app.calibration.controller.CalibrationController.use_device`).
+calibration controller, device commands go controller -> link. The
+application is built first (the link needs its pipeline) and the link is
+connected to it once it exists.
 
 Threads: the link's reader thread (which runs the pipeline: one wake per
 frame) and handshake thread, the calibration worker, the drift monitor, and
@@ -30,7 +32,6 @@ the outputs' own. :meth:`Daemon.stop` stops them all within a bounded time.
 
 from __future__ import annotations
 
-import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -38,31 +39,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bridge.app.bridge import (
-    Bridge,
-    BridgeOptions,
-    apply_from_parameters,
-    apply_learned,
-    learning_lowered,
-    location_field,
-)
-from bridge.app.calibration import CalibrationController
-from bridge.app.calibration.drift import DriftMonitor
+from bridge.app.bridge import Bridge, BridgeOptions, build_bridge
 from bridge.app.calibration.store import CalibrationStore
-from bridge.app.params import PARAMS_DOCUMENT, ParamChange, ParamStore
+from bridge.app.params import PARAMS_DOCUMENT, ParamChange
 from bridge.app.paramspec import CAL_PARAMS
-from bridge.app.pipeline import Pipeline
 from bridge.app.sample import CompassSample, Output
 from bridge.app.services import magnetometer_calibrated
-from bridge.app.settings import EngineSettings
 from bridge.app.state import home_relative, state_summary, stored_parameters, value_text
-from bridge.app.tilt import TiltSources
 from bridge.calibration.model import Calibration
 from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config, DeviceConfig
 from bridge.console import ConsoleOutput, TerminalGate
-from bridge.core.attitude import AttitudeEngine, AttitudeSolution
-from bridge.events import Event, EventBus
+from bridge.events import Event
 from bridge.link.observed import ObservedTransport
 from bridge.link.serial_link import CompassLink
 from bridge.link.transport import SimTransport, Transport, open_transport
@@ -279,67 +267,21 @@ def build_daemon(
         transport = make_transport(cfg, simulator)
     port = ObservedTransport(transport, on_read)
     documents = StateStore(cfg.storage.dir)
-    options = BridgeOptions.from_config(cfg)
-    calibrations = CalibrationStore(documents)
-    stored = calibrations.load()
     intro = ""
-    source = "given"
+    source = ""
     if cfg.device.port == "sim" and calibration is None:
-        calibration, source, intro = _simulator_calibration(
-            cfg, simulator, documents, stored.stored
-        )
-    if calibration is None:
-        calibration, source = stored.calibration, stored.description
+        stored = CalibrationStore(documents).load().stored
+        calibration, source, intro = _simulator_calibration(cfg, simulator, documents, stored)
 
-    # -- the application's owners, each after what it needs
-    events = EventBus()
-    engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
-    tilt = TiltSources(frame_latency=options.frame_latency_s)
-    if options.tilt != "accelerometer":
-        engine.set_tilt_policy(tilt)
-    field = location_field(options.location)
-    settings = EngineSettings(engine, field=field)
-    calibrator = CalibrationController(
-        settings,
-        events,
-        store=documents,
-        field=field,
-        onboard=options.onboard,
-        settings=calibrator_settings or CalibratorSettings(timeout_s=options.calibration_timeout_s),
+    # -- the application: its owners, each after what it needs (bridge.app.bridge)
+    bridge = build_bridge(
+        BridgeOptions.from_config(cfg),
+        documents=documents,
+        calibration=calibration,
         calibration_source=source,
-        clock=clock or time.monotonic,
+        calibrator_settings=calibrator_settings,
+        clock=clock,
     )
-    params = ParamStore(
-        settings,
-        documents,
-        defaults=options.param_defaults,
-        apply_calibration=functools.partial(apply_from_parameters, calibrator),
-        stored_view=stored.view if stored.calibration == calibration else None,
-        events=events,
-    )
-    drift = DriftMonitor(
-        settings,
-        events,
-        apply=functools.partial(apply_learned, calibrator),
-        calibrating=calibrator.calibrating,
-        store=calibrations,
-        mode=options.learn,
-        on_mode=functools.partial(learning_lowered, params),
-    )
-    observe: Callable[[AttitudeSolution, float, bool], None] = drift.observe
-    if clock is not None:  # a simulated clock: the drift monitor keeps the drive's time
-
-        def observe(a: AttitudeSolution, t: float, saturated: bool) -> None:
-            drift.observe(a, clock(), saturated)
-
-    pipeline = Pipeline(
-        engine,
-        events,
-        feed=calibrator.feed,
-        calibrating=calibrator.calibrating,
-        observe=observe,
-    )
-    pipeline.set_outputs(outputs)
 
     # -- the compass link: it feeds the pipeline, and the controller commands over it
     # H1-seam: the link's constructor (queue mode, callbacks) is the link rewrite's to change.
@@ -348,30 +290,14 @@ def build_daemon(
         protocol=cfg.device.protocol,  # type: ignore[arg-type]  # validated by config
         rate_hz=cfg.device.rate_hz if cfg.device.protocol == "gmr" else None,
         stale_after=cfg.device.stale_after,
-        on_state=pipeline.on_link_state,
+        on_state=bridge.pipeline.on_link_state,
         # The pipeline runs in the link's reader thread: no queue, no second thread
         # to wake for every frame (see bridge.app.pipeline).
         queue_size=0,
-        on_frame=pipeline.on_frame,
+        on_frame=bridge.pipeline.on_frame,
     )
-    # The one loop, the compass's own (frames link -> pipeline -> controller, commands
-    # controller -> link), closed here, once, now that both ends exist.
-    calibrator.use_device(link)
-
-    bridge = Bridge(
-        events=events,
-        engine=engine,
-        tilt=tilt,
-        settings=settings,
-        calibrations=calibrations,
-        calibration_source=source,
-        calibrator=calibrator,
-        params=params,
-        drift=drift,
-        pipeline=pipeline,
-        device=link,
-        documents=documents,
-    )
+    bridge.connect(link)
+    bridge.pipeline.set_outputs(outputs)
     _log_start_state(cfg, bridge, documents)
     return Daemon(bridge, link, port, simulator, intro)
 
