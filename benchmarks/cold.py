@@ -41,8 +41,7 @@ def cold_frame_us(
     """``{"hot": (decode, process), "cold": (decode, process)}``: median thread CPU of one
     frame, microseconds, back to back and after ``gap_s`` of sleep."""
     from benchmarks.mavlink import bench_config
-    from bridge.daemon import Daemon
-    from bridge.device import Received
+    from bridge.daemon import build_daemon
     from bridge.protocol.gmr import GmrDecoder
 
     lines = _turning_lines(n, yaw_rate_dps, rate_hz)
@@ -50,7 +49,9 @@ def cold_frame_us(
     medians: dict[str, tuple[float, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for label, gap in (("hot", 0.0), ("cold", gap_s)):
-            daemon = Daemon(bench_config(tmp))  # never started: process() is the per-frame work
+            daemon = build_daemon(
+                bench_config(tmp)
+            )  # never started: process() is the per-frame work
             decoder = GmrDecoder(direction="host")
             dec_ns: list[float] = []
             proc_ns: list[float] = []
@@ -61,7 +62,7 @@ def cold_frame_us(
                 frames = decoder.feed(line)
                 t1 = clock()
                 for frame in frames:
-                    daemon.process(Received(frame, i / rate_hz))
+                    daemon.bridge.pipeline.process(frame, i / rate_hz)
                 t2 = clock()
                 dec_ns.append(t1 - t0)
                 proc_ns.append(t2 - t1)

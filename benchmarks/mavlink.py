@@ -2,7 +2,7 @@
 
 Every frame goes the daemon's whole way and then into every MAVLink stream:
 ``$PGMRA`` bytes -> :class:`~bridge.protocol.gmr.GmrDecoder` ->
-:meth:`bridge.daemon.Daemon.process` (nominal transfer, stored calibration,
+:meth:`bridge.app.pipeline.Pipeline.process` (nominal transfer, stored calibration,
 tilt-compensated attitude, quality flags) -> :class:`~bridge.app.sample.CompassSample`
 -> ATTITUDE, ATTITUDE_QUATERNION, VFR_HUD, SCALED_IMU, RAW_IMU, HIGHRES_IMU and
 the heading feed encoded once -> framed (and signed with ``--signed``) for one
@@ -33,8 +33,7 @@ import numpy as np
 from bridge.app.sample import CompassSample
 from bridge.config import Config, config_from_mapping
 from bridge.core.geometry import random_rotations
-from bridge.daemon import Daemon
-from bridge.device import Received
+from bridge.daemon import build_daemon
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink.dialect import mavlink as mavlink_dialect
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
@@ -109,8 +108,8 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
         cfg = bench_config(tmp)
         # Never started: process() is the pipeline's per-frame work. The unit's own calibration,
         # as after a good calibration: the field is the Earth's, so the heading feed goes too.
-        daemon = Daemon(cfg, calibration=unit().true_calibration())
-        out = MavlinkOutput(MavlinkSettings(), daemon.services)
+        daemon = build_daemon(cfg, calibration=unit().true_calibration())
+        out = MavlinkOutput(MavlinkSettings(), daemon.bridge.services)
         signing = Signing(bytes(range(32))) if signed else None
         framer = mavlink_dialect.MAVLink(None, 1, 1)
         if signing is not None:
@@ -122,7 +121,7 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
             packets = nbytes = frames = 0
             w0, c0 = time.perf_counter(), time.thread_time()
             for frame in decoder.feed(data):
-                sample = daemon.process(Received(frame, w0))
+                sample = daemon.bridge.pipeline.process(frame, w0)
                 if not isinstance(sample, CompassSample):
                     continue
                 frames += 1

@@ -4,7 +4,7 @@ Seven figures, each printed with its target (two without) and PASS/FAIL (``--jso
 them as one JSON object too):
 
 * **throughput** -- ``$PGMRA`` bytes -> :class:`~bridge.protocol.gmr.GmrDecoder`
-  -> :meth:`bridge.daemon.Daemon.process` (nominal transfer, calibration,
+  -> :meth:`bridge.app.pipeline.Pipeline.process` (nominal transfer, calibration,
   tilt-compensated attitude, quality flags) -> every MAVLink stream encoded
   and framed at the frame rate (the worst case: in service they go at their
   configured rates) -> ``heading``/``attitude``/``imu`` JSON put on a zenoh
@@ -149,8 +149,7 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
 
     from benchmarks.mavlink import STREAMS, bench_config, frame_lines
     from bridge.app.sample import CompassSample
-    from bridge.daemon import Daemon
-    from bridge.device import Received
+    from bridge.daemon import build_daemon
     from bridge.mavlink.dialect import mavlink as mavlink_dialect
     from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
     from bridge.protocol.gmr import GmrDecoder
@@ -179,15 +178,15 @@ def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Fig
         time.sleep(0.5)  # let the two sessions meet before the clock starts
         with tempfile.TemporaryDirectory() as tmp:
             cfg = bench_config(tmp)
-            daemon = Daemon(cfg)  # never started: process() is the pipeline's per-frame work
-            out = MavlinkOutput(MavlinkSettings(), daemon.services)
+            daemon = build_daemon(cfg)  # never started: process() is the pipeline's per-frame work
+            out = MavlinkOutput(MavlinkSettings(), daemon.bridge.services)
             framer = mavlink_dialect.MAVLink(None, 1, 1)
             for r in range(repeat):
                 decoder = GmrDecoder(direction="host")
                 frames = put = 0
                 w0, c0 = time.perf_counter(), _process_cpu()
                 for frame in decoder.feed(data):
-                    sample = daemon.process(Received(frame, w0))
+                    sample = daemon.bridge.pipeline.process(frame, w0)
                     if not isinstance(sample, CompassSample):
                         continue
                     frames += 1

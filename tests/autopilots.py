@@ -584,7 +584,7 @@ def start_bridge(
     import logging
 
     from bridge.config import config_from_mapping
-    from bridge.daemon import Daemon
+    from bridge.daemon import build_daemon
     from bridge.link.serial_link import LinkState
     from bridge.link.transport import SimTransport
     from bridge.mavlink import MavlinkOutput, MavlinkSettings
@@ -609,9 +609,9 @@ def start_bridge(
     # A real unit's errors and noise, calibrated with its true errors (what a good
     # calibration gives: `run --simulate`'s default).
     fw = make_firmware(3, motion=Still.from_deg(yaw_deg=yaw_deg), location=compass_at)
-    daemon = Daemon(cfg, transport=SimTransport(fw))
-    daemon.settings.update_calibration(fw.sensor.errors.true_calibration(), "simulator")
-    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services)
+    daemon = build_daemon(cfg, transport=SimTransport(fw))
+    daemon.bridge.settings.update_calibration(fw.sensor.errors.true_calibration(), "simulator")
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services)
     recorder = HeadingRecorder()
     lines: list[str] = []
 
@@ -642,17 +642,17 @@ def start_bridge(
             sent.append(int(m.message.time_usec))
             sigmas.append(math.sqrt(m.message.pose_covariance[20]))
 
-    unsubscribe = daemon.services.mavlink_tap.subscribe(tap)
+    unsubscribe = daemon.bridge.services.mavlink_tap.subscribe(tap)
 
     def restore_all() -> None:
         unsubscribe()
         restore()
 
-    daemon.set_outputs([out, recorder])
+    daemon.bridge.pipeline.set_outputs([out, recorder])
     daemon.start()
     bridge = Bridge(daemon, out, recorder, lines, sent, sigmas, restore_all)
     deadline = time.monotonic() + DEADLINE_S
-    while daemon.link.state is not LinkState.STREAMING or daemon.samples < 3:
+    while daemon.link.state is not LinkState.STREAMING or daemon.bridge.pipeline.samples < 3:
         if time.monotonic() > deadline:
             bridge.stop()
             pytest.fail("the simulated compass does not stream")

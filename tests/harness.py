@@ -561,18 +561,14 @@ def bridge_on(harness: LinkHarness, cfg: Any, **kw: Any) -> Any:
     harness as its compass (:class:`HarnessPort`) and the harness's clock: every frame goes
     through its pipeline as the link hands it on. ``kw`` goes to Bridge (``calibration``,
     ``calibrator_settings``, ...). Start the harness afterwards (``start=False``)."""
-    from bridge.app.bridge import Bridge, BridgeOptions
+    from bridge.app.bridge import BridgeOptions, build_bridge
     from bridge.storage import StateStore
 
-    def make_link(
-        on_frame: Callable[[Received], None], on_state: Callable[[LinkState, LinkState], None]
-    ) -> HarnessPort:
-        harness.on_frame = on_frame
-        harness.on_state = on_state
-        return HarnessPort(harness)
-
     kw.setdefault("documents", StateStore(cfg.storage.dir))
-    return Bridge(BridgeOptions.from_config(cfg), make_link, clock=harness.clock, **kw)
+    app = build_bridge(BridgeOptions.from_config(cfg), clock=harness.clock, **kw)
+    harness.on_frame, harness.on_state = app.pipeline.on_frame, app.pipeline.on_link_state
+    app.connect(HarnessPort(harness))
+    return app
 
 
 __all__ = [

@@ -124,7 +124,7 @@ def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
     # seen in body axes by -step about z; the offset change is what takes h there.
     c, s_ = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
     turned = np.array([c * h[0] - s_ * h[1], s_ * h[0] + c * h[1], h[2]])
-    settings = bridge.daemon.settings
+    settings = bridge.daemon.bridge.settings
     return with_offset_change(settings.calibration, settings.mounting.matrix(), tuple(h - turned))
 
 
@@ -165,7 +165,9 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         cal = _learned_calibration(a, LEARNED_STEP_DEG)
         tl.learned_from = a.recorder.latest() or 0.0
         tl.learned_at = time.time()
-        out = a.daemon.calibrator.apply_calibration(cal, source=LEARNED_SOURCE, write_device=False)
+        out = a.daemon.bridge.calibrator.apply_calibration(
+            cal, source=LEARNED_SOURCE, write_device=False
+        )
         assert out.ok, out
         time.sleep(SETTLE_S)
         tl.learned_settled = time.time()
@@ -183,7 +185,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
             lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
             since=since,
         )
-        refused = a.daemon.calibrator.apply_calibration(
+        refused = a.daemon.bridge.calibrator.apply_calibration(
             _learned_calibration(a, 2.0), source=LEARNED_SOURCE, write_device=False
         )
         tl.refused_learned = "" if refused.ok else refused.message
@@ -228,7 +230,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
             mavlink={"heading_feed_sigma_deg": RESTART_SIGMA_DEG},
         )
         bridges.append(b)
-        _wait(lambda: b.daemon.settings.field is not None, 20.0, "a position from ArduPilot")
+        _wait(lambda: b.daemon.bridge.settings.field is not None, 20.0, "a position from ArduPilot")
         tl.position_at = time.time()
         tl.request_lines = [ln for ln in b.log if "asking it for" in ln]
         time.sleep(6.0)

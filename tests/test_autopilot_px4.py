@@ -96,7 +96,7 @@ def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
     h = np.asarray(bridge.out.latest.attitude.mag_G, dtype=float)
     c, s = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
     turned = np.array([c * h[0] - s * h[1], s * h[0] + c * h[1], h[2]])
-    st = bridge.daemon.settings
+    st = bridge.daemon.bridge.settings
     return with_offset_change(st.calibration, st.mounting.matrix(), tuple(h - turned))
 
 
@@ -130,7 +130,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         # a learned drift correction of 5 deg
         tl.learned_from = a.recorder.latest() or 0.0
         tl.learned_at = time.time()
-        out = a.daemon.calibrator.apply_calibration(
+        out = a.daemon.bridge.calibrator.apply_calibration(
             _learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
         )
         assert out.ok, out
@@ -161,7 +161,9 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         bridges.remove(a)
         tl.restart_at = time.time()
         b = bridge("bridge-b")
-        b.daemon.params.set(MOUNT_PARAM, MOUNT_YAW45, source="test")  # as the first one ended
+        b.daemon.bridge.params.set(
+            MOUNT_PARAM, MOUNT_YAW45, source="test"
+        )  # as the first one ended
         time.sleep(5.0)
         # EKF2_EVA_NOISE lowered: the variance EKF2 uses is then the bridge's
         tl.noise_at = time.time()

@@ -158,7 +158,7 @@ class Rig:
 
     @property
     def ctl(self) -> CalibrationController:
-        return self.daemon.calibrator
+        return self.daemon.bridge.calibrator
 
     def clock(self) -> float:
         return self.h.clock.t
@@ -264,7 +264,7 @@ FAST = CalibratorSettings(no_data_timeout_s=40.0)  # 2 real seconds of pipeline 
 def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     rig = rigs(tmp_path, Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G), settings=FAST)
     truth = rig.fw.sensor.errors.true_calibration()
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
 
     out = rig.ctl.start_mag(retry=False, autosave=False)
     assert out.result is Result.IN_PROGRESS
@@ -292,7 +292,7 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     assert np.allclose([rep["ofs_x"], rep["ofs_y"], rep["ofs_z"]], true_ofs, atol=5.0)
     assert rep["orientation_confidence"] > 2.0
     assert 0.8 < rep["scale_factor"] < 1.25
-    assert rig.daemon.engine.calibration == before  # not applied before accept
+    assert rig.daemon.bridge.engine.calibration == before  # not applied before accept
     assert not (tmp_path / "state" / "calibration.json").exists()
     # the uncalibrated tumble changed the engine's disturbance judgement while the
     # calibration ran, and that raised no alarm (before it started, the alarm is
@@ -306,7 +306,7 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     # accept: applied, persisted (reloads equal), written to the compass flash
     acc = rig.ctl.accept()
     assert acc.result is Result.ACCEPTED, acc
-    accepted = rig.daemon.engine.calibration
+    accepted = rig.daemon.bridge.engine.calibration
     assert accepted != before
     assert rig.log.wait("calibration.accepted")[0].data["saved"] is True
     stored, source = load_calibration(str(tmp_path / "state"))
@@ -358,11 +358,11 @@ def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[...
     assert done.data["autosaved"] is True and done.data["report"]["autosaved"] is True
     rig.log.wait("calibration.accepted")  # without an accept()
     stored, _ = load_calibration(str(tmp_path / "state"))
-    assert stored == rig.daemon.engine.calibration != Calibration()
+    assert stored == rig.daemon.bridge.engine.calibration != Calibration()
     assert rig.log.kinds().index("calibration.done") < rig.log.kinds().index("calibration.accepted")
     after = rig.ctl.snapshot()
     assert after.calibration_saved and after.calibration_source == "mag"
-    assert rig.daemon.status().calibration_source == "mag"  # not the start-up "none"
+    assert rig.daemon.bridge.status().calibration_source == "mag"  # not the start-up "none"
     assert after.calibration_age_s is not None and after.calibration_age_s < 60.0
 
 
@@ -372,9 +372,9 @@ def test_the_fitness_limit_follows_compass_cal_fit(
     rig = rigs(tmp_path, Still())
     assert rig.ctl.fitness_limit_mG == 16.0  # ArduPilot's default
     # QGroundControl sets 100 for its calibration (and back after): the controller follows
-    assert rig.daemon.params.set("COMPASS_CAL_FIT", 100.0).accepted
+    assert rig.daemon.bridge.params.set("COMPASS_CAL_FIT", 100.0).accepted
     assert rig.ctl.fitness_limit_mG == 100.0
-    assert rig.daemon.params.set("COMPASS_CAL_FIT", 8.0).accepted
+    assert rig.daemon.bridge.params.set("COMPASS_CAL_FIT", 8.0).accepted
     assert rig.ctl.fitness_limit_mG == 8.0
     # a stored value is the limit of a bridge that starts with it (after this one stopped:
     # parameter writes are coalesced, the last one lands at the latest when it stops)
@@ -406,7 +406,7 @@ def test_wrong_field_fails_bad_radius_and_retry_restarts(
     assert calmap.mag_cal_status(Phase.FAILED, 2, Failure(failed.data["failure"])) == 7
     assert "scale factor" in failed.data["reason"]
     assert rig.ctl.accept().result is Result.FAILED
-    assert rig.daemon.engine.calibration == Calibration()
+    assert rig.daemon.bridge.engine.calibration == Calibration()
 
     # with retry the controller starts over instead of failing (until cancelled)
     assert rig.ctl.start_mag(retry=True).ok
@@ -442,7 +442,7 @@ def test_cancel_mid_way_and_when_idle(tmp_path: Path, rigs: Callable[..., Rig]) 
     rig.h.run_for(5.0)  # 5 simulated seconds of tumbling: nothing more happens
     assert len(rig.log.of("calibration.progress")) == n_progress
     assert "calibration.done" not in rig.log.kinds()
-    assert rig.daemon.engine.calibration == Calibration()
+    assert rig.daemon.bridge.engine.calibration == Calibration()
     assert not (tmp_path / "state" / "calibration.json").exists()
     # and a new calibration can start at once
     assert rig.ctl.start_mag().ok
@@ -503,7 +503,7 @@ def test_six_face_accel_calibration(tmp_path: Path, rigs: Callable[..., Rig]) ->
 
     # saved at once (PX4 has no accept step) and the gravity vector is right on any attitude
     rig.log.wait("calibration.accepted")
-    new = rig.daemon.engine.calibration
+    new = rig.daemon.bridge.engine.calibration
     stored, _ = load_calibration(str(tmp_path / "state"))
     assert stored == new and new.accel != Calibration().accel
     R = _attitudes(np.random.default_rng(3), 200, 180.0)
@@ -523,7 +523,7 @@ def test_host_level_calibration_in_real_time(tmp_path: Path, rigs: Callable[...,
     # The daemon's own controller (real clock), built from the configuration.
     rig = rigs(tmp_path, Still.from_deg(3.0, -2.0, 70.0))
     f = rig.fw.truth[-1].frame
-    a0 = rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+    a0 = rig.daemon.bridge.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
     # uncalibrated, the unit's accelerometer offsets add to its 3 / -2 deg tilt
     assert abs(math.degrees(a0.roll)) > 0.3 or abs(math.degrees(a0.pitch)) > 0.3
     assert rig.ctl.start_level(onboard=False).result is Result.IN_PROGRESS
@@ -535,9 +535,9 @@ def test_host_level_calibration_in_real_time(tmp_path: Path, rigs: Callable[...,
     rig.log.wait("calibration.accepted")
     # and from now on the vehicle reads level in that attitude
     f = rig.fw.truth[-1].frame
-    a = rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+    a = rig.daemon.bridge.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
     assert abs(math.degrees(a.roll)) < 0.3 and abs(math.degrees(a.pitch)) < 0.3
-    assert load_calibration(str(tmp_path / "state"))[0] == rig.daemon.engine.calibration
+    assert load_calibration(str(tmp_path / "state"))[0] == rig.daemon.bridge.engine.calibration
 
 
 def test_level_calibration_refuses_a_moving_unit(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
@@ -546,7 +546,7 @@ def test_level_calibration_refuses_a_moving_unit(tmp_path: Path, rigs: Callable[
     snap = rig.finished(within=200.0)
     assert snap.phase is Phase.FAILED
     assert "moved" in rig.log.wait("calibration.failed")[0].data["reason"]
-    assert rig.daemon.engine.calibration == Calibration()
+    assert rig.daemon.bridge.engine.calibration == Calibration()
 
 
 # =====================================================================================
@@ -562,7 +562,7 @@ def test_fixed_yaw_sets_offsets_from_the_wmm_field(
 
     def true_heading() -> float:
         f = rig.fw.truth[-1].frame
-        a = rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
+        a = rig.daemon.bridge.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
         assert a.heading_true_deg is not None
         return a.heading_true_deg
 
@@ -573,7 +573,7 @@ def test_fixed_yaw_sets_offsets_from_the_wmm_field(
     assert abs(((true_heading() - yaw + 180.0) % 360.0) - 180.0) < 0.5
     rep = rig.log.wait("calibration.done")[0].data["report"]
     assert rep["method"] == "fixed_yaw" and rep["yaw_deg"] == yaw
-    assert load_calibration(str(tmp_path / "state"))[0] == rig.daemon.engine.calibration
+    assert load_calibration(str(tmp_path / "state"))[0] == rig.daemon.bridge.engine.calibration
     rig.log.wait("calibration.device_updated")  # offsets written with PAR,SET too
     assert rig.fw.flash.page.magok
 
@@ -593,7 +593,7 @@ def test_fixed_yaw_refuses_without_position_or_when_moving(
     assert moving.result is Result.FAILED and "moving" in moving.message
     assert rig.ctl.fixed_yaw(math.nan).result is Result.FAILED
     assert rig.ctl.fixed_yaw(10.0, mask=2).result is Result.FAILED  # no compass 1
-    assert rig.daemon.engine.calibration == Calibration()
+    assert rig.daemon.bridge.engine.calibration == Calibration()
 
 
 def test_storage_failure_keeps_the_calibration_in_memory(
@@ -610,7 +610,7 @@ def test_storage_failure_keeps_the_calibration_in_memory(
     accepted = rig.log.wait("calibration.accepted")[0]
     assert accepted.data["saved"] is False
     # in memory and in use, and the bridge keeps running
-    assert rig.daemon.engine.calibration != Calibration()
+    assert rig.daemon.bridge.engine.calibration != Calibration()
     snap = rig.ctl.snapshot()
     assert snap.phase is Phase.SUCCEEDED and not snap.calibration_saved
     n = rig.daemon.samples

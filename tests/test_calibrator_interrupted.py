@@ -109,7 +109,7 @@ def test_fixed_yaw_refuses_implausible_values(
         out = rig.ctl.fixed_yaw(yaw, latitude_deg=lat, longitude_deg=lon)  # type: ignore[arg-type]
         assert out.result is Result.FAILED and why in out.message, (yaw, lat, out)
         assert len(out.message) < 300
-    assert rig.daemon.engine.calibration == before  # nothing applied
+    assert rig.daemon.bridge.engine.calibration == before  # nothing applied
     near = rig.ctl.fixed_yaw(30.0, latitude_deg=LAT + 0.2, longitude_deg=LON - 0.3)
     assert near.result is Result.ACCEPTED, near  # a plausible one still works
 

@@ -23,7 +23,7 @@ from test_calibrator import (
 )
 
 from bridge.calibration.sessions import INSTRUCTION_LEVEL_TURN, INSTRUCTION_SIDE_TURN, Phase, Result
-from bridge.daemon import Daemon
+from bridge.daemon import build_daemon
 from bridge.device import LinkState
 from bridge.protocol.gmr import Flags
 from bridge.sim.firmware import make_firmware
@@ -137,21 +137,21 @@ def test_onboard_range_failure_over_a_real_pty(tmp_path: Path) -> None:
     link_path = tmp_path / "ttyGMR"
     with PtyCompass(fw, str(link_path)):
         cfg = make_config(tmp_path, device={"port": str(link_path)}, calibration={"onboard": True})
-        daemon = Daemon(cfg)
+        daemon = build_daemon(cfg)
         log = EventLog()
-        daemon.events.subscribe(log)
+        daemon.bridge.events.subscribe(log)
         daemon.start()
         try:
             assert daemon.link.wait_state(LinkState.STREAMING, DEADLINE_S)
             before = _params(fw)
-            assert daemon.calibrator.start_mag().ok
+            assert daemon.bridge.calibrator.start_mag().ok
             log.wait("calibration.instruction")  # the device is in MAGCAL now
             # the unit is never turned; the operator accepts anyway -> MAGCAL,END -> ERR,RANGE
-            assert daemon.calibrator.accept().result is Result.IN_PROGRESS
+            assert daemon.bridge.calibrator.accept().result is Result.IN_PROGRESS
             failed = log.wait("calibration.failed")[0]
             assert failed.data["report"]["device_error"] == "RANGE"
             assert "RANGE" in failed.data["reason"]
-            assert daemon.calibrator.snapshot().phase is Phase.FAILED
+            assert daemon.bridge.calibrator.snapshot().phase is Phase.FAILED
             assert _params(fw) == before and not fw.calibrating
         finally:
             daemon.stop()

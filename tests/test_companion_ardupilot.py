@@ -124,7 +124,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         )
         s.storm_intervals = len(obs.history("MESSAGE_INTERVAL", ours, since=t2))
         t3 = time.monotonic()
-        bridge.daemon.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
+        bridge.daemon.bridge.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
         time.sleep(1.0)
         s.text_chunks = [m for _, m in obs.history("STATUSTEXT", ours, since=t3)]
         # MAVProxy on SERIAL2, aimed at the bridge's component
@@ -139,19 +139,21 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         _, s.mavproxy_received = mp.expect(r"Received \d+ parameters", 30.0)
         mp.send("param set BRG_SR_HUD 2")
         deadline = time.monotonic() + 10.0
-        while bridge.daemon.params.get("BRG_SR_HUD") != 2.0 and time.monotonic() < deadline:
+        while bridge.daemon.bridge.params.get("BRG_SR_HUD") != 2.0 and time.monotonic() < deadline:
             time.sleep(0.05)
-        s.mavproxy_set = bridge.daemon.params.get("BRG_SR_HUD")
+        s.mavproxy_set = bridge.daemon.bridge.params.get("BRG_SR_HUD")
         mp.send("long DO_START_MAG_CAL 0 0 1 0")
         deadline = time.monotonic() + 10.0
-        while not bridge.daemon.calibrator.snapshot().running and time.monotonic() < deadline:
+        while (
+            not bridge.daemon.bridge.calibrator.snapshot().running and time.monotonic() < deadline
+        ):
             time.sleep(0.05)
-        s.magcal_started = bridge.daemon.calibrator.snapshot().running
+        s.magcal_started = bridge.daemon.bridge.calibrator.snapshot().running
         mp.send("long DO_CANCEL_MAG_CAL 0")
         deadline = time.monotonic() + 10.0
-        while bridge.daemon.calibrator.snapshot().running and time.monotonic() < deadline:
+        while bridge.daemon.bridge.calibrator.snapshot().running and time.monotonic() < deadline:
             time.sleep(0.05)
-        s.magcal_cancelled = not bridge.daemon.calibrator.snapshot().running
+        s.magcal_cancelled = not bridge.daemon.bridge.calibrator.snapshot().running
         # ArduPilot's own compass calibration, and one asked of the bridge meanwhile
         ack = obs.command(ap.target, M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0)
         assert ack.result == M.MAV_RESULT_ACCEPTED, ack
@@ -159,7 +161,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         while not bridge.out.autopilot.calibrating and time.monotonic() < deadline:
             time.sleep(0.05)
         s.busy = obs.command((1, 200), M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0)
-        s.busy_started = bridge.daemon.calibrator.snapshot().running
+        s.busy_started = bridge.daemon.bridge.calibrator.snapshot().running
         obs.command(ap.target, M.MAV_CMD_DO_CANCEL_MAG_CAL, 0)
     finally:
         if mp is not None:

@@ -157,7 +157,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         s.storm_intervals = len(obs.history("MESSAGE_INTERVAL", ours, since=t3))
         # a long status text, in chunks
         t4 = time.monotonic()
-        bridge.daemon.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
+        bridge.daemon.bridge.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
         time.sleep(1.0)
         s.text_chunks = [m for _, m in obs.history("STATUSTEXT", ours, since=t4)]
         # commands keep their own-component rule: a broadcast is PX4's alone
@@ -184,7 +184,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         while not bridge.out.autopilot.calibrating and time.monotonic() < deadline:
             time.sleep(0.05)
         s.busy = obs.command((sysid, 200), M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, 0, 0)
-        s.busy_started = bridge.daemon.calibrator.snapshot().running
+        s.busy_started = bridge.daemon.bridge.calibrator.snapshot().running
     finally:
         if bridge is not None:
             bridge.stop()

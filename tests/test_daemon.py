@@ -33,7 +33,7 @@ from bridge.config import Config, load_config
 from bridge.console import ConsoleOutput
 from bridge.core.geometry import angle_diff_deg, euler_to_dcm
 from bridge.core.wmm import earth_field
-from bridge.daemon import Daemon, run_daemon
+from bridge.daemon import Daemon, build_daemon, run_daemon
 from bridge.link.record import RecordingWriter
 from bridge.link.serial_link import LinkCounters, LinkState
 from bridge.sim.physics import SensorModel, UnitErrors
@@ -176,7 +176,7 @@ def in_memory(
     )
     app = bridge_on(h, cfg, **bridge)
     out = Collect()
-    app.set_outputs([out])
+    app.pipeline.set_outputs([out])
     h.start()
     return h, dev, out, app
 
@@ -196,10 +196,10 @@ def test_host_heading_follows_the_attitude(
     yaws = [0.0, 45.0, 90.0, 135.0, 200.0, 300.0]
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), yaws, pitch_deg=10.0, roll_deg=-20.0)) as pty:
         out = Collect()
-        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        d = running(build_daemon(config(tmp_path, pty.path), [out]))
         samples = out.wait_for(2 * len(yaws))
         assert d.link.state is LinkState.STREAMING
-    assert d.calibration_source == "none (identity)"
+    assert d.bridge.calibration_source == "none (identity)"
     for s in samples:
         assert s.source == "host" and s.heading_reference == "magnetic"
         assert s.seq is not None and s.device_heading_deg is not None
@@ -355,7 +355,7 @@ def test_a_stuck_output_does_not_stall_the_others(
 ) -> None:
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), [0.0, 90.0]), period=0.01) as pty:
         stuck, out = Stuck(), Collect()
-        running(Daemon(config(tmp_path, pty.path), [stuck, out]))
+        running(build_daemon(config(tmp_path, pty.path), [stuck, out]))
         out.wait_for(30)
         assert stuck.emitted == 1  # still inside its first emit
         assert stuck.skipped >= 20  # it only ever holds the latest sample
@@ -388,16 +388,16 @@ def test_pipeline_runs_in_the_reader_and_a_wedged_frame_stops_its_clock(
     that never comes out, then moves again once it does."""
     with PtyFeeder(gmr_lines(UnitErrors.ideal(), [0.0, 90.0]), period=0.01) as pty:
         out = Wedged()
-        d = running(Daemon(config(tmp_path, pty.path), [out]))
+        d = running(build_daemon(config(tmp_path, pty.path), [out]))
         assert out.entered.wait(DEADLINE_S)
-        stuck_at = d.pipeline_alive_at
+        stuck_at = d.bridge.pipeline.alive_at
         time.sleep(0.3)
-        assert d.pipeline_alive_at == stuck_at  # frozen while the frame is inside
+        assert d.bridge.pipeline.alive_at == stuck_at  # frozen while the frame is inside
         assert time.monotonic() - stuck_at >= 0.3
         out.release.set()
         out.wait_for(10)
-        assert time.monotonic() - d.pipeline_alive_at < 0.1  # idle between frames: alive now
-        assert d.pipeline_errors == 0
+        assert time.monotonic() - d.bridge.pipeline.alive_at < 0.1  # idle between frames: alive now
+        assert d.bridge.pipeline.errors == 0
 
 
 # --- heading-only compasses -----------------------------------------------------------
@@ -476,7 +476,7 @@ def test_replay_pace_follows_device_replay_realtime(
     out = Collect()
     cfg = config(tmp_path, f"replay:{rec}", f"device.replay_realtime={str(realtime).lower()}")
     t0 = time.monotonic()
-    running(Daemon(cfg, [out]))
+    running(build_daemon(cfg, [out]))
     samples = out.wait_for(len(lines))
     took = time.monotonic() - t0
     assert len(samples) >= len(lines)

@@ -17,7 +17,7 @@ from bridge.app.calibration.drift import LEARNED
 from bridge.app.calibration.store import CalibrationStore
 from bridge.config import config_from_mapping
 from bridge.core.wmm import earth_field
-from bridge.daemon import Daemon
+from bridge.daemon import Daemon, build_daemon
 from bridge.device import Received
 from bridge.events import Event
 from bridge.link.transport import SimTransport
@@ -47,9 +47,11 @@ def daemon(state: Path) -> tuple[Daemon, list[Event]]:
         env={},
         hostname="t",
     )
-    d = Daemon(cfg, transport=SimTransport(make_firmware(SEED, location=DEFAULT_LOCATION)))
+    d = build_daemon(cfg, transport=SimTransport(make_firmware(SEED, location=DEFAULT_LOCATION)))
     log: list[Event] = []  # the calibration's events (a turn's acceleration "disturbs" too)
-    d.events.subscribe(lambda e: log.append(e) if e.kind.startswith("calibration.") else None)
+    d.bridge.events.subscribe(
+        lambda e: log.append(e) if e.kind.startswith("calibration.") else None
+    )
     return d, log
 
 
@@ -73,9 +75,9 @@ class Drive:
 
 def status_doc(d: Daemon) -> dict[str, object]:
     doc = schema.status_doc(
-        d.status(),
+        d.bridge.status(),
         frame_rate_hz=10.0,
-        calibration=calibration_state(d.services),
+        calibration=calibration_state(d.bridge.services),
         publisher={},
         t_unix=0.0,
         uptime_s=1.0,
@@ -89,8 +91,8 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     good = drive.unit.errors.true_calibration()
     CalibrationStore(StateStore(state)).save(good, source="mag", accepted_unix=1.0)
     d, log = daemon(state)
-    assert d.engine.calibration == good
-    assert d.params.get("BRG_CAL_LEARN") == 1 and d.bridge.drift.mode == "detect"
+    assert d.bridge.engine.calibration == good
+    assert d.bridge.params.get("BRG_CAL_LEARN") == 1 and d.bridge.drift.mode == "detect"
 
     # detect (the default): the warning, the status document, the monitor's flag
     drive(d, 120.0, changed=False)
@@ -108,12 +110,12 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     assert "DRIFT" in view.rows(0.0)[0].flags
 
     # learn, switched on over MAVLink (BRG_CAL_LEARN = 2): stored as "learned"
-    assert d.params.set("BRG_CAL_LEARN", 2).accepted and d.bridge.drift.mode == "learn"
+    assert d.bridge.params.set("BRG_CAL_LEARN", 2).accepted and d.bridge.drift.mode == "learn"
     drive(d, 180.0)
     kinds = [e.kind for e in log]
     assert "calibration.learn_step" in kinds and "calibration.learned" in kinds
     assert "calibration.accepted" in kinds  # the controller applied and saved each step
-    learned = d.engine.calibration
+    learned = d.bridge.engine.calibration
     true_now = drive.changed.errors.true_calibration()
     left = (
         1000.0 * learned.mag.matrix_array @ (true_now.mag.offset_array - learned.mag.offset_array)
@@ -121,42 +123,42 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     assert np.linalg.norm(left) < 2.0
     stored = d.bridge.calibrations.load()
     assert stored.source == LEARNED and stored.calibration == learned
-    assert d.status().calibration_source == LEARNED
-    assert d.params.get("COMPASS_OFS_X") == np.float32(-1000.0 * learned.mag.offset[0])
+    assert d.bridge.status().calibration_source == LEARNED
+    assert d.bridge.params.get("COMPASS_OFS_X") == np.float32(-1000.0 * learned.mag.offset[0])
     assert not schema.drift_detected(status_doc(d))
 
     # a restart keeps the learned calibration and the learning mode (a user's setting);
     # the first bridge stops first (its parameter writes are coalesced: they land by then)
-    d.params.close()
+    d.bridge.params.close()
     d2, log2 = daemon(state)
-    assert d2.engine.calibration == learned
+    assert d2.bridge.engine.calibration == learned
     assert d2.bridge.calibrations.load().source == LEARNED
     assert d2.bridge.drift.mode == "learn"
 
     # undo over MAVLink: BRG_CAL_UNDO = 1 goes back to the calibration before learning,
     # turns learning down to detect and reads back 1 (the echo a ground station checks)
-    out = d2.params.set("BRG_CAL_UNDO", 1)
+    out = d2.bridge.params.set("BRG_CAL_UNDO", 1)
     assert out.accepted
-    assert d2.engine.calibration == good
-    assert d2.params.get("BRG_CAL_UNDO") == 1 and d2.params.get("BRG_CAL_LEARN") == 1
+    assert d2.bridge.engine.calibration == good
+    assert d2.bridge.params.get("BRG_CAL_UNDO") == 1 and d2.bridge.params.get("BRG_CAL_LEARN") == 1
     assert d2.bridge.drift.mode == "detect"
     assert d2.bridge.calibrations.load().source == "mag"
     undo = [e for e in log2 if e.kind == "calibration.undo"]
     assert len(undo) == 1 and undo[0].data["done"] is True
     # ... and over Zenoh (cmd/calibration/undo): nothing learned is left to undo
-    res = run_calibration_command(d2.calibrator, "undo", {}, undo=d2.bridge.drift.undo)
+    res = run_calibration_command(d2.bridge.calibrator, "undo", {}, undo=d2.bridge.drift.undo)
     assert not res.ok and "Nothing learned" in res.message
     # the undone calibration is what a third start finds
-    d2.params.close()
+    d2.bridge.params.close()
     d3, _ = daemon(state)
-    assert d3.engine.calibration == good and d3.params.get("BRG_CAL_LEARN") == 1
+    assert d3.bridge.engine.calibration == good and d3.bridge.params.get("BRG_CAL_LEARN") == 1
 
 
 def test_a_bridge_without_drift_monitoring_says_so(tmp_path: Path) -> None:
     d, log = daemon(tmp_path / "state")
-    assert d.params.set("BRG_CAL_LEARN", 0).accepted and d.bridge.drift.mode == "off"
+    assert d.bridge.params.set("BRG_CAL_LEARN", 0).accepted and d.bridge.drift.mode == "off"
     Drive()(d, 60.0)
     assert log == []
-    assert calibration_state(d.services)["drift"]["state"] == "off"
-    res = run_calibration_command(d.calibrator, "undo", {}, undo=None)
+    assert calibration_state(d.bridge.services)["drift"]["state"] == "off"
+    res = run_calibration_command(d.bridge.calibrator, "undo", {}, undo=None)
     assert not res.ok

@@ -16,7 +16,7 @@ import pytest
 from test_mavlink_rig import DEADLINE_S, FastClock, M, connect_gcs, free_port, make_config
 
 from bridge.app.calibration.store import CalibrationStore
-from bridge.daemon import Daemon
+from bridge.daemon import build_daemon
 from bridge.device import LinkState
 from bridge.link.transport import SimTransport
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
@@ -46,10 +46,10 @@ def test_a_hard_iron_change_mid_drive_reaches_the_ground_station(tmp_path: Path)
         hard_iron_change=((0.02, -0.025, 0.015), 20.0),  # 36 mG, 20 s into the drive
     )
     fc = FastClock(SPEED)
-    daemon = Daemon(cfg, transport=SimTransport(fw, clock=fc, sleep=fc.sleep), clock=fc)
-    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services)
-    daemon.set_outputs([out])
-    assert daemon.engine.calibration == good
+    daemon = build_daemon(cfg, transport=SimTransport(fw, clock=fc, sleep=fc.sleep), clock=fc)
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services)
+    daemon.bridge.pipeline.set_outputs([out])
+    assert daemon.bridge.engine.calibration == good
     daemon.start()
     gcs = None
     try:
@@ -63,7 +63,7 @@ def test_a_hard_iron_change_mid_drive_reaches_the_ground_station(tmp_path: Path)
         )
         assert msg.severity == M.MAV_SEVERITY_WARNING
         assert fc() - (fw.motion_epoch or 0.0) > 20.0  # after the change (timing: the bench)
-        status = daemon.services.drift.status()  # type: ignore[union-attr]
+        status = daemon.bridge.services.drift.status()
         assert status.state == "drift" and status.change_mG is not None
         # what the fit knows of the change by then: all of it, or its horizontal part
         truth = 1000.0 * good.mag.matrix_array @ (0.02, -0.025, 0.015)

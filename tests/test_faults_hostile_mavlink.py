@@ -19,7 +19,7 @@ from test_mavlink_rig import DEADLINE_S, M, Rig, rig_factory, wait_until
 
 from bridge.app.paramspec import ParamTable
 from bridge.config import config_from_mapping
-from bridge.daemon import Daemon
+from bridge.daemon import build_daemon
 from bridge.mavlink.dispatch import MAX_INTERVAL_US
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.paramproto import ListLimiter
@@ -95,7 +95,7 @@ def test_a_peer_gets_one_whole_list_per_interval(tmp_path: Path, rigs: Callable[
     now = [1000.0]
     rig.out.params.lists = ListLimiter(2.0, 8, clock=lambda: now[0])
     g = rig.gcs("udp")
-    n = len(rig.daemon.params)
+    n = len(rig.daemon.bridge.params)
     g.flush()
     g.mav.param_request_list_send(1, 1)
     got = {g.wait("PARAM_VALUE").param_index for _ in range(n)}
@@ -147,8 +147,8 @@ def offline_output(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Mavlink
         env={},
         hostname="hostile",
     )
-    daemon = Daemon(cfg)
-    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services)
+    daemon = build_daemon(cfg)
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services)
     yield out
     daemon.bridge.stop(1.0)
 

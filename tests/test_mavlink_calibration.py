@@ -128,7 +128,7 @@ def test_ardupilot_flow_end_to_end(tmp_path: Path, rigs: Callable[..., Rig]) -> 
     )
     g = rig.gcs("udp")
     truth = rig.fw.sensor.errors.true_calibration()
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     # mask 0 (all), no retry, no autosave, no delay
     assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0).result == ACCEPTED
     # meanwhile the HEARTBEAT says so (asked for now: the calibration is surely running)
@@ -162,13 +162,13 @@ def test_ardupilot_flow_end_to_end(tmp_path: Path, rigs: Callable[..., Rig]) -> 
     assert 0.0 < report.fitness < 16.0
     true_ofs = -1000.0 * np.asarray(truth.mag.offset)
     assert np.allclose([report.ofs_x, report.ofs_y, report.ofs_z], true_ofs, atol=5.0)
-    assert rig.daemon.engine.calibration == before  # nothing applied before accept
+    assert rig.daemon.bridge.engine.calibration == before  # nothing applied before accept
     # the report is repeated while it waits for the accept (a lost one is recovered)
     again = g.wait("MAG_CAL_REPORT", timeout=5.0)
     assert again.ofs_x == report.ofs_x
 
     assert g.command(M.MAV_CMD_DO_ACCEPT_MAG_CAL, 0).result == ACCEPTED
-    accepted = rig.daemon.engine.calibration
+    accepted = rig.daemon.bridge.engine.calibration
     assert accepted != before
     st = g.wait("STATUSTEXT", lambda m: m.text.startswith("Calibration accepted"))
     assert st.text == "Calibration accepted and saved"
@@ -194,7 +194,7 @@ def test_cancel_and_fixed_yaw(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 0).result == M.MAV_RESULT_TEMPORARILY_REJECTED
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
     g.wait("STATUSTEXT", lambda m: m.text == "Calibration cancelled")
-    assert wait_until(lambda: not rig.daemon.calibrator.snapshot().running)
+    assert wait_until(lambda: not rig.daemon.bridge.calibrator.snapshot().running)
     # a mask without compass 0: not ours
     assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 2).result == M.MAV_RESULT_FAILED
 
@@ -206,7 +206,7 @@ def test_cancel_and_fixed_yaw(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     samples = []
     for _ in range(10):
         f = rig.fw.truth[-1].frame
-        samples.append(rig.daemon.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az))
+        samples.append(rig.daemon.bridge.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az))
     true_hdg = [s.heading_true_deg for s in samples]
     assert all(h is not None and abs((h - yaw + 180) % 360 - 180) < 1.0 for h in true_hdg)
     assert g.command(M.MAV_CMD_FIXED_MAG_CAL_YAW, math.nan).result == M.MAV_RESULT_FAILED
@@ -269,7 +269,7 @@ def test_px4_flow_magnetometer(tmp_path: Path, rigs: Callable[..., Rig]) -> None
         tmp_path, fast=True, motion=lead_in(Tumble(5, rate_dps=90.0, reference_ned=FIELD.ned_G))
     )
     g = rig.gcs("udp")
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     assert g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1).result == ACCEPTED
     lines = [t for t in texts(g, "[cal] calibration done") if t.startswith("[cal]")]
     assert lines[0] == "[cal] calibration started: 2 mag"
@@ -278,11 +278,11 @@ def test_px4_flow_magnetometer(tmp_path: Path, rigs: Callable[..., Rig]) -> None
     assert len(pct) >= 3 and pct == sorted(pct) and len(set(pct)) == len(pct)
     assert all(len(t) <= 50 for t in lines)
     # PX4 has no accept step: the result is in use and saved
-    assert wait_until(lambda: rig.daemon.engine.calibration != before)
+    assert wait_until(lambda: rig.daemon.bridge.engine.calibration != before)
     assert wait_until(
-        lambda: load_calibration(str(tmp_path / "state"))[0] == rig.daemon.engine.calibration
+        lambda: load_calibration(str(tmp_path / "state"))[0] == rig.daemon.bridge.engine.calibration
     )
-    assert_heading_within_targets(rig.fw, rig.daemon.engine.calibration)
+    assert_heading_within_targets(rig.fw, rig.daemon.bridge.engine.calibration)
 
 
 def test_px4_flow_six_faces_and_cancel(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
@@ -297,7 +297,7 @@ def test_px4_flow_six_faces_and_cancel(tmp_path: Path, rigs: Callable[..., Rig])
     done = [t.split()[1] for t in lines if t.endswith("side done, rotate to a different side")]
     assert detected == order and done == order
     assert lines[-1] == "[cal] calibration done: accel"
-    assert wait_until(lambda: rig.daemon.engine.calibration.accel != Calibration().accel)
+    assert wait_until(lambda: rig.daemon.bridge.engine.calibration.accel != Calibration().accel)
 
     # all-zero PREFLIGHT_CALIBRATION cancels a running calibration (QGC's cancel button)
     assert g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 0, 0, 1).result == ACCEPTED
@@ -330,9 +330,9 @@ def test_onboard_route_ends_with_the_compass_flash_updated(
     rig = rigs(tmp_path, fast=True, seed=9, motion=motion)
     g = rig.gcs("udp")
     g.set_param("BRG_CAL_ONBOARD", 1.0, M.MAV_PARAM_TYPE_INT8)
-    assert rig.daemon.calibrator.onboard is True
+    assert rig.daemon.bridge.calibrator.onboard is True
     flash_before = rig.fw.flash.page
-    host_before = rig.daemon.engine.calibration
+    host_before = rig.daemon.bridge.engine.calibration
     rig.wait_motion_time(LEAD_S - 3.0)
     assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0).result == ACCEPTED
     said = texts(g, "Calibration done")
@@ -358,7 +358,7 @@ def test_onboard_route_ends_with_the_compass_flash_updated(
     assert rep.ofs_x == pytest.approx(-1000.0 * (page.xoff - 2458.0) / 2560.0, abs=1e-3)
     assert rep.diag_y == pytest.approx(page.ky, abs=1e-4)
     # the device's own calibration: the host's stays as it was
-    assert rig.daemon.engine.calibration == host_before
+    assert rig.daemon.bridge.engine.calibration == host_before
     assert not rig.fw.calibrating
     # In the compass's flash already, nothing to accept: the report is not repeated forever
     # (it once was, at 1 Hz), a few times only, in case one datagram was lost.

@@ -58,13 +58,13 @@ def download(mp: MavProxy, rig: Rig) -> None:
     """'Detected vehicle', then the whole parameter list, soon."""
     detected, _ = mp.expect(r"Detected vehicle 1:1 on link 0")
     done, line = mp.expect(r"Received \d+ parameters")
-    assert line.endswith(f"Received {len(rig.daemon.params)} parameters")
+    assert line.endswith(f"Received {len(rig.daemon.bridge.params)} parameters")
     assert done - detected < DOWNLOAD_S, mp.text()
 
 
 def set_and_read_back_every_parameter(mp: MavProxy, rig: Rig) -> None:
     """``param set`` each writable parameter to a new value, then ``param fetch`` it."""
-    store = rig.daemon.params
+    store = rig.daemon.bridge.params
     wanted = {s.name: new_value(s, store.get(s.name)) for s in writable()}
     for spec in writable():
         value = wanted[spec.name]
@@ -99,19 +99,19 @@ def test_mavproxy_calibrates_and_sets_every_parameter(
     )
     mp = mavproxy(rig, tmp_path)
     download(mp, rig)
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
 
     # docs/mavlink.md's on-board switch and a float, as a user types them
     mp.send("param set BRG_CAL_ONBOARD 1")
     mp.send("param set BRG_SR_HUD 2.5")
-    assert wait_until(lambda: rig.daemon.params.get("BRG_SR_HUD") == 2.5)
-    assert rig.daemon.params.get("BRG_CAL_ONBOARD") == 1.0
+    assert wait_until(lambda: rig.daemon.bridge.params.get("BRG_SR_HUD") == 2.5)
+    assert rig.daemon.bridge.params.get("BRG_CAL_ONBOARD") == 1.0
     mp.send("param fetch BRG_CAL_ONBOARD")
     assert mp.expect(r"^BRG_CAL_ONBOARD = ")[1] == "BRG_CAL_ONBOARD = 1.0000000"
     mp.send("param show BRG_SR_HUD")
     assert mp.expect(r"^BRG_SR_HUD\s")[1].split() == ["BRG_SR_HUD", "2.5"]
     mp.send("param set BRG_CAL_ONBOARD 0")  # the host's fit for the magcal below
-    assert wait_until(lambda: rig.daemon.params.get("BRG_CAL_ONBOARD") == 0.0)
+    assert wait_until(lambda: rig.daemon.bridge.params.get("BRG_CAL_ONBOARD") == 0.0)
 
     # magcal start (broadcast, autosave 1) -> SUCCESS -> MAVProxy accepts on its own
     mp.send("magcal start")
@@ -127,7 +127,7 @@ def test_mavproxy_calibrates_and_sets_every_parameter(
     assert len(steps) >= 3 and steps[-1] >= 60, mp.text()
     assert report.startswith("Calibration of compass 0 SUCCESS: fitness ")
     assert mp.expect(r"Got COMMAND_ACK: DO_ACCEPT_MAG_CAL: ")[1].endswith("ACCEPTED")
-    assert rig.daemon.engine.calibration != before
+    assert rig.daemon.bridge.engine.calibration != before
     # accepted: the report is no longer repeated, so MAVProxy does not accept again
     mp.collect(2.5)
     assert sum("Calibration of compass" in line for _, line in mp.lines) == 1, mp.text()
@@ -151,5 +151,5 @@ def test_mavproxy_sets_every_parameter_of_each_flavour(
     # an integer parameter reads as the integer, not as the float its bytes would make
     mp.send("param show AHRS_ORIENTATION")
     shown = mp.expect(r"^AHRS_ORIENTATION\s")[1].split()[1]
-    assert float(shown) == rig.daemon.params.get("AHRS_ORIENTATION")
+    assert float(shown) == rig.daemon.bridge.params.get("AHRS_ORIENTATION")
     assert_quiet(mp)

@@ -124,7 +124,7 @@ def test_mavsdk_discovery_telemetry_parameters_and_level(
 
     # Param: an integer and a float parameter, get and set
     param = Param(system)
-    store = rig.daemon.params
+    store = rig.daemon.bridge.params
     assert param.get_param_int("AHRS_ORIENTATION") == store.get("AHRS_ORIENTATION") == 0
     assert param.get_param_float("BRG_SR_HUD") == store.get("BRG_SR_HUD") == 4.0
     param.set_param_int("BRG_CAL_ONBOARD", 1)
@@ -168,7 +168,7 @@ def test_mavsdk_calibrates_the_magnetometer_while_it_tumbles(
         mavlink=PX4,
     )
     system = connect(rig)
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     run = Run()
     calibration = CalibrationPlugin(system)
     calibration.calibrate_magnetometer_async(run)
@@ -176,8 +176,8 @@ def test_mavsdk_calibrates_the_magnetometer_while_it_tumbles(
     assert len(run.progress) >= 5 and run.progress == sorted(run.progress)
     assert 0.0 <= run.progress[0] < 0.5 < run.progress[-1] <= 1.0
     # PX4 has no accept step: the result is in use, and good
-    assert wait_until(lambda: rig.daemon.engine.calibration != before)
-    assert_heading_within_targets(rig.fw, rig.daemon.engine.calibration)
+    assert wait_until(lambda: rig.daemon.bridge.engine.calibration != before)
+    assert_heading_within_targets(rig.fw, rig.daemon.bridge.engine.calibration)
 
 
 def test_mavsdk_calibrates_the_accelerometer_on_six_faces(
@@ -197,4 +197,4 @@ def test_mavsdk_calibrates_the_accelerometer_on_six_faces(
     calibration.calibrate_accelerometer_async(run)
     assert run.wait() is CalibrationResult.SUCCESS, run.texts
     assert run.progress and run.progress[-1] > 0.5
-    assert wait_until(lambda: rig.daemon.engine.calibration.accel != Calibration().accel)
+    assert wait_until(lambda: rig.daemon.bridge.engine.calibration.accel != Calibration().accel)

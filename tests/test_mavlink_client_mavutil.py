@@ -74,13 +74,13 @@ def test_mavutil_takes_the_standalone_bridge_for_a_vehicle_and_fetches_its_param
     assert (conn.target_system, conn.target_component) == (1, 0)
 
     conn.param_fetch_all()
-    n = len(rig.daemon.params)
+    n = len(rig.daemon.bridge.params)
     deadline = time.monotonic() + DEADLINE_S
     while len(conn.params) < n and time.monotonic() < deadline:
         conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.5)
     assert len(conn.params) == n
     # mavutil keeps param_value as it travels: the value itself, except PX4's integers
-    store = rig.daemon.params
+    store = rig.daemon.bridge.params
     for spec in store.specs:
         raw = conn.params[spec.name]
         if flavour == "px4" and spec.ptype != M.MAV_PARAM_TYPE_REAL32:

@@ -30,7 +30,7 @@ from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 from test_mavlink_telemetry import make_sample
 
 from bridge.config import config_from_mapping
-from bridge.daemon import Daemon
+from bridge.daemon import build_daemon
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.dialect import message
@@ -114,9 +114,9 @@ def output(tmp_path: Path) -> Iterator[Callable[..., tuple[MavlinkOutput, Gcs, l
             env={},
             hostname="coalesce",
         )
-        daemon = Daemon(cfg)  # never started: the services the output uses
+        daemon = build_daemon(cfg)  # never started: the services the output uses
         settings = replace(MavlinkSettings.from_config(cfg), signing_key=key)
-        out = MavlinkOutput(settings, daemon.services, clock=Clock(100.0))
+        out = MavlinkOutput(settings, daemon.bridge.services, clock=Clock(100.0))
         sent: list[Packet] = []
         daemon.bridge.mavlink_tap.subscribe(lambda m: sent.append(m.message))
         out.start()

@@ -212,7 +212,7 @@ def test_ground_station_calibrating_the_autopilot_and_the_bridge_never_cross(
 ) -> None:
     rig = rigs(tmp_path, motion=Still.from_deg(2.0, -3.0, 40.0), mavlink={"role": "companion"})
     hub = Hub(rig)
-    cal = rig.daemon.calibrator
+    cal = rig.daemon.bridge.calibrator
     hub.wait(lambda: hub.from_bridge("HEARTBEAT"))
 
     # the bridge's own calibration, addressed to it: a result at once (a known true yaw)
@@ -263,7 +263,7 @@ def test_ground_station_calibrating_the_autopilot_and_the_bridge_never_cross(
     assert not cal.snapshot().running
 
     # parameters: a SET or read for the autopilot is not ours
-    before = rig.daemon.params.get("BRG_SR_HUD")
+    before = rig.daemon.bridge.params.get("BRG_SR_HUD")
     hub.gcs.inbox.clear()
     hub.send(
         hub.gcs, hub.gcs.mav.param_set_encode(*AP, b"BRG_SR_HUD", 1.0, M.MAV_PARAM_TYPE_REAL32)
@@ -272,11 +272,11 @@ def test_ground_station_calibrating_the_autopilot_and_the_bridge_never_cross(
     hub.send(hub.gcs, hub.gcs.mav.param_request_list_encode(*AP))
     hub.run(1.0)
     assert hub.ap.param_sets == ["BRG_SR_HUD"]
-    assert rig.daemon.params.get("BRG_SR_HUD") == before
+    assert rig.daemon.bridge.params.get("BRG_SR_HUD") == before
     assert not hub.from_bridge("PARAM_VALUE")
     hub.send(
         hub.gcs, hub.gcs.mav.param_set_encode(*BRIDGE, b"BRG_SR_HUD", 1.0, M.MAV_PARAM_TYPE_REAL32)
     )
     echo = hub.wait(lambda: hub.from_bridge("PARAM_VALUE"))[0]
     assert echo.param_id == "BRG_SR_HUD" and echo.param_value == 1.0
-    assert rig.daemon.params.get("BRG_SR_HUD") == 1.0
+    assert rig.daemon.bridge.params.get("BRG_SR_HUD") == 1.0

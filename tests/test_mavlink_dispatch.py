@@ -91,16 +91,16 @@ def test_mavsdk_style_commands_with_nan_parameters(
     ack = g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, NAN, NAN)
     assert ack.result == ACCEPTED
     g.wait("STATUSTEXT", lambda m: m.text == "[cal] calibration started: 2 mag")
-    assert rig.daemon.calibrator.snapshot().running
+    assert rig.daemon.bridge.calibrator.snapshot().running
     # PX4's cancel: params 1-6 all zero, whatever param 7 holds
     assert g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 0, 0, 0, 0, NAN).result == ACCEPTED
     g.wait("STATUSTEXT", lambda m: m.text == "[cal] calibration cancelled")
-    assert wait_until(lambda: not rig.daemon.calibrator.snapshot().running)
+    assert wait_until(lambda: not rig.daemon.bridge.calibrator.snapshot().running)
     # every parameter NaN: nothing given, read as zeros: the cancel again (nothing runs)
     g.flush()
     ack = g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, NAN, NAN, NAN, NAN, NAN, NAN, NAN)
     assert ack.result == ACCEPTED
-    assert not rig.daemon.calibrator.snapshot().running
+    assert not rig.daemon.bridge.calibrator.snapshot().running
     # level as MAVSDK asks for it: param5 = 2, the rest 0 or NaN
     ack = g.command(M.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 0, 0, 2, NAN, NAN)
     assert ack.result == ACCEPTED
@@ -112,13 +112,13 @@ def test_mavsdk_style_commands_with_nan_parameters(
     progress = g.wait("MAG_CAL_PROGRESS")
     assert progress.compass_id == 0 and progress.cal_mask == 1
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, NAN).result == ACCEPTED  # NaN mask: all
-    assert wait_until(lambda: not rig.daemon.calibrator.snapshot().running)
+    assert wait_until(lambda: not rig.daemon.bridge.calibrator.snapshot().running)
     # a mask that cannot be an uint8 fails, as in ArduPilot, rather than naming another compass
     assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 256.0).result == M.MAV_RESULT_FAILED
-    assert not rig.daemon.calibrator.snapshot().running
+    assert not rig.daemon.bridge.calibrator.snapshot().running
     assert g.command(M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0).result == ACCEPTED
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, -1.0).result == M.MAV_RESULT_FAILED
-    assert rig.daemon.calibrator.snapshot().running  # and nothing was cancelled
+    assert rig.daemon.bridge.calibrator.snapshot().running  # and nothing was cancelled
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
 
 

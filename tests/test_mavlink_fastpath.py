@@ -27,7 +27,7 @@ from test_mavlink_telemetry import make_sample
 
 from bridge.app.sample import CompassSample
 from bridge.config import config_from_mapping
-from bridge.daemon import Daemon
+from bridge.daemon import build_daemon
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
@@ -223,9 +223,9 @@ def bench(tmp_path: Path) -> Iterator[Callable[..., Bench]]:
             env={},
             hostname="fastpath",
         )
-        daemon = Daemon(cfg)  # never started: the services the output uses
+        daemon = build_daemon(cfg)  # never started: the services the output uses
         clock = Clock(100.0)
-        out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services, clock=clock)
+        out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=clock)
         sent: list[Packet] = []
         daemon.bridge.mavlink_tap.subscribe(lambda m: sent.append(m.message))
         out.start()

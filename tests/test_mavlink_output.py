@@ -201,7 +201,7 @@ def test_parameter_protocol(
     # generic plugin, MAVProxy and Mission Planner all read alike (docs/mavlink.md)
     rig = rigs(tmp_path, mavlink={"autopilot": "ardupilot"})
     g, other = rig.gcs("udp"), rig.gcs("tcp")
-    n = len(rig.daemon.params)
+    n = len(rig.daemon.bridge.params)
     g.mav.param_request_list_send(1, 1)
     values: dict[int, Any] = {}
     deadline = time.monotonic() + DEADLINE_S
@@ -213,8 +213,8 @@ def test_parameter_protocol(
     names = {m.param_id: m for m in values.values()}
     assert len(names) == n
     assert {m.param_type for m in values.values()} == {REAL32}
-    assert names["COMPASS_DEV_ID"].param_value == rig.daemon.params.get("COMPASS_DEV_ID") > 0
-    assert names["AHRS_ORIENTATION"].param_value == rig.daemon.params.get("AHRS_ORIENTATION")
+    assert names["COMPASS_DEV_ID"].param_value == rig.daemon.bridge.params.get("COMPASS_DEV_ID") > 0
+    assert names["AHRS_ORIENTATION"].param_value == rig.daemon.bridge.params.get("AHRS_ORIENTATION")
     assert names["BRG_SR_ATT"].param_value == 10.0  # configuration default
 
     # read by index and by name
@@ -252,7 +252,7 @@ def test_parameter_protocol(
     # a SET for another system changes nothing
     g.mav.param_set_send(7, 1, b"BRG_SR_HUD", 1.0, REAL32)
     g.nothing("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD", 0.5)
-    assert rig.daemon.params.get("BRG_SR_HUD") == 2.0
+    assert rig.daemon.bridge.params.get("BRG_SR_HUD") == 2.0
     # the new rate is in force
     g.flush()
     msgs, secs = collect_frames(rig, g, 2.0)
@@ -264,8 +264,8 @@ def test_compass_parameters_are_the_calibration_the_engine_applies(
 ) -> None:
     rig = rigs(tmp_path, ideal=True, motion=Still.from_deg(0.0, 0.0, 40.0))
     g = rig.gcs("udp")
-    engine = rig.daemon.engine
-    heading0 = rig.daemon.engine.calibration
+    engine = rig.daemon.bridge.engine
+    heading0 = rig.daemon.bridge.engine.calibration
     assert heading0 == Calibration()
     g.set_param("COMPASS_OFS_X", 100.0, REAL32)  # mG, added to the raw field
     assert wait_until(lambda: engine.calibration.mag.offset[0] == pytest.approx(-0.1))
@@ -322,7 +322,7 @@ def test_parameters_survive_a_restart(tmp_path: Path) -> None:
         g.set_param("COMPASS_OFS_Y", 55.5, REAL32)
         g.set_param("COMPASS_DIA_Z", 1.1, REAL32)
         g.set_param("BRG_CAL_ONBOARD", 1.0, INT8)
-        cal = rig.daemon.engine.calibration
+        cal = rig.daemon.bridge.engine.calibration
     finally:
         rig.stop()
     rig2 = start_rig(tmp_path)
@@ -334,9 +334,9 @@ def test_parameters_survive_a_restart(tmp_path: Path) -> None:
         # the value as set, not a renormalised view of the matrix
         assert g.param("COMPASS_DIA_Z").param_value == pytest.approx(1.1, abs=1e-6)
         assert g.param("BRG_CAL_ONBOARD").param_value == 1.0
-        assert rig2.daemon.engine.calibration == cal
-        assert rig2.daemon.engine.mounting.orientation is Rotation.ROTATION_YAW_90
-        assert rig2.daemon.calibrator.onboard is True
+        assert rig2.daemon.bridge.engine.calibration == cal
+        assert rig2.daemon.bridge.engine.mounting.orientation is Rotation.ROTATION_YAW_90
+        assert rig2.daemon.bridge.calibrator.onboard is True
         assert g.param("BRG_SR_ATT").param_value == 10.0  # never set: the configuration's
     finally:
         rig2.stop()
@@ -372,8 +372,8 @@ def test_preflight_storage(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     assert g.param("COMPASS_OFS_X").param_value == pytest.approx(80.0)
     # 3 = reset the calibration
     assert g.command(storage, 3).result == ACCEPTED
-    assert wait_until(lambda: rig.daemon.engine.calibration == Calibration())
-    assert wait_until(lambda: rig.daemon.params.get("COMPASS_OFS_X") == 0.0)
+    assert wait_until(lambda: rig.daemon.bridge.engine.calibration == Calibration())
+    assert wait_until(lambda: rig.daemon.bridge.params.get("COMPASS_OFS_X") == 0.0)
     g.wait("PARAM_VALUE", lambda m: m.param_id == "COMPASS_OFS_X" and m.param_value == 0.0)
     # 0 = read back what is stored
     g.set_param("BRG_SR_SIMU", 5.0, REAL32)
@@ -402,22 +402,23 @@ def test_companion_role_takes_the_autopilots_position(
     # the autopilot (system 1, component 1) reports the vehicle in Sydney
     ap = connect_gcs(f"udpout:127.0.0.1:{rig.udp_port}", sysid=1, compid=1)
     rig.gcss.append(ap)
-    here = rig.daemon.engine.reference
+    here = rig.daemon.bridge.engine.reference
     assert here is not None
     sydney = earth_field(-33.86, 151.21, 30.0)
     ap.mav.global_position_int_send(1000, int(-33.86e7), int(151.21e7), 30_000, 5000, 0, 0, 0, 0)
     assert wait_until(
         lambda: (
-            rig.daemon.engine.reference is not None
-            and rig.daemon.engine.reference.declination_deg
+            rig.daemon.bridge.engine.reference is not None
+            and rig.daemon.bridge.engine.reference.declination_deg
             == pytest.approx(sydney.declination_deg, abs=0.05)
         )
     )
     # the calibrator hears of it right after the engine
     assert wait_until(
         lambda: (
-            rig.daemon.calibrator.field is not None
-            and rig.daemon.calibrator.field.total_G == pytest.approx(sydney.total_G, rel=1e-3)
+            rig.daemon.bridge.calibrator.field is not None
+            and rig.daemon.bridge.calibrator.field.total_G
+            == pytest.approx(sydney.total_G, rel=1e-3)
         )
     )
     dec = g.param("COMPASS_DEC", target=(1, 200)).param_value
@@ -427,7 +428,7 @@ def test_companion_role_takes_the_autopilots_position(
     rig.gcss.append(other)
     other.mav.global_position_int_send(1000, int(40e7), int(-100e7), 0, 0, 0, 0, 0, 0)
     time.sleep(0.5)
-    ref = rig.daemon.engine.reference
+    ref = rig.daemon.bridge.engine.reference
     assert ref is not None and ref.declination_deg == pytest.approx(
         sydney.declination_deg, abs=0.05
     )
@@ -438,15 +439,15 @@ def test_companion_role_takes_the_autopilots_position(
     reykjavik = earth_field(64.15, -21.94, 20.0)
     ap.mav.gps_raw_int_send(0, 1, int(64.15e7), int(-21.94e7), 20_000, 0, 0, 0, 0, 0)  # no fix
     time.sleep(0.5)
-    ref = rig.daemon.engine.reference
+    ref = rig.daemon.bridge.engine.reference
     assert ref is not None and ref.declination_deg == pytest.approx(
         sydney.declination_deg, abs=0.05
     )
     ap.mav.gps_raw_int_send(0, 3, int(64.15e7), int(-21.94e7), 20_000, 0, 0, 0, 0, 9)  # 3D fix
     assert wait_until(
         lambda: (
-            rig.daemon.engine.reference is not None
-            and rig.daemon.engine.reference.declination_deg
+            rig.daemon.bridge.engine.reference is not None
+            and rig.daemon.bridge.engine.reference.declination_deg
             == pytest.approx(reykjavik.declination_deg, abs=0.05)
         )
     )
@@ -563,11 +564,11 @@ def test_a_dead_and_a_stuck_endpoint_do_not_slow_the_others(
     stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # connected, never reads
     try:
         g = rig.gcs("udp")
-        samples0 = rig.daemon.samples
+        samples0 = rig.daemon.bridge.pipeline.samples
         g.flush()
         msgs, secs = collect_frames(rig, g, 3.0)
         assert 7.0 <= rate(msgs, "ATTITUDE", secs) <= 11.0  # the compass's 10 Hz, all of it
-        assert rig.daemon.samples - samples0 >= 25  # the pipeline never waited
+        assert rig.daemon.bridge.pipeline.samples - samples0 >= 25  # the pipeline never waited
         counters = rig.out.endpoint_counters()
         assert counters[dead].errors >= 1 and counters[dead].packets_unsent > 0
         assert counters["udpout:192.0.2.1:14550"].packets_sent > 0  # into the void, unblocked

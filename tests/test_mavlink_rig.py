@@ -32,7 +32,7 @@ from pymavlink import mavutil
 
 from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config, config_from_mapping
-from bridge.daemon import Daemon
+from bridge.daemon import Daemon, build_daemon
 from bridge.link.serial_link import LinkState
 from bridge.link.transport import SimTransport
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
@@ -308,22 +308,24 @@ def start_rig(
         transport = SimTransport(fw)
     if fast:
         # The calibration controller on the simulator's clock (as test_calibrator).
-        daemon = Daemon(
+        daemon = build_daemon(
             cfg,
             transport=transport,
             calibrator_settings=settings or CalibratorSettings(no_data_timeout_s=40.0),
             clock=fc,
         )
     else:
-        daemon = Daemon(cfg, transport=transport)
-    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.services)
-    daemon.set_outputs([out])
+        daemon = build_daemon(cfg, transport=transport)
+    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services)
+    daemon.bridge.pipeline.set_outputs([out])
     daemon.start()
     rig = Rig(daemon, out, fw, cfg, udp, tcp, [], server, fc if fast else time.monotonic)
     try:
         assert daemon.link.wait_state(LinkState.STREAMING, DEADLINE_S), "compass not streaming"
         assert wait_until(lambda: daemon.link.params is not None), "no PAR,GET in the handshake"
-        assert wait_until(lambda: daemon.samples >= 3), "no samples through the pipeline"
+        assert wait_until(lambda: daemon.bridge.pipeline.samples >= 3), (
+            "no samples through the pipeline"
+        )
     except BaseException:
         rig.stop()
         raise

@@ -97,7 +97,7 @@ def test_unsigned_and_wrongly_signed_commands_are_refused(
         assert not any(
             m.get_type() == "PARAM_VALUE" and m.param_id == "BRG_SR_HUD" for m in g.inbox
         )
-        assert rig.daemon.params.get("BRG_SR_HUD") == 4.0  # nothing changed
+        assert rig.daemon.bridge.params.get("BRG_SR_HUD") == 4.0  # nothing changed
         assert rig.out.schedule.rate(ATT) == 10.0
         g.flush()
         assert any(m.get_type() == "ATTITUDE" for m in g.collect(0.5))  # still streaming
@@ -223,11 +223,11 @@ def test_a_packet_captured_before_a_restart_is_still_a_replay_after_it(
     rig.stop()  # the bridge restarts on the same state directory
 
     again = signed_rig(tmp_path, rigs)
-    assert again.daemon.params.get("BRG_SR_HUD") == 16.0  # persisted
+    assert again.daemon.bridge.params.get("BRG_SR_HUD") == 16.0  # persisted
     attacker = gcs_with_key(again, None, "tcp")
     attacker.conn.write(fifteen)  # the exact bytes, well within a minute
     attacker.nothing("PARAM_VALUE", lambda m: m.param_id == "BRG_SR_HUD", 1.0)
-    assert again.daemon.params.get("BRG_SR_HUD") == 16.0
+    assert again.daemon.bridge.params.get("BRG_SR_HUD") == 16.0
     assert again.out.counters.refused_replay == 1
     # the operator's own next packet (a newer timestamp) is obeyed
     g2 = gcs_with_key(again, KEY)

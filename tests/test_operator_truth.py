@@ -89,7 +89,7 @@ def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
 ) -> None:
     rig = rigs(tmp_path, fast=True, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G))
     offsets = TruthOffsets(rig.fw)
-    rig.daemon.set_outputs([rig.out, offsets])
+    rig.daemon.bridge.pipeline.set_outputs([rig.out, offsets])
     before = offsets.rms_of_next(100)
     assert before > 5.0, before  # uncalibrated: the unit's iron errors, in degrees
 

@@ -61,7 +61,7 @@ class Running:
         _wait(lambda: self.service.reloads + self.service.reloads_refused > n, "the reload")
 
     def output(self, name: str) -> Output:
-        (out,) = [o for o in self.service.daemon.outputs if o.name == name]
+        (out,) = [o for o in self.service.daemon.bridge.pipeline.outputs if o.name == name]
         return out
 
     def close(self) -> None:
@@ -85,7 +85,7 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
     svc = running.service
     daemon, link = svc.daemon, svc.daemon.link
     zenoh = running.output("zenoh")
-    inner = svc.transport._inner
+    inner = svc.daemon.transport.inner
     reconnects = link.counters.reconnects
 
     # [zenoh] changed: that output restarts; the port is not touched.
@@ -94,9 +94,9 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
     assert svc.daemon is daemon and svc.daemon.link is link
     new_zenoh = running.output("zenoh")
     assert new_zenoh is not zenoh and new_zenoh.settings.key_prefix == "test/b"  # type: ignore[attr-defined]
-    assert svc.transport._inner is inner
-    samples = daemon.samples
-    _wait(lambda: daemon.samples > samples + 5, "samples after the output swap")
+    assert svc.daemon.transport.inner is inner
+    samples = daemon.bridge.pipeline.samples
+    _wait(lambda: daemon.bridge.pipeline.samples > samples + 5, "samples after the output swap")
     assert link.counters.reconnects == reconnects
 
     # [device] changed: the port reopens with it; the outputs keep running.
@@ -105,22 +105,22 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
     assert svc.daemon is daemon and running.output("zenoh") is new_zenoh
     assert link.rate_hz == 20
     # the new port is swapped in by the reader at its next read (asynchronously)
-    _wait(lambda: svc.transport._inner is not inner, "the new transport")
+    _wait(lambda: svc.daemon.transport.inner is not inner, "the new transport")
     _wait(lambda: link.counters.reconnects == reconnects + 1, "the reconnect")
     _wait(lambda: link.state is LinkState.STREAMING, "streaming again")
 
     # [location] changed: a new WMM reference in place, nothing restarts.
-    inner = svc.transport._inner
+    inner = svc.daemon.transport.inner
     running.write(
         prefix="test/b",
         rate_hz=20,
         extra="[location]\nlatitude = 52.0\nlongitude = 4.4\n",
     )
-    assert daemon.engine.reference is None
+    assert daemon.bridge.engine.reference is None
     running.reload()
-    ref = daemon.engine.reference
+    ref = daemon.bridge.engine.reference
     assert ref is not None and ref.declination_deg is not None and 0.0 < ref.declination_deg < 5.0
-    assert svc.transport._inner is inner and running.output("zenoh") is new_zenoh
+    assert svc.daemon.transport.inner is inner and running.output("zenoh") is new_zenoh
 
     # An invalid file is refused; the running configuration stays.
     cfg_before = svc.cfg

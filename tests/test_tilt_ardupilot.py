@@ -162,7 +162,7 @@ def test_the_companion_takes_ardupilots_attitude_while_the_accelerometer_lies(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
     rig = rigs(tmp_path, motion=PushedSideways(), ideal=True, mavlink={"role": "companion"})
-    tilt = rig.daemon.services.tilt
+    tilt = rig.daemon.bridge.services.tilt
     assert tilt is not None
     # Alone, with no quiet frame before the push, the bridge takes the accelerometer's 14 deg.
     if rig.motion_time() < 4.0:

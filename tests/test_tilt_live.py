@@ -199,7 +199,7 @@ def test_companion_takes_the_autopilots_attitude_while_it_accelerates(
     assert sources.count(1) >= 0.9 * len(sources)  # TILT_SRC: autopilot
     assert raw > 5.0
     # it asked the autopilot's clock, and lined its stamps up with it
-    tilt = rig.daemon.services.tilt
+    tilt = rig.daemon.bridge.services.tilt
     assert tilt is not None
     st = tilt.status()["autopilot"]
     assert ap.timesyncs >= 10 and st["clock"] == "timesync" and st["heard"]

@@ -150,7 +150,7 @@ def test_status_summary_and_its_tilt_line() -> None:
 def test_status_of_a_running_bridge_shows_its_tilt_source(tmp_path: Path) -> None:
     port = free_port()
     with Bridge(tmp_path, "boat9", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
-        wait_until(lambda: b.daemon.samples >= 40, 15.0, "frames flowing")
+        wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
         opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
         out = io.StringIO()
         run_status(opts, out, as_json=True, timeout=5.0)

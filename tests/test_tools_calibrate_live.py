@@ -80,7 +80,7 @@ def test_live_calibration_accepted_changes_the_bridge_and_is_plotted(
     tmp_path: Path, rigs: Callable[..., Rig], capsys: pytest.CaptureFixture[str]
 ) -> None:
     rig = tumbling_rig(rigs, tmp_path)
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     png = tmp_path / "live.png"
     code = calibrate_live(rig, "--yes", "--progress", "--plot", str(png))
     cap = capsys.readouterr()
@@ -101,7 +101,7 @@ def test_live_calibration_accepted_changes_the_bridge_and_is_plotted(
     assert "plot written to" in cap.out and png_size(png) == (1200, 1000)
 
     # the bridge uses, keeps and publishes the new calibration: near the unit's true offsets
-    after = rig.daemon.engine.calibration
+    after = rig.daemon.bridge.engine.calibration
     assert after != before
     assert load_calibration(str(tmp_path / "state"))[0] == after
     truth = rig.fw.sensor.errors.true_calibration()
@@ -122,16 +122,16 @@ def test_live_calibration_declined_leaves_the_bridge_as_it_was(
     # this time the bridge sends to the tool (its udpout endpoint, a GCS listening on udpin)
     port = free_port()
     rig = tumbling_rig(rigs, tmp_path, extra_endpoints=(f"udpout:127.0.0.1:{port}",))
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     code = calibrate_live(rig, "--no", "--no-progress", url=f"udpin:127.0.0.1:{port}")
     cap = capsys.readouterr()
     assert code == 1
     assert "MAG_CAL_SUCCESS" in cap.out and "cancelled" in cap.out
     assert "calibrating [" not in cap.err  # --no-progress: no bar
     # DO_CANCEL_MAG_CAL was ACKed before the tool returned: the fit no longer waits for an accept
-    snap = rig.daemon.calibrator.snapshot()
+    snap = rig.daemon.bridge.calibrator.snapshot()
     assert not snap.running and not snap.pending_accept
-    assert rig.daemon.engine.calibration == before
+    assert rig.daemon.bridge.engine.calibration == before
     assert load_calibration(str(tmp_path / "state"))[1] != "stored"
 
 
@@ -140,12 +140,12 @@ def test_ctrl_c_during_the_motion_cancels_the_calibration_on_the_bridge(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
     rig = tumbling_rig(rigs, tmp_path)
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     seen: list[float] = []
 
     def interrupt(pct: float, missing: frozenset[int]) -> None:
         seen.append(pct)
-        assert rig.daemon.calibrator.snapshot().running  # it did start
+        assert rig.daemon.bridge.calibrator.snapshot().running  # it did start
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
@@ -159,8 +159,8 @@ def test_ctrl_c_during_the_motion_cancels_the_calibration_on_the_bridge(
         )
     assert seen
     # run_mavlink re-raised only after the bridge ACKed DO_CANCEL_MAG_CAL: stopped already
-    assert not rig.daemon.calibrator.snapshot().running
-    assert rig.daemon.engine.calibration == before
+    assert not rig.daemon.bridge.calibrator.snapshot().running
+    assert rig.daemon.bridge.engine.calibration == before
 
 
 @pytest.mark.integration
@@ -235,7 +235,7 @@ def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
     # a hand far too rough for a calibration: 0.3 g RMS per axis on a 90 deg/s tumble
     motion = HandShake(Tumble(4, rate_dps=90.0, reference_ned=FIELD.ned_G), 0.3, seed=4)
     rig = rigs(tmp_path, fast=True, motion=motion, seed=4)
-    before = rig.daemon.engine.calibration
+    before = rig.daemon.bridge.engine.calibration
     code = calibrate_live(rig, "--yes", "--progress")
     cap = capsys.readouterr()
     assert code == 1, cap.out
@@ -244,7 +244,7 @@ def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
     assert bar.search(cap.err), cap.err[-2000:]
     # and the calibration failed instead of succeeding worse, saying why
     assert "calibration failed: MAG_CAL_FAILED" in cap.out and "slower / steadier" in cap.out
-    assert rig.daemon.engine.calibration == before
+    assert rig.daemon.bridge.engine.calibration == before
 
 
 @pytest.mark.integration

@@ -17,7 +17,7 @@ from bridge.zenoh.monitor import MonitorOptions
 def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path) -> None:
     port = free_port()
     with Bridge(tmp_path, "boat7", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
-        wait_until(lambda: b.daemon.samples >= 40, 15.0, "frames flowing")
+        wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
         opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
         out = io.StringIO()
         code = run_status(opts, out, as_json=True, timeout=5.0)

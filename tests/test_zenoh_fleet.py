@@ -87,7 +87,7 @@ def test_ten_bridges_at_20hz_into_one_subscriber_lose_nothing(tmp_path: Path) ->
             assert len(seqs) == published, f"{b.name}: {len(seqs)} of {published} arrived"
             assert contiguous(seqs), f"{b.name}: a gap in the device sequence"
             assert b.output.counters.put_errors == 0
-            assert b.daemon.status().counters.lost_frames == 0
+            assert b.daemon.bridge.status().counters.lost_frames == 0
 
 
 # ---------------------------------------------------------------------------

@@ -85,7 +85,7 @@ def test_oversized_and_malformed_arguments_get_bad_arguments(
         ]
         assert answer["ok"] is False and "selector parameters" in answer["message"]
         assert b.output.counters.bad_arguments == len(cases) + 1
-        assert not b.daemon.calibrator.snapshot().running  # nothing started
+        assert not b.daemon.bridge.calibrator.snapshot().running  # nothing started
         # Still answering, and nothing of it went into the log whole or as a traceback.
         (ok,) = _command(s, b.key("cmd/calibration/cancel"))
         assert ok["ok"] is True
@@ -108,8 +108,8 @@ def test_fixed_yaw_over_zenoh_is_checked_before_it_becomes_a_calibration(tmp_pat
     ):
         start = b.key("cmd/calibration/start")
         wait_until(lambda: bool(_query(s, b.key("status"), 0.5)), what="the bridge")
-        wait_until(lambda: b.daemon.samples > 30, what="frames to average")
-        before = b.daemon.engine.calibration
+        wait_until(lambda: b.daemon.bridge.pipeline.samples > 30, what="frames to average")
+        before = b.daemon.bridge.engine.calibration
         for args, why in [
             ({"what": "fixed_yaw", "yaw_deg": 1e9}, "bad yaw"),
             ({"what": "fixed_yaw", "yaw_deg": 10, "latitude_deg": -89.9, "longitude_deg": 8.5},
@@ -119,7 +119,7 @@ def test_fixed_yaw_over_zenoh_is_checked_before_it_becomes_a_calibration(tmp_pat
         ]:  # fmt: skip
             (answer,) = _command(s, start, args)
             assert answer["ok"] is False and why in answer["message"], answer
-        assert b.daemon.engine.calibration == before
+        assert b.daemon.bridge.engine.calibration == before
         assert not (b.state_dir / "calibration.json").exists()
 
 
@@ -160,9 +160,9 @@ def test_two_bridges_on_one_key_prefix(tmp_path: Path) -> None:
             )  # fmt: skip
             second.start()
             got: list[Any] = []
-            second.daemon.events.subscribe(got.append)
+            second.daemon.bridge.events.subscribe(got.append)
             firsts: list[Any] = []
-            first.daemon.events.subscribe(firsts.append)
+            first.daemon.bridge.events.subscribe(firsts.append)
             # Both see each other; the second yields: it never publishes under the prefix.
             wait_until(lambda: first.output._shared_with != [], what="the first to see it")
             wait_until(lambda: second.output._shared_with != [], what="the second to see it")
@@ -171,8 +171,8 @@ def test_two_bridges_on_one_key_prefix(tmp_path: Path) -> None:
             # A command reaches only the first, which refuses it while the prefix is shared.
             (answer,) = _command(hub, first.key("cmd/calibration/start"), {"what": "mag"})
             assert answer["ok"] is False and "shared with another bridge" in answer["message"]
-            assert not first.daemon.calibrator.snapshot().running
-            assert not second.daemon.calibrator.snapshot().running
+            assert not first.daemon.bridge.calibrator.snapshot().running
+            assert not second.daemon.bridge.calibrator.snapshot().running
 
             # The first's status says so; monitor flags the prefix.
             def dup_in_status() -> bool:

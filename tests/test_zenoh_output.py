@@ -23,7 +23,7 @@ import zenoh
 from bridge.app.calibration.store import CALIBRATION_DOCUMENT
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.config import load_config
-from bridge.daemon import Daemon, build_outputs
+from bridge.daemon import Daemon, build_daemon, build_outputs
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.dialect import mavlink
 from bridge.sim.firmware import make_firmware
@@ -165,16 +165,16 @@ class Bridge:
             **settings,
         )
         self.prefix = self.settings.key_prefix
-        self.daemon = Daemon(self.cfg)
-        self.output = ZenohOutput(self.settings, fleet_services(self.daemon.services))
+        self.daemon = build_daemon(self.cfg)
+        self.output = ZenohOutput(self.settings, fleet_services(self.daemon.bridge.services))
         outputs: list[Any] = [self.output]
         self.mavlink: MavlinkOutput | None = None
         if mavlink_port:
             self.mavlink = MavlinkOutput(
-                MavlinkSettings.from_config(self.cfg), self.daemon.services
+                MavlinkSettings.from_config(self.cfg), self.daemon.bridge.services
             )
             outputs.insert(0, self.mavlink)
-        self.daemon.set_outputs(outputs)
+        self.daemon.bridge.pipeline.set_outputs(outputs)
 
     def key(self, *parts: str) -> str:
         return "/".join((self.prefix, *parts))
@@ -386,7 +386,7 @@ def test_queryables_answer_status_and_calibration(tmp_path: Path) -> None:
         assert reply.ok is not None
         params = schema.parse(reply.ok.payload.to_bytes(), schema.PARAMS)["params"]
         assert b.mavlink is not None
-        assert params == pytest.approx(b.daemon.params.values())
+        assert params == pytest.approx(b.daemon.bridge.params.values())
         # ArduPilot adds COMPASS_OFS to the raw field (ours subtracts the offset): 0.01 G -> -10 mG.
         assert params["COMPASS_OFS_X"] == pytest.approx(-10.0, abs=0.01)
 
@@ -438,14 +438,20 @@ def test_publishing_resumes_within_2s_of_the_peer_returning(tmp_path: Path) -> N
         # the pipeline takes every frame and MAVLink sends its ATTITUDE at BRG_SR_ATT
         # (default 10 Hz, 1 in 2 frames) whatever zenoh does.
         fw = b.sim.firmware
-        f0, before, mav_before = fw.frames_sent, b.daemon.samples, gcs.count("ATTITUDE")
+        f0, before, mav_before = (
+            fw.frames_sent,
+            b.daemon.bridge.pipeline.samples,
+            gcs.count("ATTITUDE"),
+        )
         wait_until(lambda: fw.frames_sent >= f0 + 40, what="2 s of the device's frames")
         sent = fw.frames_sent - f0
         wait_until(
-            lambda: b.daemon.samples - before >= sent, 1.0, "the pipeline to take every frame"
+            lambda: b.daemon.bridge.pipeline.samples - before >= sent,
+            1.0,
+            "the pipeline to take every frame",
         )
         assert b.mavlink is not None
-        att_hz = b.daemon.params.get("BRG_SR_ATT")
+        att_hz = b.daemon.bridge.params.get("BRG_SR_ATT")
         wanted = 0.8 * att_hz * sent / 20.0  # (0.5 s for the last datagrams to be read)
         wait_until(lambda: gcs.count("ATTITUDE") - mav_before >= wanted, 0.5, "ATTITUDE")
         rx2 = Received()
@@ -482,24 +488,26 @@ def test_a_stalled_subscriber_does_not_slow_the_daemon(tmp_path: Path) -> None:
             ) as b:
                 key = b.key("heading")
                 wait_until(lambda: healthy.count(key) >= 50, what="the healthy subscriber")
-                wait_until(lambda: b.daemon.status().counters.attitude_frames > 0)
+                wait_until(lambda: b.daemon.bridge.status().counters.attitude_frames > 0)
                 # Measure over a window well after the stall began: 3 s of the device's own
                 # frames (its count, not the wall clock, which a busy machine stretches).
                 fw = b.sim.firmware
                 f0 = fw.frames_sent
                 wait_until(lambda: fw.frames_sent >= f0 + 50, what="0.5 s of frames")
-                f0, n0, h0 = fw.frames_sent, b.daemon.samples, healthy.count(key)
+                f0, n0, h0 = fw.frames_sent, b.daemon.bridge.pipeline.samples, healthy.count(key)
                 m0 = gcs.count("ATTITUDE")
                 wait_until(lambda: fw.frames_sent >= f0 + 300, what="3 s of the device's frames")
                 sent = fw.frames_sent - f0
                 # the pipeline takes every frame of the 100 Hz device (1 s for the
                 # last ones in flight), MAVLink sends its ATTITUDE at BRG_SR_ATT
-                wait_until(lambda: b.daemon.samples - n0 >= sent, 1.0, "every frame")
+                wait_until(
+                    lambda: b.daemon.bridge.pipeline.samples - n0 >= sent, 1.0, "every frame"
+                )
                 assert b.mavlink is not None
-                att_hz = b.daemon.params.get("BRG_SR_ATT")
+                att_hz = b.daemon.bridge.params.get("BRG_SR_ATT")
                 wanted = 0.9 * att_hz * sent / 100.0
                 wait_until(lambda: gcs.count("ATTITUDE") - m0 >= wanted, 0.5, "ATTITUDE")
-                n1, h1 = b.daemon.samples, healthy.count(key)
+                n1, h1 = b.daemon.bridge.pipeline.samples, healthy.count(key)
                 assert h1 - h0 >= 0.95 * (n1 - n0), "the healthy subscriber lost headings"
                 seqs = [d["seq"] for d in healthy.docs(key)]
                 assert contiguous(seqs[len(seqs) // 2 :])
@@ -523,10 +531,12 @@ def test_bad_endpoints_and_config_never_stop_the_bridge(tmp_path: Path) -> None:
         wait_until(lambda: b.output.counters.open_failures >= 2, what="retried opens")
         # 20 Hz carries on: 1 s of the device's frames all taken (counted, not timed)
         fw = b.sim.firmware
-        f0, before = fw.frames_sent, b.daemon.samples
+        f0, before = fw.frames_sent, b.daemon.bridge.pipeline.samples
         wait_until(lambda: fw.frames_sent >= f0 + 20, what="1 s of the device's frames")
         sent = fw.frames_sent - f0
-        wait_until(lambda: b.daemon.samples - before >= sent, 1.0, "every frame taken")
+        wait_until(
+            lambda: b.daemon.bridge.pipeline.samples - before >= sent, 1.0, "every frame taken"
+        )
         assert not b.output.connected.is_set()
         t0 = time.monotonic()
     assert time.monotonic() - t0 < 3.0  # and it still stops promptly
@@ -591,7 +601,7 @@ def test_remote_calibration_is_off_by_default(tmp_path: Path) -> None:
     ):
         wait_until(lambda: bool(_query(s, b.key("status"), 0.5)), what="the bridge")
         assert _query(s, b.key("cmd/calibration/start"), 1.0) == []
-        assert not b.daemon.calibrator.snapshot().running
+        assert not b.daemon.bridge.calibrator.snapshot().running
 
 
 def test_remote_calibration_drives_the_calibrator(tmp_path: Path) -> None:
@@ -611,7 +621,7 @@ def test_remote_calibration_drives_the_calibrator(tmp_path: Path) -> None:
         wait_until(lambda: bool(_query(s, b.key("status"), 0.5)), what="the bridge")
         # A fleet-wide wildcard query reaches the command queryables but starts nothing.
         _query(s, "fleet/**", 1.0)
-        assert b.daemon.calibrator.snapshot().mode is None
+        assert b.daemon.bridge.calibrator.snapshot().mode is None
 
         (bad,) = _command(s, b.key("cmd/calibration/start"), {"what": "everything"})
         assert bad["ok"] is False and "what must be one of" in bad["message"]
@@ -619,13 +629,13 @@ def test_remote_calibration_drives_the_calibrator(tmp_path: Path) -> None:
         (started,) = _command(s, b.key("cmd/calibration/start"), {"what": "mag"})
         assert started["ok"] is True
         assert started["detail"]["result"] == "in_progress"
-        assert b.daemon.calibrator.snapshot().running
+        assert b.daemon.bridge.calibrator.snapshot().running
         (again,) = _command(s, b.key("cmd/calibration/start"))
         assert again["ok"] is False and again["detail"]["result"] == "denied"
 
         (cancelled,) = _command(s, b.key("cmd/calibration/cancel"))
         assert cancelled["ok"] is True
-        assert not b.daemon.calibrator.snapshot().running
+        assert not b.daemon.bridge.calibrator.snapshot().running
         # The calibrator's own events reached the bus, in order.
         wait_until(
             lambda: "calibration.cancelled" in [d["kind"] for d in rx.docs(b.key("events"))],
@@ -682,13 +692,13 @@ def test_access_control_denies_cmd_to_an_untrusted_peer(tmp_path: Path) -> None:
             wait_until(reachable, what="the bridge")
         # The viewer still sees the bridge, but its command never reaches the calibrator.
         assert _command(viewer, b.key("cmd/calibration/start")) == []
-        assert b.daemon.calibrator.snapshot().mode is None
+        assert b.daemon.bridge.calibrator.snapshot().mode is None
         (reply,) = _command(operator, b.key("cmd/calibration/start"))
-        assert reply["ok"] is True and b.daemon.calibrator.snapshot().running
+        assert reply["ok"] is True and b.daemon.bridge.calibrator.snapshot().running
         assert _command(viewer, b.key("cmd/calibration/cancel")) == []
-        assert b.daemon.calibrator.snapshot().running  # the viewer's cancel did nothing
+        assert b.daemon.bridge.calibrator.snapshot().running  # the viewer's cancel did nothing
         (reply,) = _command(operator, b.key("cmd/calibration/cancel"))
-        assert reply["ok"] is True and not b.daemon.calibrator.snapshot().running
+        assert reply["ok"] is True and not b.daemon.bridge.calibrator.snapshot().running
 
 
 # ---------------------------------------------------------------------------
@@ -703,7 +713,7 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
     off = load_config(
         None, [*base, "zenoh.enabled=false", "mavlink.endpoints=[]"], env={}, hostname="w1"
     )
-    assert build_outputs(off, Daemon(off), console=False) == []
+    assert build_outputs(off, build_daemon(off), console=False) == []
     rx = Received()
     with (
         PtyCompass(make_firmware(3), str(link)),
@@ -727,9 +737,9 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
         )
         _s = s.declare_subscriber("wired/**", rx)
         _m = s.declare_subscriber("mavlink/**", rx)
-        daemon = Daemon(cfg, ())
-        daemon.set_outputs(build_outputs(cfg, daemon, console=False))
-        assert sorted(o.name for o in daemon.outputs) == ["mavlink", "zenoh"]
+        daemon = build_daemon(cfg, ())
+        daemon.bridge.pipeline.set_outputs(build_outputs(cfg, daemon, console=False))
+        assert sorted(o.name for o in daemon.bridge.pipeline.outputs) == ["mavlink", "zenoh"]
         daemon.start()
         try:
             key = "wired/w1/compass"
@@ -843,11 +853,14 @@ def test_after_a_mavlink_reload_the_mirror_follows_the_new_output(tmp_path: Path
         _m = s.declare_subscriber("mavlink/**", rx)
         svc.daemon.start()
         try:
-            zenoh_out = next(o for o in svc.daemon.outputs if o.name == "zenoh")
+            zenoh_out = next(o for o in svc.daemon.bridge.pipeline.outputs if o.name == "zenoh")
             wait_until(lambda: rx.count("mavlink/1/1/HEARTBEAT") >= 1, what="system 1")
             assert svc.reload()
             # Only the MAVLink output restarted; the zenoh output re-attached its mirror.
-            assert next(o for o in svc.daemon.outputs if o.name == "zenoh") is zenoh_out
+            assert (
+                next(o for o in svc.daemon.bridge.pipeline.outputs if o.name == "zenoh")
+                is zenoh_out
+            )
             wait_until(lambda: rx.count("mavlink/7/1/HEARTBEAT") >= 2, 6.0, "system 7")
         finally:
             svc.daemon.stop()

@@ -1,6 +1,7 @@
 """The application layer: the running bridge's state and its owners.
 
-* :mod:`~bridge.app.bridge`    -- :class:`Bridge`, which builds and holds the parts below
+* :mod:`~bridge.app.bridge`    -- :class:`Bridge`, which holds the parts below and reacts
+  to their changes; :func:`build_bridge`, which builds them
 * :mod:`~bridge.app.sample`    -- what outputs receive: :class:`CompassSample`,
   :class:`DaemonStatus`, the :class:`Output` contract
 * :mod:`~bridge.app.settings`  -- :class:`EngineSettings`, the one writer of the engine's settings
@@ -13,7 +14,7 @@ Adapters (serial link, MAVLink, Zenoh, systemd, console) depend on this layer,
 never on each other nor on :mod:`bridge.daemon`, which wires them.
 """
 
-from bridge.app.bridge import Bridge, BridgeOptions
+from bridge.app.bridge import Bridge, BridgeOptions, build_bridge
 from bridge.app.params import ParamStore
 from bridge.app.pipeline import Pipeline
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker, Output
@@ -33,4 +34,5 @@ __all__ = [
     "ParamStore",
     "Pipeline",
     "SentMessage",
+    "build_bridge",
 ]

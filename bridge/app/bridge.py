@@ -1,20 +1,24 @@
 """The application: the running bridge's state and the one owner of each part of it.
 
-:class:`Bridge` builds and holds the attitude engine and its settings' writer,
-the event bus, the calibration store and controller, the parameter store and
-the per-frame pipeline, and gives every adapter the same
-:class:`~bridge.app.services.BridgeServices`. It does no I/O of its own: the
-compass link and the state directory come in as protocols
-(:class:`~bridge.device.DevicePort` -- made by a factory, since the link calls
-the pipeline back -- and :class:`~bridge.documents.DocumentStore`), and
-:mod:`bridge.daemon` wires it to the adapters.
+:class:`Bridge` holds the attitude engine and its settings' writer, the event
+bus, the calibration store and controller, the drift monitor, the parameter
+store and the per-frame pipeline, reacts to their changes, and gives every
+adapter the same :class:`~bridge.app.services.BridgeServices`. It does no I/O
+of its own: :func:`build_bridge` builds its parts, each after what it needs,
+on the state directory (:class:`~bridge.documents.DocumentStore`); the compass
+(:class:`~bridge.device.DevicePort`: the serial link, or the in-memory tests'
+harness), built after the pipeline it feeds, is connected last
+(:meth:`Bridge.connect`). :func:`bridge.daemon.wiring.build_daemon` does both
+for the daemon. The functions below are the few hooks between the parts,
+named, so that the parts get bound functions (no lambda) of parts already built.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +28,7 @@ from bridge.app.calibration.store import CalibrationStore
 from bridge.app.params import PARAMETERS, ParamChange, ParamStore
 from bridge.app.paramspec import CONFIG_PARAMS, param_from_config
 from bridge.app.pipeline import Pipeline
-from bridge.app.sample import DaemonStatus, Output
+from bridge.app.sample import DaemonStatus
 from bridge.app.services import BridgeServices, MessageTap
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.app.tilt import TiltSources, frame_latency_s
@@ -32,17 +36,12 @@ from bridge.calibration.model import Calibration
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
-from bridge.device import DevicePort, LinkState, Received
+from bridge.device import DevicePort
 from bridge.documents import DocumentStore
 from bridge.events import EventBus
-from bridge.types import LEARN_MODES, HeadingReference
+from bridge.types import LEARN_MODES, Clock, HeadingReference
 
 log = logging.getLogger(__name__)
-
-#: Makes the compass link, given the pipeline's frame and state callbacks.
-DeviceFactory = Callable[
-    [Callable[[Received], None], Callable[[LinkState, LinkState], None]], DevicePort
-]
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,20 +65,18 @@ class BridgeOptions:
     def from_config(cls, cfg: Config) -> BridgeOptions:
         """From a loaded configuration."""
         loc = cfg.location
-        heading: HeadingReference = "true" if _heading_reference(cfg) == "true" else "magnetic"
-        # [calibration] learn (the configuration's owner adds the key; "detect" until then)
-        learn = str(getattr(cfg.calibration, "learn", "detect"))
-        if learn not in LEARN_MODES:
+        heading: HeadingReference = "true" if cfg.heading.reference == "true" else "magnetic"
+        learn = cfg.calibration.learn
+        if learn not in LEARN_MODES:  # the configuration checks it too; a hand-made Config may not
             raise ValueError(f"calibration.learn must be one of {LEARN_MODES}, got {learn!r}")
         # Every parameter a configuration key gives the default of (paramspec's config_key).
         defaults = {
             spec.name: param_from_config(spec, config_value(cfg, spec.config_key))
             for spec in CONFIG_PARAMS
         }
-        heading_section = getattr(cfg, "heading", None)
         return cls(
             location=(loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None,
-            tilt=str(getattr(heading_section, "tilt", "auto")),
+            tilt=cfg.heading.tilt,
             frame_latency_s=frame_latency_s(cfg.device.baud),
             onboard=cfg.calibration.onboard,
             calibration_timeout_s=cfg.calibration.timeout_s,
@@ -93,12 +90,6 @@ def config_value(cfg: Config, key: str) -> Any:
     """The value of ``section.key`` in ``cfg``."""
     section, _, name = key.partition(".")
     return getattr(getattr(cfg, section), name)
-
-
-def _heading_reference(cfg: Config) -> str:
-    """The configured published heading (``[heading] reference``; magnetic by default)."""
-    section = getattr(cfg, "heading", None)
-    return str(getattr(section, "reference", "magnetic"))
 
 
 def location_field(location: tuple[float, float, float] | None) -> EarthField | None:
@@ -119,89 +110,99 @@ def location_field(location: tuple[float, float, float] | None) -> EarthField | 
     return f
 
 
+def apply_learned(
+    calibrator: CalibrationController,
+    cal: Calibration,
+    source: str,
+    report: Mapping[str, Any] | None,
+    view: Mapping[str, float] | None,
+) -> str:
+    """The drift monitor's learned (or restored) calibration: engine, store, events.
+
+    Not written to the device: its own heading is only shown beside ours, and
+    learning would wear its flash a step at a time. "" when applied, else why not.
+    """
+    out = calibrator.apply_calibration(
+        cal,
+        source=source,
+        report=dict(report) if report is not None else None,
+        write_device=False,
+        view=dict(view) if view is not None else None,
+    )
+    return "" if out.ok else out.message
+
+
+def apply_from_parameters(
+    calibrator: CalibrationController, cal: Calibration, view: Mapping[str, float]
+) -> str:
+    """A calibration set parameter by parameter (a ground station's COMPASS_* writes)."""
+    out = calibrator.apply_calibration(cal, source=PARAMETERS, write_device=False, view=dict(view))
+    return "" if out.ok else out.message
+
+
+def learning_lowered(params: ParamStore, mode: str) -> None:
+    """An undo turned learning down: BRG_CAL_LEARN follows (it persists the choice)."""
+    params.set("BRG_CAL_LEARN", float(LEARN_MODES.index(mode)), source="undo")
+
+
 class Bridge:
     """The running bridge's state (see the module docstring).
 
-    ``calibration`` overrides the stored calibration (tests, replays, the simulator's
-    true calibration), ``calibration_source`` says where it came from;
-    ``calibrator_settings`` and ``clock`` tune the calibration controller, and
-    ``clock`` times the drift monitor's samples too (tests run both on a
-    simulated clock; by default a sample keeps its frame's arrival time).
+    Every part comes in built (:func:`build_bridge` builds them);
+    ``calibration_source`` says where the calibration the bridge started with
+    came from. Built, it subscribes to the settings and the parameters and
+    applies the stored parameters. The compass comes last, through
+    :meth:`connect`: it is built after the pipeline it feeds, and
+    :attr:`device` and :attr:`services` exist from then on.
     """
+
+    device: DevicePort  #: the compass (set by :meth:`connect`)
+    services: BridgeServices  #: what every adapter is built with (set by :meth:`connect`)
 
     def __init__(
         self,
-        options: BridgeOptions,
-        device: DeviceFactory,
         *,
+        events: EventBus,
+        engine: AttitudeEngine,
+        tilt: TiltSources,
+        settings: EngineSettings,
+        calibrations: CalibrationStore,
+        calibration_source: str,
+        calibrator: CalibrationController,
+        params: ParamStore,
+        drift: DriftMonitor,
+        pipeline: Pipeline,
         documents: DocumentStore | None = None,
-        calibration: Calibration | None = None,
-        calibration_source: str = "",
-        calibrator_settings: CalibratorSettings | None = None,
-        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.options = options
-        self.events = EventBus()
-        self.calibrations = CalibrationStore(documents)
-        stored = self.calibrations.load()
-        if calibration is None:
-            calibration = stored.calibration
-            self.calibration_source = stored.description
-        else:
-            self.calibration_source = calibration_source or "given"
-        self.engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
+        self.events = events
+        self.engine = engine
         #: Where each frame's tilt comes from (the engine's tilt policy, unless "accelerometer").
-        self.tilt = TiltSources(frame_latency=options.frame_latency_s)
-        if options.tilt != "accelerometer":
-            self.engine.set_tilt_policy(self.tilt)
-        field = location_field(options.location)
-        self.settings = EngineSettings(self.engine, field=field)
-        self.drift = DriftMonitor(
-            self.settings,
-            self.events,
-            apply=self._apply_learned,
-            calibrating=lambda: self.calibrator.calibrating,
-            store=self.calibrations,
-            mode=options.learn,
-            on_mode=self._drift_mode_lowered,
-        )
-        observe: Callable[[AttitudeSolution, float, bool], None] = self.drift.observe
-        if clock is not time.monotonic:  # a simulated clock: the drive's time, not the host's
-
-            def on_clock(a: AttitudeSolution, t: float, saturated: bool) -> None:
-                self.drift.observe(a, clock(), saturated)
-
-            observe = on_clock
-
-        self.pipeline = Pipeline(
-            self.engine,
-            self.events,
-            feed=lambda frame: self.calibrator.feed(frame),
-            calibrating=lambda: self.calibrator.calibrating,
-            observe=observe,
-        )
-        self.device = device(self.pipeline.on_frame, self.pipeline.on_link_state)
-        self.calibrator = CalibrationController(
-            self.settings,
-            self.events,
-            link=self.device,
-            store=documents,
-            field=field,
-            onboard=options.onboard,
-            settings=calibrator_settings
-            or CalibratorSettings(timeout_s=options.calibration_timeout_s),
-            calibration_source=self.calibration_source,
-            clock=clock,
-        )
-        self.params = ParamStore(
-            self.settings,
-            documents,
-            defaults=options.param_defaults,
-            apply_calibration=self._calibration_from_params,
-            stored_view=stored.view if stored.calibration == calibration else None,
-            events=self.events,
-        )
+        self.tilt = tilt
+        self.settings = settings
+        self.calibrations = calibrations
+        self.calibration_source = calibration_source
+        self.calibrator = calibrator
+        self.params = params
+        self.drift = drift
+        self.pipeline = pipeline
+        self.documents = documents
         self.mavlink_tap = MessageTap()
+        settings.subscribe(self._on_settings)
+        params.subscribe(self._on_params)
+        params.start()
+        calibrator.onboard = params.get("BRG_CAL_ONBOARD") != 0
+        calibrator.fitness_limit_mG = params.get("COMPASS_CAL_FIT")
+        drift.set_mode(LEARN_MODES[int(params.get("BRG_CAL_LEARN"))])
+        if params.get("BRG_CAL_UNDO") != 0:  # a request left over from a crash
+            params.set("BRG_CAL_UNDO", 0, source="start")
+
+    def connect(self, device: DevicePort) -> None:
+        """The compass, built after the pipeline (it hands its frames to
+        ``pipeline.on_frame``): the calibration controller commands it, the adapters
+        get it with :attr:`services`. The graph's one loop -- frames device -> pipeline
+        -> controller, commands controller -> device -- is closed here, once."""
+        self.device = device
+        self.calibrator.use_device(device)
         self.services = BridgeServices(
             status=self.status,
             settings=self.settings,
@@ -209,20 +210,12 @@ class Bridge:
             calibrator=self.calibrator,
             calibrations=self.calibrations,
             events=self.events,
-            device=self.device,
+            device=device,
             mavlink_tap=self.mavlink_tap,
-            documents=documents,
+            documents=self.documents,
             drift=self.drift,
             tilt=self.tilt,
         )
-        self.settings.subscribe(self._on_settings)
-        self.params.subscribe(self._on_params)
-        self.params.start()
-        self.calibrator.onboard = self.params.get("BRG_CAL_ONBOARD") != 0
-        self.calibrator.fitness_limit_mG = self.params.get("COMPASS_CAL_FIT")
-        self.drift.set_mode(LEARN_MODES[int(self.params.get("BRG_CAL_LEARN"))])
-        if self.params.get("BRG_CAL_UNDO") != 0:  # a request left over from a crash
-            self.params.set("BRG_CAL_UNDO", 0, source="start")
 
     # -- lifecycle -----------------------------------------------------------------
 
@@ -240,15 +233,6 @@ class Bridge:
         self.calibrator.close(timeout=max(0.1, deadline - time.monotonic()))
         self.params.close()  # a parameter set a moment ago is written now
 
-    def set_outputs(self, outputs: Sequence[Output]) -> None:
-        """The outputs every sample goes to, in order."""
-        self.pipeline.set_outputs(outputs)
-
-    @property
-    def outputs(self) -> tuple[Output, ...]:
-        """The outputs every sample goes to."""
-        return self.pipeline.outputs
-
     # -- status --------------------------------------------------------------------
 
     def status(self) -> DaemonStatus:
@@ -265,13 +249,7 @@ class Bridge:
             or self.calibration_source,
         )
 
-    # -- wiring between the owners -----------------------------------------------------
-
-    def _calibration_from_params(self, cal: Calibration, view: Mapping[str, float]) -> str:
-        out = self.calibrator.apply_calibration(
-            cal, source=PARAMETERS, write_device=False, view=dict(view)
-        )
-        return "" if out.ok else out.message
+    # -- reactions between the owners ------------------------------------------------
 
     def _on_settings(self, change: SettingsChange) -> None:
         if change.aspect in ("mounting", "calibration"):
@@ -281,31 +259,6 @@ class Bridge:
         if change.aspect == "reference":
             # A new position (reload, autopilot): fits are scaled to the field there.
             self.calibrator.set_field(self.settings.field)
-
-    def _apply_learned(
-        self,
-        cal: Calibration,
-        source: str,
-        report: Mapping[str, Any] | None,
-        view: Mapping[str, float] | None,
-    ) -> str:
-        """The drift monitor's learned (or restored) calibration: engine, store, events.
-
-        Not written to the device: its own heading is only shown beside ours, and
-        learning would wear its flash a step at a time.
-        """
-        out = self.calibrator.apply_calibration(
-            cal,
-            source=source,
-            report=dict(report) if report is not None else None,
-            write_device=False,
-            view=dict(view) if view is not None else None,
-        )
-        return "" if out.ok else out.message
-
-    def _drift_mode_lowered(self, mode: str) -> None:
-        """An undo turned learning down: the parameter follows (it persists the choice)."""
-        self.params.set("BRG_CAL_LEARN", float(LEARN_MODES.index(mode)), source="undo")
 
     def undo_learned(self) -> tuple[bool, str]:
         """Back to the calibration learning started from (Zenoh ``cmd/calibration/undo``,
@@ -324,3 +277,86 @@ class Bridge:
             # nothing): it reads back 1, as every ground station checks a SET's echo, until
             # set to 0 (or a restart); a repeated request finds nothing learned to undo.
             self.undo_learned()
+
+
+def build_bridge(
+    options: BridgeOptions,
+    *,
+    documents: DocumentStore | None = None,
+    calibration: Calibration | None = None,
+    calibration_source: str = "",
+    calibrator_settings: CalibratorSettings | None = None,
+    clock: Clock | None = None,
+) -> Bridge:
+    """The application, each part built after what it needs; connect the compass next
+    (:meth:`Bridge.connect`).
+
+    ``calibration`` overrides the stored one (tests, replays, the simulator's true
+    calibration), ``calibration_source`` says where it came from. The hooks between
+    the parts are bound methods and the functions above, never a lambda to a part
+    built later. ``calibrator_settings`` tune the calibration controller; ``clock``
+    (a test's simulated clock) times the controller and the drift monitor's
+    samples, which otherwise keep their frame's arrival time.
+    """
+    calibrations = CalibrationStore(documents)
+    stored = calibrations.load()
+    if calibration is None:
+        calibration, source = stored.calibration, stored.description
+    else:
+        source = calibration_source or "given"
+    events = EventBus()
+    engine = AttitudeEngine(calibration, heading_reference=options.heading_reference)
+    tilt = TiltSources(frame_latency=options.frame_latency_s)
+    if options.tilt != "accelerometer":
+        engine.set_tilt_policy(tilt)
+    field = location_field(options.location)
+    settings = EngineSettings(engine, field=field)
+    calibrator = CalibrationController(
+        settings,
+        events,
+        store=documents,
+        field=field,
+        onboard=options.onboard,
+        settings=calibrator_settings or CalibratorSettings(timeout_s=options.calibration_timeout_s),
+        calibration_source=source,
+        clock=clock or time.monotonic,
+    )
+    params = ParamStore(
+        settings,
+        documents,
+        defaults=options.param_defaults,
+        apply_calibration=functools.partial(apply_from_parameters, calibrator),
+        stored_view=stored.view if stored.calibration == calibration else None,
+        events=events,
+    )
+    drift = DriftMonitor(
+        settings,
+        events,
+        apply=functools.partial(apply_learned, calibrator),
+        calibrating=calibrator.calibrating,
+        store=calibrations,
+        mode=options.learn,
+        on_mode=functools.partial(learning_lowered, params),
+    )
+    observe: Callable[[AttitudeSolution, float, bool], None] = drift.observe
+    if clock is not None:  # a simulated clock: the drift monitor keeps the drive's time
+
+        def observe(a: AttitudeSolution, t: float, saturated: bool) -> None:
+            drift.observe(a, clock(), saturated)
+
+    pipeline = Pipeline(
+        engine, events, feed=calibrator.feed, calibrating=calibrator.calibrating, observe=observe
+    )
+    return Bridge(
+        events=events,
+        engine=engine,
+        tilt=tilt,
+        settings=settings,
+        calibrations=calibrations,
+        calibration_source=source,
+        calibrator=calibrator,
+        params=params,
+        drift=drift,
+        pipeline=pipeline,
+        documents=documents,
+    )

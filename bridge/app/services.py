@@ -87,11 +87,11 @@ class BridgeServices:
     * ``events`` -- operator events (subscribe; adapters may emit their own);
     * ``device`` -- the compass (version, parameters, state; commands);
     * ``mavlink_tap`` -- the MAVLink messages sent, for mirrors;
+    * ``drift`` -- the calibration's drift monitor (status, undo of learned offsets);
+    * ``tilt`` -- where each frame's tilt comes from: the companion role's MAVLink
+      adapter hands it the autopilot's attitude; status reads it;
     * ``documents`` -- the state directory, for what an adapter must keep across a
       restart (MAVLink's signing replay table); None without one.
-    * ``drift`` -- the calibration's drift monitor (status, undo of learned offsets).
-    * ``tilt`` -- where each frame's tilt comes from: the companion role's MAVLink
-      adapter hands it the autopilot's attitude; status reads it.
     """
 
     status: Callable[[], DaemonStatus]
@@ -102,9 +102,9 @@ class BridgeServices:
     events: EventBus
     device: DevicePort
     mavlink_tap: MessageTap
+    drift: DriftMonitor
+    tilt: TiltSources
     documents: DocumentStore | None = None
-    drift: DriftMonitor | None = None
-    tilt: TiltSources | None = None
 
 
 def magnetometer_calibrated(svc: BridgeServices) -> bool | None:

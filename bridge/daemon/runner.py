@@ -1,7 +1,8 @@
 """The run loop: the daemon under a service manager, with SIGHUP reload.
 
 :class:`Service` is what ``compass-bridge run`` runs in its main thread. Around
-the :class:`~bridge.daemon.wiring.Daemon` it adds:
+the :class:`~bridge.daemon.wiring.Daemon` (built by
+:func:`~bridge.daemon.wiring.build_daemon`) it adds:
 
 * **sd_notify** (:mod:`bridge.systemd.notify`): ``READY=1`` once the compass streams
   (or after :data:`READY_TIMEOUT_S`, STATUS saying why not), ``STATUS=`` about
@@ -46,10 +47,15 @@ from bridge.app.sample import CompassSample, Output
 from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
 from bridge.console import TerminalGate
-from bridge.daemon.wiring import Daemon, build_outputs, make_transport
+from bridge.daemon.wiring import (
+    Daemon,
+    build_daemon,
+    build_outputs,
+    make_simulator,
+    make_transport,
+)
 from bridge.device import LinkState
 from bridge.events import ChangeRefusedError
-from bridge.link.observed import ObservedTransport
 from bridge.systemd.notify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
 from bridge.systemd.status import StatusText
 from bridge.types import Clock
@@ -190,19 +196,22 @@ class Service:
             ready_timeout_s=READY_TIMEOUT_S,
             clock=clock,
         )
-        self.daemon, self.transport = self._build(cfg)
+        self.daemon = self._build(cfg)
 
     # -- building ------------------------------------------------------------------
 
-    def _build(self, cfg: Config) -> tuple[Daemon, ObservedTransport]:
-        # Every return from a port call in the reader thread is the reader's beat.
-        def beat() -> None:
-            self.liveness.beat(READER, self._clock())
+    def _reader_beat(self) -> None:
+        """Every return from a port call in the reader thread is the reader's beat."""
+        self.liveness.beat(READER, self._clock())
 
-        transport = ObservedTransport(make_transport(cfg), beat)
-        daemon = Daemon(cfg, (), transport=transport)
-        daemon.set_outputs([*self._make_outputs(cfg, daemon), self.tap])
-        return daemon, transport
+    def _build(self, cfg: Config) -> Daemon:
+        simulator = make_simulator(cfg)
+        transport = make_transport(cfg, simulator)
+        daemon = build_daemon(
+            cfg, transport=transport, simulator=simulator, on_read=self._reader_beat
+        )
+        daemon.bridge.pipeline.set_outputs([*self._make_outputs(cfg, daemon), self.tap])
+        return daemon
 
     def _watch(self) -> None:
         now = self._clock()
@@ -217,7 +226,7 @@ class Service:
     def calibration_state(self) -> str:
         """Calibration in words: where it came from, running, saved or not."""
         try:
-            snap = self.daemon.calibrator.snapshot()
+            snap = self.daemon.bridge.calibrator.snapshot()
         except Exception:  # the status line must never fail for this
             return self.daemon.bridge.calibration_source
         if snap.running:
@@ -225,9 +234,9 @@ class Service:
         text = snap.calibration_source
         if not snap.calibration_saved and not text.startswith("none"):
             text += ", NOT SAVED (storage error)"
-        if magnetometer_calibrated(self.daemon.services) is False:
+        if magnetometer_calibrated(self.daemon.bridge.services) is False:
             text += ", UNCALIBRATED"
-        if self.daemon.params.last_error:
+        if self.daemon.bridge.params.last_error:
             text += "; parameters NOT SAVED"
         return text
 
@@ -235,7 +244,9 @@ class Service:
         """The current STATUS text."""
         d = self.daemon
         now = self._clock()
-        text = self.status_text.render(d.status(), self.tap.latest, self.calibration_state(), now)
+        text = self.status_text.render(
+            d.bridge.status(), self.tap.latest, self.calibration_state(), now
+        )
         silent = self.liveness.silent(now)
         if silent:
             # The link state is kept by the reader: when that hangs, the state is stale too.
@@ -300,7 +311,7 @@ class Service:
                     self.reload_requested.clear()
                     self.reload()
                     self._beat()
-                if self.daemon.ended:
+                if self.daemon.link.ended:
                     log.info("replay finished")
                     stop.wait(0.5)  # let the pipeline drain the last frames
                     break
@@ -322,7 +333,7 @@ class Service:
         if not self._dead:
             self.liveness.beat(WORKERS, now)
         # The pipeline marks its own progress; a wedged pipeline stops moving this.
-        self.liveness.beat(PIPELINE, self.daemon.pipeline_alive_at)
+        self.liveness.beat(PIPELINE, self.daemon.bridge.pipeline.alive_at)
 
     # -- reload --------------------------------------------------------------------
 
@@ -367,7 +378,8 @@ class Service:
             return self._rebuild(new, plan)
         d = self.daemon
         # Prepare everything that can fail first; only then touch the running parts.
-        transport = make_transport(new) if plan.reopen_link else None
+        simulator = make_simulator(new) if plan.reopen_link else None
+        transport = make_transport(new, simulator) if plan.reopen_link else None
         loc = new.location
         location = (loc.latitude, loc.longitude, loc.altitude_m) if loc is not None else None
         field = location_field(location) if plan.location else None
@@ -378,42 +390,37 @@ class Service:
                 o.close(0.1)  # built but never started
         if plan.location:
             try:
-                d.settings.set_field(field, "reload")
+                d.bridge.settings.set_field(field, "reload")
             except ChangeRefusedError as e:
                 log.warning("reload: [location] not applied: %s", e)
         if transport is not None:
             log.info("reload: reopening the compass port with the new settings")
-            d.link.set_rate(
-                new.device.rate_hz if new.device.protocol == "gmr" else None,
-                new.device.stale_after,
-            )
-            self.transport.replace(transport)
+            d.reopen(new.device, transport, simulator)
         if plan.outputs:
             self._swap_outputs(plan.outputs, keep_new)
-        d.cfg = new
         self.cfg = new
         what = ", ".join(f"[{s}]" for s in plan.changed)
         log.info("reload: applied %s; other parts kept running", what)
         return f"reloaded {what}"
 
     def _swap_outputs(self, names: Sequence[str], fresh: Sequence[Output]) -> None:
-        d = self.daemon
-        old = [o for o in d.outputs if o.name in names]
-        kept = [o for o in d.outputs if o.name not in names]
+        pipeline = self.daemon.bridge.pipeline
+        old = [o for o in pipeline.outputs if o.name in names]
+        kept = [o for o in pipeline.outputs if o.name not in names]
         for o in old:
             o.close(1.0)
         for o in fresh:
             o.start()
         # One reference store: the pipeline reads the list once per sample.
-        d.set_outputs([*kept, *fresh])
+        pipeline.set_outputs([*kept, *fresh])
         log.info("reload: restarted output(s) %s", ", ".join(names))
 
     def _rebuild(self, new: Config, plan: ReloadPlan) -> str:
         what = ", ".join(f"[{s}]" for s in plan.rebuild)
         log.warning("reload: %s changed: restarting the whole bridge", what)
-        fresh, transport = self._build(new)  # may raise: the running bridge is untouched then
+        fresh = self._build(new)  # may raise: the running bridge is untouched then
         self.daemon.stop()
-        self.daemon, self.transport = fresh, transport
+        self.daemon = fresh
         now = self._clock()
         self.liveness.watch(READER, SILENCE_LIMIT_S, now)
         self.liveness.watch(PIPELINE, SILENCE_LIMIT_S, now)

@@ -88,11 +88,10 @@ class AutopilotAttitudeIn:
         cls, settings: Any, services: BridgeServices, clock: Callable[[], float], t0: float
     ) -> AutopilotAttitudeIn | None:
         """One for a MAVLink output with ``settings`` (its ``role`` and ``system_id``): None
-        unless in the companion role, with a tilt source."""
-        tilt = services.tilt
-        if settings.role != "companion" or tilt is None:
+        unless in the companion role."""
+        if settings.role != "companion":
             return None
-        return cls(tilt, int(settings.system_id), clock, t0)
+        return cls(services.tilt, int(settings.system_id), clock, t0)
 
     def takes(self, msg: Any, link: Link, refused: Callable[[Any], bool]) -> bool:
         """Whether ``msg`` is this module's to take (the output's endpoint thread, as it

@@ -57,12 +57,11 @@ class MavlinkSettings:
         comp: int | None = m.component_id
         if role == "companion" and comp == 1:
             comp = None
-        autopilot = str(getattr(m, "autopilot", "generic"))
         return cls(
             endpoints=tuple(m.endpoints),
             system_id=m.system_id,
             component_id=comp,
             role=role,
-            autopilot=autopilot,  # type: ignore[arg-type]  # validated by config
+            autopilot=m.autopilot,  # type: ignore[arg-type]  # validated by config
             signing_key=m.signing_key,
         )

@@ -13,9 +13,12 @@ never by iterating the deque, so an append meanwhile cannot raise.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bridge.core.geometry import dcm_to_euler, wrap_degrees_360
+
+if TYPE_CHECKING:
+    from bridge.sim.firmware import Firmware
 
 #: How many of the newest frames are searched for a sequence number.
 SEARCH_FRAMES = 64
@@ -26,16 +29,14 @@ def declination_deg(field_ned_G: Any) -> float:
     return math.degrees(math.atan2(float(field_ned_G[1]), float(field_ned_G[0])))
 
 
-def truth_heading_deg(firmware: Any, seq: int | None, reference: str) -> float | None:
+def truth_heading_deg(firmware: Firmware, seq: int | None, reference: str) -> float | None:
     """The true (``reference == "true"``) or magnetic heading of frame ``seq`` as simulated.
 
-    ``firmware`` is a :class:`~bridge.sim.firmware.Firmware` (anything without a
-    truth log gives None); None too when the frame is no longer in the log. The
-    magnetic heading is the true yaw less the declination of the simulated field.
+    None when the frame is no longer in the firmware's truth log. The magnetic
+    heading is the true yaw less the declination of the simulated field.
     """
-    log = getattr(firmware, "truth", None)
-    sensor = getattr(firmware, "sensor", None)
-    if seq is None or log is None or sensor is None:
+    log = firmware.truth
+    if seq is None:
         return None
     for back in range(1, SEARCH_FRAMES + 1):
         try:
@@ -45,7 +46,7 @@ def truth_heading_deg(firmware: Any, seq: int | None, reference: str) -> float |
         if entry.frame.seq == seq:
             yaw = math.degrees(dcm_to_euler(entry.R)[2])
             if reference != "true":
-                yaw -= declination_deg(sensor.field_ned_G)
+                yaw -= declination_deg(firmware.sensor.field_ned_G)
             return wrap_degrees_360(yaw)
     return None
 

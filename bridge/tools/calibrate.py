@@ -573,7 +573,7 @@ def cmd_calibrate(args: Any, out: TextIO | None = None, stdin: TextIO | None = N
 def _cmd_calibrate_live(args: Any, out: TextIO, decide: Callable[[dict[str, Any]], bool]) -> int:
     from bridge.tools.progress import Progress
 
-    if getattr(args, "method", "best") not in (None, "best"):
+    if args.method not in (None, "best"):
         out.write("note: --method applies offline; the bridge fits with its configured method\n")
     bar = Progress("calibrating", 100.0, enabled=args.progress)
     plain = None if bar.enabled else calhelp.PlainProgress(out)  # piped: whole lines instead

@@ -250,11 +250,11 @@ class StatusTextChunks:
     def add(self, msg: Any) -> str | None:
         """One STATUSTEXT; the whole text once it is complete, else None."""
         text = str(msg.text)
-        key = int(getattr(msg, "id", 0) or 0)
+        key = int(msg.id or 0)
         if key == 0:
             return text
         parts = self._parts.setdefault(key, {})
-        parts[int(getattr(msg, "chunk_seq", 0) or 0)] = text
+        parts[int(msg.chunk_seq or 0)] = text
         if len(text) >= STATUSTEXT_CHARS:
             return None
         del self._parts[key]

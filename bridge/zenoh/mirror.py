@@ -102,8 +102,8 @@ class MirrorMessage:
     def to_doc(self) -> dict[str, Any]:
         """The mavlink-server JSON document."""
         cls = _message_class(self.message_id)
-        enums_of: Mapping[str, str] = getattr(cls, "fieldenums_by_name", {})
-        displays: Mapping[str, str] = getattr(cls, "fielddisplays_by_name", {})
+        enums_of: Mapping[str, str] = cls.fieldenums_by_name
+        displays: Mapping[str, str] = cls.fielddisplays_by_name
         message: dict[str, Any] = {"type": str(cls.msgname)}
         for name in cls.fieldnames:
             value = self.fields.get(name)

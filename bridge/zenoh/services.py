@@ -54,7 +54,7 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         # False: no hard- or soft-iron correction in use (None: a heading-only compass)
         "calibrated": magnetometer_calibrated(svc),
         # the drift monitor (bridge.app.calibration.drift): mode, state, change left, heading error
-        "drift": svc.drift.status().to_dict() if svc.drift is not None else None,
+        "drift": svc.drift.status().to_dict(),
     }
 
 
@@ -151,11 +151,8 @@ def run_calibration_command(
 def fleet_services(svc: BridgeServices) -> FleetServices:
     """:class:`FleetServices` backed by the bridge's services."""
 
-    drift = svc.drift
-
     def run_command(command: str, args: Mapping[str, Any]) -> CommandOutcome:
-        undo = drift.undo if drift is not None else None
-        return run_calibration_command(svc.calibrator, command, args, undo=undo)
+        return run_calibration_command(svc.calibrator, command, args, undo=svc.drift.undo)
 
     def subscribe_mavlink(fn: Callable[[SentMessage], None]) -> Callable[[], None]:
         return svc.mavlink_tap.subscribe(fn)
@@ -169,5 +166,5 @@ def fleet_services(svc: BridgeServices) -> FleetServices:
         subscribe_events=svc.events.subscribe,
         subscribe_mavlink=subscribe_mavlink,
         emit_event=svc.events.emit,
-        tilt_state=svc.tilt.status if svc.tilt is not None else None,
+        tilt_state=svc.tilt.status,
     )

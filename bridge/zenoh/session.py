@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any, Final
 
 if TYPE_CHECKING:
@@ -100,13 +100,8 @@ class ZenohSettings:
 
     @classmethod
     def from_config(cls, zc: ZenohConfig, **extra: Any) -> ZenohSettings:
-        """From the ``[zenoh]`` section; keys an older config lacks keep their defaults."""
-        values: dict[str, Any] = {}
-        for name in cls.__dataclass_fields__:
-            if name in ("overrides", "status_period_s", "default_listen"):
-                continue
-            if hasattr(zc, name):
-                values[name] = getattr(zc, name)
+        """From the ``[zenoh]`` section (every key of it is a setting; ``extra`` sets the rest)."""
+        values: dict[str, Any] = {f.name: getattr(zc, f.name) for f in fields(zc)}
         values.update(extra)
         for name in ("connect", "listen"):
             values[name] = tuple(values.get(name, ()))

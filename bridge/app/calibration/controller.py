@@ -155,6 +155,10 @@ class CalibrationController:
 
     # ------------------------------------------------------------------ lifecycle
 
+    def use_device(self, link: DevicePort) -> None:
+        """Run device commands over ``link`` (built after this controller: it feeds it frames)."""
+        self._link = link
+
     def start(self) -> CalibrationController:
         """Start the worker thread (idempotent; commands also start it)."""
         with self._lock:
@@ -243,7 +247,6 @@ class CalibrationController:
         """The Earth field fits are scaled to."""
         return self._field
 
-    @property
     def calibrating(self) -> bool:
         """A session is waiting, collecting or fitting (a cheap, lock-free read for the pipeline)."""
         s = self._session
