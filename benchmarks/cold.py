@@ -5,7 +5,7 @@ processes take the caches, branch predictors and translation buffers; so a frame
 costs several times what the same code costs back to back, and nearly in
 proportion to how much distinct code and data it touches. This runs the live
 run's frames (the ideal unit turning at 300 deg/s) through decode and
-:meth:`bridge.daemon.Daemon.process` one at a time, with ``gap_s`` of sleep before
+:meth:`bridge.app.pipeline.Pipeline.process` one at a time, with ``gap_s`` of sleep before
 each and without, and reports the median thread CPU per frame of both
 (docs/performance.md: "Where a frame's CPU goes"). ``python -m benchmarks pipeline``
 prints it as ``cold_frame``.

@@ -28,7 +28,7 @@ them as one JSON object too):
   datagram, the slower of the two (target 1.5 s).
 * **calibration fit** -- the default method (``best``) on 10 000 samples of a
   drawn unit at random attitudes (no target: a figure for docs/performance.md).
-* **cold frame** (:mod:`benchmarks.cold`) -- decode and :meth:`bridge.daemon.Daemon.process` of the live
+* **cold frame** (:mod:`benchmarks.cold`) -- decode and :meth:`bridge.app.pipeline.Pipeline.process` of the live
   run's frames (the unit turning at 300 deg/s), thread CPU per frame, median: with
   10 ms of sleep before each frame, as the daemon's reader runs them at 100 Hz
   (other threads and processes take the caches meanwhile), and back to back (hot).

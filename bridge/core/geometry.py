@@ -153,10 +153,14 @@ def rotvec_to_dcm(rotvec: npt.ArrayLike) -> FloatArray:
 def dcm_to_rotvec(R: npt.ArrayLike) -> FloatArray:
     """Rotation vector (axis * angle, radians) of a rotation matrix."""
     m = np.asarray(R, dtype=np.float64)
-    c = max(-1.0, min(1.0, (float(np.trace(m)) - 1.0) / 2.0))
-    angle = math.acos(c)
-    if angle < 1e-12:
-        return np.zeros(3)
+    # 2 sin(angle) * axis is the skew part; cos(angle) the trace's. atan2 of the two keeps
+    # small angles that acos(cos) rounds to zero (below ~1e-8 rad).
+    v = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    s = 0.5 * float(np.linalg.norm(v))
+    c = (float(np.trace(m)) - 1.0) / 2.0
+    angle = math.atan2(s, c)
+    if angle < 1e-6:
+        return 0.5 * v  # angle / sin(angle) = 1 to 2e-13
     if math.pi - angle < 1e-6:
         # near 180 deg: axis from the symmetric part
         S = (m + np.eye(3)) / 2.0
@@ -164,10 +168,7 @@ def dcm_to_rotvec(R: npt.ArrayLike) -> FloatArray:
         i = int(np.argmax(axis))
         axis = S[:, i] / math.sqrt(max(S[i, i], 1e-300))
         return axis / np.linalg.norm(axis) * angle
-    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / (
-        2.0 * math.sin(angle)
-    )
-    return axis * angle
+    return v * (angle / (2.0 * math.sin(angle)))
 
 
 def random_rotations(rng: np.random.Generator, n: int) -> FloatArray:
