@@ -68,13 +68,9 @@ class Timeline:
 
     bridge_start: float = 0.0
     learned_at: float = 0.0
-    learned_from: float = 0.0
-    learned_to: float = 0.0
-    learned_settled: float = 0.0  #: from here the bridge's record holds learned_to
+    learned_settled: float = 0.0  #: from here the bridge's record holds the learned heading
     mount_at: float = 0.0
-    mount_from: float = 0.0
-    mount_to: float = 0.0
-    mount_settled: float = 0.0  #: from here the bridge's record holds mount_to
+    mount_settled: float = 0.0  #: from here the bridge's record holds the new mounting's
     restart_at: float = 0.0
     noise_at: float = 0.0
     end: float = 0.0
@@ -128,7 +124,6 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         a = bridge("bridge-a")
         time.sleep(32.0)
         # a learned drift correction of 5 deg
-        tl.learned_from = a.recorder.latest() or 0.0
         tl.learned_at = time.time()
         out = a.daemon.bridge.calibrator.apply_calibration(
             _learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
@@ -136,10 +131,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         assert out.ok, out
         time.sleep(SETTLE_S)
         tl.learned_settled = time.time()
-        tl.learned_to = a.recorder.latest() or 0.0
         time.sleep(3.0)
         # an operator's mounting change, from the ground station through PX4
-        tl.mount_from = a.recorder.latest() or 0.0
         tl.mount_at = time.time()
         since = time.monotonic()
         obs.mav.param_set_send(
@@ -153,7 +146,6 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         assert echo.param_value == MOUNT_YAW45, echo
         time.sleep(SETTLE_S)
         tl.mount_settled = time.time()
-        tl.mount_to = a.recorder.latest() or 0.0
         time.sleep(3.0)
         tl.bridge_heading = list(a.recorder.samples)
         # the bridge restarts
@@ -273,8 +265,20 @@ def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     assert np.all(fused[span]) and abs(int(np.sum(span)) - n_fed) <= 1
 
 
+def _mean_heading(tl: Timeline, t0: float, t1: float) -> float:
+    """The bridge's mean heading over [t0, t1): a step measured between two means, not two
+    single samples, which differ by the sensor's noise (0.1-0.2 deg each) on their own."""
+    hs = [h for t, h in tl.bridge_heading if t0 <= t < t1]
+    assert len(hs) >= 5, (t0, t1, len(hs))
+    ref = hs[0]
+    return ref + statistics.fmean(angle_diff(h, ref) for h in hs)
+
+
 def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Timeline) -> None:
-    step = angle_diff(run.learned_to, run.learned_from)
+    step = angle_diff(
+        _mean_heading(run, run.learned_settled, run.mount_at),
+        _mean_heading(run, run.learned_at - 1.0, run.learned_at),
+    )
     assert abs(step - 5.0) < 0.3, step
     took, over = _follow(run, run.learned_at, run.mount_at, run.learned_settled, step, 1.0)
     print(
@@ -282,7 +286,10 @@ def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: T
         f"overshoot {over:.2f} deg"
     )
     assert took < 0.5 and over < 1.0
-    step = angle_diff(run.mount_to, run.mount_from)
+    step = angle_diff(
+        _mean_heading(run, run.mount_settled, run.restart_at),
+        _mean_heading(run, run.mount_at - 1.0, run.mount_at),
+    )
     assert abs(abs(step) - 45.0) < 1.0, step
     took, over = _follow(run, run.mount_at, run.restart_at, run.mount_settled, step, 5.0)
     took1, _ = _follow(run, run.mount_at, run.restart_at, run.mount_settled, step, 1.0)
@@ -315,9 +322,12 @@ def check_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
     ts = run.log["timesync_status"]
     t_ts = _t(run, ts["timestamp"])
     observed = ts["observed_offset"].astype(float) / 1e6
-    before = observed[(t_ts < run.restart_at) & (t_ts > run.restart_at - 10.0)]
-    after = observed[t_ts > run.restart_at + 1.0]
-    jump = float(np.max(np.abs(after - np.median(before))))
+    # The medians of the few seconds either side: one round trip that a busy machine delays
+    # moves a single observation by tens of ms, and PX4's simulated clock drifts against the
+    # wall clock under load (tens of ms over the run); a restarted clock moves them all.
+    before = observed[(t_ts < run.restart_at) & (t_ts > run.restart_at - 3.0)]
+    after = observed[(t_ts > run.restart_at + 1.0) & (t_ts < run.restart_at + 4.0)]
+    jump = abs(float(np.median(after)) - float(np.median(before)))
     print(f"PX4 time sync: observed offset moved by {jump * 1000:.1f} ms across the restart")
     assert jump < 0.1
 
