@@ -8,6 +8,7 @@ max within +0.15 deg of the unit's true parameters on the same frames.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -40,6 +41,21 @@ def _live_and_old(rec: Tumbled) -> tuple[CalibrationResult, CalibrationResult]:
     end, kept_mag, kept_acc = collect(rec)
     old = calibrate(BEST, CalibrationData(kept_mag, kept_acc, reference=FIELD))
     return _series_fit(rec, end), old
+
+
+# The simulation and the fits are deterministic in their arguments, and no test changes a
+# recording or a result: where two tests check different facts of the same tumble (or of
+# the same fit of it), it is simulated (and fitted) once per module, not once per test.
+_tumble = functools.cache(tumble)
+
+
+@functools.cache
+def _live_and_old_of(
+    seed: int, shake: float
+) -> tuple[Tumbled, CalibrationResult, CalibrationResult]:
+    """A two-minute tumble and its live and old fits (see :func:`_live_and_old`)."""
+    rec = _tumble(seed, shake, seconds=120.0)
+    return (rec, *_live_and_old(rec))
 
 
 def _announced(res: CalibrationResult) -> float:
@@ -79,8 +95,7 @@ def test_motion_level_reads_the_shake(shake: float) -> None:
 
 
 def test_shaken_tumble_calibrates_to_the_floor_where_single_samples_cannot() -> None:
-    rec = tumble(3, 0.05, seconds=120.0)
-    res, bag = _live_and_old(rec)
+    rec, res, bag = _live_and_old_of(3, 0.05)
     assert res.report.ok, res.report.notes
     # the old way: ArduPilot's kept samples as a bag (the shake taken as signal)
     s = held(rec, {"series": res.calibration, "bag": bag.calibration})
@@ -109,7 +124,7 @@ def test_still_tumble_stays_at_the_floor() -> None:
 
 
 def test_roll_and_pitch_are_never_made_worse() -> None:
-    rec = tumble(3, 0.05, seconds=70.0)
+    rec = _tumble(3, 0.05, seconds=70.0)
     # a known accelerometer calibration (six faces, the one in use) is kept as it is
     given = rec.truth.accel
     res = _series_fit(rec, accel_calibration=given)
@@ -131,8 +146,7 @@ def test_roll_and_pitch_are_never_made_worse() -> None:
 
 @pytest.mark.parametrize(("seed", "shake"), [(3, 0.05), (4, 0.1)])
 def test_announced_heading_error_is_within_2x_of_the_measured(seed: int, shake: float) -> None:
-    rec = tumble(seed, shake, seconds=120.0)
-    res, bag = _live_and_old(rec)
+    rec, res, bag = _live_and_old_of(seed, shake)
     s = held(rec, {"series": res.calibration, "bag": bag.calibration})
     measured = s["series"].frame_rms_deg  # frame by frame, as the bridge publishes
     assert 0.5 * measured <= _announced(res) <= 2.0 * measured
@@ -179,7 +193,7 @@ def test_motion_too_violent_fails_instead_of_succeeding_worse(
 
 
 def test_a_good_fit_passes_the_accuracy_judge_and_a_tighter_target_fails_it() -> None:
-    rec = tumble(3, 0.05, seconds=70.0)
+    rec = _tumble(3, 0.05, seconds=70.0)
     good = _series_fit(rec)
     assert good.report.ok and good.report.predicted_heading_deg < 0.25
     data = CalibrationData(rec.mag, rec.acc, rec.saturated, reference=FIELD, t_s=rec.t)

@@ -10,6 +10,7 @@ the simulator's (``handheld_rig``).
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from dataclasses import dataclass, field
@@ -65,6 +66,11 @@ class Events:
             return next(e for e in self.items if e.kind in kinds)
 
 
+# The simulation is deterministic in its arguments and no test changes a recording: the
+# tumble that three tests calibrate (each with its own limits) is simulated once.
+_tumble = functools.cache(tumble)
+
+
 def _frame(seq: int, rec: Tumbled, i: int) -> AttitudeFrame:
     m, a = rec.mag_counts[i], rec.acc_counts[i]
     flags = Flags.SAT if rec.saturated[i] else Flags(0)
@@ -109,7 +115,7 @@ def calibrate_live(
 
 
 def test_shaken_tumble_through_the_controller_reaches_the_floor() -> None:
-    rec = tumble(3, 0.05, seconds=150.0)
+    rec = _tumble(3, 0.05, seconds=150.0)
     ctl, events, _ = calibrate_live(rec)
     try:
         done = events.of("calibration.done")
@@ -156,7 +162,7 @@ def test_violent_motion_is_told_while_it_happens_and_the_calibration_fails() -> 
 
 
 def test_a_tight_accuracy_limit_fails_a_calibration_that_cannot_reach_it() -> None:
-    rec = tumble(3, 0.05, seconds=150.0)
+    rec = _tumble(3, 0.05, seconds=150.0)
     ctl, events, before = calibrate_live(rec, CalibratorSettings(max_heading_error_deg=0.001))
     try:
         failed = events.of("calibration.failed")
@@ -178,7 +184,7 @@ def test_a_tight_accuracy_limit_fails_a_calibration_that_cannot_reach_it() -> No
 def test_a_fit_above_compass_cal_fit_fails_as_ardupilot_fails_it() -> None:
     # The fitness limit is COMPASS_CAL_FIT (the application keeps it so); a fit above it
     # fails with MAG_CAL_FAILED_RESIDUALS_HIGH, saying which limit it broke.
-    rec = tumble(3, 0.05, seconds=150.0)
+    rec = _tumble(3, 0.05, seconds=150.0)
     ctl, events, before = calibrate_live(rec, fit_limit_mG=0.3)
     try:
         failed = events.of("calibration.failed")

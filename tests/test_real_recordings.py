@@ -18,7 +18,7 @@ import io
 import logging
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +138,24 @@ def _fit(v: RecordedVectors, method: str) -> CalibrationResult:
     return calibrate(method, _data(v))
 
 
+Fit = Callable[[str, str], CalibrationResult]
+
+
+@pytest.fixture(scope="module")
+def fit(recorded: dict[str, tuple[Path, RecordedVectors]]) -> Fit:
+    """``fit(name, method)``: that method's fit of the recording, made once per module.
+    Several tests check different facts of the same fit (the 100 Hz tumble's is the
+    reference of every decimated rate); a fit is deterministic and no test changes one."""
+    made: dict[tuple[str, str], CalibrationResult] = {}
+
+    def get(name: str, method: str) -> CalibrationResult:
+        if (name, method) not in made:
+            made[name, method] = _fit(recorded[name][1], method)
+        return made[name, method]
+
+    return get
+
+
 # ---------------------------------------------------------------------------
 # 1. The recordings
 # ---------------------------------------------------------------------------
@@ -204,7 +222,7 @@ def test_the_recordings_are_what_the_suite_needs() -> None:
 
 @pytest.mark.parametrize("name", sorted(SOURCES))
 def test_the_fit_agrees_with_independent_least_squares_and_leaves_the_same_spread(
-    name: str, recorded: dict[str, tuple[Path, RecordedVectors]]
+    name: str, recorded: dict[str, tuple[Path, RecordedVectors]], fit: Fit
 ) -> None:
     _, v = recorded[name]
     x = v.mag_G[~v.saturated]
@@ -214,12 +232,12 @@ def test_the_fit_agrees_with_independent_least_squares_and_leaves_the_same_sprea
     tol_mG = max(1.0, 0.005 * field_mG)
     best_reference = min(spread_rel((x - c_geo) @ W_geo.T), spread_rel((x - c_alg) @ W_alg.T))
     for method in ("ellipsoid", "best"):
-        res = _fit(v, method)
+        res = fit(name, method)
         c = np.asarray(res.calibration.mag.offset)
         assert 1000.0 * np.linalg.norm(c - c_geo) <= tol_mG, (method, c, c_geo)
         assert spread_rel(res.calibration.mag.apply(x)) <= 1.05 * best_reference, method
     # the default method succeeds where the independent fit calibrates
-    best = _fit(v, "best")
+    best = fit(name, "best")
     assert best.report.ok, best.report.reason
     assert best.report.predicted_heading_deg <= best.report.heading_limit_deg
 
@@ -252,14 +270,15 @@ def test_the_default_method_calibrates_the_real_hand_tumble_and_saves_it(
 
 def test_a_real_hand_tumble_is_judged_on_its_accelerometer_and_alignment_too(
     recorded: dict[str, tuple[Path, RecordedVectors]],
+    fit: Fit,
 ) -> None:
     # 394 frames of a hand tumble with 0.05 g of shake: the magnetometer's part leaves
     # ~0.1 deg, the accelerometer and alignment a jackknife ~0.6 deg -- within the 1 deg
     # target, so it succeeds; asked for 0.25 deg, it fails naming that part, not the
     # magnetometer
     _, v = recorded["ck_tumble"]
-    rep = _fit(v, "best").report
-    mag_only = _fit(v, "ellipsoid").report
+    rep = fit("ck_tumble", "best").report
+    mag_only = fit("ck_tumble", "ellipsoid").report
     assert mag_only.ok and mag_only.predicted_heading_deg < 0.2
     assert rep.ok and rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
     assert 0.4 < rep.heading_error_deg <= rep.predicted_heading_deg <= rep.heading_limit_deg
@@ -275,10 +294,9 @@ def test_a_real_hand_tumble_is_judged_on_its_accelerometer_and_alignment_too(
 
 
 def test_px4s_published_calibration_is_matched(
-    recorded: dict[str, tuple[Path, RecordedVectors]],
+    fit: Fit,
 ) -> None:
-    _, v = recorded["px4_mag_data1"]
-    res = _fit(v, "ellipsoid")
+    res = fit("px4_mag_data1", "ellipsoid")
     assert res.report.ok
     c = np.asarray(res.calibration.mag.offset)
     # PX4's own test: offsets within 0.01 G, the diagonal within 0.01 (relative to x here)
@@ -289,10 +307,11 @@ def test_px4s_published_calibration_is_matched(
 
 def test_the_survey_instruments_own_calibration_is_matched(
     recorded: dict[str, tuple[Path, RecordedVectors]],
+    fit: Fit,
 ) -> None:
     _, v = recorded["sap6_HC"]
     pub = sap6_published()
-    res = _fit(v, "best")
+    res = fit("sap6_HC", "best")
     assert res.report.ok, res.report.reason
     c = np.asarray(res.calibration.mag.offset)
     assert 1000.0 * np.abs(c - np.asarray(pub["centre_G"])).max() <= 1.0
@@ -311,10 +330,10 @@ def test_the_survey_instruments_own_calibration_is_matched(
 
 @pytest.mark.parametrize("name", sorted(SOURCES))
 def test_min_max_keeps_every_sample_and_fails_when_its_scatter_condemns_it(
-    name: str, recorded: dict[str, tuple[Path, RecordedVectors]], tmp_path: Path
+    name: str, recorded: dict[str, tuple[Path, RecordedVectors]], tmp_path: Path, fit: Fit
 ) -> None:
     path, v = recorded[name]
-    rep = _fit(v, "minmax").report
+    rep = fit(name, "minmax").report
     assert rep.n_samples == rep.n_frames == len(v.mag_G)  # a min/max of the tumble: all of it
     assert not rep.ok and rep.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
     # what it leaves condemns it: min/max on real tumbles leaves 1.4-5 deg against a 1 deg
@@ -354,13 +373,12 @@ def test_a_min_max_leaving_a_fifth_of_the_field_is_condemned_by_the_heading_rule
 
 
 def test_a_noisy_sparse_sensor_is_held_to_what_its_noise_and_count_allow(
-    recorded: dict[str, tuple[Path, RecordedVectors]],
+    fit: Fit,
 ) -> None:
     # PX4's 231 samples carry ~11 mG of noise: their offsets are known to a few mG only
     # (a fixed 1 mG bound failed them); the limit is 3x what a perfect fit of these
     # samples would leave, and the ellipsoid, the best method and scalar all pass it alike
-    _, v = recorded["px4_mag_data1"]
-    reps = {m: _fit(v, m).report for m in ("ellipsoid", "best", "scalar")}
+    reps = {m: fit("px4_mag_data1", m).report for m in ("ellipsoid", "best", "scalar")}
     ell = reps["ellipsoid"]
     assert ell.noise_mG > 8.0
     floor = math.degrees(
@@ -379,9 +397,10 @@ def test_a_noisy_sparse_sensor_is_held_to_what_its_noise_and_count_allow(
 
 def test_a_quiet_sensor_is_held_to_the_operators_target(
     recorded: dict[str, tuple[Path, RecordedVectors]],
+    fit: Fit,
 ) -> None:
     _, v = recorded["sap6_HC"]
-    rep = _fit(v, "ellipsoid").report
+    rep = fit("sap6_HC", "ellipsoid").report
     assert rep.noise_mG < 1.0 and rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
     assert rep.ok and rep.predicted_heading_deg < rep.heading_limit_deg
     # the same samples judged against a target they cannot reach fail, saying why
@@ -561,6 +580,7 @@ def _held_headings(cal: Calibration, v: RecordedVectors) -> tuple[FloatArray, Bo
 
 def test_a_100_hz_hand_tumble_is_read_at_its_own_frame_times(
     recorded: dict[str, tuple[Path, RecordedVectors]],
+    fit: Fit,
 ) -> None:
     # 2000 consecutive rows of the log: one run of frames 10 ms apart, 20 s, fitted as
     # a series over 2 s windows (seconds, not frames), with the hand's shake measured
@@ -568,7 +588,7 @@ def test_a_100_hz_hand_tumble_is_read_at_its_own_frame_times(
     assert v.t_s is not None and len(v.t_s) == 2000
     assert np.allclose(np.diff(v.t_s), 0.01, atol=1e-6) and v.t_s[-1] == pytest.approx(19.99)
     assert runs(v.t_s, ~v.saturated) == [(0, 2000)]
-    rep = _fit(v, "best").report
+    rep = fit("ck_tumble_100hz", "best").report
     assert rep.ok and rep.n_frames == rep.n_samples == 2000
     assert 0.03 < rep.motion_g < 0.08
     assert any(n.startswith("alignment from ") and " 2 s window means" in n for n in rep.notes)
@@ -576,7 +596,7 @@ def test_a_100_hz_hand_tumble_is_read_at_its_own_frame_times(
 
 @pytest.mark.parametrize("every", [1, 2, 5, 10, 20, 30])
 def test_the_hand_held_model_copes_with_real_rates(
-    every: int, recorded: dict[str, tuple[Path, RecordedVectors]], tmp_path: Path
+    every: int, recorded: dict[str, tuple[Path, RecordedVectors]], tmp_path: Path, fit: Fit
 ) -> None:
     # The 20 s run at its own 100 Hz, and the same motion as slower loggers see it:
     # every 2nd frame 50 Hz, 5th 20 Hz, 10th 10 Hz, 20th 5 Hz, 30th 3.3 Hz (decimated:
@@ -586,7 +606,7 @@ def test_the_hand_held_model_copes_with_real_rates(
     assert v.t_s is not None and np.allclose(v.t_s, src.t_s - src.t_s[0], atol=1e-6)
     assert src.rate_hz == pytest.approx(100.0 / every, rel=1e-6)
     _, v_full = recorded["ck_tumble_100hz"]
-    full = _fit(v_full, "best")
+    full = fit("ck_tumble_100hz", "best")
     res = _fit(v, "best")
     rep = res.report
     # the motion it sees is the same hand whatever the rate (not a rate artefact), and
@@ -611,13 +631,15 @@ def test_the_hand_held_model_copes_with_real_rates(
 
 
 @pytest.mark.parametrize("every", [1, 2, 5])
-def test_the_hand_held_model_copes_with_frames_in_separate_runs(every: int, tmp_path: Path) -> None:
+def test_the_hand_held_model_copes_with_frames_in_separate_runs(
+    every: int, tmp_path: Path, fit: Fit
+) -> None:
     # The 394-frame excerpt: eight runs a few seconds each, gaps between (~17, 8 and 3 Hz)
     src = ck_tumble().every(every)
     v = read_recording(str(write_recording(src, tmp_path / "ck.rec")))
     assert v.t_s is not None and np.allclose(v.t_s, src.t_s - src.t_s[0], atol=1e-6)
     assert len(runs(v.t_s, ~v.saturated)) == 8
-    full = _fit(read_recording(str(write_recording(ck_tumble(), tmp_path / "all.rec"))), "best")
+    full = fit("ck_tumble", "best")  # the same excerpt, written and read back alike
     res = _fit(v, "best")
     rep = res.report
     assert rep.motion_g == pytest.approx(full.report.motion_g, rel=0.35)

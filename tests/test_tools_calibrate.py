@@ -55,7 +55,10 @@ def _restore_logging() -> Iterator[None]:
 
 @pytest.fixture(scope="module")
 def tumble(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return make_recording(tmp_path_factory.mktemp("rec") / "tumble.rec", Tumble(5), 240.0)
+    # Two minutes: one pole-to-pole sweep of the tumble takes ~47 s (bridge.sim.motion.Tumble),
+    # so the field visits every section more than twice -- which the tests check, as they
+    # check the fit's accuracy on it; a longer recording would only repeat the same sweeps.
+    return make_recording(tmp_path_factory.mktemp("rec") / "tumble.rec", Tumble(5), 120.0)
 
 
 def png_size(path: Path) -> tuple[int, int]:

@@ -232,24 +232,33 @@ class Tumble(MotionBase):
 
     def attitude(self, t: float) -> FloatArray:
         """Attitude at ``t`` (periodic tables, advanced by whole cycles)."""
-        t = max(0.0, t)
-        k, tau = divmod(t, self.cycle_s)
-        a = float(np.interp(tau, self._t_tab, self._a_tab))
-        c = float(np.interp(tau, self._t_tab, self._c_tab)) + k * float(self._c_tab[-1])
-        b = float(self._b_of(np.array(a)))
+        return self.attitudes(np.array([t]))[0]
+
+    def attitudes(self, times: npt.ArrayLike) -> FloatArray:
+        """``attitude`` at each time, as an (N, 3, 3) stack: the one formula, vectorised
+        (a recording of thousands of frames is simulated in one pass, not frame by frame)."""
+        t = np.maximum(np.asarray(times, dtype=np.float64).reshape(-1), 0.0)
+        k, tau = np.divmod(t, self.cycle_s)
+        a = np.interp(tau, self._t_tab, self._a_tab)
+        c = np.interp(tau, self._t_tab, self._c_tab) + k * float(self._c_tab[-1])
+        b = self._b_of(a)
         az = self._sense * (a + k * float(self._a_tab[-1])) + self._a_off
         Rt = _rz(az) @ _ry(b) @ _rz(self._sense * c) @ self._Q
-        return Rt.T
+        return np.swapaxes(Rt, 1, 2)
 
 
-def _rz(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+def _rz(a: FloatArray) -> FloatArray:
+    """Rotations about z by the angles ``a`` (N,): an (N, 3, 3) stack."""
+    c, s = np.cos(a), np.sin(a)
+    z, o = np.zeros_like(a), np.ones_like(a)
+    return np.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(-1, 3, 3)
 
 
-def _ry(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+def _ry(a: FloatArray) -> FloatArray:
+    """Rotations about y by the angles ``a`` (N,): an (N, 3, 3) stack."""
+    c, s = np.cos(a), np.sin(a)
+    z, o = np.zeros_like(a), np.ones_like(a)
+    return np.stack([c, z, s, z, o, z, -s, z, c], axis=-1).reshape(-1, 3, 3)
 
 
 class AttitudeList(MotionBase):
