@@ -47,7 +47,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -56,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.procstat import process_cpu_s, process_rss_mb
+from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -398,14 +397,10 @@ def _run_child(
     label: str,
 ) -> _ChildRun:
     """One daemon child on the simulated compass at 100 Hz; ``attitude_hz`` None: shipped rates."""
-    from pymavlink.dialects.v20 import ardupilotmega as mav
-
     with tempfile.TemporaryDirectory(prefix="cb-bench-") as tmp:
         link = Path(tmp) / "compass"
-        rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        rx.bind(("127.0.0.1", 0))
-        rx.settimeout(0.2)
-        udp_port = rx.getsockname()[1]
+        tap = AttitudeTap("bench-udp")
+        udp_port = tap.port
         zport = _free_port(socket.SOCK_STREAM)
         cfg = Path(tmp) / "bench.toml"
         cfg.write_text(
@@ -429,33 +424,7 @@ def _run_child(
         )
         timed = _TimedPty(link, seed)
         timed.pty.start()
-        received: list[tuple[float, float]] = []
-        stop = threading.Event()
-        first: list[float] = []
-
-        def receive() -> None:
-            parser = mav.MAVLink(None)
-            parser.robust_parsing = True
-            while not stop.is_set():
-                try:
-                    data = rx.recv(4096)
-                except TimeoutError:
-                    continue
-                except OSError:
-                    return
-                t = time.monotonic()
-                try:
-                    msgs = parser.parse_buffer(data) or []
-                except mav.MAVError:
-                    continue
-                for m in msgs:
-                    if m.get_type() == "ATTITUDE":
-                        if not first:
-                            first.append(t)
-                        received.append((t, float(m.yaw)))
-
-        th = threading.Thread(target=receive, name="bench-udp", daemon=True)
-        th.start()
+        tap.start()
         env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
         t_spawn = time.monotonic()
         proc = subprocess.Popen(
@@ -466,17 +435,17 @@ def _run_child(
         )
         try:
             deadline = t_spawn + 15.0
-            while not first and time.monotonic() < deadline and proc.poll() is None:
+            while not tap.received and time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(0.01)
                 step(0.0, f"starting the daemon ({label})")
-            if not first:
+            if not tap.received:
                 raise RuntimeError(
                     "the daemon sent no ATTITUDE within 15 s"
                     + (f" (exited {proc.returncode})" if proc.poll() is not None else "")
                 )
-            first_s = first[0] - t_spawn
+            first_s = tap.received[0][0] - t_spawn
             time.sleep(2.0)  # past start-up work (imports done, zenoh session open)
-            n0 = len(received)
+            n0 = len(tap.received)
             c0, w0 = process_cpu_s(proc.pid), time.monotonic()
             end = w0 + duration_s
             while time.monotonic() < end and proc.poll() is None:
@@ -484,7 +453,7 @@ def _run_child(
                 step(min(1.0, (time.monotonic() - w0) / duration_s), f"daemon at 100 Hz ({label})")
             c1, w1 = process_cpu_s(proc.pid), time.monotonic()
             rss, hwm = process_rss_mb(proc.pid)
-            n1 = len(received)
+            n1 = len(tap.received)
         finally:
             proc.terminate()
             try:
@@ -492,16 +461,14 @@ def _run_child(
             except subprocess.TimeoutExpired:
                 proc.kill()
                 _, err = proc.communicate(timeout=5.0)
-            stop.set()
-            th.join(2.0)
-            rx.close()
+            tap.stop()
             timed.pty.stop()
         if err:
             log.debug("daemon stderr: %s", err.decode(errors="replace")[-2000:])
         return _ChildRun(
             first_s=first_s,
             writes=_expected_yaws(timed.writes),
-            window=received[n0:n1],
+            window=tap.received[n0:n1],
             cpu_s=c1 - c0,
             wall_s=w1 - w0,
             rss_mb=rss,

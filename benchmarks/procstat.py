@@ -1,9 +1,12 @@
-"""A child process's CPU and memory, read from outside (the benchmarks' one copy)."""
+"""What the live benchmarks read of a child process from outside (one copy for pipeline,
+versus and the fuzzers): its CPU, its memory, its ATTITUDE datagrams."""
 
 from __future__ import annotations
 
 import math
 import os
+import socket
+import threading
 import time
 from pathlib import Path
 
@@ -34,3 +37,47 @@ def process_rss_mb(pid: int) -> tuple[float, float]:
         elif line.startswith("VmHWM:"):
             hwm = int(line.split()[1]) / 1024.0
     return rss, hwm
+
+
+class AttitudeTap:
+    """ATTITUDE datagrams a child sends to ``port`` on 127.0.0.1, each kept as (monotonic
+    arrival time, yaw in radians) by a receiving thread."""
+
+    def __init__(self, name: str) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port: int = self.sock.getsockname()[1]
+        self.received: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self) -> AttitudeTap:
+        """Start receiving."""
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop receiving and close the socket."""
+        self._stop.set()
+        self._thread.join(2.0)
+        self.sock.close()
+
+    def _run(self) -> None:
+        from pymavlink.dialects.v20 import ardupilotmega as mav
+
+        parser = mav.MAVLink(None)
+        parser.robust_parsing = True
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            t = time.monotonic()
+            try:
+                msgs = parser.parse_buffer(data) or []
+            except mav.MAVError:
+                continue
+            self.received.extend((t, float(m.yaw)) for m in msgs if m.get_type() == "ATTITUDE")

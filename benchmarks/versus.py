@@ -31,14 +31,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import os
 import socket
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -55,7 +53,7 @@ from benchmarks.pipeline import (
     match_latencies,
     report,
 )
-from benchmarks.procstat import process_cpu_s
+from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -163,39 +161,15 @@ def _machine_jiffies() -> tuple[int, int]:
 
 def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float = 2.0) -> LiveRun:
     """Run ``program`` on the simulated compass at 100 Hz and measure one window."""
-    from pymavlink.dialects.v20 import ardupilotmega as mav
-
     with tempfile.TemporaryDirectory(prefix="cb-versus-") as tmpname:
         tmp = Path(tmpname)
         link = tmp / "compass"
-        rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        rx.bind(("127.0.0.1", 0))
-        rx.settimeout(0.2)
-        cmd = COMMANDS[program](link, rx.getsockname()[1], tmp)
+        tap = AttitudeTap("versus-udp")
+        received = tap.received
+        cmd = COMMANDS[program](link, tap.port, tmp)
         timed = _TimedPty(link, seed)
         timed.pty.start()
-        received: list[tuple[float, float]] = []
-        stop = threading.Event()
-
-        def receive() -> None:
-            parser = mav.MAVLink(None)
-            parser.robust_parsing = True
-            while not stop.is_set():
-                try:
-                    data = rx.recv(4096)
-                except TimeoutError:
-                    continue
-                except OSError:
-                    return
-                t = time.monotonic()
-                try:
-                    msgs = parser.parse_buffer(data) or []
-                except mav.MAVError:
-                    continue
-                received.extend((t, float(m.yaw)) for m in msgs if m.get_type() == "ATTITUDE")
-
-        th = threading.Thread(target=receive, name="versus-udp", daemon=True)
-        th.start()
+        tap.start()
         env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
         proc = subprocess.Popen(
             cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=Path.cwd()
@@ -215,10 +189,7 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
             th1, (b1, j1) = _threads(proc.pid), _machine_jiffies()
             n1 = len(received)
             loadavg = " ".join(Path("/proc/loadavg").read_text().split()[:3])
-            rss = math.nan
-            for line in Path(f"/proc/{proc.pid}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    rss = int(line.split()[1]) / 1024.0
+            rss = process_rss_mb(proc.pid)[0]
         finally:
             proc.terminate()
             try:
@@ -226,9 +197,7 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
             except subprocess.TimeoutExpired:
                 proc.kill()
                 _, err = proc.communicate(timeout=5.0)
-            stop.set()
-            th.join(2.0)
-            rx.close()
+            tap.stop()
             timed.pty.stop()
         if err:
             log.debug("%s stderr: %s", program, err.decode(errors="replace")[-2000:])
