@@ -14,6 +14,7 @@ import pytest
 
 from benchmarks.accuracy import main as accuracy_main
 from bridge.cli import main
+from bridge.tools import progress
 from bridge.tools.progress import REDRAW_S, Progress, eta_seconds, format_duration, render_bar
 from bridge.tools.recording import format_bytes
 
@@ -110,7 +111,12 @@ def test_record_shows_a_bar_with_bytes_and_stops_at_its_duration(
 
 
 @pytest.mark.integration
-def test_bench_accuracy_counts_units_on_its_bar(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bench_accuracy_counts_units_on_its_bar(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Every update drawn: which ones a rate-limited bar shows depends on how fast the
+    # machine runs the units (a fast one finishes unit 1 between two redraws).
+    monkeypatch.setattr(progress, "REDRAW_S", 0.0)
     args = ["--units", "2", "--samples", "300", "--eval-samples", "100", "--timing-samples", "0"]
     accuracy_main([*args, "--progress"])
     cap = capsys.readouterr()
