@@ -91,17 +91,13 @@ class Timeline:
 
     bridge_start: float = 0.0
     learned_at: float = 0.0
-    learned_from: float = 0.0  #: the bridge's heading before / after the learned step
-    learned_to: float = 0.0
-    learned_settled: float = 0.0  #: from here the bridge's record holds learned_to
+    learned_settled: float = 0.0  #: from here the bridge's record holds the learned heading
     armed_at: float = 0.0
     refused_mount: Any = None  #: PARAM_VALUE echo of the refused mounting change
     refused_learned: str = ""  #: the learned step's refusal
     disarmed_at: float = 0.0
     mount_at: float = 0.0
-    mount_from: float = 0.0
-    mount_to: float = 0.0
-    mount_settled: float = 0.0  #: from here the bridge's record holds mount_to
+    mount_settled: float = 0.0  #: from here the bridge's record holds the new mounting's
     noise_at: float = 0.0  #: VISO_YAW_M_NSE lowered
     restart_at: float = 0.0
     position_at: float | None = None  #: the restarted bridge learned the position
@@ -163,7 +159,6 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(32.5)
         # 2. a learned drift correction of 5 deg, ArduPilot disarmed
         cal = _learned_calibration(a, LEARNED_STEP_DEG)
-        tl.learned_from = a.recorder.latest() or 0.0
         tl.learned_at = time.time()
         out = a.daemon.bridge.calibrator.apply_calibration(
             cal, source=LEARNED_SOURCE, write_device=False
@@ -171,7 +166,6 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         assert out.ok, out
         time.sleep(SETTLE_S)
         tl.learned_settled = time.time()
-        tl.learned_to = a.recorder.latest() or 0.0
         time.sleep(3.0)
         # 3. armed: a mounting change and a learned step are refused
         ack = obs.command(ap.target, M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
@@ -196,7 +190,6 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         tl.disarmed_at = time.time()
         time.sleep(0.5)
         # 4. disarmed: the mounting change goes through and ArduPilot follows
-        tl.mount_from = a.recorder.latest() or 0.0
         tl.mount_at = time.time()
         since = time.monotonic()
         obs.mav.param_set_send(*BRIDGE, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32)
@@ -208,7 +201,6 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         assert echo.param_value == MOUNT_YAW45, echo
         time.sleep(SETTLE_S)
         tl.mount_settled = time.time()
-        tl.mount_to = a.recorder.latest() or 0.0
         time.sleep(4.0)
         tl.bridge_heading = list(a.recorder.samples)
         tl.sent_feed = list(a.sent_feed)
@@ -284,6 +276,14 @@ def _fed_at(fed: list[tuple[float, float]], t: float) -> float | None:
             break
         last = y
     return last
+
+
+def _mean_heading(tl: Timeline, t0: float, t1: float) -> float:
+    """The bridge's mean heading over [t0, t1): a step measured between two means, not two
+    single samples, which differ by the sensor's noise (0.1-0.2 deg each) on their own."""
+    hs = [h for t, h in tl.bridge_heading if t0 <= t < t1]
+    assert len(hs) >= 3, (t0, t1, len(hs))
+    return hs[0] + statistics.fmean(angle_diff(h, hs[0]) for h in hs)
 
 
 def _bridge_at(tl: Timeline, t: float) -> float | None:
@@ -362,7 +362,10 @@ def check_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_
 def check_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_its_gyro_bias(
     run: Timeline,
 ) -> None:
-    step = angle_diff(run.learned_to, run.learned_from)
+    step = angle_diff(
+        _mean_heading(run, run.learned_settled, run.armed_at),
+        _mean_heading(run, run.learned_at - 1.0, run.learned_at),
+    )
     assert abs(step - LEARNED_STEP_DEG) < 0.3, step
     series = _yaw_series(run)
     before = _window(series, run.learned_at - 5.0, run.learned_at)
@@ -401,7 +404,10 @@ def check_heading_changes_are_refused_while_ardupilot_is_armed(run: Timeline) ->
 
 
 def check_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Timeline) -> None:
-    step = angle_diff(run.mount_to, run.mount_from)
+    step = angle_diff(
+        _mean_heading(run, run.mount_settled, run.restart_at),
+        _mean_heading(run, run.disarmed_at, run.mount_at),
+    )
     assert abs(abs(step) - 45.0) < 1.0, step
     series = _yaw_series(run)
     after = _window(series, run.mount_at, run.restart_at)
