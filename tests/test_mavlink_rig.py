@@ -262,6 +262,7 @@ def start_rig(
     *,
     motion: Motion | None = None,
     fast: bool = False,
+    speed: float = SPEED,
     seed: int = 3,
     state: str = "state",
     mavlink: dict[str, Any] | None = None,
@@ -274,7 +275,9 @@ def start_rig(
 ) -> Rig:
     """A started :class:`Rig` with a udpin and a tcpin endpoint on free ports.
 
-    ``ideal``: a perfect simulated unit (no calibration needed, never "disturbed");
+    ``speed``: a fast rig's simulated seconds per real second (a slower one loses less
+    simulated time when the machine stalls it); ``ideal``: a perfect simulated unit (no
+    calibration needed, never "disturbed");
     ``pty``: the compass served on a real pseudo-terminal (it can be unplugged).
     """
     assert not (pty and fast), "a pty compass runs in real time"
@@ -299,7 +302,7 @@ def start_rig(
     )
     server: PtyCompass | None = None
     transport: SimTransport | None = None
-    fc = FastClock(SPEED)
+    fc = FastClock(speed)
     if pty:
         server = PtyCompass(fw, link_path).start()
     elif fast:

@@ -87,11 +87,17 @@ class TruthOffsets:
 def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    rig = rigs(tmp_path, fast=True, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G))
+    # 10x, not the rigs' 20x: the heading after calibrating is judged while the unit
+    # tumbles, and tilt "auto" needs the frames' timing (a machine stall of 50 ms is 1 s of
+    # simulated time at 20x; up to 3 deg RMS was seen then, under 1 deg without stalls).
+    rig = rigs(
+        tmp_path, fast=True, speed=10.0, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
+    )
     offsets = TruthOffsets(rig.fw)
     rig.daemon.bridge.pipeline.set_outputs([rig.out, offsets])
     before = offsets.rms_of_next(100)
     assert before > 5.0, before  # uncalibrated: the unit's iron errors, in degrees
+    uncalibrated = rig.daemon.bridge.engine.calibration
 
     url = f"udpout:127.0.0.1:{rig.udp_port}"
     res = cli("calibrate", "--mavlink", url, "--yes", "--timeout", "60")
@@ -103,7 +109,7 @@ def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     )
     assert lines[2].startswith("turn the compass slowly through every direction")
     # a line at every 20 % step, and the figure again when the bridge says it goes on
-    # without passing one (at least every 15 s of the rig's clock: 0.75 s real at 20x)
+    # without passing one (at least every 15 s of the rig's clock: 1.5 s real at 10x)
     pcts = [
         int(m.group(1)) for x in lines if (m := re.match(r"calibrating: (\d+)% \(\d+ of 80", x))
     ]
@@ -116,6 +122,10 @@ def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     assert re.search(r"^field spread  ±\d+\.\d mG before  ->  ±\d+\.\d mG after$", res.stdout, re.M)
     assert lines[-1] == "accepted"
 
+    # The ACK can reach the tool before the pipeline has switched: measure from the switch
+    # on, less the few samples a busy machine may still have in flight from before it.
+    assert wait_until(lambda: rig.daemon.bridge.engine.calibration != uncalibrated)
+    offsets.rms_of_next(5)
     after = offsets.rms_of_next(100)
     assert after < 1.0, (before, after)  # what the console's "off" shows after calibrating
 
