@@ -29,6 +29,7 @@ import os
 import random
 import signal
 import socket
+import statistics
 import subprocess
 import tempfile
 import threading
@@ -673,6 +674,17 @@ def heading_at(record: Sequence[tuple[float, float]], t: float) -> float | None:
             break
         last = h
     return last
+
+
+def mean_heading(
+    record: Sequence[tuple[float, float]], t0: float, t1: float, min_samples: int = 3
+) -> float:
+    """The bridge's mean heading over [t0, t1) of a record of (time, heading): a step is
+    measured between two means, not two single samples, which differ by the sensor's noise
+    (0.1-0.2 deg each) on their own."""
+    hs = [h for t, h in record if t0 <= t < t1]
+    assert len(hs) >= min_samples, (t0, t1, len(hs))
+    return hs[0] + statistics.fmean(angle_diff(h, hs[0]) for h in hs)
 
 
 def overshoot_deg(

@@ -47,6 +47,7 @@ from autopilots import (
     check_all,
     dataflash,
     heading_at,
+    mean_heading,
     overshoot_deg,
     start_ardupilot,
     start_bridge,
@@ -278,14 +279,6 @@ def _fed_at(fed: list[tuple[float, float]], t: float) -> float | None:
     return last
 
 
-def _mean_heading(tl: Timeline, t0: float, t1: float) -> float:
-    """The bridge's mean heading over [t0, t1): a step measured between two means, not two
-    single samples, which differ by the sensor's noise (0.1-0.2 deg each) on their own."""
-    hs = [h for t, h in tl.bridge_heading if t0 <= t < t1]
-    assert len(hs) >= 3, (t0, t1, len(hs))
-    return hs[0] + statistics.fmean(angle_diff(h, hs[0]) for h in hs)
-
-
 def _bridge_at(tl: Timeline, t: float) -> float | None:
     return heading_at(tl.bridge_heading, t)
 
@@ -363,8 +356,8 @@ def check_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_i
     run: Timeline,
 ) -> None:
     step = angle_diff(
-        _mean_heading(run, run.learned_settled, run.armed_at),
-        _mean_heading(run, run.learned_at - 1.0, run.learned_at),
+        mean_heading(run.bridge_heading, run.learned_settled, run.armed_at),
+        mean_heading(run.bridge_heading, run.learned_at - 1.0, run.learned_at),
     )
     assert abs(step - LEARNED_STEP_DEG) < 0.3, step
     series = _yaw_series(run)
@@ -405,8 +398,8 @@ def check_heading_changes_are_refused_while_ardupilot_is_armed(run: Timeline) ->
 
 def check_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Timeline) -> None:
     step = angle_diff(
-        _mean_heading(run, run.mount_settled, run.restart_at),
-        _mean_heading(run, run.disarmed_at, run.mount_at),
+        mean_heading(run.bridge_heading, run.mount_settled, run.restart_at),
+        mean_heading(run.bridge_heading, run.disarmed_at, run.mount_at),
     )
     assert abs(abs(step) - 45.0) < 1.0, step
     series = _yaw_series(run)

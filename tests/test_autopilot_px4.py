@@ -36,6 +36,7 @@ from autopilots import (
     angle_diff,
     check_all,
     heading_at,
+    mean_heading,
     overshoot_deg,
     start_bridge,
     start_px4,
@@ -273,19 +274,10 @@ def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     assert np.mean(fed_span) >= 0.95 and longest <= 10, (np.mean(fed_span), longest)
 
 
-def _mean_heading(tl: Timeline, t0: float, t1: float) -> float:
-    """The bridge's mean heading over [t0, t1): a step measured between two means, not two
-    single samples, which differ by the sensor's noise (0.1-0.2 deg each) on their own."""
-    hs = [h for t, h in tl.bridge_heading if t0 <= t < t1]
-    assert len(hs) >= 5, (t0, t1, len(hs))
-    ref = hs[0]
-    return ref + statistics.fmean(angle_diff(h, ref) for h in hs)
-
-
 def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Timeline) -> None:
     step = angle_diff(
-        _mean_heading(run, run.learned_settled, run.mount_at),
-        _mean_heading(run, run.learned_at - 1.0, run.learned_at),
+        mean_heading(run.bridge_heading, run.learned_settled, run.mount_at, min_samples=5),
+        mean_heading(run.bridge_heading, run.learned_at - 1.0, run.learned_at, min_samples=5),
     )
     assert abs(step - 5.0) < 0.3, step
     took, over = _follow(run, run.learned_at, run.mount_at, run.learned_settled, step, 1.0)
@@ -295,8 +287,8 @@ def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: T
     )
     assert took < 0.5 and over < 1.0
     step = angle_diff(
-        _mean_heading(run, run.mount_settled, run.restart_at),
-        _mean_heading(run, run.mount_at - 1.0, run.mount_at),
+        mean_heading(run.bridge_heading, run.mount_settled, run.restart_at, min_samples=5),
+        mean_heading(run.bridge_heading, run.mount_at - 1.0, run.mount_at, min_samples=5),
     )
     assert abs(abs(step) - 45.0) < 1.0, step
     took, over = _follow(run, run.mount_at, run.restart_at, run.mount_settled, step, 5.0)
