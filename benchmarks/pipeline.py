@@ -387,6 +387,40 @@ class _ChildRun:
     hwm_mb: float
 
 
+def live_config(
+    tmp: Path,
+    link: Path,
+    udp_port: int,
+    attitude_hz: float | None = None,
+    *,
+    zenoh_enabled: bool = True,
+) -> Path:
+    """A live daemon's configuration, written in ``tmp``: the compass on ``link`` at 100 Hz,
+    MAVLink to ``udp_port`` (ATTITUDE at ``attitude_hz``; None: the shipped rates), Zenoh
+    listening on a free loopback port, state in ``tmp``."""
+    cfg = tmp / "bench.toml"
+    cfg.write_text(
+        "\n".join(
+            [
+                "[device]",
+                f'port = "{link}"',
+                f"rate_hz = {LIVE_RATE_HZ}",
+                "[mavlink]",
+                f'endpoints = ["udpout:127.0.0.1:{udp_port}"]',
+                *([f"rate_attitude_hz = {attitude_hz}"] if attitude_hz is not None else []),
+                "[zenoh]",
+                f"enabled = {'true' if zenoh_enabled else 'false'}",
+                f'listen = ["tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]',
+                'key_prefix = "bench/compass"',
+                "[storage]",
+                f'dir = "{tmp}/state"',
+                "",
+            ]
+        )
+    )
+    return cfg
+
+
 def _run_child(
     duration_s: float,
     attitude_hz: float | None,
@@ -401,27 +435,7 @@ def _run_child(
         link = Path(tmp) / "compass"
         tap = AttitudeTap("bench-udp")
         udp_port = tap.port
-        zport = _free_port(socket.SOCK_STREAM)
-        cfg = Path(tmp) / "bench.toml"
-        cfg.write_text(
-            "\n".join(
-                [
-                    "[device]",
-                    f'port = "{link}"',
-                    f"rate_hz = {LIVE_RATE_HZ}",
-                    "[mavlink]",
-                    f'endpoints = ["udpout:127.0.0.1:{udp_port}"]',
-                    *([f"rate_attitude_hz = {attitude_hz}"] if attitude_hz is not None else []),
-                    "[zenoh]",
-                    f"enabled = {'true' if zenoh_enabled else 'false'}",
-                    f'listen = ["tcp/127.0.0.1:{zport}"]',
-                    'key_prefix = "bench/compass"',
-                    "[storage]",
-                    f'dir = "{tmp}/state"',
-                    "",
-                ]
-            )
-        )
+        cfg = live_config(Path(tmp), link, udp_port, attitude_hz, zenoh_enabled=zenoh_enabled)
         timed = _TimedPty(link, seed)
         timed.pty.start()
         tap.start()

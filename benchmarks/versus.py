@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -44,12 +43,11 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.pipeline import (
-    LIVE_RATE_HZ,
     Figure,
     _expected_yaws,
-    _free_port,
     _percentile,
     _TimedPty,
+    live_config,
     match_latencies,
     report,
 )
@@ -67,25 +65,7 @@ Command = Callable[[Path, int, Path], list[str]]
 
 def bridge_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
     """The daemon with MAVLink and Zenoh on, the shipped stream rates, 100 Hz."""
-    cfg = tmp / "bench.toml"
-    cfg.write_text(
-        "\n".join(
-            [
-                "[device]",
-                f'port = "{link}"',
-                f"rate_hz = {LIVE_RATE_HZ}",
-                "[mavlink]",
-                f'endpoints = ["udpout:127.0.0.1:{udp_port}"]',
-                "[zenoh]",
-                "enabled = true",
-                f'listen = ["tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]',
-                'key_prefix = "bench/compass"',
-                "[storage]",
-                f'dir = "{tmp}/state"',
-                "",
-            ]
-        )
-    )
+    cfg = live_config(tmp, link, udp_port)
     return [sys.executable, "-m", "bridge", "run", "--config", str(cfg)]
 
 
