@@ -510,6 +510,7 @@ class HeadingRecorder:
     bridge's heading to compare the autopilot's yaw with."""
 
     name = "recorder"
+    due_at = -math.inf  # every sample as it comes (the compass link reads no bursts for it)
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

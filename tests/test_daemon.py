@@ -118,6 +118,7 @@ class Collect:
     """A real Output that keeps every sample (the test's consumer)."""
 
     name = "collect"
+    due_at = -math.inf  # every sample, as it comes: the compass link never reads in bursts
 
     def __init__(self) -> None:
         self.samples: list[CompassSample] = []

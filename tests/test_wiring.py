@@ -13,6 +13,8 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+import math
+
 import pytest
 
 from bridge.app.sample import CompassSample, Output
@@ -43,6 +45,7 @@ class Stub:
         self.name = name
         self.built_for = built_for
         self.started = self.closed = False
+        self.due_at = -math.inf  # as an output sending every sample
 
     def start(self) -> None:
         self.started = True

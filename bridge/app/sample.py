@@ -127,6 +127,17 @@ class Output(Protocol):
         """Hand over one sample; never blocks."""
         ...
 
+    @property
+    def due_at(self) -> float:
+        """The earliest monotonic time a sample handed over could go out at once.
+
+        ``-inf``: any sample may (every frame must be handled as it arrives);
+        ``+inf``: none will (the output paces itself or keeps only the latest).
+        The compass link reads the port in bursts until shortly before the
+        earliest of these (:attr:`bridge.app.pipeline.Pipeline.due_at`).
+        """
+        ...
+
     def close(self, timeout: float) -> None:
         """Stop within about ``timeout`` seconds."""
         ...
@@ -190,6 +201,12 @@ class LatestSampleWorker:
             raise RuntimeError(f"{self._name} already started")
         self._thread = threading.Thread(target=self._run, name=f"output-{self._name}", daemon=True)
         self._thread.start()
+
+    @property
+    def due_at(self) -> float:
+        """``-inf`` for an output woken by every sample; ``+inf`` for a clock-paced one
+        (it shows the latest sample on its own clock)."""
+        return -math.inf if self._wake_on_publish else math.inf
 
     def publish(self, sample: CompassSample) -> None:
         """Keep ``sample`` as the latest; O(1), no lock (one reference store, then a flag)."""

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import signal
 import threading
@@ -146,6 +147,9 @@ class SampleTap:
 
     def start(self) -> None:
         """Nothing to start."""
+
+    #: It only keeps the latest: no frame needs reading the moment it arrives for it.
+    due_at = math.inf
 
     def publish(self, sample: CompassSample) -> None:
         """Keep ``sample``."""

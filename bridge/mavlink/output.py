@@ -217,6 +217,12 @@ class MavlinkOutput:
 
     # ------------------------------------------------------------------ Output protocol
 
+    @property
+    def due_at(self) -> float:
+        """When a sample stream next falls due (``-inf`` before the schedule knows:
+        every frame then; ``+inf`` when none is on or the output is not running)."""
+        return self.schedule.sample_due_at if self._running else math.inf
+
     def publish(self, sample: CompassSample) -> None:
         """Keep ``sample`` as the latest and send the sample streams now due; never blocks.
 
@@ -227,7 +233,9 @@ class MavlinkOutput:
         if not self._running:
             return
         try:
-            now = self.clock()
+            # A sample is due by its own time (its frame's arrival), not by when the pipeline
+            # got to it: of frames read in one burst, none is younger than the read.
+            now = sample.t
             # The fast path, most frames at 100 Hz: no sample stream can be due before
             # sample_due_at (the schedule resets it on every rate, override or stream-set
             # change, so a change takes effect with the very next sample).
@@ -238,12 +246,18 @@ class MavlinkOutput:
             try:
                 for sid in self.schedule.due_samples(now):
                     p = encoders[sid](sample)
-                    if p is not None:
-                        packets.append(p)
-                        if sid == S.ATTITUDE:  # its tilt source beside it (TILT_SRC)
-                            packets.extend(self._tilt_note.due(sample, now, p.time_boot_ms))
+                    if p is None:
+                        continue
+                    if not packets:
+                        # The first due stream (ATTITUDE when due: STREAMS' order) goes at
+                        # once, in a datagram of its own: its latency is the bridge's
+                        # latency, and the others would wait on each other's packing.
+                        self.broadcast_now(p)
+                    packets.append(p)
+                    if sid == S.ATTITUDE:  # its tilt source beside it (TILT_SRC)
+                        packets.extend(self._tilt_note.due(sample, now, p.time_boot_ms))
             finally:  # a stream that fails to encode does not hold back those before it
-                self.broadcast_now(packets)
+                self.broadcast_now(packets[1:])
         except Exception:
             self.counters.publish_errors += 1
             if self.counters.publish_errors == 1:

@@ -1,9 +1,9 @@
 """Which MAVLink streams go out, and when (pure: the caller passes the time).
 
-Sample streams (ATTITUDE, the IMU messages, the heading feed) go out when a
-new sample arrives and their interval has elapsed, with a quarter period of
-slack so a 10 Hz stream on 10 Hz frames does not skip frames that come a
-little early; clock streams (HEARTBEAT, SYS_STATUS) go out on time whether or
+Sample streams (ATTITUDE, the IMU messages, the heading feed) go out with the
+first sample in their slot -- slots on a grid of the clock, a sample a little
+early still taking its slot (:mod:`bridge.core.pacing`, the rule Zenoh's rate
+caps follow too); clock streams (HEARTBEAT, SYS_STATUS) go out on time whether or
 not samples come. Rates come from the BRG_SR_* parameters
 (:data:`bridge.app.paramspec.STREAM_RATES`), overridden per message by
 MAV_CMD_SET_MESSAGE_INTERVAL.
@@ -16,6 +16,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from bridge.app.paramspec import STREAM_RATES
+from bridge.core.pacing import early_s, next_slot
 
 # The message ids, by name (one list, telemetry's): re-exported for the schedule's users.
 from bridge.mavlink.telemetry import (
@@ -107,8 +108,6 @@ class StreamSchedule:
     or the set of sample streams resets it to ``-inf``.
     """
 
-    SLACK = 0.25  #: fraction of a period a sample may come early and still count as due
-
     def __init__(self, rates: Mapping[int, float]) -> None:
         self._base: dict[int, float] = {}
         self._override: dict[int, float] = {}
@@ -118,7 +117,7 @@ class StreamSchedule:
         # Bumped by every change. due_samples() notices a change made (by another thread)
         # while it ran, and then leaves sample_due_at at -inf rather than a stale value.
         self._generation = 0
-        # (generation it was built for, ((msgid, period, SLACK * period), ...)) of the sample
+        # (generation it was built for, ((msgid, period, early_s(period)), ...)) of the sample
         # streams that are on: rebuilt when the generation moved on.
         self._plan: tuple[int, tuple[tuple[int, float, float], ...]] = (-1, ())
         #: Earliest time a sample stream can be due (see the class docstring).
@@ -176,11 +175,9 @@ class StreamSchedule:
             return False
         period = 1.0 / hz
         nxt = self._next.get(msgid)
-        if nxt is not None and now < nxt - self.SLACK * period:
+        if nxt is not None and now < nxt - early_s(period):
             return False
-        # Keep the average rate exact (next += period), but never build up a
-        # backlog after a pause (resync when more than a period behind).
-        self._next[msgid] = now + period if nxt is None or now - nxt > period else nxt + period
+        self._next[msgid] = next_slot(nxt, now, period)  # bridge.core.pacing: the one rule
         return True
 
     def due_on_sample(self, msgids: Iterable[int], now: float) -> list[int]:
@@ -203,9 +200,7 @@ class StreamSchedule:
         if built_for != generation:
             rate = self.rate
             plan = tuple(
-                (m, 1.0 / hz, self.SLACK * (1.0 / hz))
-                for m in self._sample_ids
-                if (hz := rate(m)) > 0.0
+                (m, 1.0 / hz, early_s(1.0 / hz)) for m in self._sample_ids if (hz := rate(m)) > 0.0
             )
             self._plan = (generation, plan)
         nexts = self._next
@@ -214,8 +209,7 @@ class StreamSchedule:
         for m, period, early in plan:
             nxt = nexts.get(m)
             if nxt is None or now >= nxt - early:
-                nxt = now + period if nxt is None or now - nxt > period else nxt + period
-                nexts[m] = nxt
+                nxt = nexts[m] = next_slot(nxt, now, period)
                 due.append(m)
             if nxt - early < earliest:
                 earliest = nxt - early
@@ -233,7 +227,7 @@ class StreamSchedule:
     def next_clock_due(self, now: float) -> float:
         """When the next clock stream falls due (``now + 1`` when none is on)."""
         times = [
-            self._next.get(m, now) - self.SLACK / self.rate(m)
+            self._next.get(m, now) - early_s(1.0 / self.rate(m))
             for m in self._clock
             if self.rate(m) > 0.0
         ]

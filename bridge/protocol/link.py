@@ -288,6 +288,17 @@ class LinkMachine:
         return self._open
 
     @property
+    def quiet(self) -> bool:
+        """Streaming, no command in flight or queued, nothing for the driver to do: the
+        bytes may wait in the port's buffer a while (a driver reading in bursts)."""
+        return (
+            self._state is LinkState.STREAMING
+            and not self._txns.busy
+            and self._handshake is None
+            and not self._events
+        )
+
+    @property
     def ended(self) -> bool:
         """The port has ended for good (a replay played to its end)."""
         return self._ended

@@ -151,6 +151,12 @@ class ZenohOutput:
             )
             self._cmd_thread.start()
 
+    @property
+    def due_at(self) -> float:
+        """When the next sample stream's rate cap opens (``+inf`` without a session: a
+        sample then is only counted)."""
+        return self._opens_at if self.connected.is_set() else math.inf
+
     def publish(self, sample: CompassSample) -> None:
         """Put ``sample`` on the streams whose rate caps let it through; never raises.
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
+from bridge.core.pacing import early_s, next_slot
+
 
 class Decimator:
     """Lets samples through at most ``rate_hz`` (0 = every sample).
@@ -12,9 +14,10 @@ class Decimator:
     Frames arrive with jitter (serial + USB + scheduling), so a strict
     ``t - last >= period`` would skip a frame that came a millisecond early
     and publish at two thirds of the asked rate. Instead each accepted sample
-    books the next slot one period later, and a sample up to a quarter
-    period early still takes its slot; a gap longer than a period restarts the
-    schedule at the sample (no burst to catch up).
+    books the next slot (:func:`bridge.core.pacing.next_slot`, the rule of
+    MAVLink's streams too), and a sample a little early
+    (:func:`~bridge.core.pacing.early_s`) still takes its slot; a gap longer
+    than a period restarts the schedule (no burst to catch up).
     """
 
     def __init__(self, rate_hz: float) -> None:
@@ -22,6 +25,7 @@ class Decimator:
             raise ValueError(f"rate_hz must be >= 0, got {rate_hz}")
         self.rate_hz = rate_hz
         self._period = 1.0 / rate_hz if rate_hz > 0 else 0.0
+        self._early = early_s(self._period)
         self._due: float | None = None
 
     @property
@@ -30,20 +34,17 @@ class Decimator:
         ``t >= opens_at`` (``-inf`` when the next sample is taken whenever it comes)."""
         if self._period == 0.0 or self._due is None:
             return -math.inf
-        # A restart (t >= due + period) is also past this, so it is the one condition.
-        return self._due - 0.25 * self._period
+        # A restart (t > due + period) is also past this, so it is the one condition.
+        return self._due - self._early
 
     def accept(self, t: float) -> bool:
         """Whether the sample at time ``t`` (seconds, monotonic) is published."""
         if self._period == 0.0:
             return True
-        if self._due is None or t >= self._due + self._period:
-            self._due = t + self._period
-            return True
-        if t >= self._due - 0.25 * self._period:
-            self._due += self._period
-            return True
-        return False
+        if self._due is not None and t < self._due - self._early:
+            return False
+        self._due = next_slot(self._due, t, self._period)
+        return True
 
 
 class RateMeter:

@@ -1,0 +1,99 @@
+"""The link's driver reads in bursts between the outputs' due times (``CompassLink(due_at=...)``).
+
+While no output can send (every rate-capped stream between its slots), the frames may
+wait in the port's buffer and go through the pipeline together: one wake-up instead of
+one each (docs/performance.md has what it saves). The frame an output carries must not
+wait: from shortly before the due time on, frames are read as they come. A command is
+never held. On a real pseudo-terminal with the harness's scripted compass; every wait is
+bounded.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from harness import PARAMS, Collector
+from test_link_pty import Peer, make_link, wait_until
+
+from bridge.link.serial_link import MAX_BURST_S, LinkState
+from bridge.protocol.gmr import AttitudeFrame
+
+pytestmark = pytest.mark.integration
+
+RATE_HZ = 50
+
+
+@pytest.fixture
+def peer(tmp_path: Path) -> Iterator[Peer]:
+    p = Peer(tmp_path / "ttyGMR")
+    yield p
+    p.close()
+
+
+class Due:
+    """The outputs' next due time, as the test sets it (thread-safe: one float store)."""
+
+    def __init__(self, at: float) -> None:
+        self.at = at
+
+    def __call__(self) -> float:
+        return self.at
+
+
+def reads(col: Collector, since: int = 0) -> list[tuple[float, int]]:
+    """(read time, attitude frames it held) of each read from item ``since`` on: the frames
+    of one read share its time."""
+    sizes = Counter(i.t for i in col.items[since:] if isinstance(i.frame, AttitudeFrame))
+    return sorted(sizes.items())
+
+
+def test_frames_wait_for_the_due_time_and_the_one_after_it_is_read_as_it_comes(
+    peer: Peer,
+) -> None:
+    col = Collector()
+    due = Due(math.inf)  # no output due: hold the port as long as allowed
+    with make_link(peer.path, col, rate_hz=RATE_HZ, stale_after=2.0, due_at=due) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: link.params is not None, 5.0)
+        start = len(col.items)
+        assert wait_until(lambda: len(col.items) - start >= 3 * RATE_HZ, 10.0)
+        held = reads(col, start)
+        # MAX_BURST_S of frames a read (10 at 50 Hz), none lost, all in order.
+        assert max(n for _, n in held) >= 0.5 * MAX_BURST_S * RATE_HZ
+        assert len(held) < 0.5 * sum(n for _, n in held)
+        seqs = col.seqs()
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+        # An output falls due 0.3 s from now: until shortly before, bursts (the last one
+        # then); from the due time on, every frame read on its own as it comes.
+        mark = len(col.items)
+        due.at = time.monotonic() + 0.3
+        assert wait_until(lambda: bool(col.items) and col.items[-1].t > due.at + 0.2, 5.0)
+        after = [(t, n) for t, n in reads(col, mark) if t >= due.at]
+        assert after and after[0][1] == 1  # the due frame was not kept waiting with others
+        assert sum(n == 1 for _, n in after) >= 0.8 * len(after)
+
+        # Every frame due (an output sending each): no bursts at all.
+        due.at = -math.inf
+        mark = len(col.items)
+        assert wait_until(lambda: len(col.items) - mark >= RATE_HZ, 5.0)
+        sizes = [n for _, n in reads(col, mark)]
+        assert sorted(sizes)[len(sizes) // 2] == 1
+
+
+def test_a_command_is_not_held(peer: Peer) -> None:
+    col = Collector()
+    with make_link(peer.path, col, rate_hz=RATE_HZ, stale_after=2.0, due_at=Due(math.inf)) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: link.params is not None, 5.0)
+        # Held for MAX_BURST_S at a time, twenty round trips would take seconds; the
+        # command wakes the reader, and no hold begins while one is in flight.
+        t0 = time.monotonic()
+        for _ in range(20):
+            assert link.command("PAR", "GET") == PARAMS
+        assert time.monotonic() - t0 < 20 * MAX_BURST_S / 2

@@ -1,0 +1,87 @@
+"""The one rule rate-capped streams follow (bridge.core.pacing), in MAVLink's schedule and in
+Zenoh's rate caps alike: exact average rates, no catch-up burst after a pause, and slots on a
+grid of the clock, so streams whose periods divide one another fall due on the same frames
+(the compass link then wakes once for all of them). Pure: in memory."""
+
+from __future__ import annotations
+
+import itertools
+import random
+
+import pytest
+
+from bridge.core.pacing import EARLY_MAX_S, early_s, next_slot
+from bridge.mavlink import schedule as S  # noqa: N812 - short
+from bridge.zenoh.pacing import Decimator
+
+FRAME_S = 0.01  # 100 Hz frames
+
+
+def frames(start: float, seconds: float, jitter: float, seed: int = 1) -> list[float]:
+    rng = random.Random(seed)
+    n = round(seconds / FRAME_S)
+    return [start + i * FRAME_S + rng.uniform(-jitter, jitter) for i in range(n)]
+
+
+def test_streams_started_apart_fall_due_on_the_same_frames() -> None:
+    # MAVLink's 10 Hz ATTITUDE and 4 Hz VFR_HUD, Zenoh's 10 Hz heading cap and a 2 Hz one,
+    # each starting with a different frame: after their first sends, every 10 Hz send is on
+    # the same frames, and the slower streams' slots on 10 Hz ones where the grids meet.
+    sched = S.StreamSchedule({S.ATTITUDE: 10.0, S.VFR_HUD: 4.0})
+    sched.set_sample_streams([S.ATTITUDE, S.VFR_HUD])
+    zen10, zen2 = Decimator(10.0), Decimator(2.0)
+    sent: dict[str, list[int]] = {"att": [], "hud": [], "z10": [], "z2": []}
+    for i, t in enumerate(frames(1000.003, 20.0, 0.002)):
+        if i >= 3:
+            due = sched.due_samples(t)
+            if S.ATTITUDE in due:
+                sent["att"].append(i)
+            if S.VFR_HUD in due:
+                sent["hud"].append(i)
+        if i >= 7 and zen10.accept(t):
+            sent["z10"].append(i)
+        if i >= 11 and zen2.accept(t):
+            sent["z2"].append(i)
+
+    def settled(name: str) -> list[int]:  # once every stream has started (from 0.2 s on)
+        return [i for i in sent[name] if i >= 20]
+
+    att = set(settled("att"))
+    assert att == set(settled("z10"))  # the two 10 Hz streams: on one frame
+    assert set(settled("z2")) <= att  # 2 Hz: every send with a 10 Hz one
+    hud = settled("hud")
+    assert sum(i in att for i in hud) == pytest.approx(len(hud) / 2, abs=1)  # 0.5 s multiples
+    # ... and at their rates.
+    assert len(sent["att"]) == pytest.approx(200, abs=1)
+    assert len(sent["hud"]) == pytest.approx(80, abs=1)
+    assert len(sent["z2"]) == pytest.approx(40, abs=1)
+
+
+@pytest.mark.parametrize("hz", [1.0, 2.0, 4.0, 7.0, 10.0, 30.0, 50.0, 100.0])
+def test_the_rate_is_exact_and_a_pause_starts_anew(hz: float) -> None:
+    period = 1.0 / hz
+    slot: float | None = None
+    sent: list[float] = []
+    jitter = 0.0 if hz >= 100.0 else 0.003  # a stream at the frame rate takes every frame
+    times = frames(500.0, 30.0, jitter) + frames(560.0, 30.0, jitter, seed=2)  # a 30 s pause
+    for t in times:
+        if slot is None or t >= slot - early_s(period):
+            slot = next_slot(slot, t, period)
+            sent.append(t)
+    first, second = [t for t in sent if t < 540.0], [t for t in sent if t >= 540.0]
+    for part in (first, second):
+        assert len(part) == pytest.approx(30.0 * min(hz, 100.0), abs=1)
+    # After the pause: one send with its first frame, no burst for the slots missed.
+    assert second[0] == times[len(times) // 2]
+    assert all(b - a >= 0.5 * min(period, FRAME_S) for a, b in itertools.pairwise(second))
+
+
+def test_a_sample_may_come_a_little_early_never_more() -> None:
+    assert early_s(1.0) == EARLY_MAX_S  # slow streams open when 10 Hz ones do
+    assert early_s(0.1) == pytest.approx(0.025)
+    assert early_s(0.02) == pytest.approx(0.005)  # a quarter period: never a period's worth
+    # The first slot: a grid point of the period at least half a period on.
+    for now in (10.0, 10.04, 10.05, 10.06, 10.099):
+        slot = next_slot(None, now, 0.1)
+        assert 0.05 - 1e-9 <= slot - now <= 0.15 + 1e-9
+        assert slot / 0.1 == pytest.approx(round(slot / 0.1))
