@@ -9,11 +9,10 @@ against a live bridge).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
-
-import math
 
 import pytest
 
