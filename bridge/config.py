@@ -181,6 +181,13 @@ class DeviceConfig(Section):
     replay_realtime: bool = setting(
         True, None, "replay:PATH at the recorded pace (false: as fast as it decodes)"
     )
+    read_bursts: bool = setting(
+        True,
+        None,
+        "read the port in bursts between the outputs' due times: one wake-up for the frames "
+        "no output sends (less CPU), the one an output sends read as it comes; false: every "
+        "frame as it arrives",
+    )
 
     def finish(self, ctx: LoadContext) -> Self:
         """Require ``stale_after`` to span two frame periods at the requested rate."""

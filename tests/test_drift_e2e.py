@@ -36,7 +36,12 @@ pytestmark = pytest.mark.integration  # a real UDP ground station, the daemon's 
 
 def test_a_hard_iron_change_mid_drive_reaches_the_ground_station(tmp_path: Path) -> None:
     udp = free_port()
-    cfg = make_config(tmp_path, mavlink={"endpoints": [f"udpin:127.0.0.1:{udp}"]})
+    # The compass runs SPEED times faster than the link's clock: every frame as it comes.
+    cfg = make_config(
+        tmp_path,
+        mavlink={"endpoints": [f"udpin:127.0.0.1:{udp}"]},
+        device={"read_bursts": False},
+    )
     good = UnitErrors.draw(np.random.default_rng(SEED)).true_calibration()  # make_firmware's unit
     CalibrationStore(StateStore(cfg.storage.dir)).save(good, source="mag", accepted_unix=1.0)
     fw = make_firmware(

@@ -287,6 +287,10 @@ def start_rig(
     }
     mav.update(mavlink or {})
     dev = dict(device or {})
+    if fast:
+        # The compass runs ``speed`` times faster than the link's clock: frames held for a
+        # burst would be seconds of the compass's time. Reading in bursts is for real time.
+        dev.setdefault("read_bursts", False)
     link_path = tmp_path / f"compass-{udp}.tty"
     if pty:
         dev["port"] = str(link_path)

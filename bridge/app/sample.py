@@ -134,7 +134,7 @@ class Output(Protocol):
         ``-inf``: any sample may (every frame must be handled as it arrives);
         ``+inf``: none will (the output paces itself or keeps only the latest).
         The compass link reads the port in bursts until shortly before the
-        earliest of these (:attr:`bridge.app.pipeline.Pipeline.due_at`).
+        earliest of these (:meth:`bridge.app.pipeline.Pipeline.due_at_time`).
         """
         ...
 

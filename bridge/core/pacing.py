@@ -11,7 +11,7 @@ Slots sit on a grid of the clock (the multiples of the period), not one period
 after whichever sample happened to go first: so streams whose periods divide
 one another -- 10 Hz ATTITUDE, 4 Hz VFR_HUD, 2 Hz IMU, Zenoh's 10 Hz -- fall
 due on the same frames, and the compass link, which reads the port in bursts
-between due samples (:attr:`bridge.app.pipeline.Pipeline.due_at_time`), wakes
+between due samples (:meth:`bridge.app.pipeline.Pipeline.due_at_time`), wakes
 once for all of them instead of once for each.
 
 A sample may come :func:`early_s` before its slot and still take it: a quarter

@@ -291,7 +291,7 @@ def build_daemon(
         # The pipeline runs in the link's reader thread: no second thread to wake for
         # every frame (see bridge.app.pipeline).
         on_frame=bridge.pipeline.on_frame,
-        due_at=bridge.pipeline.due_at_time,
+        due_at=bridge.pipeline.due_at_time if cfg.device.read_bursts else None,
     )
     bridge.connect(link)
     bridge.pipeline.set_outputs(outputs)

@@ -153,8 +153,7 @@ class ZenohOutput:
 
     @property
     def due_at(self) -> float:
-        """When the next sample stream's rate cap opens (``+inf`` without a session: a
-        sample then is only counted)."""
+        """When a rate cap next opens (``+inf`` without a session: samples are only counted)."""
         return self._opens_at if self.connected.is_set() else math.inf
 
     def publish(self, sample: CompassSample) -> None:
