@@ -246,18 +246,12 @@ class MavlinkOutput:
             try:
                 for sid in self.schedule.due_samples(now):
                     p = encoders[sid](sample)
-                    if p is None:
-                        continue
-                    if not packets:
-                        # The first due stream (ATTITUDE when due: STREAMS' order) goes at
-                        # once, in a datagram of its own: its latency is the bridge's
-                        # latency, and the others would wait on each other's packing.
-                        self.broadcast_now(p)
-                    packets.append(p)
-                    if sid == S.ATTITUDE:  # its tilt source beside it (TILT_SRC)
-                        packets.extend(self._tilt_note.due(sample, now, p.time_boot_ms))
+                    if p is not None:
+                        packets.append(p)
+                        if sid == S.ATTITUDE:  # its tilt source beside it (TILT_SRC)
+                            packets.extend(self._tilt_note.due(sample, now, p.time_boot_ms))
             finally:  # a stream that fails to encode does not hold back those before it
-                self.broadcast_now(packets[1:])
+                self.broadcast_now(packets)
         except Exception:
             self.counters.publish_errors += 1
             if self.counters.publish_errors == 1:
