@@ -196,10 +196,12 @@ def _stats(e: FloatArray) -> dict[str, float]:
     }
 
 
-def run_drive(cfg: TiltBenchConfig, seed: int, field: EarthField) -> dict[str, Any]:
-    """One unit's drive through the three paths (see the module docstring)."""
-    unit = Unit(seed, cfg.rate_hz, field)
-    cal = unit.fitted_calibration()
+def run_drive(
+    cfg: TiltBenchConfig, unit: Unit, cal: Calibration, field: EarthField
+) -> dict[str, Any]:
+    """One unit's drive through the three paths (see the module docstring), ``cal`` its
+    calibration (:meth:`~benchmarks.drift.Unit.fitted_calibration`)."""
+    seed = unit.seed
     drive = ManoeuvreDrive(seed, cfg.seconds)
     ts = np.arange(0.0, cfg.seconds, 1.0 / cfg.rate_hz)
     frames = record(unit.model, drive, ts, seed)
@@ -264,11 +266,12 @@ def run_drive(cfg: TiltBenchConfig, seed: int, field: EarthField) -> dict[str, A
     return out
 
 
-def run_holds(cfg: TiltBenchConfig, seed: int, field: EarthField, shake_g: float) -> dict[str, Any]:
+def run_holds(
+    cfg: TiltBenchConfig, unit: Unit, cal: Calibration, field: EarthField, shake_g: float
+) -> dict[str, Any]:
     """Held at random attitudes (still or shaken by a hand): the accelerometer path and the
     standalone tilt path against the floor of the same frames."""
-    unit = Unit(seed, cfg.rate_hz, field)
-    cal = unit.fitted_calibration()
+    seed = unit.seed
     rng = np.random.default_rng([seed, 0x401D])
     eulers = [dcm_to_euler(R) for R in tilted_attitudes(rng, cfg.holds, 45.0)]
     dwell, move = 5.0, 1.5
@@ -299,7 +302,9 @@ def run(cfg: TiltBenchConfig, progress: Callable[[str], None] | None = None) -> 
         seed = cfg.seed + i
         if progress:
             progress(f"unit {seed}: drive")
-        d = run_drive(cfg, seed, field)
+        unit = Unit(seed, cfg.rate_hz, field)
+        cal = unit.fitted_calibration()  # one fit a unit, for its drive and its holds
+        d = run_drive(cfg, unit, cal, field)
         for k, e in d.pop("_errors").items():
             pooled.setdefault(k, []).append(e)
         announced2.append(d.pop("_announced2"))
@@ -307,7 +312,7 @@ def run(cfg: TiltBenchConfig, progress: Callable[[str], None] | None = None) -> 
         for name, shake in (("still", 0.0), ("hand-held", cfg.shake_g)):
             if progress:
                 progress(f"unit {seed}: {name}")
-            for k, e in run_holds(cfg, seed, field, shake).items():
+            for k, e in run_holds(cfg, unit, cal, field, shake).items():
                 holds[name].setdefault(k, []).append(e)
     acc = {k: _stats(np.concatenate(v)) for k, v in pooled.items()}
     a2 = np.concatenate(announced2)

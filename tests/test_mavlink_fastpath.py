@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hypothesis import given, settings
+from helpers import examples
+from hypothesis import given
 from hypothesis import strategies as st
 from test_mavlink_rig import DEADLINE_S, M
 from test_mavlink_telemetry import make_sample
@@ -61,7 +62,7 @@ _ops = st.one_of(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@examples(300)
 @given(
     initial=st.dictionaries(st.sampled_from(SAMPLE_IDS), _rates),
     ops=st.lists(_ops, max_size=80),

@@ -9,7 +9,8 @@ import random
 import codec_props as props
 import pytest
 from codec_props import feed_in_chunks
-from hypothesis import given, settings
+from helpers import examples
+from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.protocol.framing import (
@@ -22,7 +23,7 @@ from bridge.protocol.framing import (
     render_line,
 )
 
-FAST = settings(max_examples=150, deadline=None)
+FAST = examples(150)
 
 
 def xor_cs(body: bytes) -> int:

@@ -9,7 +9,8 @@ import codec_props as props
 import numpy as np
 import pytest
 from codec_props import feed_in_chunks, stream_with_noise
-from hypothesis import given, settings
+from helpers import examples
+from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.protocol.framing import DropReason
@@ -29,7 +30,7 @@ from bridge.protocol.gmr import (
     encode,
 )
 
-FAST = settings(max_examples=150, deadline=None)
+FAST = examples(150)
 
 
 def xor_cs(body: bytes) -> int:

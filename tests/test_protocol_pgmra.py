@@ -25,13 +25,14 @@ from unittest.mock import patch
 
 import codec_props as props
 import pytest
+from helpers import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bridge.protocol.framing import DecodeError, DropReason, LineSplitter
 from bridge.protocol.gmr import AttitudeFrame, Flags, GmrDecoder, GmrFrame, encode, encode_body
 
-EXAMPLES = settings(max_examples=250, deadline=None)
+EXAMPLES = examples(250)
 DATASHEET_PGMRA = b"$PGMRA,1024,87.3,-1.2,0.4,3101,2470,3311,2470,2452,2950,06*50\r\n"
 
 
@@ -442,7 +443,7 @@ def test_device_decoder_refuses_pgmra() -> None:
 
 # --------------------------------------------------------------------------- fuzzing
 
-FUZZ = settings(max_examples=300, deadline=None)
+FUZZ = examples(300)
 
 chunk_kinds = st.one_of(
     st.binary(max_size=120),  # anything, "$" and line ends included

@@ -32,6 +32,7 @@ from bridge.core.attitude import AttitudeEngine
 from bridge.core.wmm import earth_field
 from bridge.sim.autopilot import AutopilotAttitude
 from bridge.sim.drive import ManoeuvreDrive
+from bridge.sim.motion import MotionBase
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
 
 SEED = 13  #: its drive: a 0.29 g turn from 4 to 15 s, a 0.18 g stop from 22 to 32 s
@@ -46,7 +47,7 @@ def rigs() -> Iterator[Callable[..., Rig]]:
     yield from rig_factory()
 
 
-class StandingFirst:
+class StandingFirst(MotionBase):
     """The drive after ``LEAD_S`` s standing at its first attitude (as a bridge in service
     has seen its vehicle quiet before; the benchmark scores after 60 s)."""
 

@@ -69,6 +69,15 @@ def dcm_to_euler(R: npt.ArrayLike) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
+def dcm_to_euler_batch(R: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Vectorised :func:`dcm_to_euler`: an (N, 3, 3) stack to arrays of N roll, pitch, yaw."""
+    m = np.asarray(R, dtype=np.float64)
+    pitch = -np.arcsin(np.clip(m[:, 2, 0], -1.0, 1.0))
+    roll = np.arctan2(m[:, 2, 1], m[:, 2, 2])
+    yaw = np.arctan2(m[:, 1, 0], m[:, 0, 0])
+    return roll, pitch, yaw
+
+
 def dcm_to_quaternion(R: npt.ArrayLike) -> tuple[float, float, float, float]:
     """Quaternion (w, x, y, z) with w >= 0 from a rotation matrix (Shepperd's method)."""
     m = np.asarray(R, dtype=np.float64)
@@ -169,6 +178,23 @@ def dcm_to_rotvec(R: npt.ArrayLike) -> FloatArray:
         axis = S[:, i] / math.sqrt(max(S[i, i], 1e-300))
         return axis / np.linalg.norm(axis) * angle
     return v * (angle / (2.0 * math.sin(angle)))
+
+
+def dcm_to_rotvec_batch(R: npt.ArrayLike) -> FloatArray:
+    """Vectorised :func:`dcm_to_rotvec`: an (N, 3, 3) stack to (N, 3) rotation vectors
+    (rotations within 1e-6 rad of 180 deg go through :func:`dcm_to_rotvec` one by one)."""
+    m = np.asarray(R, dtype=np.float64)
+    v = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], 1)
+    s = 0.5 * np.linalg.norm(v, axis=1)
+    c = (np.trace(m, axis1=1, axis2=2) - 1.0) / 2.0
+    angle = np.arctan2(s, c)
+    small = angle < 1e-6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(small, 0.5, angle / (2.0 * np.sin(angle)))
+    out = v * factor[:, None]
+    for k in np.flatnonzero(math.pi - angle < 1e-6):
+        out[k] = dcm_to_rotvec(m[k])
+    return out
 
 
 def random_rotations(rng: np.random.Generator, n: int) -> FloatArray:

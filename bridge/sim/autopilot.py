@@ -31,7 +31,13 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.core.geometry import dcm_to_euler, dcm_to_rotvec, euler_to_dcm
+from bridge.core.geometry import (
+    dcm_to_euler,
+    dcm_to_euler_batch,
+    dcm_to_rotvec,
+    dcm_to_rotvec_batch,
+    euler_to_dcm,
+)
 from bridge.sim.motion import Motion
 from bridge.types import FloatArray
 
@@ -132,34 +138,59 @@ class AutopilotAttitude:
 
     def message(self, t: float) -> AttitudeMessage:
         """The ATTITUDE describing instant ``t`` (call in increasing ``t``)."""
-        roll, pitch, yaw = self.true_euler(t)
-        dt = 1.0 / self.rate_hz
-        if self.wander_deg > 0.0:
-            phi = math.exp(-dt / self.wander_s)
-            step = self._rng.normal(0.0, self.wander_deg * math.sqrt(1.0 - phi * phi), size=2)
-            self._wander = phi * self._wander + step
-        noise = self._rng.normal(0.0, self.noise_deg, size=2) if self.noise_deg else np.zeros(2)
-        err = np.radians(self._wander + noise)
-        # In order: a message never overtakes the one before it.
-        arrival = max(t + self._delay(), self._last_arrival)
-        self._last_arrival = arrival
-        gyro = self.body_rates(t)
-        gyro_noise = self._rng.normal(0.0, math.radians(self.gyro_noise_dps), size=3)
-        rates = (gyro[0] + gyro_noise[0], gyro[1] + gyro_noise[1], gyro[2] + gyro_noise[2])
-        return AttitudeMessage(
-            arrival,
-            self.boot_ms(t),
-            roll + float(err[0]),
-            pitch + float(err[1]),
-            yaw,
-            t,
-            (float(rates[0]), float(rates[1]), float(rates[2])),
-        )
+        return self._stream(np.array([float(t)]))[0]
 
     def messages(self, t0: float, t1: float) -> list[AttitudeMessage]:
         """Every ATTITUDE describing an instant in ``[t0, t1)``, at the stream's rate."""
         n = math.ceil((t1 - t0) * self.rate_hz)
-        return [self.message(t0 + i / self.rate_hz) for i in range(max(0, n))]
+        return self._stream(t0 + np.arange(max(0, n)) / self.rate_hz)
+
+    def _stream(self, ts: FloatArray, h: float = 0.005) -> list[AttitudeMessage]:
+        """The messages describing the instants ``ts`` (increasing, after any before),
+        all at once: each draws, in order, its wander step, its noise, its link delay and
+        its gyros' noise; its body rates are a central difference (as :meth:`body_rates`)."""
+        n = ts.size
+        if n == 0:
+            return []
+        MT = self.mounting.T
+        roll, pitch, yaw = dcm_to_euler_batch(self.motion.attitudes(ts) @ MT)
+        Ra = self.motion.attitudes(ts - h) @ MT
+        Rb = self.motion.attitudes(ts + h) @ MT
+        gyro = dcm_to_rotvec_batch(np.swapaxes(Ra, 1, 2) @ Rb) / (2.0 * h)
+        # Per message: wander step (2), noise (2), gyro noise (3) from one generator, in
+        # that order, as one message at a time would draw them.
+        k_w = 2 if self.wander_deg > 0.0 else 0
+        k_n = 2 if self.noise_deg else 0
+        z = self._rng.standard_normal((n, k_w + k_n + 3))
+        dt = 1.0 / self.rate_hz
+        err = np.zeros((n, 2))
+        if k_w:
+            phi = math.exp(-dt / self.wander_s)
+            step = self.wander_deg * math.sqrt(1.0 - phi * phi) * z[:, :2]
+            w = self._wander
+            for i in range(n):
+                w = phi * w + step[i]
+                err[i] = w
+            self._wander = w
+        if k_n:
+            err = err + self.noise_deg * z[:, k_w : k_w + 2]
+        err = np.radians(err)
+        delay = self.latency_s + (
+            self._link.exponential(self.jitter_s, size=n) if self.jitter_s else np.zeros(n)
+        )
+        # In order: a message never overtakes the one before it.
+        arrival = np.maximum.accumulate(np.maximum(ts + delay, self._last_arrival))
+        self._last_arrival = float(arrival[-1])
+        rates = gyro + math.radians(self.gyro_noise_dps) * z[:, k_w + k_n :]
+        boot_ms = ((ts + self.boot_s) * 1000.0).astype(np.int64)
+        r, p = (roll + err[:, 0]).tolist(), (pitch + err[:, 1]).tolist()
+        return [
+            AttitudeMessage(a, b, ro, pi, y, t, (g[0], g[1], g[2]))
+            for a, b, ro, pi, y, t, g in zip(
+                arrival.tolist(), boot_ms.tolist(), r, p, yaw.tolist(), ts.tolist(),
+                rates.tolist(), strict=True,
+            )
+        ]  # fmt: skip
 
     def timesync(self, sent_s: float) -> tuple[float, int]:
         """A TIMESYNC request sent at ``sent_s``: (when the answer arrives, its ``tc1`` in

@@ -10,8 +10,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
-from bridge.core.geometry import euler_to_dcm
+from bridge.core.geometry import euler_to_dcm, euler_to_dcm_batch
 from bridge.sim.motion import MotionBase
 from bridge.types import FloatArray
 
@@ -317,6 +318,19 @@ class ManoeuvreDrive(MotionBase):
         return euler_to_dcm(
             self._lerp(self._roll, t), self._lerp(self._pitch, t), self._lerp(self._yaw, t)
         )
+
+    def attitudes(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`attitude` at each time, as an (N, 3, 3) stack (the same interpolation,
+        vectorised: the stand-in autopilot asks for a drive's worth at once)."""
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        x = np.minimum(np.maximum(0.0, t), self.duration) / self._dt
+        i = np.minimum(x.astype(np.int64), len(self._t) - 2)
+        f = x - i
+
+        def lerp(a: FloatArray) -> FloatArray:
+            return np.asarray(a[i] + f * (a[i + 1] - a[i]), dtype=np.float64)
+
+        return euler_to_dcm_batch(lerp(self._roll), lerp(self._pitch), lerp(self._yaw))
 
     def linear_acc_ned_g(self, t: float) -> FloatArray:
         """The vehicle's acceleration (g, NED) plus vibration; zero after the drive."""

@@ -63,6 +63,10 @@ class Motion(Protocol):
         """ZYX Euler angles (roll, pitch, yaw) in radians at ``t``."""
         ...
 
+    def attitudes(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`attitude` at each time, as an (N, 3, 3) stack."""
+        ...
+
 
 def linear_acc_of(motion: Motion, t: float) -> FloatArray:
     """``motion.linear_acc_ned_g(t)`` if the script shakes, else zero (it is optional)."""

@@ -214,38 +214,67 @@ def _linear_joint(rows: FloatArray) -> Candidate | None:
 
 
 _TRI = ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2))  # lower-triangular entries of L
+_TRI_A = np.array([a for a, _ in _TRI])
+_TRI_B = np.array([b for _, b in _TRI])
+#: Which of the six unique window means of ``x x^T`` (the features after ``x``) is ``[i, j]``.
+_XX = np.array([[_UPPER.index((min(i, j), max(i, j))) for j in range(3)] for i in range(3)])
+_EYE3 = np.eye(3)
 
 
 def _joint_residuals(
     rows: FloatArray, o: FloatArray, L: FloatArray, Q: FloatArray, s: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1)."""
+    """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
+
+    Every one of them is linear in a row's features (``G' = G - m o^T`` is), so each is
+    a product of the feature columns with a small coefficient matrix built here: a few
+    matrix products over all rows instead of a stack of 3x3 products per row.
+    """
     n = rows.shape[0]
-    G = rows[:, :9].reshape(-1, 3, 3)  # m_i x_j
     mbar = rows[:, 9:12]
-    mu, S = _second_moments(rows)
+    mu = rows[:, 12:15]
     P = Q.T @ L
-    Gp = G - mbar[:, :, None] * o[None, None, :]  # G - m o^T
+    # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
+    # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m].
+    K = np.einsum("ij,lm->jmil", Q, L).reshape(9, 3, 3)
+    E = np.einsum("aj,mb->jmab", Q, _EYE3).reshape(9, 3, 3)
+    W = np.empty((9, 10))
+    W[:, 0] = P.reshape(9)
+    W[:, 1:7] = E[:, _TRI_A, _TRI_B]
+    W[:, 7] = K[:, 2, 1] - K[:, 1, 2]
+    W[:, 8] = K[:, 0, 2] - K[:, 2, 0]
+    W[:, 9] = K[:, 1, 0] - K[:, 0, 1]
+    # G' W = G W - m (o's contraction of W): the rows' own features, no G' built.
+    D = rows[:, :9] @ W - mbar @ np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
+    dot = D[:, 0]
     # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
     # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
-    dot = np.einsum("ij,kij->k", P, Gp)
     rd = dot / s - 1.0
-    Jd = np.zeros((n, 13))
+    Jd = np.empty((n, 13))
     Jd[:, :3] = -mbar @ P / s
-    QG = np.einsum("ij,kjl->kil", Q, Gp)
-    for c, (a, b) in enumerate(_TRI):
-        Jd[:, 3 + c] = QG[:, a, b] / s
-    K = np.einsum("kij,lj->kil", QG, L)  # Q G' L^T
-    Jd[:, 9:12] = -_vee(K - np.swapaxes(K, 1, 2)) / s
+    Jd[:, 3:9] = D[:, 1:7] / s
+    Jd[:, 9:12] = -D[:, 7:10] / s
     Jd[:, 12] = -dot / (s * s)
+    # The magnitude rows: tr(A M) and 2 (L M)[a, b] with M = S - mu o^T - o mu^T + o o^T
+    # (_magnitude_moment), from the window means of x x^T (xx) and x (mu).
+    xx = rows[:, 15:21]
     A = L.T @ L
-    M = _magnitude_moment(mu, S, o)
-    rm = np.einsum("ij,kij->k", A, M) - 1.0
+    Ao = A @ o
+    wA = np.array([A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]])
+    rm = xx @ wA - 2.0 * (mu @ Ao) + (float(o @ Ao) - 1.0)
+    T = np.zeros((6, 6))  # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means
+    for c, (a, b) in enumerate(_TRI):
+        for j in range(3):
+            T[_XX[j, b], c] += L[a, j]
+    Lo = L @ o
     Jm = np.zeros((n, 13))
     Jm[:, :3] = -2.0 * (mu - o) @ A
-    LM = np.einsum("ij,kjl->kil", L, M)
-    for c, (a, b) in enumerate(_TRI):
-        Jm[:, 3 + c] = 2.0 * LM[:, a, b]
+    Jm[:, 3:9] = 2.0 * (
+        xx @ T
+        - (mu @ L.T)[:, _TRI_A] * o[_TRI_B]
+        - Lo[_TRI_A] * mu[:, _TRI_B]
+        + Lo[_TRI_A] * o[_TRI_B]
+    )
     return rd, Jd, rm, Jm
 
 
@@ -297,11 +326,11 @@ def _solve_joint(
         if it == 0:
             wd = _weight(rd)
             wm = _weight(rm) * magnitude_weight
-        J = np.concatenate([wd * Jd, wm * Jm])
-        r = np.concatenate([wd * rd, wm * rm])
-        JTJ = J.T @ J
+        # J^T J and J^T r of the weighted rows stacked, without stacking them
+        JTJ = (wd * wd) * (Jd.T @ Jd) + (wm * wm) * (Jm.T @ Jm)
+        JTr = (wd * wd) * (Jd.T @ rd) + (wm * wm) * (Jm.T @ rm)
         try:
-            step = np.linalg.solve(JTJ, -(J.T @ r))
+            step = np.linalg.solve(JTJ, -JTr)
         except np.linalg.LinAlgError:
             return None
         o = o + step[:3]
