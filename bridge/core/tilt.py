@@ -40,7 +40,7 @@ from operator import itemgetter
 from typing import Literal
 
 from bridge.core.tilt_settings import TiltSettings
-from bridge.core.vectors import Vec3, angle_deg, cross, dot, norm, unit
+from bridge.core.vectors import Vec3, angle_deg, dot, unit
 
 TiltSource = Literal["accelerometer", "autopilot", "magnetometer"]
 #: The tilt sources, in the order MAVLink's ``TILT_SRC`` value numbers them (0, 1, 2).
@@ -180,10 +180,17 @@ class TiltFilter:
     @staticmethod
     def _basis(d: Vec3) -> tuple[Vec3, Vec3]:
         """Two unit vectors spanning the plane normal to ``d``: forward-ish, right-ish."""
-        x = (1.0, 0.0, 0.0) if abs(d[0]) < 0.9 else (0.0, 1.0, 0.0)
-        k = dot(x, d)
-        e1 = unit((x[0] - k * d[0], x[1] - k * d[1], x[2] - k * d[2]))
-        return e1, cross(d, e1)
+        # dot, unit and cross written out (one to three bases a frame): the same arithmetic.
+        dx, dy, dz = d
+        x0, x1, x2 = (1.0, 0.0, 0.0) if abs(dx) < 0.9 else (0.0, 1.0, 0.0)
+        k = x0 * dx + x1 * dy + x2 * dz
+        ux, uy, uz = x0 - k * dx, x1 - k * dy, x2 - k * dz
+        n = math.sqrt(ux * ux + uy * uy + uz * uz)
+        if n > 0.0:
+            ux, uy, uz = ux / n, uy / n, uz / n
+        else:
+            ux, uy, uz = 0.0, 0.0, 1.0
+        return (ux, uy, uz), (dy * uz - dz * uy, dz * ux - dx * uz, dx * uy - dy * ux)
 
     def _update(self, y: float, h0: float, h1: float, R: float, x: list[float]) -> None:
         """One scalar measurement ``y = h . x + noise(R)`` on the correction ``x``."""
@@ -290,10 +297,17 @@ class TiltFilter:
 
     @staticmethod
     def _rotation_about(m0: Vec3, m1: Vec3, d: Vec3) -> float:
-        k0, k1 = dot(m0, d), dot(m1, d)
-        p0 = (m0[0] - k0 * d[0], m0[1] - k0 * d[1], m0[2] - k0 * d[2])
-        p1 = (m1[0] - k1 * d[0], m1[1] - k1 * d[1], m1[2] - k1 * d[2])
-        return math.atan2(dot(cross(p0, p1), d), dot(p0, p1))
+        """The angle from ``m0`` to ``m1`` about ``d``, both projected onto its normal plane
+        (dot and cross written out: once or twice a frame)."""
+        ax, ay, az = m0
+        bx, by, bz = m1
+        dx, dy, dz = d
+        k0 = ax * dx + ay * dy + az * dz
+        k1 = bx * dx + by * dy + bz * dz
+        p0x, p0y, p0z = ax - k0 * dx, ay - k0 * dy, az - k0 * dz
+        p1x, p1y, p1z = bx - k1 * dx, by - k1 * dy, bz - k1 * dz
+        cx, cy, cz = p0y * p1z - p0z * p1y, p0z * p1x - p0x * p1z, p0x * p1y - p0y * p1x
+        return math.atan2(cx * dx + cy * dy + cz * dz, p0x * p1x + p0y * p1y + p0z * p1z)
 
     def update(
         self,
@@ -312,8 +326,12 @@ class TiltFilter:
         disturbed (the dip is only learnt and used then).
         """
         st = self.settings
-        an = norm(accel)
-        ahat = unit(accel) if an > 1e-6 else (0.0, 0.0, 1.0)
+        # (The vectors' lengths and directions are written out here rather than through
+        # norm() and unit(): the same arithmetic, without a call and a tuple per vector.
+        # This runs for every frame.)
+        gx, gy, gz = accel
+        an = math.sqrt(gx * gx + gy * gy + gz * gz)
+        ahat = (gx / an, gy / an, gz / an) if an > 1e-6 else (0.0, 0.0, 1.0)
         if self._d is None or self._t is None:
             self._d, self._t = ahat, t
         else:  # frames read in one burst share their arrival: half the mean interval apart
@@ -362,8 +380,12 @@ class TiltFilter:
             if lg is not None
             else ahat
         )
-        mhat = unit(mag) if norm(mag) > 0.0 else (0.0, 0.0, 0.0)
+        bx, by, bz = mag
+        bn = math.sqrt(bx * bx + by * by + bz * bz)
+        mhat = (bx / bn, by / bn, bz / bn) if bn > 0.0 else (0.0, 0.0, 0.0)
+        has_field = mhat != (0.0, 0.0, 0.0)
         self._m_now = mhat
+        white_deg = self.white_deg  # the white noise is learnt above only
         if not self.manoeuvre and self._history and t - self._history[0][0] >= st.drift_s:
             # The estimate of drift_s ago (the newest kept that old, or the oldest).
             i = bisect_right(self._history, t - st.drift_s, key=_TIME)
@@ -386,8 +408,7 @@ class TiltFilter:
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
             # its down where it was when this began (the tail of a braking creeps back)
             and (
-                self._steady_lp is None
-                or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * self.white_deg
+                self._steady_lp is None or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * white_deg
             )
         )
         if not still:
@@ -396,7 +417,7 @@ class TiltFilter:
             self._steady_since, self._steady_lp = t, ahat
         #: How long the accelerometer has been still (1 g, its down not moving, no turn).
         self.still_s = 0.0 if self._steady_since is None else t - self._steady_since
-        if mhat != (0.0, 0.0, 0.0):
+        if has_field:
             rate = self._turn_rate(t, mhat, self._d)
             self.turn_rate_dps = math.degrees(rate)
             # The low-passed down turning fast, with the field: a tilt faster than a
@@ -549,7 +570,7 @@ class TiltFilter:
         if not self.held[1]:
             self._update(dot(ahat, e2), 0.0, 1.0, R, x)
         # -- the field's dip (attitude matching), every regime.
-        if self.manoeuvre and field_ok and mhat != (0.0, 0.0, 0.0) and sin_dip is not None:
+        if self.manoeuvre and field_ok and has_field and sin_dip is not None:
             cos_dip = math.sqrt(max(1e-6, 1.0 - sin_dip * sin_dip))
             Rm = (cos_dip * st.dip_sigma_deg * _DEG) ** 2 * slow
             h0, h1 = dot(mhat, e1), dot(mhat, e2)
@@ -603,11 +624,11 @@ class TiltFilter:
             not self.manoeuvre
             and abs(an - self._g0) < 0.02
             and self._heave < 0.02
-            and angle_deg(lp, ahat) < 3.0 * self.white_deg + 0.5
+            and angle_deg(lp, ahat) < 3.0 * white_deg + 0.5
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
         )
         w = min(1.0, dt / 0.1)  # the frame's weight: its share of a 10 Hz frame
-        if steady and field_ok and mhat != (0.0, 0.0, 0.0) and w > 0.0:
+        if steady and field_ok and has_field and w > 0.0:
             sd = dot(mhat, ahat)
             self._dip_n += w
             rate = max(0.005 * w, w / self._dip_n)
@@ -631,14 +652,19 @@ class TiltFilter:
         )
         hs = sigma
         if mhat != (0.0, 0.0, 0.0):
-            east = cross(nd, mhat)
-            en = norm(east)
+            # the field's east axis, east = nd x mhat (vector helpers written out: every frame)
+            nx, ny, nz = nd
+            mx, my, mz = mhat
+            ex, ey, ez = ny * mz - nz * my, nz * mx - nx * mz, nx * my - ny * mx
+            en = math.sqrt(ex * ex + ey * ey + ez * ez)
             if en > 1e-3:
                 var = sxx
                 if basis is not None:
-                    f1, f2 = dot(east, basis[0]) / en, dot(east, basis[1]) / en
+                    (b1x, b1y, b1z), (b2x, b2y, b2z) = basis
+                    f1 = (ex * b1x + ey * b1y + ez * b1z) / en
+                    f2 = (ex * b2x + ey * b2y + ez * b2z) / en
                     var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
-                hs = math.sqrt(max(0.0, var)) * abs(dot(mhat, nd)) / en
+                hs = math.sqrt(max(0.0, var)) * abs(mx * nx + my * ny + mz * nz) / en
         off = 0.0 if nd is ahat else angle_deg(ahat, nd)
         sig, h = math.degrees(sigma), math.degrees(hs)
         return TiltEstimate(nd, source, sig, h, off, self.manoeuvre)

@@ -219,6 +219,11 @@ def _ms32(t_ms: int) -> int:
 
 def attitude(sample: CompassSample, time_boot_ms: int) -> Message:
     """ATTITUDE."""
+    a = sample.attitude
+    if a is not None:  # a host sample: the solution's own angles (euler_of's first case)
+        return M.MAVLink_attitude_message(
+            _ms32(time_boot_ms), a.roll, a.pitch, a.yaw, 0.0, 0.0, 0.0
+        )
     roll, pitch, yaw = euler_of(sample)
     return M.MAVLink_attitude_message(_ms32(time_boot_ms), roll, pitch, yaw, 0.0, 0.0, 0.0)
 
@@ -238,9 +243,18 @@ def vfr_hud(sample: CompassSample, alt_m: float = 0.0) -> Message:
 
 
 def _i16(v: float) -> int:
-    if not math.isfinite(v):
-        return 0
-    return max(-_INT16, min(_INT16, round(v)))
+    """``v`` rounded into int16's symmetric range; 0 when it is not finite."""
+    if -_INT16 <= v <= _INT16:  # the common case, one chained comparison (NaN fails it)
+        return round(v)
+    if math.isfinite(v):
+        return _INT16 if v > 0.0 else -_INT16
+    return 0
+
+
+# The per-sample encoders below run for every stream of every sample: they call the
+# generated message classes with positional fields (in the classes' constructor order)
+# rather than through dialect.message(**fields), whose keyword dict and lookup cost more
+# than the arithmetic here.
 
 
 def scaled_imu(sample: CompassSample, time_boot_ms: int) -> Message | None:
@@ -250,49 +264,23 @@ def scaled_imu(sample: CompassSample, time_boot_ms: int) -> Message | None:
         return None
     gx, gy, gz = a.accel_g
     mx, my, mz = a.mag_G
-    return message(
-        SCALED_IMU,
-        time_boot_ms=_ms32(time_boot_ms),
-        # specific force = -gravity vector, in mG
-        xacc=_i16(-1000.0 * gx),
-        yacc=_i16(-1000.0 * gy),
-        zacc=_i16(-1000.0 * gz),
-        xgyro=0,
-        ygyro=0,
-        zgyro=0,
-        xmag=_i16(1000.0 * mx),
-        ymag=_i16(1000.0 * my),
-        zmag=_i16(1000.0 * mz),
-        temperature=0,  # 0 = no temperature
+    # specific force = -gravity vector, in mG; the field in mgauss
+    xacc, yacc, zacc = _i16(-1000.0 * gx), _i16(-1000.0 * gy), _i16(-1000.0 * gz)
+    xmag, ymag, zmag = _i16(1000.0 * mx), _i16(1000.0 * my), _i16(1000.0 * mz)
+    # time, accelerometer, no gyro, magnetometer, temperature 0 (none)
+    return M.MAVLink_scaled_imu_message(
+        _ms32(time_boot_ms), xacc, yacc, zacc, 0, 0, 0, xmag, ymag, zmag, 0
     )
-
-
-def raw_counts(sample: CompassSample) -> tuple[int, int, int, int, int, int] | None:
-    """The frame's ADC counts (mx, my, mz, ax, ay, az), if the sample carries them."""
-    return sample.raw_counts
 
 
 def raw_imu(sample: CompassSample, time_usec: int) -> Message | None:
     """RAW_IMU: the ADC counts as the device sent them (None when not known)."""
-    rc = raw_counts(sample)
+    rc = sample.raw_counts
     if rc is None:
         return None
     mx, my, mz, ax, ay, az = rc
-    return message(
-        RAW_IMU,
-        time_usec=max(0, int(time_usec)),
-        xacc=ax,
-        yacc=ay,
-        zacc=az,
-        xgyro=0,
-        ygyro=0,
-        zgyro=0,
-        xmag=mx,
-        ymag=my,
-        zmag=mz,
-        id=0,
-        temperature=0,
-    )
+    # time, accelerometer, no gyro, magnetometer, id 0, temperature 0 (none)
+    return M.MAVLink_raw_imu_message(max(0, int(time_usec)), ax, ay, az, 0, 0, 0, mx, my, mz, 0, 0)
 
 
 #: HIGHRES_IMU.fields_updated: xacc..zacc (bits 0-2) and xmag..zmag (bits 6-8).
@@ -307,24 +295,26 @@ def highres_imu(sample: CompassSample, time_usec: int) -> Message | None:
     gx, gy, gz = a.accel_g
     mx, my, mz = a.mag_G
     k = -STANDARD_GRAVITY
-    return message(
-        HIGHRES_IMU,
-        time_usec=max(0, int(time_usec)),
-        xacc=k * gx,
-        yacc=k * gy,
-        zacc=k * gz,
-        xgyro=0.0,
-        ygyro=0.0,
-        zgyro=0.0,
-        xmag=mx,
-        ymag=my,
-        zmag=mz,
-        abs_pressure=0.0,
-        diff_pressure=0.0,
-        pressure_alt=0.0,
-        temperature=0.0,
-        fields_updated=HIGHRES_FIELDS_ACC_MAG,
-        id=0,
+    t = max(0, int(time_usec))
+    xacc, yacc, zacc = k * gx, k * gy, k * gz  # specific force, m/s^2
+    # time, accelerometer, no gyro, magnetometer, no pressures or temperature, flags, id 0
+    return M.MAVLink_highres_imu_message(
+        t,
+        xacc,
+        yacc,
+        zacc,
+        0.0,
+        0.0,
+        0.0,
+        mx,
+        my,
+        mz,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        HIGHRES_FIELDS_ACC_MAG,
+        0,
     )
 
 

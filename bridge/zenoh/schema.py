@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
 
 if TYPE_CHECKING:  # types only: a consumer (monitor) must not pull in the daemon and numpy
@@ -137,15 +137,24 @@ def dumps(doc: Mapping[str, Any]) -> bytes:
     return text.encode("utf-8")
 
 
+_isfinite = math.isfinite  # a module global: one lookup, per number of every document
+
+
 def _r(v: float | None, digits: int) -> float | None:
-    """Round for the wire (the sensor is not better than this), keeping None/non-finite as None."""
-    if v is None or not math.isfinite(v):
-        return None
-    return round(v, digits)
+    """Round for the wire (the sensor is not better than this), keeping None/non-finite as None.
+
+    round() is most of a sensor document's cost (a decimal conversion each way): the
+    builders below call it once per number, and a value that appears twice is rounded
+    once.
+    """
+    return round(v, digits) if v is not None and _isfinite(v) else None
 
 
 def _vec(v: Sequence[float] | None, digits: int) -> list[float | None] | None:
-    return None if v is None else [_r(float(x), digits) for x in v]
+    if v is None:
+        return None
+    x, y, z = v  # a Vec3; float() keeps a numpy scalar's rounding a plain float
+    return [_r(float(x), digits), _r(float(y), digits), _r(float(z), digits)]
 
 
 def _head(schema: str) -> dict[str, Any]:
@@ -175,16 +184,25 @@ class SampleTimes:
     t_monotonic: float
     t_unix: float
     zenoh_time: str | None = None
+    #: ``(t_monotonic, t_unix)`` rounded for the wire: once per sample, not per document.
+    wire: tuple[float, float] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "wire", (round(self.t_monotonic, 6), round(self.t_unix, 6)))
 
 
 def _stamped(schema: str, sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
-    """The schema name, version, sequence and times: the head of every sensor-stream document."""
+    """The schema name, version, sequence and times: the head of every sensor-stream document.
+
+    The builders add their fields to it one by one (no second dict to merge in).
+    """
+    t_monotonic, t_unix = times.wire
     return {
         "schema": schema,
         "version": VERSIONS[schema],
         "seq": sample.seq,
-        "t_monotonic": round(times.t_monotonic, 6),
-        "t_unix": round(times.t_unix, 6),
+        "t_monotonic": t_monotonic,
+        "t_unix": t_unix,
         "zenoh_time": times.zenoh_time,
     }
 
@@ -202,24 +220,25 @@ def quality_flags(sample: CompassSample) -> dict[str, bool]:
 
 def heading_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
     """``<prefix>/heading``: magnetic and true heading, declination, quality flags, times."""
+    heading, mag, true = sample.heading_deg, sample.heading_magnetic_deg, sample.heading_true_deg
+    # The published heading is the magnetic or the true one, the same float object (the
+    # engine and the heading-only path publish one of the two): rounded once. Identity, not
+    # equality: -0.0 == 0.0, and they would not print alike.
+    r_heading = _r(heading, _ANGLE_DIGITS)
     doc = _stamped(HEADING, sample, times)
-    doc.update(
-        {
-            "source": sample.source,
-            "heading_deg": _r(sample.heading_deg, _ANGLE_DIGITS),
-            "heading_reference": sample.heading_reference,
-            "heading_magnetic_deg": _r(sample.heading_magnetic_deg, _ANGLE_DIGITS),
-            "heading_true_deg": _r(sample.heading_true_deg, _ANGLE_DIGITS),
-            "declination_deg": _r(sample.declination_deg, _ANGLE_DIGITS),
-            "device_heading_deg": _r(sample.device_heading_deg, _ANGLE_DIGITS),
-            "flags": quality_flags(sample),
-            # where roll and pitch came from, and the heading error that tilt leaves
-            "tilt": {
-                "source": sample.tilt_source,
-                "heading_error_deg": _r(sample.heading_sigma_deg, _ANGLE_DIGITS),
-            },
-        }
-    )
+    doc["source"] = sample.source
+    doc["heading_deg"] = r_heading
+    doc["heading_reference"] = sample.heading_reference
+    doc["heading_magnetic_deg"] = r_heading if mag is heading else _r(mag, _ANGLE_DIGITS)
+    doc["heading_true_deg"] = r_heading if true is heading else _r(true, _ANGLE_DIGITS)
+    doc["declination_deg"] = _r(sample.declination_deg, _ANGLE_DIGITS)
+    doc["device_heading_deg"] = _r(sample.device_heading_deg, _ANGLE_DIGITS)
+    doc["flags"] = quality_flags(sample)
+    # where roll and pitch came from, and the heading error that tilt leaves
+    doc["tilt"] = {
+        "source": sample.tilt_source,
+        "heading_error_deg": _r(sample.heading_sigma_deg, _ANGLE_DIGITS),
+    }
     return doc
 
 
@@ -243,23 +262,20 @@ def attitude_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | 
         degraded = False
     else:
         return None
+    w, x, y, z = q
     doc = _stamped(ATTITUDE, sample, times)
-    doc.update(
-        {
-            "source": sample.source,
-            "roll_deg": _r(roll, _ANGLE_DIGITS),
-            "pitch_deg": _r(pitch, _ANGLE_DIGITS),
-            "yaw_deg": _r(sample.heading_deg, _ANGLE_DIGITS),
-            "yaw_reference": sample.heading_reference,
-            "quaternion": {
-                "w": _r(q[0], _QUAT_DIGITS),
-                "x": _r(q[1], _QUAT_DIGITS),
-                "y": _r(q[2], _QUAT_DIGITS),
-                "z": _r(q[3], _QUAT_DIGITS),
-            },
-            "degraded": degraded,
-        }
-    )
+    doc["source"] = sample.source
+    doc["roll_deg"] = _r(roll, _ANGLE_DIGITS)
+    doc["pitch_deg"] = _r(pitch, _ANGLE_DIGITS)
+    doc["yaw_deg"] = _r(sample.heading_deg, _ANGLE_DIGITS)
+    doc["yaw_reference"] = sample.heading_reference
+    doc["quaternion"] = {
+        "w": _r(w, _QUAT_DIGITS),
+        "x": _r(x, _QUAT_DIGITS),
+        "y": _r(y, _QUAT_DIGITS),
+        "z": _r(z, _QUAT_DIGITS),
+    }
+    doc["degraded"] = degraded
     return doc
 
 
@@ -281,17 +297,13 @@ def imu_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | None:
         return None
     raw_mag, raw_acc = raw_counts(sample)
     doc = _stamped(IMU, sample, times)
-    doc.update(
-        {
-            "raw": {"mag": raw_mag, "accel": raw_acc},
-            "mag_G": _vec(a.mag_G, _FIELD_DIGITS),
-            "accel_g": _vec(a.accel_g, _ACCEL_DIGITS),
-            "field_strength_G": _r(a.field_strength_G, _FIELD_DIGITS),
-            "dip_deg": _r(a.dip_deg, _ANGLE_DIGITS),
-            "accel_norm_g": _r(a.accel_norm_g, _ACCEL_DIGITS),
-            "saturated": sample.saturated,
-        }
-    )
+    doc["raw"] = {"mag": raw_mag, "accel": raw_acc}
+    doc["mag_G"] = _vec(a.mag_G, _FIELD_DIGITS)
+    doc["accel_g"] = _vec(a.accel_g, _ACCEL_DIGITS)
+    doc["field_strength_G"] = _r(a.field_strength_G, _FIELD_DIGITS)
+    doc["dip_deg"] = _r(a.dip_deg, _ANGLE_DIGITS)
+    doc["accel_norm_g"] = _r(a.accel_norm_g, _ACCEL_DIGITS)
+    doc["saturated"] = sample.saturated
     return doc
 
 
