@@ -79,6 +79,14 @@ def test_clock_map_takes_the_least_delayed_arrival_then_prefers_timesync() -> No
     # a longer (more queued) round trip does not replace it
     cm.round_trip(111.0, 111.0 + 0.2 + boot, 111.5)
     assert cm.offset == pytest.approx(-boot - 0.005)
+    # an equal round trip later does not replace it either (the oldest of equals)
+    cm.round_trip(112.0, 112.0 + 0.01 + boot, 112.03)
+    assert cm.offset == pytest.approx(-boot - 0.005)
+    # once it leaves the window the shortest of those left takes over
+    cm.round_trip(140.5, 140.5 + 0.05 + boot, 140.6)  # local 140.6: 110.03 is out, 112.03 in
+    assert cm.round_trip_s == pytest.approx(0.03) and cm.offset == pytest.approx(-boot + 0.005)
+    cm.round_trip(142.5, 142.5 + 0.05 + boot, 142.6)  # 112.03 out: 0.1 s, 141.0 is the best
+    assert cm.round_trip_s == pytest.approx(0.1) and cm.offset == pytest.approx(-boot)
     # a reboot: the remote clock starts again; what was learnt is forgotten
     assert cm.arrival(1.0, 115.0)
     assert cm.reboots == 1 and not cm.synced and cm.offset == pytest.approx(114.0)
@@ -125,6 +133,67 @@ def test_mounting_residual_learns_how_the_boards_sit() -> None:
     gc = euler_to_dcm(0.2, -0.1, 0.0).T @ np.array([0.0, 0.0, 1.0])
     assert angle_deg(res.apply(vec(M @ gc)), vec(gc)) < 0.1
     assert res.scatter_deg == pytest.approx(math.degrees(0.005 * math.sqrt(3)), rel=0.3)
+
+
+def davenport_reference(
+    pairs: list[tuple[np.ndarray, np.ndarray]], prior: float, memory: float
+) -> np.ndarray:
+    """The q-method's rotation by numpy's eigensolver, from the pairs themselves (forgetting
+    as the residual does): what MountingResidual must give, converged."""
+    k = 1.0 - 1.0 / memory
+    B = prior * np.eye(3)
+    for a, b in pairs:
+        B = B - prior * np.eye(3)
+        B = k * B + np.outer(a, b) + prior * np.eye(3)
+    S, s = B + B.T, np.trace(B)
+    z = np.array([B[1, 2] - B[2, 1], B[2, 0] - B[0, 2], B[0, 1] - B[1, 0]])
+    K = np.block([[np.array([[s]]), z[None, :]], [z[:, None], S - s * np.eye(3)]])
+    ev, V = np.linalg.eigh(K)
+    assert ev[-1] - ev[-2] > 1e-6 * ev[-1]  # a unique answer
+    q0, v = V[0, -1], V[1:, -1]
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return (q0 * q0 - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) - 2.0 * q0 * vx
+
+
+@pytest.mark.parametrize(
+    ("axis", "angle_deg_", "tilt", "prior"),
+    [
+        ((0.3, -0.5, 0.8), 2.0, 0.25, 5.0),  # a residual as boards have: weakly seen in yaw
+        ((0.0, 0.0, 1.0), 1.0, 0.02, 5.0),  # nearly level: the yaw is the prior's
+        ((1.0, 2.0, -1.0), 90.0, 1.5, 5.0),
+        ((1.0, 0.0, 0.0), 180.0, 1.5, 5.0),  # half a turn: QUEST's own singularity
+        ((0.2, 1.0, 0.1), 179.0, 1.5, 0.0),
+    ],
+)
+def test_mounting_residual_is_the_converged_q_method_answer(
+    axis: tuple[float, float, float], angle_deg_: float, tilt: float, prior: float
+) -> None:
+    rng = np.random.default_rng(7)
+    M = axis_angle_to_dcm(list(axis), math.radians(angle_deg_))  # down_compass = M^T down_ap
+    res = MountingResidual(prior_weight=prior, memory=500.0)
+    pairs = []
+    for i in range(1, 801):
+        R = euler_to_dcm(*rng.uniform(-tilt, tilt, 2), rng.uniform(0.0, 6.28))
+        ap = R.T @ np.array([0.0, 0.0, 1.0])
+        noisy = M.T @ ap + rng.normal(0.0, 0.003, 3)
+        a = noisy / np.linalg.norm(noisy)
+        pairs.append((a, ap))
+        res.add(vec(a), vec(ap))
+        if i % 200 == 0:  # solved on the tenth pair: the answer is the converged one
+            want = davenport_reference(pairs, prior, 500.0)
+            got = np.array([res.apply((1.0, 0.0, 0.0)), res.apply((0.0, 1.0, 0.0))]).T
+            err = np.linalg.norm(got - want[:, :2], axis=0).max()
+            assert err < 1e-9, (i, err)
+    assert res.rotation_deg() == pytest.approx(angle_deg_, abs=3.0)  # the prior pulls a little
+
+
+def test_mounting_residual_keeps_its_answer_where_the_data_cannot_tell() -> None:
+    # No prior, every pair the same down: any rotation about it fits; it stays put (none).
+    res = MountingResidual(prior_weight=0.0)
+    for _ in range(30):
+        res.add((0.0, 0.0, 1.0), (0.0, 0.0, 1.0))
+    assert res.rotation_deg() == pytest.approx(0.0, abs=1e-6)
+    assert angle_deg(res.apply((0.0, 0.0, 1.0)), (0.0, 0.0, 1.0)) < 1e-6
 
 
 # -- the estimate -------------------------------------------------------------------------
