@@ -502,3 +502,21 @@ def test_tilt_sources_align_the_autopilot_to_the_frame() -> None:
     ts.reset("test")
     ts.tilt(*frame(R), t + 3.0, field_ok=True)
     assert ts.residual.rotation_deg() == 0.0
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_tilt_sources_refuse_a_down_and_drop_a_rate_no_autopilot_can_mean(bad: float) -> None:
+    ts = TiltSources()
+    ts.autopilot_attitude(1000, (0.0, bad, 1.0), 10.0)
+    ts.autopilot_attitude(1010, (0.0, 0.0, 0.1), 10.01)  # not a down (|d| < 0.5)
+    assert ts.link.refused == 2 and ts.link.messages == 0
+    # a gyro's word it cannot have meant (non-finite, or 50 rad/s and more) is dropped, the
+    # down kept: the track extrapolates by its line, not by that rate
+    for k, rate in enumerate([(0.0, 0.0, bad), (50.0, 0.0, 0.0), (0.0, -60.0, 0.0)]):
+        ts.autopilot_attitude(2000 + 50 * k, (0.0, 0.0, 1.0), 20.0 + 0.05 * k, rate)
+        newest = ts._track.newest
+        assert newest is not None and newest.rate is None
+    ts.autopilot_attitude(2150, (0.0, 0.0, 1.0), 20.15, (0.0, 49.0, 0.0))
+    newest = ts._track.newest
+    assert newest is not None and newest.rate == (0.0, 49.0, 0.0)
+    assert ts.link.refused == 2 and ts.link.messages == 4

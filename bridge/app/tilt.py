@@ -111,10 +111,14 @@ class TiltSources:
         """The autopilot's ATTITUDE(_QUATERNION): its stamp, the unit down in its body axes
         (from its roll and pitch), when it arrived (our monotonic clock), and its body
         rates (rad/s) when given."""
-        if not (all(math.isfinite(v) for v in down) and norm(down) > 0.5):
+        # (Written out, not all() over generators: this runs for every message.)
+        dx, dy, dz = down
+        if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz) and norm(down) > 0.5):
             self.link.refused += 1
             return
-        if rate is not None and not all(math.isfinite(v) and abs(v) < 50.0 for v in rate):
+        if rate is not None and not (
+            -50.0 < rate[0] < 50.0 and -50.0 < rate[1] < 50.0 and -50.0 < rate[2] < 50.0
+        ):  # (NaN fails every comparison)
             rate = None  # a gyro's word it cannot have meant: extrapolate without it
         remote = time_boot_ms / 1000.0
         with self._lock:
