@@ -30,7 +30,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from bridge.core.vectors import Vec3, dot
+from bridge.core.vectors import Vec3
 
 _DEG = math.pi / 180.0
 
@@ -366,8 +366,13 @@ class MountingResidual:
 
     def apply(self, v: Vec3) -> Vec3:
         """An autopilot-axes vector in the compass's vehicle axes."""
-        C = self._C
-        return (dot(C[0], v), dot(C[1], v), dot(C[2], v))
+        (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = self._C
+        x, y, z = v  # (three dot products written out: every frame, the same arithmetic)
+        return (
+            c00 * x + c01 * y + c02 * z,
+            c10 * x + c11 * y + c12 * z,
+            c20 * x + c21 * y + c22 * z,
+        )
 
 
 def _det3(
