@@ -55,7 +55,7 @@ from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Event, EventBus
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.drive import Drive
-from bridge.sim.motion import Tumble, linear_acc_of
+from bridge.sim.motion import Tumble
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors, magnet_pass
 from bridge.types import FloatArray
 
@@ -131,7 +131,7 @@ class Unit:
         """Drive times in [t0, t1) and the physics' sample at each (counts, saturation)."""
         ts = np.arange(t0, t1, 1.0 / self.rate_hz)
         R = self.drive.attitudes(ts)
-        acc = np.array([linear_acc_of(self.drive, float(t)) for t in ts])
+        acc = self.drive.linear_accs_ned_g(ts)
         m = model if model is not None else self.model
         return ts, m.sample(R, self._rng, acc, extra_ned_G)
 

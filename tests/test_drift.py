@@ -27,7 +27,6 @@ from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field
 from bridge.sim.drive import Drive
-from bridge.sim.motion import linear_acc_of
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors, magnet_pass
 
 FIELD = earth_field(*DEFAULT_LOCATION)
@@ -52,7 +51,7 @@ def drive_rows(
     ts = np.arange(0.0, seconds, 0.1)
     if change_G is not None:
         model = model.with_hard_iron_change(change_G)
-    acc = np.array([linear_acc_of(drive, float(t)) for t in ts])
+    acc = drive.linear_accs_ned_g(ts)
     s = model.sample(drive.attitudes(ts), np.random.default_rng([seed, 9]), acc, extra)
     h = scale * cal.mag.apply(mag_counts_to_gauss(s.mag_counts))
     g = cal.accel.apply(acc_counts_to_g(s.acc_counts))

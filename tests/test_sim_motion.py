@@ -408,3 +408,16 @@ def test_drive_is_a_pure_function_of_time() -> None:
     assert not np.array_equal(Drive(8).attitude(12.0), early)
     with pytest.raises(ValueError):
         Drive(1, max_roll_deg=90.0)
+
+
+def test_drive_streams_are_its_samples_exactly() -> None:
+    # the benchmarks draw whole streams at once: the same numbers as time by time,
+    # including before the start (held) and in a fresh drive drawn out of order
+    d = Drive(4)
+    ts = np.concatenate([[-3.0], np.arange(0.0, 200.0, 0.1), [5000.0]])
+    one = [float(t) for t in ts]
+    np.testing.assert_array_equal(Drive(4).attitudes(ts[::-1])[::-1],
+                                  np.stack([d.attitude(t) for t in one]))  # fmt: skip
+    np.testing.assert_array_equal(Drive(4).linear_accs_ned_g(ts),
+                                  np.stack([d.linear_acc_ned_g(t) for t in one]))  # fmt: skip
+    assert Drive(4).attitudes([]).shape == (0, 3, 3)

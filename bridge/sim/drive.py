@@ -142,6 +142,45 @@ class Drive(MotionBase):
         lat = v * rate
         return np.array([dv * c - lat * s, dv * s + lat * c, 0.0]) / self._G0
 
+    # -- whole streams at once (the same formulas on arrays, for the benchmarks) ------
+
+    def _yaws(self, ts: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """:meth:`_yaw` at each of ``ts`` (already clamped at 0)."""
+        if ts.size:
+            self._extend(float(ts.max()))
+        t0, length, dyaw = np.array(self._t0), np.array(self._len), np.array(self._dyaw)
+        i = np.searchsorted(t0, ts, side="right") - 1
+        tau, length, dyaw = ts - t0[i], length[i], dyaw[i]
+        x = 2.0 * math.pi * tau / length
+        turning = dyaw != 0.0
+        yaw = np.array(self._yaw0)[i] + np.where(
+            turning, dyaw * (tau / length - np.sin(x) / (2.0 * math.pi)), 0.0
+        )
+        return yaw, np.where(turning, dyaw / length * (1.0 - np.cos(x)), 0.0)
+
+    def _angles(self, which: int, ts: FloatArray) -> FloatArray:
+        amp, omega, phase = self._tilt[which]
+        return np.sum(amp * np.sin(omega * ts[:, None] + phase), axis=1)
+
+    def attitudes(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`attitude` at each time, as an (N, 3, 3) stack."""
+        ts = np.maximum(np.asarray(times, dtype=np.float64).reshape(-1), 0.0)
+        return euler_to_dcm_batch(self._angles(0, ts), self._angles(1, ts), self._yaws(ts)[0])
+
+    def linear_accs_ned_g(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`linear_acc_ned_g` at each time, as an (N, 3) array."""
+        ts = np.maximum(np.asarray(times, dtype=np.float64).reshape(-1), 0.0)
+        yaw, rate = self._yaws(ts)
+        p1, p2 = self._speed_phase
+        w1, w2 = 2.0 * math.pi / 67.0, 2.0 * math.pi / 23.0
+        v = self.speed_mps * (1.0 + 0.2 * np.sin(w1 * ts + p1) + 0.05 * np.sin(w2 * ts + p2))
+        dv = self.speed_mps * (0.2 * w1 * np.cos(w1 * ts + p1) + 0.05 * w2 * np.cos(w2 * ts + p2))
+        c, s = np.cos(yaw), np.sin(yaw)
+        lat = v * rate
+        out = np.zeros((len(ts), 3))
+        out[:, 0], out[:, 1] = dv * c - lat * s, dv * s + lat * c
+        return out / self._G0
+
 
 #: Kinds of :class:`ManoeuvreDrive` stretch, in the order :attr:`ManoeuvreDrive.KINDS` numbers them.
 MANOEUVRES = ("cruise", "turn", "stop", "start", "waves")

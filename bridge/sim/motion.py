@@ -254,15 +254,18 @@ class Tumble(MotionBase):
 def _rz(a: FloatArray) -> FloatArray:
     """Rotations about z by the angles ``a`` (N,): an (N, 3, 3) stack."""
     c, s = np.cos(a), np.sin(a)
-    z, o = np.zeros_like(a), np.ones_like(a)
-    return np.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(-1, 3, 3)
+    # (entries written into zeros: a frame at a time, stacking nine arrays cost more)
+    out = np.zeros((len(a), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1], out[:, 2, 2] = c, -s, s, c, 1.0
+    return out
 
 
 def _ry(a: FloatArray) -> FloatArray:
     """Rotations about y by the angles ``a`` (N,): an (N, 3, 3) stack."""
     c, s = np.cos(a), np.sin(a)
-    z, o = np.zeros_like(a), np.ones_like(a)
-    return np.stack([c, z, s, z, o, z, -s, z, c], axis=-1).reshape(-1, 3, 3)
+    out = np.zeros((len(a), 3, 3))
+    out[:, 0, 0], out[:, 0, 2], out[:, 1, 1], out[:, 2, 0], out[:, 2, 2] = c, s, 1.0, -s, c
+    return out
 
 
 class AttitudeList(MotionBase):

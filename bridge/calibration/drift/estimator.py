@@ -389,6 +389,8 @@ class DriftEstimator:
         xf = np.zeros((n, 5))
         xf[:, 3] = 1.0
         px, py, pw = self._priors(theta, ref)
+        pxw = px * pw[:, None]  # the priors' rows are the same every iteration
+        prior_a, prior_r = pxw.T @ px, pxw.T @ py
         for it in range(10):
             d = h - theta[:3]
             dn = np.linalg.norm(d, axis=1)
@@ -402,11 +404,13 @@ class DriftEstimator:
                     rv = yv - xv @ theta
                     scale_v = max(_MAD * float(np.median(np.abs(rv))), s.dip_sigma_floor_G)
                     wv = _tukey(rv / scale_v) / scale_v**2
-            A = (xf * wf[:, None]).T @ xf + (px * pw[:, None]).T @ px
-            r = (xf * wf[:, None]).T @ yf + (px * pw[:, None]).T @ py
+            xw = (xf * wf[:, None]).T
+            A = xw @ xf + prior_a
+            r = xw @ yf + prior_r
             if xv is not None and wv is not None:
-                A += (xv * wv[:, None]).T @ xv
-                r += (xv * wv[:, None]).T @ yv
+                vw = (xv * wv[:, None]).T
+                A += vw @ xv
+                r += vw @ yv
             try:
                 cov = np.linalg.inv(A)
             except np.linalg.LinAlgError:
