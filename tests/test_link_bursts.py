@@ -97,3 +97,20 @@ def test_a_command_is_not_held(peer: Peer) -> None:
         for _ in range(20):
             assert link.command("PAR", "GET") == PARAMS
         assert time.monotonic() - t0 < 20 * MAX_BURST_S / 2
+
+
+def test_a_failing_due_time_is_said_once_and_every_frame_read_as_it_comes(
+    peer: Peer, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken() -> float:
+        raise RuntimeError("an output's bug")
+
+    col = Collector()
+    with make_link(peer.path, col, rate_hz=RATE_HZ, stale_after=2.0, due_at=broken) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        mark = len(col.items)
+        assert wait_until(lambda: len(col.items) - mark >= RATE_HZ, 5.0)
+        assert link.state is LinkState.STREAMING  # the reader lives on
+        sizes = [n for _, n in reads(col, mark)]
+        assert sorted(sizes)[len(sizes) // 2] == 1  # no bursts without a due time
+    assert sum("due_at failed" in r.getMessage() for r in caplog.records) == 1

@@ -79,6 +79,23 @@ def test_streams_frames_runs_handshake_and_counts() -> None:
     )
 
 
+def test_quiet_only_while_streaming_with_no_command_in_flight() -> None:
+    # What a driver reading in bursts asks before it lets bytes wait in the port's buffer.
+    h, dev = scripted(rate_hz=20)
+    assert not h.machine.quiet  # not streaming yet
+    assert h.run_until(lambda: streaming(h), 5.0)
+    assert h.run_until(lambda: handshake_done(dev) and h.machine.params is not None, 5.0)
+    assert h.machine.quiet
+    dev.handlers["PAR,GET"] = lambda cmd, n: [(0.2, encode(PARAMS))]  # answered 0.2 s later
+    command = h.submit("PAR", "GET")
+    assert not h.machine.quiet  # a command in flight: its answer must not wait
+    assert h.run_until(lambda: command.done, 5.0) and command.result() == PARAMS
+    assert h.machine.quiet
+    dev.streaming = False
+    assert h.run_until(lambda: h.machine.state is LinkState.STALE, 5.0)
+    assert not h.machine.quiet
+
+
 def test_the_second_attitude_frame_makes_a_stream_answers_do_not() -> None:
     dev = ScriptedCompass()
     dev.streaming = False

@@ -410,8 +410,7 @@ class CompassLink:
             if not data:
                 continue
             with self._lock:
-                t_read = clock()
-                received = machine.receive(data, t_read)
+                received = machine.receive(data, clock())
                 self._act()
                 quiet = machine.quiet
             for item in received:
@@ -434,7 +433,13 @@ class CompassLink:
         output carries is as prompt as ever. A command (or close) ends the wait at once."""
         assert self._due_at is not None
         now = self._clock()
-        until = min(self._due_at() - BURST_LEAD_S, now + MAX_BURST_S)
+        try:
+            due = self._due_at()
+        except Exception:  # an output's bug must not stop the reader: read as frames come
+            log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
+            self._due_at = None
+            return
+        until = min(due - BURST_LEAD_S, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
         if until > now:
