@@ -186,7 +186,7 @@ class DeviceConfig(Section):
         None,
         "read the port in bursts between the outputs' due times: one wake-up for the frames "
         "no output sends (less CPU), the one an output sends read as it comes; false: every "
-        "frame as it arrives",
+        "frame as it arrives (so is a replay without replay_realtime)",
     )
 
     def finish(self, ctx: LoadContext) -> Self:

@@ -488,6 +488,26 @@ def test_replay_pace_follows_device_replay_realtime(
         assert span < 1.0 and took < DEADLINE_S, span
 
 
+@pytest.mark.integration
+def test_a_replay_as_fast_as_it_decodes_is_not_held_for_due_times(
+    tmp_path: Path, running: Callable[[Daemon], Daemon]
+) -> None:
+    # An output that could send only now and then (here: never) lets the link read in
+    # bursts, holding the port up to MAX_BURST_S between reads -- which would pace a
+    # replay meant to go at once (40 kB: ten reads, two seconds held).
+    rec = tmp_path / "run.cbrec"
+    lines = gmr_lines(UnitErrors.ideal(), [float(y % 360) for y in range(0, 600 * 7, 7)])
+    with RecordingWriter(rec, "/dev/ttyUSB0", 115200, start_wall=0.0) as w:
+        for i, line in enumerate(lines):
+            w.write(i * 0.01, line)
+    out = Collect()
+    out.due_at = math.inf  # type: ignore[misc]  # an output that sends on its own clock
+    cfg = config(tmp_path, f"replay:{rec}", "device.replay_realtime=false")
+    running(build_daemon(cfg, [out]))
+    samples = out.wait_for(len(lines))
+    assert samples[-1].t - samples[0].t < 1.0
+
+
 # --- console line ------------------------------------------------------------------------
 
 

@@ -291,12 +291,19 @@ def build_daemon(
         # The pipeline runs in the link's reader thread: no second thread to wake for
         # every frame (see bridge.app.pipeline).
         on_frame=bridge.pipeline.on_frame,
-        due_at=bridge.pipeline.due_at_time if cfg.device.read_bursts else None,
+        due_at=bridge.pipeline.due_at_time if _read_bursts(cfg) else None,
     )
     bridge.connect(link)
     bridge.pipeline.set_outputs(outputs)
     _log_start_state(cfg, bridge, documents)
     return Daemon(bridge, link, port, simulator, intro)
+
+
+def _read_bursts(cfg: Config) -> bool:
+    """Whether the link reads in bursts: as configured, except for a replay played as fast
+    as it decodes (its frames come from no clock the outputs' due times could follow)."""
+    dev = cfg.device
+    return dev.read_bursts and (dev.replay_realtime or not dev.port.startswith("replay:"))
 
 
 def _truth(daemon: Daemon) -> Callable[[CompassSample], float | None] | None:
