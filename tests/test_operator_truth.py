@@ -87,11 +87,13 @@ class TruthOffsets:
 def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    # 10x, not the rigs' 20x: the heading after calibrating is judged while the unit
+    # 5x, not the rigs' 20x: the heading after calibrating is judged while the unit
     # tumbles, and tilt "auto" needs the frames' timing (a machine stall of 50 ms is 1 s of
     # simulated time at 20x; up to 3 deg RMS was seen then, under 1 deg without stalls).
+    # At 10x, 3 runs in 8 showed a few samples 30 deg off just after the switch (the rest
+    # within 0.7 deg); at 5x none in 6 (docs and the closing note: cause not established).
     rig = rigs(
-        tmp_path, fast=True, speed=10.0, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
+        tmp_path, fast=True, speed=5.0, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
     )
     offsets = TruthOffsets(rig.fw)
     rig.daemon.bridge.pipeline.set_outputs([rig.out, offsets])
