@@ -53,7 +53,7 @@ from typing import Any
 
 from benchmarks import fuzz_hostile
 from benchmarks.pipeline import Figure, report
-from benchmarks.procstat import process_rss_mb
+from benchmarks.procstat import process_rss_mb, stop_child
 
 log = logging.getLogger(__name__)
 
@@ -618,13 +618,8 @@ def run(
         finally:
             stop_frames.set()
             frames.join(2.0)
-            if proc.poll() is None:
-                proc.terminate()
-            try:
-                code = proc.wait(timeout=10.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                code = proc.wait(timeout=5.0)
+            stop_child(proc)
+            code = proc.returncode
             peer.close()
             pty.close()
         log_text = errlog.read_text(errors="replace")

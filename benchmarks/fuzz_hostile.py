@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.pipeline import Figure
-from benchmarks.procstat import process_rss_mb
+from benchmarks.procstat import process_rss_mb, stop_child
 
 log = logging.getLogger(__name__)
 
@@ -124,13 +124,7 @@ def _daemon(
     try:
         yield proc, fw, errlog
     finally:
-        if proc.poll() is None:
-            proc.terminate()
-        try:
-            proc.wait(10.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5.0)
+        stop_child(proc)
         sim.stop()
 
 

@@ -55,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb
+from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb, stop_child
 
 log = logging.getLogger(__name__)
 
@@ -469,12 +469,7 @@ def _run_child(
             rss, hwm = process_rss_mb(proc.pid)
             n1 = len(tap.received)
         finally:
-            proc.terminate()
-            try:
-                _, err = proc.communicate(timeout=10.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                _, err = proc.communicate(timeout=5.0)
+            err = stop_child(proc)
             tap.stop()
             timed.pty.stop()
         if err:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import os
 import socket
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -26,6 +27,19 @@ def process_cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     # utime, stime are fields 14, 15 (1-based) of stat; after the ")" they are 12th/13th.
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def stop_child(proc: subprocess.Popen[bytes]) -> bytes:
+    """Stop a benchmark's child: SIGTERM, 10 s to exit, then SIGKILL. Returns what it wrote
+    to a piped stderr (``b""`` when not piped); its exit status is ``proc.returncode``."""
+    if proc.poll() is None:
+        proc.terminate()
+    try:
+        _, err = proc.communicate(timeout=10.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate(timeout=5.0)
+    return err or b""
 
 
 def process_rss_mb(pid: int) -> tuple[float, float]:

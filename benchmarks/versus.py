@@ -51,7 +51,7 @@ from benchmarks.pipeline import (
     match_latencies,
     report,
 )
-from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb
+from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb, stop_child
 
 log = logging.getLogger(__name__)
 
@@ -171,12 +171,7 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
             loadavg = " ".join(Path("/proc/loadavg").read_text().split()[:3])
             rss = process_rss_mb(proc.pid)[0]
         finally:
-            proc.terminate()
-            try:
-                _, err = proc.communicate(timeout=10.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                _, err = proc.communicate(timeout=5.0)
+            err = stop_child(proc)
             tap.stop()
             timed.pty.stop()
         if err:

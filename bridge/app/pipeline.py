@@ -100,12 +100,7 @@ class Pipeline:
         """The earliest time an output could send a sample at once (``min`` of the
         outputs' :attr:`~bridge.app.sample.Output.due_at`; ``+inf`` with none): frames
         before it may be read in bursts, the first after it must be handled as it comes."""
-        due = math.inf
-        for out in self.outputs:
-            d = out.due_at
-            if d < due:
-                due = d
-        return due
+        return min((out.due_at for out in self.outputs), default=math.inf)
 
     def set_outputs(self, outputs: Sequence[Output]) -> None:
         """The outputs every sample goes to, in order (one reference store)."""
