@@ -232,8 +232,10 @@ def test_a_report_without_parameters_gives_no_figures_not_a_crash() -> None:
 def test_a_shaking_hand_is_told_on_the_progress_line_and_the_fit_fails(
     tmp_path: Path, rigs: Callable[..., Rig], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    # a hand far too rough for a calibration: 0.3 g RMS per axis on a 90 deg/s tumble
-    motion = HandShake(Tumble(4, rate_dps=90.0, reference_ned=FIELD.ned_G), 0.3, seed=4)
+    # a hand far too rough for a calibration: 0.5 g RMS per axis on a 90 deg/s tumble. At
+    # 0.3 g the predicted heading error over the window the tool happens to catch ranged
+    # 0.9-4.2 deg (limit 1.0), so the verdict hung on timing; at 0.5 g it was 1.6-4.4 deg.
+    motion = HandShake(Tumble(4, rate_dps=90.0, reference_ned=FIELD.ned_G), 0.5, seed=4)
     rig = rigs(tmp_path, fast=True, motion=motion, seed=4)
     before = rig.daemon.bridge.engine.calibration
     code = calibrate_live(rig, "--yes", "--progress")
