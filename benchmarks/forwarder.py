@@ -26,22 +26,27 @@ def main() -> None:
     ap.add_argument("--baud", type=int, default=115200)
     args = ap.parse_args()
     ser = serial.Serial(args.port, args.baud, timeout=1.0)
-    ser.write(b"$PGMRQ,RATE,100*%02X\r\n" % _checksum(b"PGMRQ,RATE,100"))
+    ser.write(RATE_100)
     mav = mavutil.mavlink_connection(f"udpout:{args.udp}", source_system=1)
     t0 = time.monotonic()
     while True:
         m = PGMRA.match(ser.readline())
         if m is None:
             continue
-        mx, my, mz, ax, ay, az = (float(v) - ZERO for v in m.groups()[1:])
-        pitch = -math.asin(max(-1.0, min(1.0, ax / math.sqrt(ax * ax + ay * ay + az * az))))
-        roll = math.atan2(ay, az)
-        x = mx * math.cos(pitch) + my * math.sin(pitch) * math.sin(roll)
-        x += mz * math.sin(pitch) * math.cos(roll)
-        y = my * math.cos(roll) - mz * math.sin(roll)
-        yaw = math.atan2(-y, x)
+        roll, pitch, yaw = attitude(m.groups()[1:])
         ms = int(1000 * (time.monotonic() - t0))
         mav.mav.attitude_send(ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
+
+
+def attitude(counts: tuple[bytes, ...]) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad) from the six count fields, the datasheet's tilt compensation."""
+    mx, my, mz, ax, ay, az = (float(v) - ZERO for v in counts)
+    pitch = -math.asin(max(-1.0, min(1.0, ax / math.sqrt(ax * ax + ay * ay + az * az))))
+    roll = math.atan2(ay, az)
+    x = mx * math.cos(pitch) + my * math.sin(pitch) * math.sin(roll)
+    x += mz * math.sin(pitch) * math.cos(roll)
+    y = my * math.cos(roll) - mz * math.sin(roll)
+    return roll, pitch, math.atan2(-y, x)
 
 
 def _checksum(body: bytes) -> int:
@@ -49,6 +54,9 @@ def _checksum(body: bytes) -> int:
     for b in body:
         cs ^= b
     return cs
+
+
+RATE_100 = b"$PGMRQ,RATE,100*%02X\r\n" % _checksum(b"PGMRQ,RATE,100")
 
 
 if __name__ == "__main__":

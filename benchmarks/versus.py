@@ -8,7 +8,10 @@ ATTITUDE to a UDP socket of this process:
   (a TCP listener on 127.0.0.1) on, at the shipped stream rates
   (config/compass-bridge.toml: ATTITUDE 10 Hz, ...);
 * **forwarder** -- :mod:`benchmarks.forwarder`, ~40 lines: pyserial ``readline``,
-  a regex, the datasheet's formulas, ``mavutil`` ``udpout``, one ATTITUDE a frame.
+  a regex, the datasheet's formulas, ``mavutil`` ``udpout``, one ATTITUDE a frame;
+* **floor** (``--with-floor``) -- :mod:`benchmarks.floor`, the forwarder without
+  pyserial and ``mavutil``: the least a Python program does for that output, so its
+  latency is what no program reaches in this harness on this machine.
 
 Runs are interleaved (bridge, forwarder, bridge, forwarder, ...; ``--rounds`` of
 each, the first program alternating between rounds) and each figure is the median
@@ -81,7 +84,16 @@ def forwarder_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
     ]
 
 
-COMMANDS: dict[str, Command] = {"bridge": bridge_command, "forwarder": forwarder_command}
+def floor_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
+    """The least a Python program does for the same output (:mod:`benchmarks.floor`)."""
+    return [sys.executable, "-m", "benchmarks.floor", str(link), "--udp", f"127.0.0.1:{udp_port}"]
+
+
+COMMANDS: dict[str, Command] = {
+    "bridge": bridge_command,
+    "forwarder": forwarder_command,
+    "floor": floor_command,
+}
 
 
 @dataclass(slots=True)
@@ -284,6 +296,17 @@ def figures(runs: dict[str, list[LiveRun]]) -> list[Figure]:
                 },
             )
         )
+    if "floor" in runs and "forwarder" in runs:
+        # What no Python program in this harness gets below: the p99 target means
+        # little where this ratio is above it.
+        out.append(
+            Figure(
+                "floor_p99_ratio",
+                med("floor", "p99_ms") / med("forwarder", "p99_ms"),
+                "floor / forwarder",
+                detail={"pooled": round(pooled_p99("floor") / pooled_p99("forwarder"), 3)},
+            )
+        )
     return out
 
 
@@ -295,13 +318,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--rounds", type=int, default=5, help="runs of each program")
     ap.add_argument("--duration", type=float, default=20.0, help="seconds measured per run")
-    ap.add_argument("--only", choices=PROGRAMS, help="run one program only (its figures, no ratio)")
+    ap.add_argument("--only", choices=tuple(COMMANDS), help="run one program only (its figures, no ratio)")
+    ap.add_argument(
+        "--with-floor",
+        action="store_true",
+        help="also run benchmarks.floor (os.read -> ATTITUDE, nothing else): the harness's floor",
+    )
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
     args = ap.parse_args(argv)
     if args.rounds < 1 or args.duration <= 0:
         ap.error("--rounds >= 1, --duration > 0")
     logging.disable(logging.WARNING)
-    programs = (args.only,) if args.only else PROGRAMS
+    programs = (args.only,) if args.only else PROGRAMS + (("floor",) if args.with_floor else ())
     runs = interleaved(args.rounds, args.duration, programs, echo=args.json != "-")
     logging.disable(logging.NOTSET)
     extra: dict[str, Any] = {

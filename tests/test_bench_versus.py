@@ -50,6 +50,19 @@ def test_figures_are_medians_and_their_ratios() -> None:
     assert figs["bridge_p99"].detail["samples"] == 3
 
 
+def test_the_floor_is_set_against_the_forwarder_without_a_target() -> None:
+    runs = {
+        "bridge": [_run("bridge", 2.0, 0.8, [0.8])],
+        "forwarder": [_run("forwarder", 5.0, 1.0, [1.0]), _run("forwarder", 5.0, 1.2, [1.2])],
+        "floor": [_run("floor", 1.0, 0.5, [0.5]), _run("floor", 1.0, 0.4, [0.4])],
+    }
+    figs = {f.name: f for f in figures(runs)}
+    assert figs["floor_p99_ratio"].value == pytest.approx(0.45 / 1.1)
+    assert figs["floor_p99_ratio"].target is None
+    assert figs["p99_ratio"].value == pytest.approx(0.8 / 1.1)  # the floor does not enter it
+    assert figures({"floor": runs["floor"]})[-1].name == "floor_p99"  # no forwarder, no ratio
+
+
 def test_one_program_alone_has_no_ratio() -> None:
     figs = figures({"bridge": [_run("bridge", 1.0, 0.5, [0.5])]})
     assert [f.name for f in figs] == ["bridge_cpu", "bridge_p99"]
@@ -91,3 +104,13 @@ def test_short_run_of_both_programs_matches_every_attitude(tmp_path: Path) -> No
         ratio, figs["bridge_cpu"]["value"] / figs["forwarder_cpu"]["value"], rel_tol=1e-9
     )
     assert code == (0 if doc["passed"] else 1)
+
+
+@pytest.mark.integration
+def test_the_floor_sends_every_frame_s_attitude(tmp_path: Path) -> None:
+    out = tmp_path / "floor.json"
+    versus.main(["--only", "floor", "--rounds", "1", "--duration", "2", "--json", str(out)])
+    (run,) = json.loads(out.read_text())["runs"]["floor"]
+    # every datagram names the frame it came from (its yaw), one a frame at 100 Hz
+    assert run["unmatched"] == 0 and run["attitude_hz"] > 80.0
+    assert 0.0 < run["p50_ms"] <= run["p99_ms"] < 1000.0
