@@ -351,3 +351,20 @@ def test_observed_transport_beats_and_swaps() -> None:
         wt.read(10, 0.05)
     assert inner.closed == 1 and wt.name == "/dev/new"
     assert wt.read(10, 0.05) == b"x"
+
+
+def test_without_a_manager_no_thread_wakes_to_build_statuses() -> None:
+    calls: list[str] = []
+
+    def status() -> str:
+        calls.append("status")
+        return "streaming"
+
+    svc = ServiceNotifier(Notifier.from_env({}), Liveness(), status=status, streaming=lambda: True)
+    before = set(threading.enumerate())
+    svc.start()
+    try:
+        assert [t for t in threading.enumerate() if t not in before and t.name == "sd-notify"] == []
+        assert calls == [] and not svc.ready_sent  # nothing built, nothing claimed sent
+    finally:
+        svc.close()
