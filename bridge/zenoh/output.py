@@ -73,9 +73,7 @@ _CHANGE_POLL_S: Final = 0.5
 _CLAIM_SETTLE_S: Final = 0.3
 
 #: A sensor stream: its name (the key under the prefix), its rate cap, its document builder.
-_SensorStream = tuple[
-    str, Decimator, "Callable[[CompassSample, schema.SampleTimes], dict[str, Any] | None]"
-]
+_SensorStream = tuple[str, Decimator, Callable[..., "dict[str, Any] | None"]]
 
 
 class ZenohOutput:
@@ -117,18 +115,13 @@ class ZenohOutput:
         self._started_unix = wall()
         self._unsubscribe: list[Callable[[], None]] = []
         self._mirror_detach: Callable[[], None] = no_unsubscribe
-        heading, attitude, imu = (
-            Decimator(settings.heading_rate_hz),
-            Decimator(settings.attitude_rate_hz),
-            Decimator(settings.imu_rate_hz),
+        st = settings
+        caps = tuple(
+            Decimator(hz) for hz in (st.heading_rate_hz, st.attitude_rate_hz, st.imu_rate_hz)
         )
-        self._decimators = (heading, attitude, imu)
+        self._decimators = caps
         #: The sensor streams in the order they go out: name, rate cap, document builder.
-        self._streams: tuple[_SensorStream, ...] = (
-            ("heading", heading, schema.heading_doc),
-            ("attitude", attitude, schema.attitude_doc),
-            ("imu", imu, schema.imu_doc),
-        )
+        self._streams = [(k, c, b) for (k, b), c in zip(schema.SENSOR_DOCS, caps, strict=True)]
         # Before this time no stream takes a sample (publish's one-comparison early out).
         self._opens_at = -math.inf
         self._rate = RateMeter(window=2.0)
@@ -439,7 +432,6 @@ class ZenohOutput:
         self._keep.clear()
 
     def _publish_sample(self, sample: CompassSample, due: list[_SensorStream]) -> None:
-        """Build and put the documents of the ``due`` streams, one after the other."""
         session = self._session
         if session is None:  # closed since publish() looked at ``connected``
             self.counters.unsent += 1
@@ -449,17 +441,10 @@ class ZenohOutput:
         times = schema.SampleTimes(
             t, self._wall() - (self._clock() - t), ts.to_string_rfc3339_lossy()
         )
-        publishers, published = self._publishers, self.counters.published
         for stream, _cap, build in due:
             doc = build(sample, times)
-            if doc is None:
-                continue
-            try:  # as _put, without its call per document
-                publishers[stream].put(schema.dumps(doc), timestamp=ts)
-            except Exception as e:  # a closed/broken session: count, say once, carry on
-                self._put_failed(stream, e)
-            else:
-                published[stream] = published.get(stream, 0) + 1
+            if doc is not None:
+                self._put(stream, doc, ts)
 
     def _drain_events(self) -> bool:
         """Publish the queued events; True if there were any."""

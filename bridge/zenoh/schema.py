@@ -337,6 +337,10 @@ def imu_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | None:
     }
 
 
+#: The sensor streams' document builders, by key under the prefix, in the order they go out.
+SENSOR_DOCS: Final = (("heading", heading_doc), ("attitude", attitude_doc), ("imu", imu_doc))
+
+
 # ---------------------------------------------------------------------------
 # Status, events, query answers
 # ---------------------------------------------------------------------------
