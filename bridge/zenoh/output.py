@@ -72,6 +72,9 @@ _CHANGE_POLL_S: Final = 0.5
 #: After declaring our instance token: how long the others' (already there) take to arrive.
 _CLAIM_SETTLE_S: Final = 0.3
 
+#: A sensor stream: its name (the key under the prefix), its rate cap, its document builder.
+_SensorStream = tuple[str, Decimator, Callable[..., "dict[str, Any] | None"]]
+
 
 class ZenohOutput:
     """Publishes the bridge on Zenoh (see the module docstring). An :class:`~bridge.app.sample.Output`."""
@@ -112,11 +115,13 @@ class ZenohOutput:
         self._started_unix = wall()
         self._unsubscribe: list[Callable[[], None]] = []
         self._mirror_detach: Callable[[], None] = no_unsubscribe
-        self._decimators = {
-            "heading": Decimator(settings.heading_rate_hz),
-            "attitude": Decimator(settings.attitude_rate_hz),
-            "imu": Decimator(settings.imu_rate_hz),
-        }
+        st = settings
+        caps = tuple(
+            Decimator(hz) for hz in (st.heading_rate_hz, st.attitude_rate_hz, st.imu_rate_hz)
+        )
+        self._decimators = caps
+        #: The sensor streams in the order they go out: name, rate cap, document builder.
+        self._streams = [(k, c, b) for (k, b), c in zip(schema.SENSOR_DOCS, caps, strict=True)]
         # Before this time no stream takes a sample (publish's one-comparison early out).
         self._opens_at = -math.inf
         self._rate = RateMeter(window=2.0)
@@ -171,15 +176,15 @@ class ZenohOutput:
             # comparison instead of asking three decimators.
             self.counters.decimated += 3
             return
-        decimators = self._decimators.values()
-        wanted = tuple(name for name, dec in self._decimators.items() if dec.accept(t))
-        self._opens_at = min(dec.opens_at for dec in decimators)
-        if len(wanted) < 3:
-            self.counters.decimated += 3 - len(wanted)
-            if not wanted:
+        due = [stream for stream in self._streams if stream[1].accept(t)]
+        heading, attitude, imu = self._decimators
+        self._opens_at = min(heading.opens_at, attitude.opens_at, imu.opens_at)
+        if len(due) < 3:
+            self.counters.decimated += 3 - len(due)
+            if not due:
                 return
         try:
-            self._publish_sample(sample, wanted)
+            self._publish_sample(sample, due)
         except Exception as e:  # the session closing under us (a stop, a reload): count it
             self._put_failed("samples", e)
 
@@ -426,24 +431,18 @@ class ZenohOutput:
         self._mirror_publishers.clear()
         self._keep.clear()
 
-    def _publish_sample(self, sample: CompassSample, wanted: tuple[str, ...]) -> None:
+    def _publish_sample(self, sample: CompassSample, due: list[_SensorStream]) -> None:
         session = self._session
         if session is None:  # closed since publish() looked at ``connected``
             self.counters.unsent += 1
             return
         ts = session.new_timestamp()
+        t = sample.t
         times = schema.SampleTimes(
-            t_monotonic=sample.t,
-            t_unix=self._wall() - (self._clock() - sample.t),
-            zenoh_time=ts.to_string_rfc3339_lossy(),
+            t, self._wall() - (self._clock() - t), ts.to_string_rfc3339_lossy()
         )
-        for stream in wanted:
-            if stream == "heading":
-                doc: dict[str, Any] | None = schema.heading_doc(sample, times)
-            elif stream == "attitude":
-                doc = schema.attitude_doc(sample, times)
-            else:
-                doc = schema.imu_doc(sample, times)
+        for stream, _cap, build in due:
+            doc = build(sample, times)
             if doc is not None:
                 self._put(stream, doc, ts)
 

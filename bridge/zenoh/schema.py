@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
 
 if TYPE_CHECKING:  # types only: a consumer (monitor) must not pull in the daemon and numpy
@@ -169,9 +168,13 @@ _ANGLE_DIGITS = 3  # 0.001 deg: far below the compass's noise, keeps payloads sh
 _FIELD_DIGITS = 6  # 1 microgauss = 0.1 nT
 _ACCEL_DIGITS = 5  # 10 micro-g
 _QUAT_DIGITS = 7
+# Every sensor document starts with the same head, in this order: schema, version, seq,
+# t_monotonic, t_unix (SampleTimes.wire), zenoh_time.
+_HEADING_VERSION: Final = VERSIONS[HEADING]
+_ATTITUDE_VERSION: Final = VERSIONS[ATTITUDE]
+_IMU_VERSION: Final = VERSIONS[IMU]
 
 
-@dataclass(frozen=True, slots=True)
 class SampleTimes:
     """When a sample happened, in the clocks a consumer can use.
 
@@ -179,32 +182,27 @@ class SampleTimes:
     sample's own time); ``t_unix`` the same instant on the wall clock;
     ``zenoh_time`` the publication's Zenoh HLC timestamp as RFC 3339 text
     (also carried as the Zenoh sample's timestamp), or None.
+
+    A plain class, not a frozen dataclass: one is made for every published
+    sample, and a frozen dataclass's ``__init__`` sets each field through
+    ``object.__setattr__`` (measured: the dearest step of a sample's
+    documents after the JSON itself). Treat it as read-only.
     """
 
-    t_monotonic: float
-    t_unix: float
-    zenoh_time: str | None = None
-    #: ``(t_monotonic, t_unix)`` rounded for the wire: once per sample, not per document.
-    wire: tuple[float, float] = field(init=False, repr=False, compare=False)
+    __slots__ = ("t_monotonic", "t_unix", "wire", "zenoh_time")
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "wire", (round(self.t_monotonic, 6), round(self.t_unix, 6)))
+    def __init__(self, t_monotonic: float, t_unix: float, zenoh_time: str | None = None) -> None:
+        self.t_monotonic = t_monotonic
+        self.t_unix = t_unix
+        self.zenoh_time = zenoh_time
+        #: ``(t_monotonic, t_unix)`` rounded for the wire: once per sample, not per document.
+        self.wire = (round(t_monotonic, 6), round(t_unix, 6))
 
-
-def _stamped(schema: str, sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
-    """The schema name, version, sequence and times: the head of every sensor-stream document.
-
-    The builders add their fields to it one by one (no second dict to merge in).
-    """
-    t_monotonic, t_unix = times.wire
-    return {
-        "schema": schema,
-        "version": VERSIONS[schema],
-        "seq": sample.seq,
-        "t_monotonic": t_monotonic,
-        "t_unix": t_unix,
-        "zenoh_time": times.zenoh_time,
-    }
+    def __repr__(self) -> str:
+        return (
+            f"SampleTimes(t_monotonic={self.t_monotonic!r}, t_unix={self.t_unix!r}, "
+            f"zenoh_time={self.zenoh_time!r})"
+        )
 
 
 def quality_flags(sample: CompassSample) -> dict[str, bool]:
@@ -224,22 +222,38 @@ def heading_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
     # The published heading is the magnetic or the true one, the same float object (the
     # engine and the heading-only path publish one of the two): rounded once. Identity, not
     # equality: -0.0 == 0.0, and they would not print alike.
-    r_heading = _r(heading, _ANGLE_DIGITS)
-    doc = _stamped(HEADING, sample, times)
-    doc["source"] = sample.source
-    doc["heading_deg"] = r_heading
-    doc["heading_reference"] = sample.heading_reference
-    doc["heading_magnetic_deg"] = r_heading if mag is heading else _r(mag, _ANGLE_DIGITS)
-    doc["heading_true_deg"] = r_heading if true is heading else _r(true, _ANGLE_DIGITS)
-    doc["declination_deg"] = _r(sample.declination_deg, _ANGLE_DIGITS)
-    doc["device_heading_deg"] = _r(sample.device_heading_deg, _ANGLE_DIGITS)
-    doc["flags"] = quality_flags(sample)
-    # where roll and pitch came from, and the heading error that tilt leaves
-    doc["tilt"] = {
-        "source": sample.tilt_source,
-        "heading_error_deg": _r(sample.heading_sigma_deg, _ANGLE_DIGITS),
+    r = _r
+    r_heading = r(heading, _ANGLE_DIGITS)
+    a = sample.attitude
+    t_monotonic, t_unix = times.wire
+    # One dict display per document, in the published key order: a document is built for
+    # every published sample, and growing a dict key by key resizes it on the way.
+    return {
+        "schema": HEADING,
+        "version": _HEADING_VERSION,
+        "seq": sample.seq,
+        "t_monotonic": t_monotonic,
+        "t_unix": t_unix,
+        "zenoh_time": times.zenoh_time,
+        "source": sample.source,
+        "heading_deg": r_heading,
+        "heading_reference": sample.heading_reference,
+        "heading_magnetic_deg": r_heading if mag is heading else r(mag, _ANGLE_DIGITS),
+        "heading_true_deg": r_heading if true is heading else r(true, _ANGLE_DIGITS),
+        "declination_deg": r(sample.declination_deg, _ANGLE_DIGITS),
+        "device_heading_deg": r(sample.device_heading_deg, _ANGLE_DIGITS),
+        "flags": {  # quality_flags(sample), without the call
+            "saturated": sample.saturated,
+            "degraded": bool(a is not None and a.degraded),
+            "disturbed": bool(a is not None and a.disturbed),
+            "accelerating": bool(a is not None and a.accelerating),
+        },
+        # where roll and pitch came from, and the heading error that tilt leaves
+        "tilt": {
+            "source": sample.tilt_source,
+            "heading_error_deg": r(sample.heading_sigma_deg, _ANGLE_DIGITS),
+        },
     }
-    return doc
 
 
 def attitude_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | None:
@@ -263,20 +277,28 @@ def attitude_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | 
     else:
         return None
     w, x, y, z = q
-    doc = _stamped(ATTITUDE, sample, times)
-    doc["source"] = sample.source
-    doc["roll_deg"] = _r(roll, _ANGLE_DIGITS)
-    doc["pitch_deg"] = _r(pitch, _ANGLE_DIGITS)
-    doc["yaw_deg"] = _r(sample.heading_deg, _ANGLE_DIGITS)
-    doc["yaw_reference"] = sample.heading_reference
-    doc["quaternion"] = {
-        "w": _r(w, _QUAT_DIGITS),
-        "x": _r(x, _QUAT_DIGITS),
-        "y": _r(y, _QUAT_DIGITS),
-        "z": _r(z, _QUAT_DIGITS),
+    r = _r
+    t_monotonic, t_unix = times.wire
+    return {
+        "schema": ATTITUDE,
+        "version": _ATTITUDE_VERSION,
+        "seq": sample.seq,
+        "t_monotonic": t_monotonic,
+        "t_unix": t_unix,
+        "zenoh_time": times.zenoh_time,
+        "source": sample.source,
+        "roll_deg": r(roll, _ANGLE_DIGITS),
+        "pitch_deg": r(pitch, _ANGLE_DIGITS),
+        "yaw_deg": r(sample.heading_deg, _ANGLE_DIGITS),
+        "yaw_reference": sample.heading_reference,
+        "quaternion": {
+            "w": r(w, _QUAT_DIGITS),
+            "x": r(x, _QUAT_DIGITS),
+            "y": r(y, _QUAT_DIGITS),
+            "z": r(z, _QUAT_DIGITS),
+        },
+        "degraded": degraded,
     }
-    doc["degraded"] = degraded
-    return doc
 
 
 def raw_counts(sample: CompassSample) -> tuple[list[int] | None, list[int] | None]:
@@ -296,15 +318,27 @@ def imu_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | None:
     if a is None:
         return None
     raw_mag, raw_acc = raw_counts(sample)
-    doc = _stamped(IMU, sample, times)
-    doc["raw"] = {"mag": raw_mag, "accel": raw_acc}
-    doc["mag_G"] = _vec(a.mag_G, _FIELD_DIGITS)
-    doc["accel_g"] = _vec(a.accel_g, _ACCEL_DIGITS)
-    doc["field_strength_G"] = _r(a.field_strength_G, _FIELD_DIGITS)
-    doc["dip_deg"] = _r(a.dip_deg, _ANGLE_DIGITS)
-    doc["accel_norm_g"] = _r(a.accel_norm_g, _ACCEL_DIGITS)
-    doc["saturated"] = sample.saturated
-    return doc
+    r = _r
+    t_monotonic, t_unix = times.wire
+    return {
+        "schema": IMU,
+        "version": _IMU_VERSION,
+        "seq": sample.seq,
+        "t_monotonic": t_monotonic,
+        "t_unix": t_unix,
+        "zenoh_time": times.zenoh_time,
+        "raw": {"mag": raw_mag, "accel": raw_acc},
+        "mag_G": _vec(a.mag_G, _FIELD_DIGITS),
+        "accel_g": _vec(a.accel_g, _ACCEL_DIGITS),
+        "field_strength_G": r(a.field_strength_G, _FIELD_DIGITS),
+        "dip_deg": r(a.dip_deg, _ANGLE_DIGITS),
+        "accel_norm_g": r(a.accel_norm_g, _ACCEL_DIGITS),
+        "saturated": sample.saturated,
+    }
+
+
+#: The sensor streams' document builders, by key under the prefix, in the order they go out.
+SENSOR_DOCS: Final = (("heading", heading_doc), ("attitude", attitude_doc), ("imu", imu_doc))
 
 
 # ---------------------------------------------------------------------------
