@@ -27,7 +27,7 @@ from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.storage import StateStore
 from bridge.zenoh import schema
 from bridge.zenoh.monitor import FleetView
-from bridge.zenoh.services import calibration_state, run_calibration_command
+from bridge.zenoh.services import calibration_key, calibration_state, run_calibration_command
 
 FIELD = earth_field(*DEFAULT_LOCATION)
 SEED = 5
@@ -74,10 +74,13 @@ class Drive:
 
 
 def status_doc(d: Daemon) -> dict[str, object]:
+    cal = calibration_state(d.bridge.services)
+    # the output's cheap change key names the same state and source (a learned one too)
+    assert calibration_key(d.bridge.services) == (cal["state"], cal["source"])
     doc = schema.status_doc(
         d.bridge.status(),
         frame_rate_hz=10.0,
-        calibration=calibration_state(d.bridge.services),
+        calibration=cal,
         publisher={},
         t_unix=0.0,
         uptime_s=1.0,

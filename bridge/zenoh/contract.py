@@ -44,6 +44,8 @@ class FleetServices:
     * ``status`` -- the daemon's :class:`~bridge.app.sample.DaemonStatus`.
     * ``calibration_state`` -- a small JSON-ready dict for ``<prefix>/status``
       (``state``, ``source``, ``percent``, ``fitness_mG`` ...).
+    * ``calibration_key`` -- its ``(state, source)`` alone, cheaper (looked at twice
+      a second for a change); without it they are read from ``calibration_state``.
     * ``calibration`` -- ``{"calibration", "source", "report", "state"}`` for
       the ``<prefix>/calibration`` query.
     * ``params`` -- the parameter table (name -> value), or None without one.
@@ -57,6 +59,7 @@ class FleetServices:
 
     status: Callable[[], DaemonStatus]
     calibration_state: Callable[[], Mapping[str, Any]] = _no_state
+    calibration_key: Callable[[], tuple[Any, Any]] | None = None
     calibration: Callable[[], Mapping[str, Any]] | None = None
     params: Callable[[], Mapping[str, float]] | None = None
     run_command: Callable[[str, Mapping[str, Any]], CommandOutcome] | None = None
@@ -64,6 +67,13 @@ class FleetServices:
     subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
     emit_event: Callable[[Event], None] | None = None
     tilt_state: Callable[[], Mapping[str, Any]] | None = None  #: the tilt source (status)
+
+    def calibration_state_key(self) -> tuple[Any, Any]:
+        """``(state, source)`` of the calibration: ``calibration_key`` or ``calibration_state``'s."""
+        if self.calibration_key is not None:
+            return self.calibration_key()
+        cal = self.calibration_state()
+        return cal.get("state"), cal.get("source")
 
 
 @dataclass(slots=True)

@@ -520,8 +520,7 @@ class ZenohOutput:
         c = status.counters
         with self._rate_lock:  # fed at every look, so the frame rate is over the whole window
             self._rate.add(self._clock(), c.attitude_frames)
-        cal = self._safe(self.services.calibration_state, {})
-        return (status.state.value, cal.get("state"), cal.get("source"))
+        return (status.state.value, *self._safe(self.services.calibration_state_key, (None, None)))
 
     def _status_doc(self, *, sample_rate: bool = False) -> dict[str, Any]:
         """The status document; ``sample_rate`` (publisher thread only) feeds the rate meter."""
@@ -542,7 +541,7 @@ class ZenohOutput:
             tilt=self._safe(self.services.tilt_state, {}) if self.services.tilt_state else None,
         )
 
-    def _safe(self, fn: Callable[[], Mapping[str, Any]], default: Mapping[str, Any]) -> Any:
+    def _safe(self, fn: Callable[[], Any], default: Any) -> Any:
         try:
             return fn()
         except Exception:

@@ -20,6 +20,7 @@ from bridge.zenoh.contract import CommandOutcome, FleetServices
 if TYPE_CHECKING:
     from bridge.app.calibration.controller import CalibrationController
     from bridge.app.services import BridgeServices, SentMessage
+    from bridge.calibration.sessions.snapshot import CalibratorSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -31,14 +32,7 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
     """The small calibration summary ``<prefix>/status`` carries (``phase``: the calibrator's
     neutral phase -- idle, waiting, collecting, fitting, succeeded, failed, cancelled)."""
     snap = svc.calibrator.snapshot()
-    if snap.running:
-        state = "running"
-    elif snap.pending_accept:
-        state = "pending_accept"
-    elif snap.failure is not None:
-        state = "failed"
-    else:
-        state = "idle"
+    state = _state(snap)
     fit = snap.report.fit if snap.report is not None else None
     fitness = fit.fitness_mG if fit is not None and math.isfinite(fit.fitness_mG) else None
     return {
@@ -56,6 +50,27 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         # the drift monitor (bridge.app.calibration.drift): mode, state, change left, heading error
         "drift": svc.drift.status().to_dict(),
     }
+
+
+def calibration_key(svc: BridgeServices) -> tuple[str, str]:
+    """``(state, source)`` of :func:`calibration_state`, without the rest of the summary.
+
+    The status stream looks for a change twice a second; the whole summary (the drift
+    monitor's status, whether the calibration corrects iron) costs several times more
+    and is built only when a document goes out.
+    """
+    snap = svc.calibrator.snapshot()
+    return _state(snap), snap.calibration_source or svc.status().calibration_source
+
+
+def _state(snap: CalibratorSnapshot) -> str:
+    if snap.running:
+        return "running"
+    if snap.pending_accept:
+        return "pending_accept"
+    if snap.failure is not None:
+        return "failed"
+    return "idle"
 
 
 def calibration_info(svc: BridgeServices) -> dict[str, Any]:
@@ -160,6 +175,7 @@ def fleet_services(svc: BridgeServices) -> FleetServices:
     return FleetServices(
         status=svc.status,
         calibration_state=lambda: calibration_state(svc),
+        calibration_key=lambda: calibration_key(svc),
         calibration=lambda: calibration_info(svc),
         params=lambda: svc.params.values(),
         run_command=run_command,
