@@ -34,7 +34,8 @@ class FixedTilt:
     """A tilt policy that always answers the same estimate (its down: level)."""
 
     def __init__(self, source: str, heading_sigma_deg: float, manoeuvre: bool) -> None:
-        self.est = TiltEstimate((0.0, 0.0, 1.0), source, 1.0, heading_sigma_deg, 8.0, manoeuvre)  # type: ignore[arg-type]
+        accel = (0.0, math.sin(math.radians(8.0)), math.cos(math.radians(8.0)))
+        self.est = TiltEstimate((0.0, 0.0, 1.0), source, 1.0, heading_sigma_deg, accel, manoeuvre)  # type: ignore[arg-type]
 
     def tilt(self, mag: Vec3, accel: Vec3, t: float, *, field_ok: bool) -> TiltEstimate:
         return self.est

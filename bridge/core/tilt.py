@@ -73,16 +73,23 @@ class TiltEstimate:
     ``down`` is the unit gravity vector in vehicle axes; ``source`` one of
     :data:`TILT_SOURCES`; ``sigma_deg`` the tilt's 1-sigma error (the larger
     axis); ``heading_sigma_deg`` the heading error it gives (1 sigma);
-    ``accel_deg`` how far the accelerometer's own down is from the estimate;
-    ``manoeuvre`` whether the accelerometer is being distrusted (on any axis).
+    ``accel`` the accelerometer's own unit down this frame (:attr:`accel_deg`: how far
+    it is from the estimate); ``manoeuvre`` whether the accelerometer is being
+    distrusted (on any axis).
     """
 
     down: Vec3
     source: TiltSource
     sigma_deg: float
     heading_sigma_deg: float
-    accel_deg: float
+    accel: Vec3
     manoeuvre: bool
+
+    @property
+    def accel_deg(self) -> float:
+        """How far the accelerometer's own down is from the estimate, degrees (on
+        request: nothing on the per-frame path needs it)."""
+        return 0.0 if self.down is self.accel else angle_deg(self.accel, self.down)
 
 
 class TiltFilter:
@@ -692,6 +699,4 @@ class TiltFilter:
                     f2 = (ex * b2x + ey * b2y + ez * b2z) / en
                     var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
                 hs = math.sqrt(var if var > 0.0 else 0.0) * abs(mx * nx + my * ny + mz * nz) / en
-        off = 0.0 if nd is ahat else angle_deg(ahat, nd)
-        sig, h = math.degrees(sigma), math.degrees(hs)
-        return TiltEstimate(nd, source, sig, h, off, manoeuvre)
+        return TiltEstimate(nd, source, math.degrees(sigma), math.degrees(hs), ahat, manoeuvre)
