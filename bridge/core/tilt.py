@@ -347,9 +347,8 @@ class TiltFilter:
         if self._d is None or self._t is None:
             self._d, self._t = ahat, t
         else:  # frames read in one burst share their arrival: half the mean interval apart
-            # max(0, min(1, gap)), as comparisons (min() and max() are calls: every frame)
             gap = t - self._t
-            gap = gap if gap < 1.0 else 1.0
+            gap = gap if gap < 1.0 else 1.0  # max(0, min(1, gap)) as comparisons: every frame
             self._interval += 0.02 * ((gap if gap > 0.0 else 0.0) - self._interval)
             if t <= self._t:
                 t = self._t + 0.5 * max(self._interval, 0.005)
@@ -466,13 +465,8 @@ class TiltFilter:
                 self.held, self._d = [False, False], ahat
                 # Nothing from before the turn may be rolled back to, nor drifted from.
                 self._history.clear()
-                P = self._P
-                p0, p2 = P[0], P[2]
-                self._P = [
-                    _SPIN_FLOOR_VAR if p0 < _SPIN_FLOOR_VAR else p0,
-                    P[1],
-                    _SPIN_FLOOR_VAR if p2 < _SPIN_FLOOR_VAR else p2,
-                ]  # each at least the floor (max() as comparisons: every frame of a hand's)
+                P, f = self._P, _SPIN_FLOOR_VAR  # each variance at least f (max() as comparisons)
+                self._P = [f if P[0] < f else P[0], P[1], f if P[2] < f else P[2]]
                 if external is None:  # nothing to weigh: the frame's own down, its noise
                     w = _SPIN_MIN_WHITE if self._white < _SPIN_MIN_WHITE else self._white
                     return self._result(ahat, ahat, mhat, (w, 0.0, w), "accelerometer", False)
