@@ -243,7 +243,7 @@ def test_quiet_the_estimate_is_the_accelerometers() -> None:
     out = run(f, level(), still, 0.0, 20.0)
     est = out[-1][1]
     assert est.source == "accelerometer" and not est.manoeuvre
-    assert tilt_error(est, R) < 0.05
+    assert tilt_error(est, R) < 0.05 and est.accel_deg < 0.5
     assert est.heading_sigma_deg < 0.5
     assert f.learned_dip_deg == pytest.approx(FIELD.inclination_deg, abs=0.1)
 
@@ -266,6 +266,8 @@ def test_braking_the_held_tilt_beats_the_accelerometer(heading: float) -> None:
     assert raw > 10.0  # the accelerometer alone is this far off
     assert max(tilt_error(e, R) for e in during) < 3.0
     assert all(e.source == "magnetometer" and e.manoeuvre for e in during)
+    # ... and how far the accelerometer's own down is from it
+    assert max(e.accel_deg for e in during) == pytest.approx(raw, abs=3.0)
     if heading == 90.0:  # braking east, the held pitch is the tilt about north: it says so
         assert max(e.heading_sigma_deg for e in during) > 0.5
     after = out[-1][1]  # back to the accelerometer once it is over

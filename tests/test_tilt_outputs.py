@@ -34,7 +34,8 @@ class FixedTilt:
     """A tilt policy that always answers the same estimate (its down: level)."""
 
     def __init__(self, source: str, heading_sigma_deg: float, manoeuvre: bool) -> None:
-        self.est = TiltEstimate((0.0, 0.0, 1.0), source, 1.0, heading_sigma_deg, 8.0, manoeuvre)  # type: ignore[arg-type]
+        accel = (0.0, math.sin(math.radians(8.0)), math.cos(math.radians(8.0)))
+        self.est = TiltEstimate((0.0, 0.0, 1.0), source, 1.0, heading_sigma_deg, accel, manoeuvre)  # type: ignore[arg-type]
 
     def tilt(self, mag: Vec3, accel: Vec3, t: float, *, field_ok: bool) -> TiltEstimate:
         return self.est
@@ -162,3 +163,23 @@ def test_status_of_a_running_bridge_shows_its_tilt_source(tmp_path: Path) -> Non
     assert rec["tilt"]["autopilot_heard"] is False
     assert rec["tilt"]["frames"]["accelerometer"] > 0
     assert "tilt         accelerometer" in human.getvalue()
+
+
+def test_a_host_sample_carries_its_solution_field_by_field() -> None:
+    """``from_solution`` fills the sample's fields by position: each lands where it belongs."""
+    a = sample(None, 0.25).attitude  # rolled by the lateral pull: roll and pitch differ
+    assert a is not None
+    raw = (1, 2, 3, 4, 5, 6)
+    s = CompassSample.from_solution(
+        a, 42.0, seq=9, device_heading_deg=77.5, saturated=True, raw_counts=raw
+    )
+    assert (s.t, s.source, s.seq, s.device_heading_deg, s.saturated) == (
+        42.0, "host", 9, 77.5, True,
+    )  # fmt: skip
+    assert s.raw_counts == raw and s.attitude is a
+    assert s.heading_deg == a.heading_deg and s.heading_reference == a.heading_reference
+    assert s.heading_magnetic_deg == a.heading_magnetic_deg
+    assert s.heading_true_deg == a.heading_true_deg is not None
+    assert s.declination_deg == a.declination_deg == 5.0
+    assert s.pitch_deg == math.degrees(a.pitch) and s.roll_deg == math.degrees(a.roll)
+    assert s.pitch_deg != s.roll_deg  # (so a swap of the two would show)

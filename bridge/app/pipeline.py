@@ -147,13 +147,9 @@ class Pipeline:
         saturated = (int(f.flags) & _SAT) != 0
         if self._observe is not None:
             self._observe(a, t, saturated)
+        # (positionally: seq, device_heading_deg, saturated, raw_counts)
         return CompassSample.from_solution(
-            a,
-            t,
-            seq=f.seq,
-            device_heading_deg=f.heading,
-            saturated=saturated,
-            raw_counts=(f.mx, f.my, f.mz, f.ax, f.ay, f.az),
+            a, t, f.seq, f.heading, saturated, (f.mx, f.my, f.mz, f.ax, f.ay, f.az)
         )
 
     def _from_heading(self, f: HeadingFrame, t: float) -> CompassSample | None:

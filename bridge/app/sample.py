@@ -82,28 +82,31 @@ class CompassSample:
         cls,
         a: AttitudeSolution,
         t: float,
-        *,
         seq: int | None = None,
         device_heading_deg: float | None = None,
         saturated: bool = False,
         raw_counts: tuple[int, int, int, int, int, int] | None = None,
     ) -> CompassSample:
         """The host sample of the attitude engine's solution ``a`` (pitch and roll in degrees)."""
+        # Positional, in the fields' order (t, source, heading_deg, heading_reference,
+        # heading_magnetic_deg, heading_true_deg, declination_deg, pitch_deg, roll_deg,
+        # seq, device_heading_deg, saturated, attitude, raw_counts): every frame, and
+        # fourteen keywords cost a dataclass's __init__ more than its own stores.
         return cls(
-            t=t,
-            source="host",
-            heading_deg=a.heading_deg,
-            heading_reference=a.heading_reference,
-            heading_magnetic_deg=a.heading_magnetic_deg,
-            heading_true_deg=a.heading_true_deg,
-            declination_deg=a.declination_deg,
-            pitch_deg=math.degrees(a.pitch),
-            roll_deg=math.degrees(a.roll),
-            seq=seq,
-            device_heading_deg=device_heading_deg,
-            saturated=saturated,
-            attitude=a,
-            raw_counts=raw_counts,
+            t,
+            "host",
+            a.heading_deg,
+            a.heading_reference,
+            a.heading_magnetic_deg,
+            a.heading_true_deg,
+            a.declination_deg,
+            math.degrees(a.pitch),
+            math.degrees(a.roll),
+            seq,
+            device_heading_deg,
+            saturated,
+            a,
+            raw_counts,
         )
 
 

@@ -179,16 +179,17 @@ class TiltSources:
             self.filter.reset()
             self.residual.reset()
         ap = self._autopilot_down(t)
-        ext = ap[1] if ap is not None else None
-        sigma = self._autopilot_sigma_deg() if ap is not None else None
-        est = self.filter.update(
-            mag,
-            accel,
-            t,
-            external=ext,
-            external_sigma_deg=sigma,
-            field_ok=field_ok,
-        )
+        if ap is None:  # standalone (nearly always where no autopilot streams)
+            est = self.filter.update(mag, accel, t, field_ok=field_ok)
+        else:
+            est = self.filter.update(
+                mag,
+                accel,
+                t,
+                external=ap[1],
+                external_sigma_deg=self._autopilot_sigma_deg(),
+                field_ok=field_ok,
+            )
         f = self.filter
         if (
             ap is not None

@@ -487,6 +487,16 @@ def _snap_rate(seen: float) -> int:
     return DEVICE_RATES_HZ[-1]
 
 
+#: The frames per second each rate is snapped from, ``[low, high)`` (:func:`_snap_rate`'s edges).
+_RATE_BANDS = dict(
+    zip(
+        DEVICE_RATES_HZ,
+        itertools.pairwise((-math.inf, *(edge for edge, _rate in _RATE_EDGES), math.inf)),
+        strict=True,
+    )
+)
+
+
 class FrameClock:
     """When each compass frame was sampled, from its ``seq`` and its arrival.
 
@@ -516,6 +526,7 @@ class FrameClock:
         self._n = 0
         self._arrivals: deque[tuple[float, int]] = deque()  # (arrival, n), rate window
         self._period: float | None = None
+        self._band = (math.nan, math.nan)  # the frames per second its rate is snapped from
         self._anchor: deque[tuple[float, int, float]] = deque()  # (arrival, n, a): rising a
 
     @property
@@ -545,10 +556,13 @@ class FrameClock:
         a0, n0 = arr[0]
         if arrival - a0 >= 0.5 * self.RATE_WINDOW_S and n > n0:
             seen = (n - n0) / (arrival - a0)
-            rate = _snap_rate(seen)
-            if self._period is None or abs(rate * self._period - 1.0) > 1e-9:
-                self._period = 1.0 / rate
-                self._anchor.clear()
+            lo, hi = self._band
+            if not lo <= seen < hi:  # (inside: the rate it has; no snap to look up, every frame)
+                rate = _snap_rate(seen)
+                self._band = _RATE_BANDS[rate]
+                if self._period is None or abs(rate * self._period - 1.0) > 1e-9:
+                    self._period = 1.0 / rate
+                    self._anchor.clear()
         p = self._period
         if p is None:
             return arrival

@@ -421,11 +421,13 @@ class AttitudeEngine:
             else:
                 roll, sr, cr = 0.0, 0.0, 1.0
             cp = ryz / gn
-            dip = (
-                math.asin(max(-1.0, min(1.0, (hx * gx + hy * gy + hz * gz) / (gn * bn)))) * _DEG
-                if bn > 0.0
-                else 0.0
-            )
+            if bn > 0.0:
+                # sin(dip), clamped to [-1, 1] (min() and max() as comparisons: every frame)
+                sd = (hx * gx + hy * gy + hz * gz) / (gn * bn)
+                sd = sd if sd < 1.0 else 1.0
+                dip = math.asin(sd if sd > -1.0 else -1.0) * _DEG
+            else:
+                dip = 0.0
             if abs(sp) > s.sin_degraded or an < 0.2:
                 degraded = True
         else:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_right
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from operator import itemgetter
 from typing import Literal
@@ -54,6 +55,12 @@ _WHITE_SPACING_S = 0.075
 _TIME = itemgetter(0)
 #: The quiet estimates kept to roll back to on a manoeuvre's onset, seconds.
 _HISTORY_S = 8.0
+#: The held tilt is never assumed worse than this (radians; its variance beside it).
+_MAX_SIGMA = 30.0 * _DEG
+_MAX_VAR = _MAX_SIGMA**2
+#: Turned by hand: the tilt's variance is floored at this, the frame's own down's noise at that.
+_SPIN_FLOOR_VAR = (5.0 * _DEG) ** 2
+_SPIN_MIN_WHITE = (0.2 * _DEG) ** 2
 
 
 # -- the estimate ---------------------------------------------------------------------
@@ -66,16 +73,23 @@ class TiltEstimate:
     ``down`` is the unit gravity vector in vehicle axes; ``source`` one of
     :data:`TILT_SOURCES`; ``sigma_deg`` the tilt's 1-sigma error (the larger
     axis); ``heading_sigma_deg`` the heading error it gives (1 sigma);
-    ``accel_deg`` how far the accelerometer's own down is from the estimate;
-    ``manoeuvre`` whether the accelerometer is being distrusted (on any axis).
+    ``accel`` the accelerometer's own unit down this frame (:attr:`accel_deg`: how far
+    it is from the estimate); ``manoeuvre`` whether the accelerometer is being
+    distrusted (on any axis).
     """
 
     down: Vec3
     source: TiltSource
     sigma_deg: float
     heading_sigma_deg: float
-    accel_deg: float
+    accel: Vec3
     manoeuvre: bool
+
+    @property
+    def accel_deg(self) -> float:
+        """How far the accelerometer's own down is from the estimate, degrees (on
+        request: nothing on the per-frame path needs it)."""
+        return 0.0 if self.down is self.accel else angle_deg(self.accel, self.down)
 
 
 class TiltFilter:
@@ -105,7 +119,6 @@ class TiltFilter:
     Pure and single-threaded: the caller owns it.
     """
 
-    _MAX_SIGMA = 30.0 * _DEG  #: the held tilt is never assumed worse than this
     _TURN_BASE_S = 1.0  #: the turn rate is measured over this long
 
     def __init__(self, settings: TiltSettings | None = None) -> None:
@@ -115,8 +128,7 @@ class TiltFilter:
     def reset(self) -> None:
         """Forget the estimate: the next frame starts from its accelerometer."""
         self._d: Vec3 | None = None
-        big = self._MAX_SIGMA**2
-        self._P = [big, 0.0, big]  # (xx, xy, yy)
+        self._P = [_MAX_VAR, 0.0, _MAX_VAR]  # (xx, xy, yy)
         self._t: float | None = None
         self._interval = 0.1  # the frames' mean interval, s
         self._g0 = 1.0  # |g| at rest (learnt: the accelerometer's scale)
@@ -335,10 +347,13 @@ class TiltFilter:
         if self._d is None or self._t is None:
             self._d, self._t = ahat, t
         else:  # frames read in one burst share their arrival: half the mean interval apart
-            self._interval += 0.02 * (max(0.0, min(1.0, t - self._t)) - self._interval)
+            gap = t - self._t
+            gap = gap if gap < 1.0 else 1.0  # max(0, min(1, gap)) as comparisons: every frame
+            self._interval += 0.02 * ((gap if gap > 0.0 else 0.0) - self._interval)
             if t <= self._t:
                 t = self._t + 0.5 * max(self._interval, 0.005)
-        dt = min(1.0, t - self._t)
+        dt = t - self._t
+        dt = dt if dt < 1.0 else 1.0  # in [0, 1]: a gain dt / tau for tau >= 1 s needs no clamp
         self._t = t
         # -- what the frame says beside its down: vibration, heave, turning, dip.
         # Its scatter between frames ~0.1 s apart, whatever the rate: a hand's shake is
@@ -348,17 +363,17 @@ class TiltFilter:
             if prev is not None:
                 dd = (ahat[0] - prev[0]) ** 2 + (ahat[1] - prev[1]) ** 2 + (ahat[2] - prev[2]) ** 2
                 self._white += 0.005 * (max(0.25 * dd, st.accel_noise_g**2) - self._white)
-        k = min(1.0, dt / 0.5)
+        # (The low-pass gains min(1, dt / tau) as comparisons: they are calls otherwise.)
+        k = dt / 0.5 if dt < 0.5 else 1.0
         # Heave: the swinging part of |g| (about its 2 s mean), not its offset -- a
         # braking vehicle's |g| grows steadily by a_h^2 / 2 without rocking it.
-        self._an_mean += min(1.0, dt / 2.0) * (an - self._an_mean)
+        self._an_mean += dt / 2.0 * (an - self._an_mean)
         self._heave += k * (abs(an - self._an_mean) - self._heave)
         self._excess += k * (an - self._g0 - self._excess)  # vibration averages out of it
         lp = self._lp
         if lp is None:
             lp = ahat
         else:
-            k = min(1.0, dt / 0.5)
             lp = unit(
                 (
                     lp[0] + k * (ahat[0] - lp[0]),
@@ -368,7 +383,7 @@ class TiltFilter:
             )
         self._lp = lp
         lg = self._long
-        k = min(1.0, dt / 20.0)
+        k = dt / 20.0
         self._long = (
             unit(
                 (
@@ -385,8 +400,8 @@ class TiltFilter:
         mhat = (bx / bn, by / bn, bz / bn) if bn > 0.0 else (0.0, 0.0, 0.0)
         has_field = mhat != (0.0, 0.0, 0.0)
         self._m_now = mhat
-        white_deg = self.white_deg  # the white noise is learnt above only
-        if not self.manoeuvre and self._history and t - self._history[0][0] >= st.drift_s:
+        held = self.held  # (a new list wherever it changes: read again after those)
+        if not (held[0] or held[1]) and self._history and t - self._history[0][0] >= st.drift_s:
             # The estimate of drift_s ago (the newest kept that old, or the oldest).
             i = bisect_right(self._history, t - st.drift_s, key=_TIME)
             _ht, old, _hp, old_m = self._history[max(0, i - 1)]
@@ -395,11 +410,16 @@ class TiltFilter:
             allowed = (
                 rate_dps * st.drift_s + 3.0 * math.degrees(math.sqrt(self._white / 5.0))
             ) * _DEG
-            axes = tuple(i for i, e in enumerate((o1, o2)) if abs(dot(lp, e)) > allowed)
+            off1, off2 = abs(dot(lp, o1)) > allowed, abs(dot(lp, o2)) > allowed
             # Moving away from the long-run mean down: a manoeuvre's onset. Moving back
             # towards it is the end of one the estimate followed: no rollback then.
-            away = angle_deg(lp, self._long) > angle_deg(old, self._long) + 1.0
-            if axes and away and not self._turned(old, lp, old_m, mhat):
+            # (Judged only when the down has left along an axis: nearly every frame it has not.)
+            if (
+                (off1 or off2)
+                and angle_deg(lp, self._long) > angle_deg(old, self._long) + 1.0
+                and not self._turned(old, lp, old_m, mhat)
+            ):
+                axes: tuple[int, ...] = (0, 1) if off1 and off2 else ((0,) if off1 else (1,))
                 self._evidence(t, axes, "drift", st.drift_s)
         sin_dip = self._dip if self._dip_n >= _DIP_FRAMES else None
         still = (
@@ -408,7 +428,8 @@ class TiltFilter:
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
             # its down where it was when this began (the tail of a braking creeps back)
             and (
-                self._steady_lp is None or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * white_deg
+                self._steady_lp is None
+                or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * self.white_deg
             )
         )
         if not still:
@@ -427,27 +448,28 @@ class TiltFilter:
             while len(rec) > 2 and rec[1][0] <= t - 0.5:
                 rec.popleft()
             tr, dr, mr = rec[0]
-            tilting = (
-                t - tr >= 0.25
-                and angle_deg(dr, lp) / (t - tr) > st.spin_dps
-                and self._turned(dr, lp, mr, mhat)
-                and self._heave < st.heave_g
-            )
-            # A down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
-            if angle_deg(lp, self._d) > st.max_accel_deg:
-                tilting = True
-            if self.spin_dps > st.spin_dps or tilting:
+            # (A turn by hand is a spin far more often than a tilt alone: no need to look
+            # at the tilt then.)
+            if self.spin_dps > st.spin_dps or (
+                # A down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
+                angle_deg(lp, self._d) > st.max_accel_deg
+                or (
+                    t - tr >= 0.25
+                    and angle_deg(dr, lp) / (t - tr) > st.spin_dps
+                    and self._turned(dr, lp, mr, mhat)
+                    and self._heave < st.heave_g
+                )
+            ):
                 # Faster than a vehicle turns: a hand. Follow the accelerometer as it is.
                 self._spinning_until = t + 0.5
                 self.held, self._d = [False, False], ahat
                 # Nothing from before the turn may be rolled back to, nor drifted from.
                 self._history.clear()
-                P = self._P
-                floor = (5.0 * _DEG) ** 2
-                self._P = [max(P[0], floor), P[1], max(P[2], floor)]
+                P, f = self._P, _SPIN_FLOOR_VAR  # each variance at least f (max() as comparisons)
+                self._P = [f if P[0] < f else P[0], P[1], f if P[2] < f else P[2]]
                 if external is None:  # nothing to weigh: the frame's own down, its noise
-                    w = max(self._white, (0.2 * _DEG) ** 2)
-                    return self._result(ahat, ahat, mhat, (w, 0.0, w), "accelerometer")
+                    w = _SPIN_MIN_WHITE if self._white < _SPIN_MIN_WHITE else self._white
+                    return self._result(ahat, ahat, mhat, (w, 0.0, w), "accelerometer", False)
             # (While the vehicle heaves, its rocking about the field's horizontal looks
             # like turning -- the same illusion that makes that tilt unobservable.)
             # When the turn began (its rate above a quarter of the threshold): a slowly
@@ -516,16 +538,16 @@ class TiltFilter:
         # -- predict: the tilt drifts, faster while the vehicle heaves.
         rate_dps = st.tilt_rate_dps + st.heave_tilt_dps_per_g * self._heave
         q = (rate_dps * _DEG) ** 2 * dt
-        big = self._MAX_SIGMA**2
         P = self._P
-        self._P = [min(P[0] + q, big), P[1], min(P[2] + q, big)]
+        p0, p2 = P[0] + q, P[2] + q
+        self._P = [_MAX_VAR if p0 > _MAX_VAR else p0, P[1], _MAX_VAR if p2 > _MAX_VAR else p2]
         e1, e2 = self._basis(d)
         # -- the accelerometer's down, axis by axis, inside the gate.
         # Frames faster than 10 Hz bring no more information a second (vibration and the
         # device's filtering correlate them): their noise, and the dip's, as 10 Hz frames'.
-        slow = max(1.0, 0.1 / dt) if dt > 0.0 else 1.0
+        slow = 0.1 / dt if 0.0 < dt < 0.1 else 1.0  # max(1, 0.1 / dt)
         R = self._white * slow
-        y = (dot(ahat, e1), dot(ahat, e2))
+        y1, y2 = dot(ahat, e1), dot(ahat, e2)
         pxx, _pxy, pyy = self._P
         es = (
             external_sigma_deg if external_sigma_deg is not None else st.autopilot_sigma_deg
@@ -536,7 +558,7 @@ class TiltFilter:
                 z = dot(ahat, e) - dot(external, e)
                 if z * z > st.gate * (es * es + R):
                     self._evidence(t, (i,), "autopilot", 0.0)
-        for i, (yi, pii) in enumerate(((y[0], pxx), (y[1], pyy))):
+        for i, yi, pii in ((0, y1, pxx), (1, y2, pyy)):
             if yi * yi > st.gate * (pii + R):
                 since = self._gate_since[i]
                 if since is None or yi * self._gate_sign[i] < 0:
@@ -564,11 +586,12 @@ class TiltFilter:
         if self._d is not d:  # rolled back: the basis moves with it
             d = self._d
             e1, e2 = self._basis(d)
+            y1, y2 = dot(ahat, e1), dot(ahat, e2)
         x = [0.0, 0.0]
         if not self.held[0]:
-            self._update(dot(ahat, e1), 1.0, 0.0, R, x)
+            self._update(y1, 1.0, 0.0, R, x)
         if not self.held[1]:
-            self._update(dot(ahat, e2), 0.0, 1.0, R, x)
+            self._update(y2, 0.0, 1.0, R, x)
         # -- the field's dip (attitude matching), every regime.
         if self.manoeuvre and field_ok and has_field and sin_dip is not None:
             cos_dip = math.sqrt(max(1e-6, 1.0 - sin_dip * sin_dip))
@@ -612,44 +635,49 @@ class TiltFilter:
             )
         )
         self._d = nd
-        if not self.manoeuvre:
-            self._history.append((t, nd, (self._P[0], self._P[1], self._P[2]), mhat))
-            while self._history and self._history[0][0] < t - _HISTORY_S:
-                self._history.popleft()
+        P = self._P
+        held = self.held  # final for this frame from here on
+        manoeuvre = held[0] or held[1]
+        w = dt / 0.1 if dt < 0.1 else 1.0  # the frame's weight: its share of a 10 Hz frame
+        if not manoeuvre:
+            history = self._history
+            history.append((t, nd, (P[0], P[1], P[2]), mhat))
+            while history and history[0][0] < t - _HISTORY_S:
+                history.popleft()
             if abs(an - self._g0) < 0.05:
-                self._g0 += 0.01 * min(1.0, dt / 0.1) * (an - self._g0)
+                self._g0 += 0.01 * w * (an - self._g0)
         # Steady: learn the local dip. Steady is no manoeuvre, the accelerometer's
         # length at |g|, its down not moving, the vehicle not turning.
         steady = (
-            not self.manoeuvre
+            not manoeuvre
             and abs(an - self._g0) < 0.02
             and self._heave < 0.02
-            and angle_deg(lp, ahat) < 3.0 * white_deg + 0.5
+            and angle_deg(lp, ahat) < 3.0 * self.white_deg + 0.5
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
         )
-        w = min(1.0, dt / 0.1)  # the frame's weight: its share of a 10 Hz frame
         if steady and field_ok and has_field and w > 0.0:
             sd = dot(mhat, ahat)
             self._dip_n += w
-            rate = max(0.005 * w, w / self._dip_n)
+            rate = w / self._dip_n
+            if 0.005 * w > rate:  # at least 0.005 of a 10 Hz frame: max() as a comparison
+                rate = 0.005 * w
             self._dip = sd if self._dip is None else self._dip + rate * (sd - self._dip)
         # -- which source carried it, and how well.
-        if external is not None and (self.manoeuvre or es * es < R):
+        if external is not None and (manoeuvre or es * es < R):
             source: TiltSource = "autopilot"
         else:
-            source = "magnetometer" if self.manoeuvre else "accelerometer"
-        return self._result(nd, ahat, mhat, (self._P[0], self._P[1], self._P[2]), source, (e1, e2))
+            source = "magnetometer" if manoeuvre else "accelerometer"
+        return self._result(nd, ahat, mhat, P, source, manoeuvre, (e1, e2))
 
     def _result(
-        self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: tuple[float, float, float],
-        source: TiltSource, basis: tuple[Vec3, Vec3] | None = None,
+        self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: Sequence[float],
+        source: TiltSource, manoeuvre: bool, basis: tuple[Vec3, Vec3] | None = None,
     ) -> TiltEstimate:  # fmt: skip
-        """The estimate ``nd`` with covariance ``P`` (on ``basis``'s axes; none: the same
-        on every axis) as it goes out."""
+        """The estimate ``nd`` with covariance ``P`` (xx, xy, yy on ``basis``'s axes; none:
+        the same on every axis) as it goes out."""
         sxx, sxy, syy = P
-        sigma = math.sqrt(
-            max(0.0, 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy))
-        )
+        v = 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy)
+        sigma = math.sqrt(v if v > 0.0 else 0.0)  # (max(0, v) as a comparison: every frame)
         hs = sigma
         if mhat != (0.0, 0.0, 0.0):
             # the field's east axis, east = nd x mhat (vector helpers written out: every frame)
@@ -664,7 +692,5 @@ class TiltFilter:
                     f1 = (ex * b1x + ey * b1y + ez * b1z) / en
                     f2 = (ex * b2x + ey * b2y + ez * b2z) / en
                     var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
-                hs = math.sqrt(max(0.0, var)) * abs(mx * nx + my * ny + mz * nz) / en
-        off = 0.0 if nd is ahat else angle_deg(ahat, nd)
-        sig, h = math.degrees(sigma), math.degrees(hs)
-        return TiltEstimate(nd, source, sig, h, off, self.manoeuvre)
+                hs = math.sqrt(var if var > 0.0 else 0.0) * abs(mx * nx + my * ny + mz * nz) / en
+        return TiltEstimate(nd, source, math.degrees(sigma), math.degrees(hs), ahat, manoeuvre)
