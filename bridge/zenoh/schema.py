@@ -168,11 +168,6 @@ _ANGLE_DIGITS = 3  # 0.001 deg: far below the compass's noise, keeps payloads sh
 _FIELD_DIGITS = 6  # 1 microgauss = 0.1 nT
 _ACCEL_DIGITS = 5  # 10 micro-g
 _QUAT_DIGITS = 7
-# Every sensor document starts with the same head, in this order: schema, version, seq,
-# t_monotonic, t_unix (SampleTimes.wire), zenoh_time.
-_HEADING_VERSION: Final = VERSIONS[HEADING]
-_ATTITUDE_VERSION: Final = VERSIONS[ATTITUDE]
-_IMU_VERSION: Final = VERSIONS[IMU]
 
 
 class SampleTimes:
@@ -205,6 +200,20 @@ class SampleTimes:
         )
 
 
+def _sample_head(schema: str, sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
+    """The head every sensor document starts with, in this order (the caller's dict display
+    unpacks it first, so the published key order holds)."""
+    t_monotonic, t_unix = times.wire
+    return {
+        "schema": schema,
+        "version": VERSIONS[schema],
+        "seq": sample.seq,
+        "t_monotonic": t_monotonic,
+        "t_unix": t_unix,
+        "zenoh_time": times.zenoh_time,
+    }
+
+
 def quality_flags(sample: CompassSample) -> dict[str, bool]:
     """The per-sample quality flags (all false where the source cannot tell)."""
     a = sample.attitude
@@ -224,17 +233,10 @@ def heading_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
     # equality: -0.0 == 0.0, and they would not print alike.
     r = _r
     r_heading = r(heading, _ANGLE_DIGITS)
-    a = sample.attitude
-    t_monotonic, t_unix = times.wire
     # One dict display per document, in the published key order: a document is built for
     # every published sample, and growing a dict key by key resizes it on the way.
     return {
-        "schema": HEADING,
-        "version": _HEADING_VERSION,
-        "seq": sample.seq,
-        "t_monotonic": t_monotonic,
-        "t_unix": t_unix,
-        "zenoh_time": times.zenoh_time,
+        **_sample_head(HEADING, sample, times),
         "source": sample.source,
         "heading_deg": r_heading,
         "heading_reference": sample.heading_reference,
@@ -242,12 +244,7 @@ def heading_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any]:
         "heading_true_deg": r_heading if true is heading else r(true, _ANGLE_DIGITS),
         "declination_deg": r(sample.declination_deg, _ANGLE_DIGITS),
         "device_heading_deg": r(sample.device_heading_deg, _ANGLE_DIGITS),
-        "flags": {  # quality_flags(sample), without the call
-            "saturated": sample.saturated,
-            "degraded": bool(a is not None and a.degraded),
-            "disturbed": bool(a is not None and a.disturbed),
-            "accelerating": bool(a is not None and a.accelerating),
-        },
+        "flags": quality_flags(sample),
         # where roll and pitch came from, and the heading error that tilt leaves
         "tilt": {
             "source": sample.tilt_source,
@@ -278,14 +275,8 @@ def attitude_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | 
         return None
     w, x, y, z = q
     r = _r
-    t_monotonic, t_unix = times.wire
     return {
-        "schema": ATTITUDE,
-        "version": _ATTITUDE_VERSION,
-        "seq": sample.seq,
-        "t_monotonic": t_monotonic,
-        "t_unix": t_unix,
-        "zenoh_time": times.zenoh_time,
+        **_sample_head(ATTITUDE, sample, times),
         "source": sample.source,
         "roll_deg": r(roll, _ANGLE_DIGITS),
         "pitch_deg": r(pitch, _ANGLE_DIGITS),
@@ -319,14 +310,8 @@ def imu_doc(sample: CompassSample, times: SampleTimes) -> dict[str, Any] | None:
         return None
     raw_mag, raw_acc = raw_counts(sample)
     r = _r
-    t_monotonic, t_unix = times.wire
     return {
-        "schema": IMU,
-        "version": _IMU_VERSION,
-        "seq": sample.seq,
-        "t_monotonic": t_monotonic,
-        "t_unix": t_unix,
-        "zenoh_time": times.zenoh_time,
+        **_sample_head(IMU, sample, times),
         "raw": {"mag": raw_mag, "accel": raw_acc},
         "mag_G": _vec(a.mag_G, _FIELD_DIGITS),
         "accel_g": _vec(a.accel_g, _ACCEL_DIGITS),
