@@ -66,7 +66,7 @@ from bridge.core.vectors import down_from_euler
 from bridge.core.wmm import EarthField, earth_field
 from bridge.sim.autopilot import AttitudeMessage, AutopilotAttitude
 from bridge.sim.drive import MANOEUVRES, ManoeuvreDrive
-from bridge.sim.motion import AttitudeList, Motion, linear_acc_of, with_shake
+from bridge.sim.motion import AttitudeList, Motion, linear_accs_of, with_shake
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel
 from bridge.types import FloatArray
 
@@ -113,8 +113,8 @@ class Frames:
 
 def record(model: SensorModel, motion: Motion, ts: FloatArray, seed: int) -> Frames:
     """The unit's frames along ``motion`` at times ``ts`` (vectorised physics)."""
-    R = np.stack([np.asarray(motion.attitude(float(t))) for t in ts])
-    acc = np.array([linear_acc_of(motion, float(t)) for t in ts])
+    R = np.asarray(motion.attitudes(ts), dtype=np.float64)
+    acc = linear_accs_of(motion, ts)
     s = model.sample(R, np.random.default_rng([seed, 0x7117]), acc)
     return Frames(ts, s.mag_counts, s.acc_counts, R)
 
@@ -209,7 +209,7 @@ def run_drive(
     ts = np.arange(0.0, cfg.seconds, 1.0 / cfg.rate_hz)
     frames = record(unit.model, drive, ts, seed)
     truth = magnetic_heading_deg(frames.R, field.declination_deg)
-    man = np.array([np.linalg.norm(drive.manoeuvre_acc_ned_g(float(t))) for t in ts])
+    man = np.array([np.linalg.norm(a) for a in drive.manoeuvre_accs_ned_g(ts)])
     kinds = np.array([drive.kind_at(float(t)) for t in ts])
     ap = AutopilotAttitude(
         drive,

@@ -20,6 +20,7 @@ from benchmarks.tilt import (
 from bridge.core.geometry import dcm_to_euler
 from bridge.sim.autopilot import AutopilotAttitude
 from bridge.sim.drive import MANOEUVRES, ManoeuvreDrive
+from bridge.sim.motion import AttitudeList, linear_acc_of, linear_accs_of, with_shake
 
 
 def check_the_three_tilt_sources_on_the_same_frames(result: dict) -> None:
@@ -134,6 +135,24 @@ def test_the_drive_accelerates_as_a_vehicle_does() -> None:
         assert np.allclose(d.linear_acc_ned_g(stop[0]), d.manoeuvre_acc_ned_g(stop[0]))
     with pytest.raises(ValueError):
         ManoeuvreDrive(1, 10.0, accel_g=(0.3, 0.1))
+
+
+def test_the_streams_a_bench_draws_at_once_are_the_time_by_time_numbers_bit_for_bit() -> None:
+    """What ``record`` and ``run_drive`` ask for a drive's (or a hold's) worth at once."""
+    d = ManoeuvreDrive(3, 120.0)
+    ts = np.arange(0.0, 125.0, 0.1)  # past the end too: zero there
+    assert np.array_equal(d.attitudes(ts), np.stack([d.attitude(float(t)) for t in ts]))
+    assert np.array_equal(
+        linear_accs_of(d, ts), np.array([d.linear_acc_ned_g(float(t)) for t in ts])
+    )
+    assert np.array_equal(
+        d.manoeuvre_accs_ned_g(ts), np.array([d.manoeuvre_acc_ned_g(float(t)) for t in ts])
+    )
+    held = AttitudeList([(0.3, -0.2, 1.0), (-0.4, 0.1, 2.5)], 5.0, 1.5)
+    for motion in (held, with_shake(held, 0.05, 3)):
+        assert np.array_equal(
+            linear_accs_of(motion, ts), np.array([linear_acc_of(motion, float(t)) for t in ts])
+        )
 
 
 def test_the_stand_in_autopilot_is_late_noisy_and_on_its_own_clock() -> None:

@@ -127,6 +127,9 @@ def test_mag_collector_direction_hint_points_at_an_unvisited_section() -> None:
     upper = x[x[:, 2] > 0.1]  # only directions with the field pointing down-body
     for m in upper:
         col.offer(_v(m), (0.0, 0.0, 1.0), False)
+        # asked every frame (as the snapshots ask): never a section reached since
+        h = col.direction_hint()
+        assert h == (0.0, 0.0, 0.0) or section(np.asarray(h)) not in col.sections_hit
     hint = np.asarray(col.direction_hint())
     assert float(np.linalg.norm(hint)) == pytest.approx(1.0)
     assert section(hint) not in col.sections_hit

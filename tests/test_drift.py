@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from bridge.calibration.drift.estimator import (
     DriftEstimator,
     DriftSettings,
     Reference,
+    _median,
     heading_error_deg,
     with_offset_change,
 )
@@ -286,3 +288,23 @@ def test_a_vertical_change_needs_to_be_larger() -> None:
 
     assert declared((12.0, 0.0, 0.0)) and not declared((0.0, 0.0, 12.0))
     assert declared((0.0, 0.0, 16.0)) and declared((0.0, 0.0, -16.0))
+
+
+def test_the_estimators_median_is_numpys_bit_for_bit() -> None:
+    # the estimator's one-partition median (every estimate takes several) against np.median:
+    # odd and even sizes, ties, infinities and NaN
+    rng = np.random.default_rng(11)
+    for n in [*range(0, 40), 301, 1000, 1001]:
+        for kind in range(4):
+            x = rng.normal(size=n)
+            if kind == 1:
+                x = np.round(x, 1)  # ties
+            elif kind == 2 and n:
+                x[rng.integers(n)] = rng.choice([math.inf, -math.inf])
+            elif kind == 3 and n:
+                x[rng.integers(n)] = math.nan
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                want, got = float(np.median(x)), _median(x)
+            assert (math.isnan(want) and math.isnan(got)) or got == want, (n, kind, got, want)
+            assert math.copysign(1.0, got) == math.copysign(1.0, want) or math.isnan(want)

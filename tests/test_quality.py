@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -153,6 +154,7 @@ def test_no_reference_means_no_disturbance_judgement() -> None:
 _maybe = st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True, width=32))
 
 
+@examples(100)  # Hypothesis's default count, a third of it everyday
 @given(
     frames=st.lists(
         st.tuples(

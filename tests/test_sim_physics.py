@@ -117,6 +117,27 @@ def test_linear_acceleration_follows_the_gravity_vector_sign() -> None:
     assert s.acc_counts[0].tolist() == [round(2458 - 0.5 * 491.5), 2458, 2950]
 
 
+@pytest.mark.parametrize("seed", [7, 8])
+def test_one_frame_at_a_time_samples_what_the_stack_samples_bit_for_bit(seed: int) -> None:
+    # The firmware samples one frame per tick (sample's one-frame path, no broadcasting);
+    # the benchmarks a stack at once: the same counts, flags and truth, exactly. (Quiet:
+    # a stack draws its noise axis by axis for all frames, frames one by one draw theirs
+    # frame by frame -- the same noise code, a different order of the same stream.)
+    rng = np.random.default_rng(seed)
+    d = {k: getattr(quiet(UnitErrors.draw(rng)), k) for k in UnitErrors.__dataclass_fields__}
+    model = SensorModel(UnitErrors(**(d | {"hard_iron_G": np.array([0.3, 0.0, 0.0])})), FIELD)
+    Rs = random_rotations(rng, 300)
+    acc = rng.normal(0.0, 0.3, size=(300, 3))
+    for lin in (None, acc):
+        whole = model.sample(Rs, rng, lin)
+        ones = [model.sample(R, rng, None if lin is None else lin[i]) for i, R in enumerate(Rs)]
+        for f in ("mag_counts", "acc_counts", "saturated", "mag_body_G", "acc_body_g"):
+            got = np.concatenate([getattr(s, f) for s in ones])
+            assert np.array_equal(got, getattr(whole, f)), f
+            assert got.dtype == getattr(whole, f).dtype
+        assert whole.saturated.any() and not whole.saturated.all()
+
+
 def test_saturation_flag_and_will_clip() -> None:
     # 0.5 G of hard iron along x: pointing north the x channel passes 4095, south it does not
     e = UnitErrors(hard_iron_G=np.array([0.5, 0.0, 0.0]))

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -231,6 +232,7 @@ _JSON = st.recursive(
 )
 
 
+@examples(100)  # Hypothesis's default count, a third of it everyday
 @given(_JSON)
 def test_dumps_writes_what_json_dumps_writes(doc: object) -> None:
     """The encoder made once (CPython's C encoder, see schema._make_encode) is json.dumps
@@ -438,6 +440,7 @@ def test_mirror_decodes_the_bridges_own_encoded_packets() -> None:
         MirrorMessage.from_packet(253, bytes(100), system_id=1, component_id=1)
 
 
+@examples(100)  # Hypothesis's default count, a third of it everyday
 @given(
     rate=st.sampled_from([0.0, 1.0, 10.0, 20.0, 100.0]),
     gaps=st.lists(st.floats(0.0, 0.5), min_size=1, max_size=60),

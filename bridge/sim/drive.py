@@ -388,6 +388,31 @@ class ManoeuvreDrive(MotionBase):
         i, f = self._index(t)
         return np.asarray(self._acc[i] + f * (self._acc[i + 1] - self._acc[i]), dtype=np.float64)
 
+    def _indices(
+        self, times: npt.ArrayLike
+    ) -> tuple[FloatArray, npt.NDArray[np.int64], FloatArray]:
+        """:meth:`_index` at each time (vectorised): the times, the indices, the fractions."""
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        x = np.minimum(np.maximum(0.0, t), self.duration) / self._dt
+        i = np.minimum(x.astype(np.int64), len(self._t) - 2)
+        return t, i, x - i
+
+    def manoeuvre_accs_ned_g(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`manoeuvre_acc_ned_g` at each time, as an (N, 3) array (the same numbers)."""
+        t, i, f = self._indices(times)
+        a = self._acc[i] + f[:, None] * (self._acc[i + 1] - self._acc[i])
+        a[t > self.duration] = 0.0
+        return np.asarray(a, dtype=np.float64)
+
+    def linear_accs_ned_g(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`linear_acc_ned_g` at each time, as an (N, 3) array (the same numbers:
+        a benchmark's frames ask for a drive's worth at once)."""
+        t, i, f = self._indices(times)
+        a = self._acc[i] + f[:, None] * (self._acc[i + 1] - self._acc[i])
+        a = a + self._vib[np.where(f < 0.5, i, i + 1)]
+        a[t > self.duration] = 0.0
+        return np.asarray(a, dtype=np.float64)
+
     def kind_at(self, t: float) -> str:
         """The stretch ``t`` falls in: one of :data:`MANOEUVRES`."""
         i, _ = self._index(t)

@@ -138,6 +138,10 @@ def gravity_counts(a: tuple[int, int, int] | npt.ArrayLike, page: FlashPage) -> 
     return v - np.array([page.gxoff, page.gyoff, page.gzoff - ACC_COUNTS_PER_G])
 
 
+_CAL, _MAGOK, _ACCOK = int(Flags.CAL), int(Flags.MAGOK), int(Flags.ACCOK)
+_SAT, _FLASHERR = int(Flags.SAT), int(Flags.FLASHERR)
+
+
 def _round1(x: float) -> float:
     return float(fmt_fixed(x, 1))
 
@@ -329,19 +333,19 @@ class Firmware:
 
     def flags(self, saturated: bool = False) -> Flags:
         """The flag byte a frame would carry now."""
-        f = Flags(0)
+        return Flags(self._flag_bits(saturated))
+
+    def _flag_bits(self, saturated: bool) -> int:
+        # The bits as a plain int: a frame built from ints takes AttitudeFrame's fast path
+        # (every frame; the enum's operators cost more than the frame's other fields).
         page = self.flash.page
-        if self._magcal is not None:
-            f |= Flags.CAL
-        if page.magok:
-            f |= Flags.MAGOK
-        if page.accok:
-            f |= Flags.ACCOK
-        if saturated:
-            f |= Flags.SAT
-        if self.flash.flasherr:
-            f |= Flags.FLASHERR
-        return f
+        return (
+            (_CAL if self._magcal is not None else 0)
+            | (_MAGOK if page.magok else 0)
+            | (_ACCOK if page.accok else 0)
+            | (_SAT if saturated else 0)
+            | (_FLASHERR if self.flash.flasherr else 0)
+        )
 
     # ------------------------------------------------------------------ event machinery
 
@@ -441,7 +445,7 @@ class Firmware:
             _round1(roll),
             *m,
             *a,
-            self.flags(bool(s.saturated[0])),
+            self._flag_bits(bool(s.saturated[0])),
         )
         self._emit(frame)
         self.frames_sent += 1

@@ -74,6 +74,16 @@ def linear_acc_of(motion: Motion, t: float) -> FloatArray:
     return _ZERO3 if f is None else np.asarray(f(t), dtype=np.float64)
 
 
+def linear_accs_of(motion: Motion, times: npt.ArrayLike) -> FloatArray:
+    """:func:`linear_acc_of` at each time, as an (N, 3) array: the script's own vectorised
+    ``linear_accs_ned_g`` where it has one (the same numbers), else time by time."""
+    ts = np.asarray(times, dtype=np.float64).reshape(-1)
+    f = getattr(motion, "linear_accs_ned_g", None)
+    if f is not None:
+        return np.asarray(f(ts), dtype=np.float64).reshape(-1, 3)
+    return np.array([linear_acc_of(motion, float(t)) for t in ts]).reshape(-1, 3)
+
+
 class MotionBase:
     """Shared helpers; a script only implements :meth:`attitude` and ``duration``."""
 
@@ -551,6 +561,10 @@ class HandShake(MotionBase):
     def linear_acc_ned_g(self, t: float) -> FloatArray:
         """The shake on top of the base script's own linear acceleration."""
         return linear_acc_of(self.base, t) + self.shake_g([t])[0]
+
+    def linear_accs_ned_g(self, times: npt.ArrayLike) -> FloatArray:
+        """:meth:`linear_acc_ned_g` at each time, as an (N, 3) array (the same numbers)."""
+        return linear_accs_of(self.base, times) + self.shake_g(times)
 
 
 def with_shake(motion: Motion, shake_g: float, seed: int = 0) -> Motion:

@@ -56,6 +56,22 @@ _MAX_OFFSET_G = 0.5  # a fit beyond this is not a drift (nor the learning's busi
 _MAD = 1.4826  # median absolute deviation -> sigma
 
 
+def _median(a: npt.ArrayLike) -> float:
+    """``np.median`` of a 1-D array, the same number: the middle order statistic(s) by
+    one partition (the last element too, so a NaN anywhere gives NaN as np.median does),
+    without np.median's general machinery (several a fit, every estimate)."""
+    x = np.asarray(a, dtype=np.float64).reshape(-1)
+    n = x.size
+    if n < 2:
+        return float(np.median(x))
+    k = n // 2
+    p = np.partition(x, [k, -1] if n % 2 else [k - 1, k, -1])  # np.median's kth
+    if math.isnan(p[-1]):
+        return math.nan
+    # np.median's mean of the middle: a sum from 0.0 (so -0.0 comes out as 0.0), divided
+    return (0.0 + float(p[k])) / 1.0 if n % 2 else (0.0 + float(p[k - 1]) + float(p[k])) / 2.0
+
+
 @dataclass(frozen=True, slots=True)
 class DriftSettings:
     """How the estimator samples, fits and judges (see the module docstring)."""
@@ -295,9 +311,9 @@ class DriftEstimator:
         # never tighter than its own spread: a change the fit does not follow yet
         # widens the spread instead of being gated out for good.
         seen = np.linalg.norm(h - np.asarray(self._last), axis=1)
-        mid = float(np.median(seen))
+        mid = _median(seen)
         dev = np.abs(seen - mid)
-        spread = _MAD * float(np.median(dev))
+        spread = _MAD * _median(dev)
         bad = _runs_with(dev > max(3.0 * spread, 3.0 * s.field_sigma_floor_G),
                          dev > max(s.gate_fraction * mid, 5.0 * spread))  # fmt: skip
         outlier_t = float(t[bad][-1]) if bad.any() else -math.inf
@@ -323,7 +339,7 @@ class DriftEstimator:
             return None
         fit, cov, resid = theta
         self._last = (float(fit[0]), float(fit[1]), float(fit[2]))
-        level = float(np.median(self._levels)) if self._levels else resid
+        level = _median(self._levels) if self._levels else resid
         consistent = resid <= max(2.5 * level, level + s.consistency_mG / 1000.0)
         if consistent:
             self._levels.append(resid)
@@ -357,7 +373,7 @@ class DriftEstimator:
         want = math.sqrt(max(ref.field_G**2 - ref.vertical_G**2, 0.0))
         seen = h - np.asarray(self._last)
         across = seen - np.einsum("ij,ij->i", seen, u)[:, None] * u
-        got = float(np.median(np.linalg.norm(across, axis=1)))
+        got = _median(np.linalg.norm(across, axis=1))
         return want > 0.0 and abs(got / want - 1.0) <= self.settings.scale_tolerance
 
     # -- the fit ------------------------------------------------------------------------
@@ -383,7 +399,7 @@ class DriftEstimator:
         wv = np.full(len(yv), 1.0 / s.dip_sigma_floor_G**2) if xv is not None else None
         theta = np.array([*self._last, f_start, ref.vertical_G or 0.0])
         if xv is not None and ref.vertical_G is None:
-            theta[4] = float(np.median(yv - xv[:, :3] @ theta[:3]))
+            theta[4] = _median(yv - xv[:, :3] @ theta[:3])
         cov = np.eye(5)
         scale_f = s.field_sigma_floor_G
         xf = np.zeros((n, 5))
@@ -398,11 +414,11 @@ class DriftEstimator:
             yf = dn + xf[:, :3] @ theta[:3]  # n . b + F = |h - b0| + n . b0
             if it > 0:
                 rf = yf - xf @ theta
-                scale_f = max(_MAD * float(np.median(np.abs(rf))), s.field_sigma_floor_G)
+                scale_f = max(_MAD * _median(np.abs(rf)), s.field_sigma_floor_G)
                 wf = _tukey(rf / scale_f) / scale_f**2
                 if xv is not None:
                     rv = yv - xv @ theta
-                    scale_v = max(_MAD * float(np.median(np.abs(rv))), s.dip_sigma_floor_G)
+                    scale_v = max(_MAD * _median(np.abs(rv)), s.dip_sigma_floor_G)
                     wv = _tukey(rv / scale_v) / scale_v**2
             xw = (xf * wf[:, None]).T
             A = xw @ xf + prior_a

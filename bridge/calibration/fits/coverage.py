@@ -91,8 +91,10 @@ def sections(vectors: npt.ArrayLike) -> IntArray:
     """
     v = np.asarray(vectors, dtype=np.float64).reshape(-1, 3)
     out = np.full(v.shape[0], -1, dtype=np.int64)
-    ok = np.all(np.isfinite(v), axis=1) & np.any(v != 0.0, axis=1)
-    if not np.any(ok):
+    # (the arrays' own all/any: the same masks without np.all / np.any's dispatch, once per
+    # sample a collection keeps)
+    ok = np.isfinite(v).all(axis=1) & (v != 0.0).any(axis=1)
+    if not ok.any():
         return out
     vv = v[ok]
     # The spherical face a direction crosses is the one whose centre is nearest

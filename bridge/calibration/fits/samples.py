@@ -136,10 +136,13 @@ class SampleAcceptor:
     def _far_enough(self, v: FloatArray, upto: int, skip: int = -1) -> bool:
         if upto == 0:
             return True
-        d2 = np.sum((self._buf[:upto] - v) ** 2, axis=1)
+        # (The arrays' own methods: the same sums without np.sum / np.all's dispatch, which
+        # cost more than the arithmetic on every frame a collection is offered.)
+        d = self._buf[:upto] - v
+        d2 = (d * d).sum(axis=1)  # d ** 2: numpy squares by multiplying
         if 0 <= skip < upto:
             d2[skip] = np.inf
-        return bool(np.all(d2 >= self._min_dist**2))
+        return bool((d2 >= self._min_dist**2).all())
 
     def offer(self, sample_G: npt.ArrayLike, *, saturated: bool = False) -> bool:
         """Offer one raw sample (3,) in gauss; returns True when it was kept.
@@ -148,7 +151,7 @@ class SampleAcceptor:
         buffer full) and leaves the buffer untouched.
         """
         v = np.asarray(sample_G, dtype=np.float64).reshape(-1)
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
+        if v.shape != (3,) or not np.isfinite(v).all():
             self.counters.non_finite += 1
             return False
         if saturated:

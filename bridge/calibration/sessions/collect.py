@@ -120,6 +120,8 @@ class MagCollector:
         self.radius_G: float | None = None
         self._mask = bytes(MASK_BYTES)
         self._hit: frozenset[int] = frozenset()
+        #: _SECTION_DIRS of the sections not in _hit (None: not worked out since it changed)
+        self._missing_dirs: FloatArray | None = None
         self.last_mag: Vec3 | None = None
         self.offered = 0
         self._sphere_centre = False
@@ -170,7 +172,10 @@ class MagCollector:
                 self.centre = self._sum / max(n, 1)
         s = sections(x - self.centre)
         self._mask = completion_mask(s)
-        self._hit = frozenset(int(i) for i in s[s >= 0].tolist())
+        hit = frozenset(s[s >= 0].tolist())
+        if hit != self._hit:
+            self._hit = hit
+            self._missing_dirs = None
 
     def begin_step_two(self, centre: npt.ArrayLike, radius_G: float) -> int:
         """Step one's sphere is known: respace the buffer for it and keep collecting.
@@ -237,8 +242,10 @@ class MagCollector:
         n = float(np.linalg.norm(cur))
         if not n > 0.0:
             return (0.0, 0.0, 0.0)
-        missing = np.array(sorted(set(range(N_SECTIONS)) - self._hit), dtype=np.int64)
-        dirs = _SECTION_DIRS[missing]
+        dirs = self._missing_dirs
+        if dirs is None:  # once per change of the sections reached, not once per frame
+            missing = np.array(sorted(set(range(N_SECTIONS)) - self._hit), dtype=np.int64)
+            dirs = self._missing_dirs = _SECTION_DIRS[missing]
         best = dirs[int(np.argmax(dirs @ (cur / n)))]
         return (float(best[0]), float(best[1]), float(best[2]))
 
