@@ -318,7 +318,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--rounds", type=int, default=5, help="runs of each program")
     ap.add_argument("--duration", type=float, default=20.0, help="seconds measured per run")
-    ap.add_argument("--only", choices=tuple(COMMANDS), help="run one program only (its figures, no ratio)")
+    ap.add_argument(
+        "--only", choices=tuple(COMMANDS), help="run one program only (its figures, no ratio)"
+    )
     ap.add_argument(
         "--with-floor",
         action="store_true",
