@@ -162,7 +162,7 @@ def _joint_features(m_unit: FloatArray, x: FloatArray) -> FloatArray:
 
 
 Candidate = tuple[AffineCalibration, FloatArray, float]  # accel, rotation, sin(dip)
-Solver = Callable[[FloatArray], "Candidate | None"]
+Solver = Callable[[FloatArray, FloatArray], "Candidate | None"]  # rows, their _gram
 Finisher = Callable[[Candidate], Candidate]
 
 
@@ -183,20 +183,38 @@ def _magnitude_moment(mu: FloatArray, S: FloatArray, o: FloatArray) -> FloatArra
     )
 
 
+def _gram(rows: FloatArray) -> FloatArray:
+    """``F^T F`` of the rows with a constant 1 appended (``F``): every model is linear in ``F``."""
+    aug = np.empty((rows.shape[0], rows.shape[1] + 1))
+    aug[:, :-1] = rows
+    aug[:, -1] = 1.0
+    return np.asarray(aug.T @ aug, dtype=np.float64)
+
+
 def _linear_joint(rows: FloatArray) -> Candidate | None:
     """Closed-form start: (P, q) from the dot constraint, the scale from ``|g| = 1``."""
-    D = np.concatenate([rows[:, :9], -rows[:, 9:12]], axis=1)
-    DTD = D.T @ D
+    return _linear_start(_gram(rows))
+
+
+_DOT_SIGN = np.array([1.0] * 9 + [-1.0] * 3)
+
+
+def _linear_start(gram: FloatArray) -> Candidate | None:
+    """:func:`_linear_joint` from the rows' :func:`_gram` (their sums are all it needs)."""
+    n = gram[-1, -1]
+    # D = (m (x) x, -m) per row: D^T D and D^T 1 are the Gram's entries with signs.
+    DTD = _DOT_SIGN[:, None] * gram[:12, :12] * _DOT_SIGN[None, :]
     ev = np.linalg.eigvalsh(DTD)
     if not ev[0] > 1e-18 * ev[-1]:  # (singular values 1e-9 apart): turned about one axis only
         return None
-    v = np.linalg.solve(DTD, D.sum(axis=0))
+    v = np.linalg.solve(DTD, _DOT_SIGN * gram[:12, -1])
     P = v[:9].reshape(3, 3)
     if not np.linalg.det(P) > 0.0:
         return None
     o = np.linalg.solve(P, v[9:12])
-    mu, S = _second_moments(rows)
-    mean_sq = float(np.mean(np.einsum("ij,kij->k", P.T @ P, _magnitude_moment(mu, S, o))))
+    # The mean of |P (x - o)|^2 over the rows is linear in their means (_magnitude_moment).
+    mu, S = _second_moments(gram[-1:, :-1] / n)
+    mean_sq = float(np.einsum("ij,kij->", P.T @ P, _magnitude_moment(mu, S, o)))
     if not (math.isfinite(mean_sq) and mean_sq > 0.0):
         return None
     c = 1.0 / math.sqrt(mean_sq)
@@ -219,6 +237,11 @@ _TRI_B = np.array([b for _, b in _TRI])
 #: Which of the six unique window means of ``x x^T`` (the features after ``x``) is ``[i, j]``.
 _XX = np.array([[_UPPER.index((min(i, j), max(i, j))) for j in range(3)] for i in range(3)])
 _EYE3 = np.eye(3)
+#: Where L's entries go in T (see _joint_residuals): T[_XX[j, b], c] = L[a, j] for (a, b) = _TRI[c]
+#: (no two land on one entry: j differs between a column's three).
+_T_ROW, _T_COL, _T_A, _T_J = np.array(
+    [(_XX[j, b], c, a, j) for c, (a, b) in enumerate(_TRI) for j in range(3)]
+).T
 
 
 def _joint_residuals(
@@ -263,9 +286,7 @@ def _joint_residuals(
     wA = np.array([A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]])
     rm = xx @ wA - 2.0 * (mu @ Ao) + (float(o @ Ao) - 1.0)
     T = np.zeros((6, 6))  # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means
-    for c, (a, b) in enumerate(_TRI):
-        for j in range(3):
-            T[_XX[j, b], c] += L[a, j]
+    T[_T_ROW, _T_COL] = L[_T_A, _T_J]
     Lo = L @ o
     Jm = np.zeros((n, 13))
     Jm[:, :3] = -2.0 * (mu - o) @ A
@@ -303,8 +324,24 @@ def _weight(r: FloatArray) -> float:
     return 1.0 / max(math.sqrt(float(np.var(r)) * _correlation_time(r)), 1e-12)
 
 
+#: Rows whose :func:`_joint_residuals` are a model's coefficients: a zero row (the
+#: constants), then one unit row per feature (constant + that feature's coefficient).
+_JOINT_BASIS = np.vstack([np.zeros(_JOINT_FEATURES), np.eye(_JOINT_FEATURES)])
+
+
+def _affine(v: FloatArray) -> FloatArray:
+    """Coefficients on (features, 1) of a quantity evaluated on :data:`_JOINT_BASIS`-like rows."""
+    out = np.empty_like(v)
+    out[:-1] = v[1:] - v[0]
+    out[-1] = v[0]
+    return out
+
+
 def _solve_joint(
-    rows: FloatArray, magnitude_weight: float = 1.0, iterations: int = 8
+    rows: FloatArray,
+    gram: FloatArray | None = None,
+    magnitude_weight: float = 1.0,
+    iterations: int = 8,
 ) -> Candidate | None:
     """Accelerometer calibration and rotation from window means (see the module docstring).
 
@@ -314,21 +351,34 @@ def _solve_joint(
     inverse scatter of its residuals, so a shaken tumble leans on the first
     and a still one uses both. The scatter counts its correlation time: the
     slow beats a shake leaves in ``|g|`` weigh as the few samples they are.
+
+    ``gram``: the rows' :func:`_gram`, when the caller has it. Every residual
+    and Jacobian column is linear in a row's features, so ``J^T J`` is the
+    Gram matrix between small coefficient matrices: an iteration costs two
+    passes over the rows (the residuals and ``F^T r``, kept per row so that
+    ``J^T r`` has no cancellation), not a stack of Jacobians.
     """
-    start = _linear_joint(rows)
+    G = _gram(rows) if gram is None else gram
+    start = _linear_start(G)
     if start is None:
         return None
     accel, Q, s = start
     o, L = accel.offset_array, accel.matrix_array
+    F = np.empty((rows.shape[0], _JOINT_FEATURES + 1))
+    F[:, :-1] = rows
+    F[:, -1] = 1.0
     wd = wm = 1.0
     for it in range(iterations):
-        rd, Jd, rm, Jm = _joint_residuals(rows, o, L, Q, s)
+        rd, Jd, rm, Jm = _joint_residuals(_JOINT_BASIS, o, L, Q, s)
+        Cd, Cm = _affine(Jd), _affine(Jm)
+        r = F @ np.column_stack([_affine(rd), _affine(rm)])
         if it == 0:
-            wd = _weight(rd)
-            wm = _weight(rm) * magnitude_weight
+            wd = _weight(r[:, 0])
+            wm = _weight(r[:, 1]) * magnitude_weight
+        Fr = F.T @ r
         # J^T J and J^T r of the weighted rows stacked, without stacking them
-        JTJ = (wd * wd) * (Jd.T @ Jd) + (wm * wm) * (Jm.T @ Jm)
-        JTr = (wd * wd) * (Jd.T @ rd) + (wm * wm) * (Jm.T @ rm)
+        JTJ = (wd * wd) * (Cd.T @ G @ Cd) + (wm * wm) * (Cm.T @ G @ Cm)
+        JTr = (wd * wd) * (Cd.T @ Fr[:, 0]) + (wm * wm) * (Cm.T @ Fr[:, 1])
         try:
             step = np.linalg.solve(JTJ, -JTr)
         except np.linalg.LinAlgError:
@@ -349,22 +399,37 @@ def _solve_joint(
         return None
 
 
-def _solve_rotation(rows: FloatArray, iterations: int = 12) -> Candidate | None:
-    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)."""
-    E = rows[:, :9].reshape(-1, 3, 3)
-    n = E.shape[0]
+#: The rotation fit's features are ``a m^T`` (9): zero, then unit rows (see :data:`_JOINT_BASIS`).
+_ROTATION_BASIS = np.vstack([np.zeros((1, 3, 3)), np.eye(9).reshape(9, 3, 3)])
+
+
+def _solve_rotation(
+    rows: FloatArray, gram: FloatArray | None = None, iterations: int = 12
+) -> Candidate | None:
+    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity).
+
+    ``gram``: the rows' :func:`_gram` (see :func:`_solve_joint` for why it is all ``J^T J`` needs).
+    """
+    G = _gram(rows) if gram is None else gram
+    n = G[-1, -1]
+    F = np.empty((rows.shape[0], 10))
+    F[:, :-1] = rows
+    F[:, -1] = 1.0
     R = np.eye(3)
-    s = float(np.mean(np.einsum("kii->k", E)))
-    J = np.empty((n, 4))
-    J[:, 3] = -1.0
+    s = float(np.sum(G[-1, [0, 4, 8]]) / n)
+    C = np.zeros((10, 4))  # J = F C
+    C[-1, 3] = -1.0
+    ce = np.empty(10)
     for _ in range(iterations):
-        e = np.einsum("ij,kij->k", R, E) - s
-        RE = np.einsum("ij,klj->kil", R, E)  # (R m) a^T per row
-        J[:, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
-        JTJ = J.T @ J
+        ce[:-1] = R.reshape(9)
+        ce[-1] = -s
+        e = F @ ce
+        RE = np.einsum("ij,klj->kil", R, _ROTATION_BASIS)  # (R m) a^T per row
+        C[:-1, :3] = _affine(_vee(np.swapaxes(RE, 1, 2) - RE))[:-1]  # (R m) x a
+        JTJ = C.T @ G @ C
         if not float(np.linalg.eigvalsh(JTJ)[0]) / n >= _MIN_INFORMATION:
             return None
-        step = np.linalg.solve(JTJ, -(J.T @ e))
+        step = np.linalg.solve(JTJ, -(C.T @ (F.T @ e)))
         R = rotvec_to_dcm(step[:3]) @ R
         s += float(step[3])
         if float(np.linalg.norm(step)) < 1e-12:
@@ -457,16 +522,18 @@ def _trial(
     wm = window_means(features, spans, hann_kernel(n_k), step)
     if len(wm) < MIN_ROWS:
         return None
-    first = solve(wm.rows)
+    edges = np.linspace(0, len(wm), blocks + 1).astype(int)
+    # Each replicate's Gram matrix is the sum of the other blocks': one pass over the rows.
+    grams = [_gram(wm.rows[edges[b] : edges[b + 1]]) for b in range(blocks)]
+    first = solve(wm.rows, np.sum(grams, axis=0))
     if first is None:
         return None
     full = finish(first)
-    edges = np.linspace(0, len(wm), blocks + 1).astype(int)
     reps: list[Candidate] = []
     for b in range(blocks):
         keep = np.ones(len(wm), dtype=bool)
         keep[edges[b] : edges[b + 1]] = False
-        r = solve(wm.rows[keep])
+        r = solve(wm.rows[keep], np.sum(grams[:b] + grams[b + 1 :], axis=0))
         if r is None:
             return None
         reps.append(finish(r))
@@ -567,8 +634,8 @@ def fit_handheld(
         # Shaken: its squares of the shake beat slowly, so it only sets the scale.
         weight = 1.0 if motion <= STILL_MOTION_G else SHAKEN_MAGNITUDE_WEIGHT
 
-        def joint(rows: FloatArray) -> Candidate | None:
-            return _solve_joint(rows, weight)
+        def joint(rows: FloatArray, gram: FloatArray) -> Candidate | None:
+            return _solve_joint(rows, gram, weight)
 
         tr = _best(feats, spans, period, windows_s, joint, lambda c: c, fdir, blocks)
         fitted = tr is not None
