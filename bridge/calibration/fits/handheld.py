@@ -237,66 +237,67 @@ _TRI_B = np.array([b for _, b in _TRI])
 #: Which of the six unique window means of ``x x^T`` (the features after ``x``) is ``[i, j]``.
 _XX = np.array([[_UPPER.index((min(i, j), max(i, j))) for j in range(3)] for i in range(3)])
 _EYE3 = np.eye(3)
-#: Where L's entries go in T (see _joint_residuals): T[_XX[j, b], c] = L[a, j] for (a, b) = _TRI[c]
+#: Where L's entries go in (L S) (see _joint_coefficients): [_XX[j, b], c] takes L[a, j] for (a, b) = _TRI[c]
 #: (no two land on one entry: j differs between a column's three).
 _T_ROW, _T_COL, _T_A, _T_J = np.array(
     [(_XX[j, b], c, a, j) for c, (a, b) in enumerate(_TRI) for j in range(3)]
 ).T
 
 
-def _joint_residuals(
-    rows: FloatArray, o: FloatArray, L: FloatArray, Q: FloatArray, s: float
+_C = np.arange(6)
+
+
+def _joint_coefficients(
+    o: FloatArray, L: FloatArray, Q: FloatArray, s: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
 
-    Every one of them is linear in a row's features (``G' = G - m o^T`` is), so each is
-    a product of the feature columns with a small coefficient matrix built here: a few
-    matrix products over all rows instead of a stack of 3x3 products per row.
+    Every one of them is linear in a row's features and a constant 1 (``G' = G - m o^T``
+    is): returned are the coefficients (22,) or (22, 13) on (features, 1), so that
+    ``F @ cd`` is the dot residuals of rows ``F`` and ``F @ Cd`` their Jacobian.
     """
-    n = rows.shape[0]
-    mbar = rows[:, 9:12]
-    mu = rows[:, 12:15]
     P = Q.T @ L
     # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
     # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m].
     K = np.einsum("ij,lm->jmil", Q, L).reshape(9, 3, 3)
     E = np.einsum("aj,mb->jmab", Q, _EYE3).reshape(9, 3, 3)
-    W = np.empty((9, 10))
+    CD = np.zeros((_JOINT_FEATURES + 1, 10))
+    W = CD[:9]
     W[:, 0] = P.reshape(9)
     W[:, 1:7] = E[:, _TRI_A, _TRI_B]
     W[:, 7] = K[:, 2, 1] - K[:, 1, 2]
     W[:, 8] = K[:, 0, 2] - K[:, 2, 0]
     W[:, 9] = K[:, 1, 0] - K[:, 0, 1]
-    # G' W = G W - m (o's contraction of W): the rows' own features, no G' built.
-    D = rows[:, :9] @ W - mbar @ np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
-    dot = D[:, 0]
+    # G' W = G W - m (o's contraction of W): the m features' coefficients.
+    CD[9:12] = -np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
     # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
     # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
-    rd = dot / s - 1.0
-    Jd = np.empty((n, 13))
-    Jd[:, :3] = -mbar @ P / s
-    Jd[:, 3:9] = D[:, 1:7] / s
-    Jd[:, 9:12] = -D[:, 7:10] / s
-    Jd[:, 12] = -dot / (s * s)
+    cd = CD[:, 0] / s
+    cd[-1] -= 1.0
+    Cd = np.zeros((_JOINT_FEATURES + 1, 13))
+    Cd[9:12, :3] = -P / s
+    Cd[:, 3:9] = CD[:, 1:7] / s
+    Cd[:, 9:12] = -CD[:, 7:10] / s
+    Cd[:, 12] = -CD[:, 0] / (s * s)
     # The magnitude rows: tr(A M) and 2 (L M)[a, b] with M = S - mu o^T - o mu^T + o o^T
-    # (_magnitude_moment), from the window means of x x^T (xx) and x (mu).
-    xx = rows[:, 15:21]
+    # (_magnitude_moment), from the window means of x (mu, features 12-14) and of
+    # x x^T (xx, the six after).
     A = L.T @ L
     Ao = A @ o
-    wA = np.array([A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]])
-    rm = xx @ wA - 2.0 * (mu @ Ao) + (float(o @ Ao) - 1.0)
-    T = np.zeros((6, 6))  # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means
-    T[_T_ROW, _T_COL] = L[_T_A, _T_J]
     Lo = L @ o
-    Jm = np.zeros((n, 13))
-    Jm[:, :3] = -2.0 * (mu - o) @ A
-    Jm[:, 3:9] = 2.0 * (
-        xx @ T
-        - (mu @ L.T)[:, _TRI_A] * o[_TRI_B]
-        - Lo[_TRI_A] * mu[:, _TRI_B]
-        + Lo[_TRI_A] * o[_TRI_B]
-    )
-    return rd, Jd, rm, Jm
+    cm = np.zeros(_JOINT_FEATURES + 1)
+    cm[12:15] = -2.0 * Ao
+    cm[15:21] = [A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]]
+    cm[-1] = float(o @ Ao) - 1.0
+    Cm = np.zeros((_JOINT_FEATURES + 1, 13))
+    Cm[12:15, :3] = -2.0 * A  # -2 (mu - o) A
+    Cm[-1, :3] = 2.0 * (o @ A)
+    # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means of x x^T
+    Cm[15 + _T_ROW, 3 + _T_COL] = 2.0 * L[_T_A, _T_J]
+    Cm[12:15, 3:9] = -2.0 * L[_TRI_A, :].T * o[_TRI_B]  # -(L mu)[a] o[b]
+    Cm[12 + _TRI_B, 3 + _C] -= 2.0 * Lo[_TRI_A]  # -(L o)[a] mu[b]
+    Cm[-1, 3:9] = 2.0 * Lo[_TRI_A] * o[_TRI_B]
+    return cd, Cd, cm, Cm
 
 
 def _correlation_time(r: FloatArray) -> float:
@@ -322,19 +323,6 @@ def _correlation_time(r: FloatArray) -> float:
 def _weight(r: FloatArray) -> float:
     """Weight of a residual series in a joint fit: 1 / sqrt(variance x correlation time)."""
     return 1.0 / max(math.sqrt(float(np.var(r)) * _correlation_time(r)), 1e-12)
-
-
-#: Rows whose :func:`_joint_residuals` are a model's coefficients: a zero row (the
-#: constants), then one unit row per feature (constant + that feature's coefficient).
-_JOINT_BASIS = np.vstack([np.zeros(_JOINT_FEATURES), np.eye(_JOINT_FEATURES)])
-
-
-def _affine(v: FloatArray) -> FloatArray:
-    """Coefficients on (features, 1) of a quantity evaluated on :data:`_JOINT_BASIS`-like rows."""
-    out = np.empty_like(v)
-    out[:-1] = v[1:] - v[0]
-    out[-1] = v[0]
-    return out
 
 
 #: Gauss-Newton stops after a step this small. The parameters are of order 1 and it
@@ -375,9 +363,8 @@ def _solve_joint(
     F[:, -1] = 1.0
     wd = wm = 1.0
     for it in range(iterations):
-        rd, Jd, rm, Jm = _joint_residuals(_JOINT_BASIS, o, L, Q, s)
-        Cd, Cm = _affine(Jd), _affine(Jm)
-        r = F @ np.column_stack([_affine(rd), _affine(rm)])
+        cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
+        r = F @ np.column_stack([cd, cm])
         if it == 0:
             wd = _weight(r[:, 0])
             wm = _weight(r[:, 1]) * magnitude_weight
@@ -405,8 +392,9 @@ def _solve_joint(
         return None
 
 
-#: The rotation fit's features are ``a m^T`` (9): zero, then unit rows (see :data:`_JOINT_BASIS`).
-_ROTATION_BASIS = np.vstack([np.zeros((1, 3, 3)), np.eye(9).reshape(9, 3, 3)])
+#: The rotation model's features ``a m^T`` one at a time: its Jacobian evaluated on them is its
+#: coefficients (the Jacobian is linear in them, without a constant).
+_ROTATION_BASIS = np.eye(9).reshape(9, 3, 3)
 
 
 def _solve_rotation(
@@ -431,7 +419,7 @@ def _solve_rotation(
         ce[-1] = -s
         e = F @ ce
         RE = np.einsum("ij,klj->kil", R, _ROTATION_BASIS)  # (R m) a^T per row
-        C[:-1, :3] = _affine(_vee(np.swapaxes(RE, 1, 2) - RE))[:-1]  # (R m) x a
+        C[:-1, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
         JTJ = C.T @ G @ C
         if not float(np.linalg.eigvalsh(JTJ)[0]) / n >= _MIN_INFORMATION:
             return None
