@@ -183,24 +183,23 @@ def _magnitude_moment(mu: FloatArray, S: FloatArray, o: FloatArray) -> FloatArra
     )
 
 
+def _with_one(rows: FloatArray) -> FloatArray:
+    """The rows with a constant 1 appended (``F``): every model here is linear in ``F``."""
+    return np.concatenate([rows, np.ones((rows.shape[0], 1))], axis=1)
+
+
 def _gram(rows: FloatArray) -> FloatArray:
-    """``F^T F`` of the rows with a constant 1 appended (``F``): every model is linear in ``F``."""
-    aug = np.empty((rows.shape[0], rows.shape[1] + 1))
-    aug[:, :-1] = rows
-    aug[:, -1] = 1.0
-    return np.asarray(aug.T @ aug, dtype=np.float64)
-
-
-def _linear_joint(rows: FloatArray) -> Candidate | None:
-    """Closed-form start: (P, q) from the dot constraint, the scale from ``|g| = 1``."""
-    return _linear_start(_gram(rows))
+    """``F^T F`` (:func:`_with_one`): what ``J^T J`` and the linear start need of the rows."""
+    F = _with_one(rows)
+    return np.asarray(F.T @ F, dtype=np.float64)
 
 
 _DOT_SIGN = np.array([1.0] * 9 + [-1.0] * 3)
 
 
-def _linear_start(gram: FloatArray) -> Candidate | None:
-    """:func:`_linear_joint` from the rows' :func:`_gram` (their sums are all it needs)."""
+def _linear_joint(gram: FloatArray) -> Candidate | None:
+    """Closed-form start from the rows' :func:`_gram`: (P, q) from the dot constraint, the
+    scale from ``|g| = 1``."""
     n = gram[-1, -1]
     # D = (m (x) x, -m) per row: D^T D and D^T 1 are the Gram's entries with signs.
     DTD = _DOT_SIGN[:, None] * gram[:12, :12] * _DOT_SIGN[None, :]
@@ -237,8 +236,7 @@ _TRI_B = np.array([b for _, b in _TRI])
 #: Which of the six unique window means of ``x x^T`` (the features after ``x``) is ``[i, j]``.
 _XX = np.array([[_UPPER.index((min(i, j), max(i, j))) for j in range(3)] for i in range(3)])
 _EYE3 = np.eye(3)
-#: Where L's entries go in (L S) (see _joint_coefficients): [_XX[j, b], c] takes L[a, j] for (a, b) = _TRI[c]
-#: (no two land on one entry: j differs between a column's three).
+#: (L S)'s coefficients (_joint_coefficients): [_XX[j, b], c] takes L[a, j], (a, b) = _TRI[c].
 _T_ROW, _T_COL, _T_A, _T_J = np.array(
     [(_XX[j, b], c, a, j) for c, (a, b) in enumerate(_TRI) for j in range(3)]
 ).T
@@ -252,9 +250,8 @@ def _joint_coefficients(
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
 
-    Every one of them is linear in a row's features and a constant 1 (``G' = G - m o^T``
-    is): returned are the coefficients (22,) or (22, 13) on (features, 1), so that
-    ``F @ cd`` is the dot residuals of rows ``F`` and ``F @ Cd`` their Jacobian.
+    All are linear in a row's features and 1 (``G' = G - m o^T`` is): returned are their
+    coefficients, (22,) or (22, 13), on :func:`_with_one`'s ``F`` (``F @ Cd``: the Jacobian).
     """
     P = Q.T @ L
     # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
@@ -325,9 +322,8 @@ def _weight(r: FloatArray) -> float:
     return 1.0 / max(math.sqrt(float(np.var(r)) * _correlation_time(r)), 1e-12)
 
 
-#: Gauss-Newton stops after a step this small. The parameters are of order 1 and it
-#: converges fast: over the tests' fits, the step after one below 1e-10 was below 3e-13
-#: (the rounding of the sums), so another iteration would change nothing that counts.
+#: Gauss-Newton stops after a step this small (the parameters are of order 1): over the tests'
+#: fits the step after one below 1e-10 was below 3e-13, a change that counts for nothing.
 _STEP_TOL = 1e-10
 
 
@@ -346,21 +342,17 @@ def _solve_joint(
     and a still one uses both. The scatter counts its correlation time: the
     slow beats a shake leaves in ``|g|`` weigh as the few samples they are.
 
-    ``gram``: the rows' :func:`_gram`, when the caller has it. Every residual
-    and Jacobian column is linear in a row's features, so ``J^T J`` is the
-    Gram matrix between small coefficient matrices: an iteration costs two
-    passes over the rows (the residuals and ``F^T r``, kept per row so that
-    ``J^T r`` has no cancellation), not a stack of Jacobians.
+    ``gram``: the rows' :func:`_gram`, if known. ``J^T J = C^T gram C`` with the
+    coefficients ``C`` (:func:`_joint_coefficients`); only the residuals are formed
+    per row (for ``J^T r``, which the Gram matrix would give with cancellation).
     """
     G = _gram(rows) if gram is None else gram
-    start = _linear_start(G)
+    start = _linear_joint(G)
     if start is None:
         return None
     accel, Q, s = start
     o, L = accel.offset_array, accel.matrix_array
-    F = np.empty((rows.shape[0], _JOINT_FEATURES + 1))
-    F[:, :-1] = rows
-    F[:, -1] = 1.0
+    F = _with_one(rows)
     wd = wm = 1.0
     for it in range(iterations):
         cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
@@ -392,32 +384,23 @@ def _solve_joint(
         return None
 
 
-#: The rotation model's features ``a m^T`` one at a time: its Jacobian evaluated on them is its
-#: coefficients (the Jacobian is linear in them, without a constant).
+#: ``a m^T`` one feature at a time: the rotation's Jacobian on them is its coefficients.
 _ROTATION_BASIS = np.eye(9).reshape(9, 3, 3)
 
 
 def _solve_rotation(
     rows: FloatArray, gram: FloatArray | None = None, iterations: int = 12
 ) -> Candidate | None:
-    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity).
-
-    ``gram``: the rows' :func:`_gram` (see :func:`_solve_joint` for why it is all ``J^T J`` needs).
-    """
+    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)."""
     G = _gram(rows) if gram is None else gram
     n = G[-1, -1]
-    F = np.empty((rows.shape[0], 10))
-    F[:, :-1] = rows
-    F[:, -1] = 1.0
+    F = _with_one(rows)
     R = np.eye(3)
     s = float(np.sum(G[-1, [0, 4, 8]]) / n)
     C = np.zeros((10, 4))  # J = F C
     C[-1, 3] = -1.0
-    ce = np.empty(10)
     for _ in range(iterations):
-        ce[:-1] = R.reshape(9)
-        ce[-1] = -s
-        e = F @ ce
+        e = F @ np.append(R.reshape(9), -s)
         RE = np.einsum("ij,klj->kil", R, _ROTATION_BASIS)  # (R m) a^T per row
         C[:-1, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
         JTJ = C.T @ G @ C
@@ -622,7 +605,7 @@ def fit_handheld(
         fitted = False
     else:
         feats = _joint_features(mu, x)
-        first = _linear_joint(feats[ok]) if np.count_nonzero(ok) >= MIN_ROWS else None
+        first = _linear_joint(_gram(feats[ok])) if np.count_nonzero(ok) >= MIN_ROWS else None
         fdir = _field_direction(field_ned_G, first[2] if first is not None else 0.0)
         # Still: |g| = 1 holds to the sensor noise and adds to what the dot product says.
         # Shaken: its squares of the shake beat slowly, so it only sets the scale.
