@@ -162,7 +162,7 @@ def _joint_features(m_unit: FloatArray, x: FloatArray) -> FloatArray:
 
 
 Candidate = tuple[AffineCalibration, FloatArray, float]  # accel, rotation, sin(dip)
-Solver = Callable[[FloatArray], "Candidate | None"]
+Solver = Callable[[FloatArray, FloatArray], "Candidate | None"]  # rows, their _gram
 Finisher = Callable[[Candidate], Candidate]
 
 
@@ -183,20 +183,37 @@ def _magnitude_moment(mu: FloatArray, S: FloatArray, o: FloatArray) -> FloatArra
     )
 
 
-def _linear_joint(rows: FloatArray) -> Candidate | None:
-    """Closed-form start: (P, q) from the dot constraint, the scale from ``|g| = 1``."""
-    D = np.concatenate([rows[:, :9], -rows[:, 9:12]], axis=1)
-    DTD = D.T @ D
+def _with_one(rows: FloatArray) -> FloatArray:
+    """The rows with a constant 1 appended (``F``): every model here is linear in ``F``."""
+    return np.concatenate([rows, np.ones((rows.shape[0], 1))], axis=1)
+
+
+def _gram(rows: FloatArray) -> FloatArray:
+    """``F^T F`` (:func:`_with_one`): what ``J^T J`` and the linear start need of the rows."""
+    F = _with_one(rows)
+    return np.asarray(F.T @ F, dtype=np.float64)
+
+
+_DOT_SIGN = np.array([1.0] * 9 + [-1.0] * 3)
+
+
+def _linear_joint(gram: FloatArray) -> Candidate | None:
+    """Closed-form start from the rows' :func:`_gram`: (P, q) from the dot constraint, the
+    scale from ``|g| = 1``."""
+    n = gram[-1, -1]
+    # D = (m (x) x, -m) per row: D^T D and D^T 1 are the Gram's entries with signs.
+    DTD = _DOT_SIGN[:, None] * gram[:12, :12] * _DOT_SIGN[None, :]
     ev = np.linalg.eigvalsh(DTD)
     if not ev[0] > 1e-18 * ev[-1]:  # (singular values 1e-9 apart): turned about one axis only
         return None
-    v = np.linalg.solve(DTD, D.sum(axis=0))
+    v = np.linalg.solve(DTD, _DOT_SIGN * gram[:12, -1])
     P = v[:9].reshape(3, 3)
     if not np.linalg.det(P) > 0.0:
         return None
     o = np.linalg.solve(P, v[9:12])
-    mu, S = _second_moments(rows)
-    mean_sq = float(np.mean(np.einsum("ij,kij->k", P.T @ P, _magnitude_moment(mu, S, o))))
+    # The mean of |P (x - o)|^2 over the rows is linear in their means (_magnitude_moment).
+    mu, S = _second_moments(gram[-1:, :-1] / n)
+    mean_sq = float(np.einsum("ij,kij->", P.T @ P, _magnitude_moment(mu, S, o)))
     if not (math.isfinite(mean_sq) and mean_sq > 0.0):
         return None
     c = 1.0 / math.sqrt(mean_sq)
@@ -219,63 +236,65 @@ _TRI_B = np.array([b for _, b in _TRI])
 #: Which of the six unique window means of ``x x^T`` (the features after ``x``) is ``[i, j]``.
 _XX = np.array([[_UPPER.index((min(i, j), max(i, j))) for j in range(3)] for i in range(3)])
 _EYE3 = np.eye(3)
+#: (L S)'s coefficients (_joint_coefficients): [_XX[j, b], c] takes L[a, j], (a, b) = _TRI[c].
+_T_ROW, _T_COL, _T_A, _T_J = np.array(
+    [(_XX[j, b], c, a, j) for c, (a, b) in enumerate(_TRI) for j in range(3)]
+).T
 
 
-def _joint_residuals(
-    rows: FloatArray, o: FloatArray, L: FloatArray, Q: FloatArray, s: float
+_C = np.arange(6)
+
+
+def _joint_coefficients(
+    o: FloatArray, L: FloatArray, Q: FloatArray, s: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
 
-    Every one of them is linear in a row's features (``G' = G - m o^T`` is), so each is
-    a product of the feature columns with a small coefficient matrix built here: a few
-    matrix products over all rows instead of a stack of 3x3 products per row.
+    All are linear in a row's features and 1 (``G' = G - m o^T`` is): returned are their
+    coefficients, (22,) or (22, 13), on :func:`_with_one`'s ``F`` (``F @ Cd``: the Jacobian).
     """
-    n = rows.shape[0]
-    mbar = rows[:, 9:12]
-    mu = rows[:, 12:15]
     P = Q.T @ L
     # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
     # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m].
     K = np.einsum("ij,lm->jmil", Q, L).reshape(9, 3, 3)
     E = np.einsum("aj,mb->jmab", Q, _EYE3).reshape(9, 3, 3)
-    W = np.empty((9, 10))
+    CD = np.zeros((_JOINT_FEATURES + 1, 10))
+    W = CD[:9]
     W[:, 0] = P.reshape(9)
     W[:, 1:7] = E[:, _TRI_A, _TRI_B]
     W[:, 7] = K[:, 2, 1] - K[:, 1, 2]
     W[:, 8] = K[:, 0, 2] - K[:, 2, 0]
     W[:, 9] = K[:, 1, 0] - K[:, 0, 1]
-    # G' W = G W - m (o's contraction of W): the rows' own features, no G' built.
-    D = rows[:, :9] @ W - mbar @ np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
-    dot = D[:, 0]
+    # G' W = G W - m (o's contraction of W): the m features' coefficients.
+    CD[9:12] = -np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
     # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
     # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
-    rd = dot / s - 1.0
-    Jd = np.empty((n, 13))
-    Jd[:, :3] = -mbar @ P / s
-    Jd[:, 3:9] = D[:, 1:7] / s
-    Jd[:, 9:12] = -D[:, 7:10] / s
-    Jd[:, 12] = -dot / (s * s)
+    cd = CD[:, 0] / s
+    cd[-1] -= 1.0
+    Cd = np.zeros((_JOINT_FEATURES + 1, 13))
+    Cd[9:12, :3] = -P / s
+    Cd[:, 3:9] = CD[:, 1:7] / s
+    Cd[:, 9:12] = -CD[:, 7:10] / s
+    Cd[:, 12] = -CD[:, 0] / (s * s)
     # The magnitude rows: tr(A M) and 2 (L M)[a, b] with M = S - mu o^T - o mu^T + o o^T
-    # (_magnitude_moment), from the window means of x x^T (xx) and x (mu).
-    xx = rows[:, 15:21]
+    # (_magnitude_moment), from the window means of x (mu, features 12-14) and of
+    # x x^T (xx, the six after).
     A = L.T @ L
     Ao = A @ o
-    wA = np.array([A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]])
-    rm = xx @ wA - 2.0 * (mu @ Ao) + (float(o @ Ao) - 1.0)
-    T = np.zeros((6, 6))  # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means
-    for c, (a, b) in enumerate(_TRI):
-        for j in range(3):
-            T[_XX[j, b], c] += L[a, j]
     Lo = L @ o
-    Jm = np.zeros((n, 13))
-    Jm[:, :3] = -2.0 * (mu - o) @ A
-    Jm[:, 3:9] = 2.0 * (
-        xx @ T
-        - (mu @ L.T)[:, _TRI_A] * o[_TRI_B]
-        - Lo[_TRI_A] * mu[:, _TRI_B]
-        + Lo[_TRI_A] * o[_TRI_B]
-    )
-    return rd, Jd, rm, Jm
+    cm = np.zeros(_JOINT_FEATURES + 1)
+    cm[12:15] = -2.0 * Ao
+    cm[15:21] = [A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]]
+    cm[-1] = float(o @ Ao) - 1.0
+    Cm = np.zeros((_JOINT_FEATURES + 1, 13))
+    Cm[12:15, :3] = -2.0 * A  # -2 (mu - o) A
+    Cm[-1, :3] = 2.0 * (o @ A)
+    # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means of x x^T
+    Cm[15 + _T_ROW, 3 + _T_COL] = 2.0 * L[_T_A, _T_J]
+    Cm[12:15, 3:9] = -2.0 * L[_TRI_A, :].T * o[_TRI_B]  # -(L mu)[a] o[b]
+    Cm[12 + _TRI_B, 3 + _C] -= 2.0 * Lo[_TRI_A]  # -(L o)[a] mu[b]
+    Cm[-1, 3:9] = 2.0 * Lo[_TRI_A] * o[_TRI_B]
+    return cd, Cd, cm, Cm
 
 
 def _correlation_time(r: FloatArray) -> float:
@@ -303,8 +322,16 @@ def _weight(r: FloatArray) -> float:
     return 1.0 / max(math.sqrt(float(np.var(r)) * _correlation_time(r)), 1e-12)
 
 
+#: Gauss-Newton stops after a step this small (the parameters are of order 1): over the tests'
+#: fits the step after one below 1e-10 was below 3e-13, a change that counts for nothing.
+_STEP_TOL = 1e-10
+
+
 def _solve_joint(
-    rows: FloatArray, magnitude_weight: float = 1.0, iterations: int = 8
+    rows: FloatArray,
+    gram: FloatArray | None = None,
+    magnitude_weight: float = 1.0,
+    iterations: int = 8,
 ) -> Candidate | None:
     """Accelerometer calibration and rotation from window means (see the module docstring).
 
@@ -314,21 +341,29 @@ def _solve_joint(
     inverse scatter of its residuals, so a shaken tumble leans on the first
     and a still one uses both. The scatter counts its correlation time: the
     slow beats a shake leaves in ``|g|`` weigh as the few samples they are.
+
+    ``gram``: the rows' :func:`_gram`, if known. ``J^T J = C^T gram C`` with the
+    coefficients ``C`` (:func:`_joint_coefficients`); only the residuals are formed
+    per row (for ``J^T r``, which the Gram matrix would give with cancellation).
     """
-    start = _linear_joint(rows)
+    G = _gram(rows) if gram is None else gram
+    start = _linear_joint(G)
     if start is None:
         return None
     accel, Q, s = start
     o, L = accel.offset_array, accel.matrix_array
+    F = _with_one(rows)
     wd = wm = 1.0
     for it in range(iterations):
-        rd, Jd, rm, Jm = _joint_residuals(rows, o, L, Q, s)
+        cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
+        r = F @ np.column_stack([cd, cm])
         if it == 0:
-            wd = _weight(rd)
-            wm = _weight(rm) * magnitude_weight
+            wd = _weight(r[:, 0])
+            wm = _weight(r[:, 1]) * magnitude_weight
+        Fr = F.T @ r
         # J^T J and J^T r of the weighted rows stacked, without stacking them
-        JTJ = (wd * wd) * (Jd.T @ Jd) + (wm * wm) * (Jm.T @ Jm)
-        JTr = (wd * wd) * (Jd.T @ rd) + (wm * wm) * (Jm.T @ rm)
+        JTJ = (wd * wd) * (Cd.T @ G @ Cd) + (wm * wm) * (Cm.T @ G @ Cm)
+        JTr = (wd * wd) * (Cd.T @ Fr[:, 0]) + (wm * wm) * (Cm.T @ Fr[:, 1])
         try:
             step = np.linalg.solve(JTJ, -JTr)
         except np.linalg.LinAlgError:
@@ -339,7 +374,7 @@ def _solve_joint(
             L[a, b] += step[3 + c]
         Q = rotvec_to_dcm(step[9:12]) @ Q
         s += float(step[12])
-        if float(np.max(np.abs(step))) < 1e-12:
+        if float(np.max(np.abs(step))) < _STEP_TOL:
             break
     if not np.all(np.isfinite(L)) or not np.all(np.diag(L) > 0.0):
         return None
@@ -349,25 +384,32 @@ def _solve_joint(
         return None
 
 
-def _solve_rotation(rows: FloatArray, iterations: int = 12) -> Candidate | None:
+#: ``a m^T`` one feature at a time: the rotation's Jacobian on them is its coefficients.
+_ROTATION_BASIS = np.eye(9).reshape(9, 3, 3)
+
+
+def _solve_rotation(
+    rows: FloatArray, gram: FloatArray | None = None, iterations: int = 12
+) -> Candidate | None:
     """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)."""
-    E = rows[:, :9].reshape(-1, 3, 3)
-    n = E.shape[0]
+    G = _gram(rows) if gram is None else gram
+    n = G[-1, -1]
+    F = _with_one(rows)
     R = np.eye(3)
-    s = float(np.mean(np.einsum("kii->k", E)))
-    J = np.empty((n, 4))
-    J[:, 3] = -1.0
+    s = float(np.sum(G[-1, [0, 4, 8]]) / n)
+    C = np.zeros((10, 4))  # J = F C
+    C[-1, 3] = -1.0
     for _ in range(iterations):
-        e = np.einsum("ij,kij->k", R, E) - s
-        RE = np.einsum("ij,klj->kil", R, E)  # (R m) a^T per row
-        J[:, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
-        JTJ = J.T @ J
+        e = F @ np.append(R.reshape(9), -s)
+        RE = np.einsum("ij,klj->kil", R, _ROTATION_BASIS)  # (R m) a^T per row
+        C[:-1, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
+        JTJ = C.T @ G @ C
         if not float(np.linalg.eigvalsh(JTJ)[0]) / n >= _MIN_INFORMATION:
             return None
-        step = np.linalg.solve(JTJ, -(J.T @ e))
+        step = np.linalg.solve(JTJ, -(C.T @ (F.T @ e)))
         R = rotvec_to_dcm(step[:3]) @ R
         s += float(step[3])
-        if float(np.linalg.norm(step)) < 1e-12:
+        if float(np.linalg.norm(step)) < _STEP_TOL:
             break
     return AffineCalibration(), R, s
 
@@ -457,16 +499,18 @@ def _trial(
     wm = window_means(features, spans, hann_kernel(n_k), step)
     if len(wm) < MIN_ROWS:
         return None
-    first = solve(wm.rows)
+    edges = np.linspace(0, len(wm), blocks + 1).astype(int)
+    # Each replicate's Gram matrix is the sum of the other blocks': one pass over the rows.
+    grams = [_gram(wm.rows[edges[b] : edges[b + 1]]) for b in range(blocks)]
+    first = solve(wm.rows, np.sum(grams, axis=0))
     if first is None:
         return None
     full = finish(first)
-    edges = np.linspace(0, len(wm), blocks + 1).astype(int)
     reps: list[Candidate] = []
     for b in range(blocks):
         keep = np.ones(len(wm), dtype=bool)
         keep[edges[b] : edges[b + 1]] = False
-        r = solve(wm.rows[keep])
+        r = solve(wm.rows[keep], np.sum(grams[:b] + grams[b + 1 :], axis=0))
         if r is None:
             return None
         reps.append(finish(r))
@@ -561,14 +605,14 @@ def fit_handheld(
         fitted = False
     else:
         feats = _joint_features(mu, x)
-        first = _linear_joint(feats[ok]) if np.count_nonzero(ok) >= MIN_ROWS else None
+        first = _linear_joint(_gram(feats[ok])) if np.count_nonzero(ok) >= MIN_ROWS else None
         fdir = _field_direction(field_ned_G, first[2] if first is not None else 0.0)
         # Still: |g| = 1 holds to the sensor noise and adds to what the dot product says.
         # Shaken: its squares of the shake beat slowly, so it only sets the scale.
         weight = 1.0 if motion <= STILL_MOTION_G else SHAKEN_MAGNITUDE_WEIGHT
 
-        def joint(rows: FloatArray) -> Candidate | None:
-            return _solve_joint(rows, weight)
+        def joint(rows: FloatArray, gram: FloatArray) -> Candidate | None:
+            return _solve_joint(rows, gram, weight)
 
         tr = _best(feats, spans, period, windows_s, joint, lambda c: c, fdir, blocks)
         fitted = tr is not None
