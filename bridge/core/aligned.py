@@ -31,6 +31,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from bridge.core.vectors import Vec3
+from bridge.protocol.gmr_frames import RATES_HZ
 
 _DEG = math.pi / 180.0
 
@@ -472,8 +473,9 @@ _OTHERS = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # the rows (columns) lef
 
 # -- the compass frames' clock -----------------------------------------------------------
 
-#: The output rates a ``$PGMRA`` compass runs at (``RATE,<hz>``), frames per second.
-DEVICE_RATES_HZ = (1, 2, 5, 10, 20, 50, 100)
+#: The output rates a ``$PGMRA`` compass runs at (``RATE,<hz>``), frames per second: the
+#: datasheet's list, as the protocol module has it.
+DEVICE_RATES_HZ = RATES_HZ
 # Where the snap goes from one rate to the next: the geometric mean of the two (the
 # rate nearest in ratio, |log(seen / r)| smallest), so a frame costs a few comparisons.
 _RATE_EDGES = tuple((math.sqrt(a * b), a) for a, b in itertools.pairwise(DEVICE_RATES_HZ))
