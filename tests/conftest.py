@@ -8,7 +8,7 @@ Three things here keep the whole suite (real autopilots included) short on two c
   the package. The caches go where Python puts them (``__pycache__``, ignored by git).
 * **The controller warms that cache once** before the workers start (a collection in a
   subprocess, only when a test module is newer than its rewritten copy), so a fresh
-  checkout (CI) does not have eight workers rewriting the same modules at once.
+  checkout (CI) does not have twelve workers rewriting the same modules at once.
 * **Tests marked ``slow``** (tens of seconds of wall time: real-time autopilots, long
   scenarios) are put at the head of each worker's first share of the collection
   (``--dist worksteal`` splits the collection into one contiguous share a worker), so they
