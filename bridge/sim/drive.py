@@ -8,6 +8,8 @@ motion script like those: a pure, seeded function of time.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -15,6 +17,16 @@ import numpy.typing as npt
 from bridge.core.geometry import euler_to_dcm, euler_to_dcm_batch
 from bridge.sim.motion import MotionBase
 from bridge.types import FloatArray
+
+
+def _raised_cosine(
+    tau: Any, length: Any, dyaw: Any, sin: Callable[[Any], Any], cos: Callable[[Any], Any]
+) -> tuple[Any, Any]:
+    """A turn of ``dyaw`` over ``length`` seconds as a raised cosine of the rate: the yaw
+    turned and the rate ``tau`` seconds in (floats with ``math``'s sin and cos, arrays with
+    numpy's: one copy for a frame at a time and a drive's worth at once)."""
+    x = 2.0 * math.pi * tau / length
+    return dyaw * (tau / length - sin(x) / (2.0 * math.pi)), dyaw / length * (1.0 - cos(x))
 
 
 class Drive(MotionBase):
@@ -106,11 +118,8 @@ class Drive(MotionBase):
         tau, length, dyaw = t - self._t0[i], self._len[i], self._dyaw[i]
         if dyaw == 0.0:
             return self._yaw0[i], 0.0
-        x = 2.0 * math.pi * tau / length
-        return (
-            self._yaw0[i] + dyaw * (tau / length - math.sin(x) / (2.0 * math.pi)),
-            dyaw / length * (1.0 - math.cos(x)),
-        )
+        turned, rate = _raised_cosine(tau, length, dyaw, math.sin, math.cos)
+        return self._yaw0[i] + turned, rate
 
     def _angle(self, which: int, t: float) -> float:
         amp, omega, phase = self._tilt[which]
@@ -118,10 +127,15 @@ class Drive(MotionBase):
 
     def speed(self, t: float) -> tuple[float, float]:
         """(speed m/s, its rate m/s^2) at ``t``."""
+        return self._speed(t, math.sin, math.cos)
+
+    def _speed(self, t: Any, sin: Callable[[Any], Any], cos: Callable[[Any], Any]) -> Any:
+        """:meth:`speed`'s formula, at a time (``math``'s sin and cos) or at an array of
+        times (numpy's): one copy for the frame-by-frame path and the benchmarks' arrays."""
         p1, p2 = self._speed_phase
         w1, w2 = 2.0 * math.pi / 67.0, 2.0 * math.pi / 23.0
-        v = self.speed_mps * (1.0 + 0.2 * math.sin(w1 * t + p1) + 0.05 * math.sin(w2 * t + p2))
-        dv = self.speed_mps * (0.2 * w1 * math.cos(w1 * t + p1) + 0.05 * w2 * math.cos(w2 * t + p2))
+        v = self.speed_mps * (1.0 + 0.2 * sin(w1 * t + p1) + 0.05 * sin(w2 * t + p2))
+        dv = self.speed_mps * (0.2 * w1 * cos(w1 * t + p1) + 0.05 * w2 * cos(w2 * t + p2))
         return v, dv
 
     def yaw_rate_dps(self, t: float) -> float:
@@ -151,12 +165,11 @@ class Drive(MotionBase):
         t0, length, dyaw = np.array(self._t0), np.array(self._len), np.array(self._dyaw)
         i = np.searchsorted(t0, ts, side="right") - 1
         tau, length, dyaw = ts - t0[i], length[i], dyaw[i]
-        x = 2.0 * math.pi * tau / length
+        turned, rate = _raised_cosine(tau, length, dyaw, np.sin, np.cos)
         turning = dyaw != 0.0
-        yaw = np.array(self._yaw0)[i] + np.where(
-            turning, dyaw * (tau / length - np.sin(x) / (2.0 * math.pi)), 0.0
+        return np.array(self._yaw0)[i] + np.where(turning, turned, 0.0), np.where(
+            turning, rate, 0.0
         )
-        return yaw, np.where(turning, dyaw / length * (1.0 - np.cos(x)), 0.0)
 
     def _angles(self, which: int, ts: FloatArray) -> FloatArray:
         amp, omega, phase = self._tilt[which]
@@ -171,10 +184,7 @@ class Drive(MotionBase):
         """:meth:`linear_acc_ned_g` at each time, as an (N, 3) array."""
         ts = np.maximum(np.asarray(times, dtype=np.float64).reshape(-1), 0.0)
         yaw, rate = self._yaws(ts)
-        p1, p2 = self._speed_phase
-        w1, w2 = 2.0 * math.pi / 67.0, 2.0 * math.pi / 23.0
-        v = self.speed_mps * (1.0 + 0.2 * np.sin(w1 * ts + p1) + 0.05 * np.sin(w2 * ts + p2))
-        dv = self.speed_mps * (0.2 * w1 * np.cos(w1 * ts + p1) + 0.05 * w2 * np.cos(w2 * ts + p2))
+        v, dv = self._speed(ts, np.sin, np.cos)
         c, s = np.cos(yaw), np.sin(yaw)
         lat = v * rate
         out = np.zeros((len(ts), 3))
@@ -400,18 +410,23 @@ class ManoeuvreDrive(MotionBase):
     def manoeuvre_accs_ned_g(self, times: npt.ArrayLike) -> FloatArray:
         """:meth:`manoeuvre_acc_ned_g` at each time, as an (N, 3) array (the same numbers)."""
         t, i, f = self._indices(times)
-        a = self._acc[i] + f[:, None] * (self._acc[i + 1] - self._acc[i])
+        a = self._lerp_acc(i, f)
         a[t > self.duration] = 0.0
-        return np.asarray(a, dtype=np.float64)
+        return a
+
+    def _lerp_acc(self, i: npt.NDArray[np.int64], f: FloatArray) -> FloatArray:
+        """The manoeuvres' acceleration between samples ``i`` and ``i + 1`` (fractions ``f``)."""
+        return np.asarray(
+            self._acc[i] + f[:, None] * (self._acc[i + 1] - self._acc[i]), dtype=np.float64
+        )
 
     def linear_accs_ned_g(self, times: npt.ArrayLike) -> FloatArray:
         """:meth:`linear_acc_ned_g` at each time, as an (N, 3) array (the same numbers:
         a benchmark's frames ask for a drive's worth at once)."""
         t, i, f = self._indices(times)
-        a = self._acc[i] + f[:, None] * (self._acc[i + 1] - self._acc[i])
-        a = a + self._vib[np.where(f < 0.5, i, i + 1)]
+        a = self._lerp_acc(i, f) + self._vib[np.where(f < 0.5, i, i + 1)]
         a[t > self.duration] = 0.0
-        return np.asarray(a, dtype=np.float64)
+        return a
 
     def kind_at(self, t: float) -> str:
         """The stretch ``t`` falls in: one of :data:`MANOEUVRES`."""
