@@ -41,7 +41,7 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         "phase": snap.phase.value,
         "percent": round(snap.completion_pct, 1),
         "onboard": snap.onboard,
-        "source": snap.calibration_source or svc.status().calibration_source,
+        "source": _source(svc, snap),
         "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
         "saved": snap.calibration_saved,
         "fitness_mG": fitness,
@@ -60,7 +60,13 @@ def calibration_key(svc: BridgeServices) -> tuple[str, str]:
     and is built only when a document goes out.
     """
     snap = svc.calibrator.snapshot()
-    return _state(snap), snap.calibration_source or svc.status().calibration_source
+    return _state(snap), _source(svc, snap)
+
+
+def _source(svc: BridgeServices, snap: CalibratorSnapshot) -> str:
+    """Where the calibration in use came from: the calibrator's word after an accept, else
+    the bridge's start-up one."""
+    return snap.calibration_source or svc.status().calibration_source
 
 
 def _state(snap: CalibratorSnapshot) -> str:
@@ -82,7 +88,7 @@ def calibration_info(svc: BridgeServices) -> dict[str, Any]:
     )
     return {
         "calibration": svc.settings.calibration.to_dict(),
-        "source": snap.calibration_source or svc.status().calibration_source,
+        "source": _source(svc, snap),
         "report": dict(report) if report is not None else None,
         "state": snap.to_dict(),
     }
