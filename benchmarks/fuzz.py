@@ -52,7 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import fuzz_hostile
-from benchmarks.pipeline import Figure, report
+from benchmarks.figures import Figure, report
 from benchmarks.procstat import process_rss_mb, stop_child
 
 log = logging.getLogger(__name__)

@@ -43,7 +43,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from benchmarks.pipeline import Figure
+from benchmarks.figures import Figure
 from benchmarks.procstat import process_rss_mb, stop_child
 
 log = logging.getLogger(__name__)

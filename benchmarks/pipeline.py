@@ -1,16 +1,17 @@
 """Speed and footprint of the whole bridge: ``python -m benchmarks pipeline``.
 
-Seven figures, each printed with its target (two without) and PASS/FAIL (``--json`` writes
+Eight figures, each printed with its target (three without) and PASS/FAIL (``--json`` writes
 them as one JSON object too):
 
-* **throughput** -- ``$PGMRA`` bytes -> :class:`~bridge.protocol.gmr.GmrDecoder`
-  -> :meth:`bridge.app.pipeline.Pipeline.process` (nominal transfer, calibration,
-  tilt-compensated attitude, quality flags) -> every MAVLink stream encoded
-  and framed at the frame rate (the worst case: in service they go at their
-  configured rates) -> ``heading``/``attitude``/``imu`` JSON put on a zenoh
-  session with a subscriber on a second session over loopback TCP. Frames per
-  second of *process* CPU time (zenoh's own threads included), best of
-  ``--repeat``; other processes on the machine do not distort it. Target 10 000.
+* **throughput** (:func:`benchmarks.throughput.shipped`) -- the daemon's per-frame path
+  at the shipped configuration: each frame's bytes into the link's state machine at
+  100 Hz on the frames' clock, every frame through
+  :meth:`bridge.app.pipeline.Pipeline.on_frame` to the running MAVLink (``udpout``)
+  and Zenoh (a subscriber in a child process) outputs at the shipped stream rates.
+  Frames per second of process CPU time, best of ``--repeat``. Target 10 000.
+* **throughput_every_stream** (:func:`benchmarks.throughput.every_stream`) -- every
+  MAVLink stream encoded and framed and the three Zenoh documents put for every frame
+  (no configuration asks that of the daemon): no target.
 * **latency** -- a real daemon (a child process, ``compass-bridge run``) with
   ATTITUDE at 50 Hz, the highest rate the configuration allows, reads the
   simulated compass at 100 Hz on a pseudo-terminal; this process notes when
@@ -39,7 +40,6 @@ them as one JSON object too):
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -48,14 +48,21 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb, stop_child
+from benchmarks import throughput
+from benchmarks.figures import Figure, Step, no_step, process_cpu, report
+from benchmarks.procstat import (
+    AttitudeTap,
+    free_port,
+    process_cpu_s,
+    process_rss_mb,
+    stop_child,
+)
 
 log = logging.getLogger(__name__)
 
@@ -68,166 +75,6 @@ TARGET_FIRST_ATTITUDE_S = 1.5
 #: Yaw rate of the simulated unit in the live run: 3 deg per 100 Hz frame, one yaw per frame.
 LIVE_YAW_RATE_DPS = 300.0
 LIVE_RATE_HZ = 100
-
-Step = Callable[[float, str], None]
-
-
-def _no_step(frac: float, note: str) -> None:
-    return None
-
-
-@dataclass(slots=True)
-class Figure:
-    """One measured figure against its target (``target`` None: reported only)."""
-
-    name: str
-    value: float
-    unit: str
-    target: float | None = None
-    lower_is_better: bool = True
-    detail: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def passed(self) -> bool | None:
-        """PASS/FAIL against the target; None when there is none or nothing was measured."""
-        if self.target is None or not math.isfinite(self.value):
-            return None if self.target is None else False
-        return self.value <= self.target if self.lower_is_better else self.value >= self.target
-
-    def verdict(self) -> str:
-        """``PASS``, ``FAIL`` or ``-``."""
-        p = self.passed
-        return "-" if p is None else ("PASS" if p else "FAIL")
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (NaN becomes None)."""
-        v = self.value if math.isfinite(self.value) else None
-        return {
-            "name": self.name,
-            "value": v,
-            "unit": self.unit,
-            "target": self.target,
-            "target_is": None
-            if self.target is None
-            else ("max" if self.lower_is_better else "min"),
-            "passed": self.passed,
-            "detail": self.detail,
-        }
-
-
-# ---------------------------------------------------------------------------
-# Throughput (in this process)
-# ---------------------------------------------------------------------------
-
-
-def _process_cpu() -> float:
-    t = os.times()
-    return t.user + t.system
-
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _zenoh_config(*, listen: str | None = None, connect: str | None = None) -> Any:
-    import zenoh
-
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("listen/endpoints", json.dumps([listen] if listen else []))
-    cfg.insert_json5("connect/endpoints", json.dumps([connect] if connect else []))
-    return cfg
-
-
-def throughput(n: int = 20000, *, repeat: int = 3, step: Step = _no_step) -> Figure:
-    """Frames per process-CPU second through the whole per-frame path (see the module doc)."""
-    import zenoh
-
-    from benchmarks.mavlink import STREAMS, bench_config, frame_lines
-    from bridge.app.sample import CompassSample
-    from bridge.daemon import build_daemon
-    from bridge.mavlink.dialect import mavlink as mavlink_dialect
-    from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-    from bridge.protocol.gmr import GmrDecoder
-    from bridge.zenoh import schema
-
-    data = frame_lines(n)
-    port = _free_port(socket.SOCK_STREAM)
-    pub_session = zenoh.open(_zenoh_config(listen=f"tcp/127.0.0.1:{port}"))
-    sub_session = zenoh.open(_zenoh_config(connect=f"tcp/127.0.0.1:{port}"))
-    received = [0]
-
-    def on_sample(_s: Any) -> None:
-        received[0] += 1
-
-    best_cpu = best_wall = math.inf
-    frames = 0
-    put = 0
-    try:
-        _sub = sub_session.declare_subscriber("bench/**", on_sample)
-        pubs = {
-            s: pub_session.declare_publisher(
-                f"bench/compass/{s}", congestion_control=zenoh.CongestionControl.DROP
-            )
-            for s in ("heading", "attitude", "imu")
-        }
-        time.sleep(0.5)  # let the two sessions meet before the clock starts
-        with tempfile.TemporaryDirectory() as tmp:
-            cfg = bench_config(tmp)
-            daemon = build_daemon(cfg)  # never started: process() is the pipeline's per-frame work
-            out = MavlinkOutput(MavlinkSettings(), daemon.bridge.services)
-            framer = mavlink_dialect.MAVLink(None, 1, 1)
-            for r in range(repeat):
-                decoder = GmrDecoder(direction="host")
-                frames = put = 0
-                w0, c0 = time.perf_counter(), _process_cpu()
-                for frame in decoder.feed(data):
-                    sample = daemon.bridge.pipeline.process(frame, w0)
-                    if not isinstance(sample, CompassSample):
-                        continue
-                    frames += 1
-                    for msgid in STREAMS:
-                        p = out.encode_sample(msgid, sample)
-                        if p is not None:
-                            p.pack(framer)
-                    ts = pub_session.new_timestamp()
-                    times = schema.SampleTimes(
-                        t_monotonic=sample.t, t_unix=time.time(), zenoh_time=None
-                    )
-                    for name, doc in (
-                        ("heading", schema.heading_doc(sample, times)),
-                        ("attitude", schema.attitude_doc(sample, times)),
-                        ("imu", schema.imu_doc(sample, times)),
-                    ):
-                        if doc is not None:
-                            pubs[name].put(schema.dumps(doc), timestamp=ts)
-                            put += 1
-                best_cpu = min(best_cpu, _process_cpu() - c0)
-                best_wall = min(best_wall, time.perf_counter() - w0)
-                step((r + 1) / repeat, f"throughput run {r + 1}/{repeat}")
-        time.sleep(0.3)  # the last puts reach the subscriber
-    finally:
-        sub_session.close()
-        pub_session.close()
-    fps = frames / best_cpu if best_cpu > 0 else math.inf
-    return Figure(
-        "throughput",
-        fps,
-        "frames/s (process CPU)",
-        TARGET_FPS,
-        lower_is_better=False,
-        detail={
-            "frames": frames,
-            "wall_fps": round(frames / best_wall, 1) if best_wall > 0 else None,
-            "mavlink_streams": len(STREAMS),
-            "zenoh_puts_per_frame": put / max(1, frames),
-            "zenoh_received": received[0],
-        },
-    )
-
 
 # ---------------------------------------------------------------------------
 # Calibration fit
@@ -251,9 +98,9 @@ def fit_time(n: int = 10000, method: str = "best", seed: int = 3) -> Figure:
         saturated=s.saturated,
         reference=earth_field(*DEFAULT_LOCATION),
     )
-    c0, w0 = _process_cpu(), time.perf_counter()
+    c0, w0 = process_cpu(), time.perf_counter()
     res = calibrate(method, data)
-    cpu, wall = _process_cpu() - c0, time.perf_counter() - w0
+    cpu, wall = process_cpu() - c0, time.perf_counter() - w0
     return Figure(
         "calibration_fit",
         wall,
@@ -410,7 +257,7 @@ def live_config(
                 *([f"rate_attitude_hz = {attitude_hz}"] if attitude_hz is not None else []),
                 "[zenoh]",
                 f"enabled = {'true' if zenoh_enabled else 'false'}",
-                f'listen = ["tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]',
+                f'listen = ["tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"]',
                 'key_prefix = "bench/compass"',
                 "[storage]",
                 f'dir = "{tmp}/state"',
@@ -486,7 +333,7 @@ def _run_child(
 
 
 def live(
-    duration_s: float = 10.0, *, seed: int = 1, zenoh_enabled: bool = True, step: Step = _no_step
+    duration_s: float = 10.0, *, seed: int = 1, zenoh_enabled: bool = True, step: Step = no_step
 ) -> list[Figure]:
     """Run real daemons at 100 Hz against the simulated compass; latency, CPU, RSS, start-up.
 
@@ -578,19 +425,6 @@ def live(
 # ---------------------------------------------------------------------------
 
 
-def format_figures(figures: list[Figure]) -> str:
-    """The human table: name, value, target, verdict."""
-    lines = []
-    for f in figures:
-        target = "" if f.target is None else f"{'<=' if f.lower_is_better else '>='} {f.target:g}"
-        value = f"{f.value:,.3f}" if abs(f.value) < 100 else f"{f.value:,.0f}"
-        lines.append(f"{f.name:<16} {value:>12} {f.unit:<24} {target:<10} {f.verdict()}")
-        extra = ", ".join(f"{k} {v}" for k, v in f.detail.items())
-        if extra:
-            lines.append(f"{'':<16} {extra}")
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> int:
     """``python -m benchmarks pipeline``: print the figures; exit 1 if any misses its target."""
     from bridge.tools.progress import Progress
@@ -622,7 +456,15 @@ def main(argv: list[str] | None = None) -> int:
     figures: list[Figure] = []
     with Progress("throughput", 1.0, enabled=args.progress) as bar:
         figures.append(
-            throughput(args.frames, repeat=args.repeat, step=lambda f, n: bar.update(f, note=n))
+            throughput.shipped(
+                args.frames, repeat=args.repeat, step=lambda f, n: bar.update(f, note=n)
+            )
+        )
+    with Progress("every stream", 1.0, enabled=args.progress) as bar:
+        figures.append(
+            throughput.every_stream(
+                args.frames, repeat=args.repeat, step=lambda f, n: bar.update(f, note=n)
+            )
         )
     with Progress("calibration fit", None, enabled=args.progress) as bar:
         bar.update(note=f"{args.fit_samples} samples")
@@ -635,23 +477,6 @@ def main(argv: list[str] | None = None) -> int:
             figures += live(args.duration, step=lambda f, n: bar.update(f, note=n))
     logging.disable(logging.NOTSET)
     return report(figures, args.json, cpu_count=os.cpu_count())
-
-
-def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
-    """Print the figures (a table, or JSON with ``json_to="-"``), maybe write them as JSON.
-
-    Returns the exit code of a benchmark: 0 when every figure meets its target.
-    """
-    ok = all(f.passed is not False for f in figures)
-    doc = {"figures": [f.to_dict() for f in figures], "passed": ok, **extra}
-    if json_to == "-":
-        print(json.dumps(doc, indent=2))
-    else:
-        print(format_figures(figures))
-        print(f"overall: {'PASS' if ok else 'FAIL'}")
-        if json_to:
-            Path(json_to).write_text(json.dumps(doc, indent=2) + "\n")
-    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@ every frame has its own yaw) at 100 Hz on a pseudo-terminal and send MAVLink
 ATTITUDE to a UDP socket of this process:
 
 * **bridge** -- ``python -m bridge run`` with MAVLink (one ``udpout``) and Zenoh
-  (a TCP listener on 127.0.0.1) on, at the shipped stream rates
+  (a TCP listener on 127.0.0.1, a subscriber to its documents in a child process
+  from the settling on, as fleet software would be) on, at the shipped stream rates
   (config/compass-bridge.toml: ATTITUDE 10 Hz, ...);
 * **forwarder** -- :mod:`benchmarks.forwarder`, ~40 lines: pyserial ``readline``,
   a regex, the datasheet's formulas, ``mavutil`` ``udpout``, one ATTITUDE a frame;
@@ -22,7 +23,9 @@ it settle 2 s, then measure over ``--duration`` seconds:
   threads) over the window, % of one core; per thread, the run time from
   ``/proc/PID/task/TID/schedstat`` and the context switches from ``.../status``;
 * **latency** -- from the instant the frame's first byte was written to the pty to
-  the arrival of the ATTITUDE datagram carrying its yaw (p50, p99 of the window);
+  the arrival of the ATTITUDE datagram carrying its yaw, as the kernel stamped it
+  on the receiving socket (:class:`benchmarks.procstat.AttitudeTap`; p50, p99 of
+  the window);
 * **the machine** -- its busy share over the window from ``/proc/stat`` (both
   cores; the measured program included) and the load average, since other
   processes share the two cores.
@@ -40,21 +43,22 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from benchmarks.figures import Figure, report
 from benchmarks.pipeline import (
-    Figure,
     _expected_yaws,
     _percentile,
     _TimedPty,
     live_config,
     match_latencies,
-    report,
 )
 from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb, stop_child
+from benchmarks.throughput import Subscriber
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +91,19 @@ def forwarder_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
 def floor_command(link: Path, udp_port: int, tmp: Path) -> list[str]:
     """The least a Python program does for the same output (:mod:`benchmarks.floor`)."""
     return [sys.executable, "-m", "benchmarks.floor", str(link), "--udp", f"127.0.0.1:{udp_port}"]
+
+
+def _zenoh_subscriber(cmd: list[str]) -> Subscriber | None:
+    """For a program with Zenoh on (``--config`` naming a ``[zenoh]`` that listens): a
+    subscriber to its documents in a child process, as fleet software would be. The
+    program then pays for sending them, as it does in service."""
+    if "--config" not in cmd:
+        return None
+    with open(cmd[cmd.index("--config") + 1], "rb") as f:
+        zenoh_cfg = tomllib.load(f).get("zenoh", {})
+    if not zenoh_cfg.get("enabled") or not zenoh_cfg.get("listen"):
+        return None
+    return Subscriber(zenoh_cfg["listen"][0], f"{zenoh_cfg['key_prefix']}/*")
 
 
 COMMANDS: dict[str, Command] = {
@@ -122,6 +139,8 @@ class LiveRun:
     loadavg: str
     rss_mb: float
     threads: list[ThreadCpu] = field(default_factory=list)
+    #: Zenoh documents a second a subscriber (a child process) got from the program.
+    zenoh_docs_hz: float = 0.0
 
 
 def _threads(pid: int) -> dict[int, tuple[str, int, int, int]]:
@@ -163,6 +182,7 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
         timed.pty.start()
         tap.start()
         env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+        subscriber: Subscriber | None = None
         proc = subprocess.Popen(
             cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=Path.cwd()
         )
@@ -172,7 +192,9 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
                 time.sleep(0.02)
             if not received:
                 raise RuntimeError(f"{program}: no ATTITUDE within 20 s (exit {proc.poll()})")
+            subscriber = _zenoh_subscriber(cmd)
             time.sleep(settle_s)
+            docs0 = subscriber.counts() if subscriber else {}
             n0 = len(received)
             th0, (b0, j0) = _threads(proc.pid), _machine_jiffies()
             c0, w0 = process_cpu_s(proc.pid), time.monotonic()
@@ -180,9 +202,12 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
             c1, w1 = process_cpu_s(proc.pid), time.monotonic()
             th1, (b1, j1) = _threads(proc.pid), _machine_jiffies()
             n1 = len(received)
+            docs1 = subscriber.counts() if subscriber else {}
             loadavg = " ".join(Path("/proc/loadavg").read_text().split()[:3])
             rss = process_rss_mb(proc.pid)[0]
         finally:
+            if subscriber is not None:
+                subscriber.close()
             err = stop_child(proc)
             tap.stop()
             timed.pty.stop()
@@ -209,6 +234,7 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
         loadavg=loadavg,
         rss_mb=rss,
         threads=threads,
+        zenoh_docs_hz=(sum(docs1.values()) - sum(docs0.values())) / wall,
     )
 
 
@@ -218,6 +244,7 @@ def describe(run: LiveRun, wall_s: float, top: int = 4) -> str:
         f"{run.program:<9} cpu {run.cpu_pct:6.3f} %  p50 {run.p50_ms:6.3f} ms  "
         f"p99 {run.p99_ms:6.3f} ms  ATTITUDE {run.attitude_hz:5.1f}/s "
         f"(unmatched {run.unmatched})  machine {run.machine_busy_pct:5.1f} %  load {run.loadavg}"
+        + (f"  Zenoh {run.zenoh_docs_hz:.1f} docs/s" if run.zenoh_docs_hz else "")
     )
     threads = ", ".join(
         f"{t.name}[{t.tid}] {100.0 * t.cpu_s / wall_s:.2f} % "
@@ -346,6 +373,7 @@ def main(argv: list[str] | None = None) -> int:
                     "machine_busy_pct": round(r.machine_busy_pct, 1),
                     "loadavg": r.loadavg,
                     "rss_mb": round(r.rss_mb, 1),
+                    "zenoh_docs_hz": round(r.zenoh_docs_hz, 1),
                     "threads": [
                         {"name": t.name, "cpu_s": round(t.cpu_s, 4), "switches": t.voluntary}
                         for t in r.threads[:6]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -12,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.pipeline import Figure, live, main, match_latencies
+from benchmarks.figures import Figure
+from benchmarks.pipeline import live, main, match_latencies
 from benchmarks.procstat import process_cpu_s
 
 
@@ -25,7 +27,7 @@ def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
     )  # fmt: skip
     doc = json.loads(out.read_text())
     figs = {f["name"]: f for f in doc["figures"]}
-    assert set(figs) == {"throughput", "calibration_fit", "cold_frame"}
+    assert set(figs) == {"throughput", "throughput_every_stream", "calibration_fit", "cold_frame"}
     cold = figs["cold_frame"]
     d = cold["detail"]
     assert cold["target"] is None and cold["passed"] is None and d["frames"] == 20
@@ -36,8 +38,18 @@ def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
     t = figs["throughput"]
     assert t["value"] > 0 and t["target"] == 10000 and t["target_is"] == "min"
     assert t["passed"] is (t["value"] >= 10000)
-    assert t["detail"]["frames"] == 300 and t["detail"]["zenoh_puts_per_frame"] == 3.0
-    assert t["detail"]["zenoh_received"] > 0  # the puts really crossed the loopback link
+    # The daemon's own outputs at the shipped rates, on the frames' 100 Hz clock: ATTITUDE,
+    # ATTITUDE_QUATERNION 10 Hz, VFR_HUD 4, three IMUs 2, SYS_STATUS 1 -> 0.31 a frame; the
+    # three Zenoh streams 10 Hz -> 0.3, each one received by the subscriber process.
+    d = t["detail"]
+    assert d["frames"] == 300 and d["mavlink_lost"] == 0
+    assert 0.27 <= d["mavlink_packets_per_frame"] <= 0.35
+    assert 0.27 <= d["zenoh_docs_per_frame"] <= 0.33
+    assert all(d["zenoh_received"][k] >= 25 for k in ("heading", "attitude", "imu"))
+    e = figs["throughput_every_stream"]
+    assert e["value"] > 0 and e["target"] is None and e["passed"] is None
+    assert e["detail"]["frames"] == 300 and e["detail"]["zenoh_puts_per_frame"] == 3.0
+    assert e["detail"]["zenoh_received"] > 0  # the puts really crossed the loopback link
     assert figs["calibration_fit"]["detail"]["status"] == "MAG_CAL_SUCCESS"
     assert doc["passed"] is all(f["passed"] is not False for f in doc["figures"])
     assert code == (0 if doc["passed"] else 1)
@@ -102,3 +114,38 @@ def test_figure_verdicts() -> None:
     assert Figure("x", 10.0, "fps", 5.0, lower_is_better=False).passed is True
     assert Figure("x", float("nan"), "ms", 2.0).passed is False
     assert Figure("x", 1.0, "s").verdict() == "-"
+
+
+@pytest.mark.integration
+def test_attitude_tap_times_each_datagram_by_the_kernel_not_by_its_thread() -> None:
+    # The tap's arrival time is when the datagram reached the socket (inside sendto, on
+    # loopback), not when the receiving thread of this Python process got round to it.
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    from benchmarks.procstat import AttitudeTap
+
+    tap = AttitudeTap("test-tap").start()
+    framer = mav.MAVLink(None, 1, 1)
+    packets = [framer.attitude_encode(0, 0.0, 0.0, 0.01 * i, 0.0, 0.0, 0.0).pack(framer)
+               for i in range(20)]  # fmt: skip
+    spans = []
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for p in packets:
+                before = time.monotonic()
+                s.sendto(p, ("127.0.0.1", tap.port))
+                spans.append((before, time.monotonic()))
+                # This thread keeps the GIL 2 ms: a stamp the tap's thread took would be late.
+                busy = time.monotonic() + 0.002
+                while time.monotonic() < busy:
+                    pass
+                deadline = time.monotonic() + 5.0
+                while len(tap.received) < len(spans) and time.monotonic() < deadline:
+                    time.sleep(0.001)
+    finally:
+        tap.stop()
+    assert tap.kernel_stamps and len(tap.received) == 20
+    for (t_rx, yaw), (before, after), i in zip(tap.received, spans, range(20), strict=True):
+        assert yaw == pytest.approx(0.01 * i)
+        # 50 us for the realtime -> monotonic conversion; a thread's wake-up is not in it.
+        assert before - 5e-5 <= t_rx <= after + 5e-5

@@ -97,6 +97,10 @@ def test_short_run_of_both_programs_matches_every_attitude(tmp_path: Path) -> No
         assert run["cpu_pct"] > 0.0 and run["rss_mb"] > 0.0 and run["unmatched"] == 0
         assert 0.0 < run["p50_ms"] <= run["p99_ms"] < 1000.0
         assert figs[f"{p}_p99"]["detail"]["samples"] >= 5
+    # The bridge's Zenoh documents reach a subscriber (heading, attitude, imu at 10 Hz each,
+    # status and events besides); the forwarder has no Zenoh.
+    assert 25.0 <= doc["runs"]["bridge"][0]["zenoh_docs_hz"] <= 40.0
+    assert doc["runs"]["forwarder"][0]["zenoh_docs_hz"] == 0.0
     # The forwarder sends one ATTITUDE a frame; the bridge at its shipped 10 Hz.
     assert doc["runs"]["forwarder"][0]["attitude_hz"] > 3 * doc["runs"]["bridge"][0]["attitude_hz"]
     ratio = figs["cpu_ratio"]["value"]
