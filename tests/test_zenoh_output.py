@@ -310,6 +310,24 @@ def test_the_pipeline_puts_each_sample_before_publish_returns(tmp_path: Path) ->
         assert {name for _, name in calls} == {"compass-link-reader"}
 
 
+def test_a_document_that_fails_to_build_holds_back_no_other_stream(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A builder's bug (injected here: the attitude document raises) is counted and said
+    once; the heading and imu documents of the same sample still go out."""
+
+    def broken(sample: Any, times: Any) -> dict[str, Any]:
+        raise RuntimeError("attitude builder bug")
+
+    docs = tuple((k, broken if k == "attitude" else b) for k, b in schema.SENSOR_DOCS)
+    monkeypatch.setattr(schema, "SENSOR_DOCS", docs)
+    with Bridge(tmp_path, "b0") as b:
+        wait_until(lambda: b.output.counters.published.get("imu", 0) >= 5, what="imu documents")
+        published = b.output.counters.published
+        assert published.get("heading", 0) >= 5 and "attitude" not in published
+        assert b.output.counters.put_errors >= 5
+
+
 def test_status_is_published_at_once_when_the_link_changes(tmp_path: Path) -> None:
     port = free_port()
     rx = Received()

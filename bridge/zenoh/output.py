@@ -441,10 +441,19 @@ class ZenohOutput:
         times = schema.SampleTimes(
             t, self._wall() - (self._clock() - t), ts.to_string_rfc3339_lossy()
         )
+        # Every document encoded first, then the puts back to back: zenoh's transmit thread
+        # (on the other core) then finds them together and sends one batch, instead of
+        # waking for each put while the next is still being encoded.
+        bodies = []
         for stream, _cap, build in due:
-            doc = build(sample, times)
-            if doc is not None:
-                self._put(stream, doc, ts)
+            try:
+                doc = build(sample, times)
+                if doc is not None:
+                    bodies.append((stream, schema.dumps(doc)))
+            except Exception as e:  # one stream's failure does not hold the others back
+                self._put_failed(stream, e)
+        for stream, body in bodies:
+            self._put_body(stream, body, ts)
 
     def _drain_events(self) -> bool:
         """Publish the queued events; True if there were any."""
@@ -494,8 +503,11 @@ class ZenohOutput:
                 self._put_failed("mirror", e)
 
     def _put(self, stream: str, doc: Mapping[str, Any], ts: Any = None) -> None:
+        self._put_body(stream, schema.dumps(doc), ts)
+
+    def _put_body(self, stream: str, body: bytes, ts: Any = None) -> None:
         try:
-            self._publishers[stream].put(schema.dumps(doc), timestamp=ts)
+            self._publishers[stream].put(body, timestamp=ts)
             self._count(stream)
         except Exception as e:  # a closed/broken session: count, say once, carry on
             self._put_failed(stream, e)
