@@ -335,14 +335,14 @@ class ZenohOutput:
     def _loop(self) -> None:
         timing = self._status_timing
         while not self._stop.is_set():
-            self._wake.wait(max(0.0, timing.next_look - self._clock()))
+            self._wake.wait(max(0.0, timing.next_look - self._clock()) if self._declared else None)
             if self._stop.is_set():
                 break
             self._wake.clear()
             claim = self._claim
             if claim is not None and claim.version != self._claim_version:
                 self._follow_claim()
-            if not self._declared:  # yielded to a bridge with our key prefix: nothing goes out
+            if not self._declared:  # yielded the prefix: nothing out, asleep till the claim moves
                 self._events.clear()
                 self._mirror.clear()
                 continue
