@@ -3,8 +3,8 @@
 It looked five times a second for a stop or a reload, and beat for a watchdog nobody
 read, with or without a service manager. Without one it now sleeps until a signal
 comes: the SIGHUP handler and the SIGINT/SIGTERM handler it finds (the CLI's, which sets
-``stop``) wake it. A service manager (``$NOTIFY_SOCKET``), a caller in another thread
-(no signals there) or a replay (its end) keep the look. Real signals, delivered to this
+``stop``) wake it. A caller in another thread (no signals there) or a replay (its end)
+keep the look; a service manager (``$NOTIFY_SOCKET``) gets a beat a second. Real signals, delivered to this
 process while :meth:`Service.run` runs in its main thread, as under ``compass-bridge run``.
 """
 
@@ -25,7 +25,7 @@ import pytest
 from bridge.cli import stop_on_signals
 from bridge.config import Config, config_from_mapping
 from bridge.daemon import Service
-from bridge.daemon.runner import MAIN_TICK_S
+from bridge.daemon.runner import MAIN_TICK_S, MANAGED_BEAT_S, SILENCE_LIMIT_S
 
 pytestmark = pytest.mark.integration  # real signals, a real daemon's threads
 
@@ -104,8 +104,10 @@ def test_the_loop_still_looks_where_no_signal_can_wake_it(tmp_path: Path) -> Non
         th.start()
         try:
             assert wait_for(lambda: watched.notify.active)
-            watched._signals = True  # as if in the main thread: the manager alone keeps it
-            assert watched._tick_s() == MAIN_TICK_S
+            assert watched._tick_s() == MAIN_TICK_S  # run outside the main thread
+            watched._signals = True  # as if in the main thread: the manager's beats alone
+            # (four of them in the silence limit: a hung part is seen as soon as before)
+            assert watched._tick_s() == MANAGED_BEAT_S <= SILENCE_LIMIT_S / 4
         finally:
             stop.set()
             th.join(DEADLINE_S)

@@ -69,11 +69,14 @@ log = logging.getLogger(__name__)
 SILENCE_LIMIT_S = 4.0
 #: READY=1 is sent after this long even without a streaming compass (STATUS says why).
 READY_TIMEOUT_S = 10.0
-#: How often the main loop beats while a service manager watches (sd_notify: its STATUS and
-#: pings vouch for the main loop, the pipeline and the worker threads from these beats), and
-#: looks at a stop or reload that no signal brought (embedded in another thread) or the end
-#: of a replay. Otherwise it sleeps until a signal (SIGHUP, SIGINT, SIGTERM) wakes it.
+#: How often the main loop looks at a stop or reload that no signal brought (run in another
+#: thread) or the end of a replay. Otherwise it sleeps until a signal (SIGHUP, SIGINT,
+#: SIGTERM) wakes it, or the next beat a service manager needs (:data:`MANAGED_BEAT_S`).
 MAIN_TICK_S = 0.2
+#: How often the main loop beats while a service manager watches (sd_notify's STATUS and
+#: pings vouch for the main loop, the pipeline and the worker threads from these beats): a
+#: part is silent after SILENCE_LIMIT_S, four of these, so a hang is seen as soon as before.
+MANAGED_BEAT_S = 1.0
 
 READER = "serial reader"
 PIPELINE = "pipeline"
@@ -330,13 +333,15 @@ class Service:
     def _tick_s(self) -> float | None:
         """How long the main loop may sleep (None: until a signal wakes it).
 
-        It ticks only when something needs it: a service manager that is told (the
-        STATUS and watchdog pings read the beats), a stop or reload request that no
-        signal brings (run outside the main thread), a replay that may end. Under no
-        manager, at 100 Hz, the five looks a second cost 0.07 % of a core for nothing.
+        It ticks only when something needs it: a stop or reload request that no signal
+        brings (run outside the main thread), a replay that may end, a service manager
+        that is told (the STATUS and watchdog pings read the beats). Under no manager,
+        at 100 Hz, five looks a second cost 0.07 % of a core for nothing.
         """
-        if self.notify.active or not self._signals or self.cfg.device.port.startswith("replay:"):
+        if not self._signals or self.cfg.device.port.startswith("replay:"):
             return MAIN_TICK_S
+        if self.notify.active:
+            return min(MANAGED_BEAT_S, SILENCE_LIMIT_S / 4)
         return None
 
     def run(self, stop: threading.Event) -> int:
