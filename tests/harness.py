@@ -566,7 +566,7 @@ def bridge_on(harness: LinkHarness, cfg: Any, **kw: Any) -> Any:
 
     kw.setdefault("documents", StateStore(cfg.storage.dir))
     app = build_bridge(BridgeOptions.from_config(cfg), clock=harness.clock, **kw)
-    harness.on_frame, harness.on_state = app.pipeline.on_frame, app.pipeline.on_link_state
+    harness.on_frame, harness.on_state = app.pipeline.on_frame, app.on_link_state
     app.connect(HarnessPort(harness))
     return app
 

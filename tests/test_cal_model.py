@@ -104,3 +104,32 @@ def test_the_device_view_keeps_the_devices_level_reference() -> None:
     seen = ArduPilotView.of_device(page)
     assert seen.ofs_mG == pytest.approx((-100.0, 0.0, 100.0))
     assert seen.diag == (page.kx, page.ky, page.kz) and seen.rotation_deg == 0.0
+
+
+def _numpy_corrects_iron(mag: AffineCalibration, tol: float = 1e-6) -> bool:
+    """The rule as numpy says it (what corrects_iron computed before it went plain float)."""
+    m = mag.matrix_array
+    off = mag.offset_array
+    return bool(np.any(np.abs(off) > tol) or not np.allclose(m @ m.T, np.eye(3), atol=tol))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    roll=st.floats(-3.2, 3.2),
+    pitch=st.floats(-1.6, 1.6),
+    yaw=st.floats(-3.2, 3.2),
+    scale=st.sampled_from([1.0, 1.0 + 2e-7, 1.0 + 2e-6, 1.0 + 2e-5, 0.95]),
+    skew=st.sampled_from([0.0, 3e-7, 3e-6]),
+    offset=st.sampled_from([0.0, 5e-7, 2e-6, -0.03]),
+)
+def test_corrects_iron_is_numpys_allclose_rule(
+    roll: float, pitch: float, yaw: float, scale: float, skew: float, offset: float
+) -> None:
+    """Rotations (a level trim, a mounting) alone are no calibration; any offset or gain
+    beyond the tolerance is -- the same answer as numpy's allclose, at the borders too."""
+    from bridge.calibration.model import corrects_iron
+
+    r = euler_to_dcm(roll, pitch, yaw) @ np.diag([scale, 1.0, 1.0])
+    r[0, 1] += skew
+    mag = AffineCalibration((offset, 0.0, 0.0), tuple(tuple(float(v) for v in row) for row in r))
+    assert corrects_iron(mag) is _numpy_corrects_iron(mag)

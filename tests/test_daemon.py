@@ -307,6 +307,9 @@ def test_a_silent_compass_is_lost_and_restored_on_the_bus(tmp_path: Path) -> Non
     )
     kinds: list[str] = []
     app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    # Whoever follows the state (Zenoh's status) hears every change, evented or not.
+    states: list[LinkState] = []
+    app.services.link_states.add(states.append)  # type: ignore[attr-defined]
     run_samples(h, out, 3)
     dev.silent = True  # the compass stops
     assert h.run_until(lambda: h.state is LinkState.STALE, 5.0)
@@ -314,6 +317,7 @@ def test_a_silent_compass_is_lost_and_restored_on_the_bus(tmp_path: Path) -> Non
     assert h.run_until(lambda: h.state is LinkState.STREAMING, 5.0)
     assert app.status().state is LinkState.STREAMING  # type: ignore[attr-defined]
     assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
+    assert states == [LinkState.STREAMING, LinkState.STALE, LinkState.STREAMING]
 
 
 def test_an_unplugged_adapter_is_counted_and_the_stream_comes_back(tmp_path: Path) -> None:
@@ -323,6 +327,8 @@ def test_an_unplugged_adapter_is_counted_and_the_stream_comes_back(tmp_path: Pat
     )
     kinds: list[str] = []
     app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    states: list[LinkState] = []
+    app.services.link_states.add(states.append)  # type: ignore[attr-defined]
     run_samples(h, out, 3)
     h.unplug()
     h.at(2.5, h.replug)
@@ -335,6 +341,10 @@ def test_an_unplugged_adapter_is_counted_and_the_stream_comes_back(tmp_path: Pat
     assert status.state is LinkState.STREAMING and status.counters.reconnects == 1
     assert status.counters.open_failures >= 3
     assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
+    # The link's state followers hear the changes no event is emitted for too (the port
+    # opening again): Zenoh's status goes out on them.
+    lost = states.index(LinkState.ABSENT)
+    assert LinkState.OPENING in states[lost:] and states[-1] is LinkState.STREAMING, states
 
 
 class Stuck(LatestSampleWorker):

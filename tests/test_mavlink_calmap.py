@@ -14,7 +14,13 @@ from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase
 from bridge.calibration.sessions.report import DeviceOutcome, FitQuality
 from bridge.events import Event, Severity
 from bridge.mavlink import calmap
-from bridge.mavlink.commands import ONBOARD_REPORTS, TEXT_BURST, TEXT_RATE_HZ, CalibrationRelay
+from bridge.mavlink.commands import (
+    ONBOARD_REPORTS,
+    PROGRESS_PERIOD_S,
+    TEXT_BURST,
+    TEXT_RATE_HZ,
+    CalibrationRelay,
+)
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
 
 
@@ -195,3 +201,75 @@ def test_the_compass_own_magcal_report_is_sent_three_times_not_forever() -> None
         now[0] += 1.0
         repeats += len(relay.keepalive(now[0], lambda: snapshot))
     assert 1 + repeats == ONBOARD_REPORTS
+
+
+def _snap(*, running: bool) -> CalibratorSnapshot:
+    return CalibratorSnapshot(
+        mode="mag" if running else None, phase=Phase.COLLECTING if running else Phase.IDLE,
+        step=1 if running else 0, running=running, attempt=1, completion_pct=10.0,
+        completion_mask=bytes(10), direction=(0.0, 0.0, 1.0), onboard=False, faces_done=(),
+        report=None, pending_accept=False, calibration_source="none (identity)",
+        calibration_age_s=None, calibration_saved=True,
+    )  # fmt: skip
+
+
+def test_the_keepalive_sleeps_while_no_calibration_runs_and_wakes_for_one() -> None:
+    """The telemetry thread woke twice a second to ask the calibrator whether a
+    magnetometer calibration ran. Now a look that finds none running and no report to
+    repeat puts the keep-alive to sleep (keepalive_due +inf) until a calibration event
+    or a command (hurry) wakes it, and on_due tells the sleeping thread."""
+    now = [10.0]
+    relay = CalibrationRelay(clock=lambda: now[0])
+    woken: list[float] = []
+    relay.on_due = lambda: woken.append(now[0])
+    assert relay.keepalive_due < math.inf  # at first it looks once (a run may be under way)
+    assert relay.keepalive(now[0], lambda: _snap(running=False)) == []
+    assert relay.keepalive_due == math.inf and woken == []
+    relay.packets(_started())  # a calibration started (here, or from Zenoh, the CLI ...)
+    assert woken == [10.0] and relay.keepalive_due == 10.0 + PROGRESS_PERIOD_S
+    relay.packets(_started())  # already looking: no second wake-up
+    assert woken == [10.0]
+    sent = []
+    for i in range(1, 5):  # progress twice a second while it runs
+        now[0] = 10.0 + 0.5 * i
+        assert relay.keepalive_due <= now[0]
+        sent += relay.keepalive(now[0], lambda: _snap(running=True))
+    assert [m.get_type() for m in sent] == ["MAG_CAL_PROGRESS"] * 4
+    now[0] += 0.5
+    relay.keepalive(now[0], lambda: _snap(running=False))  # it ended: asleep again
+    assert relay.keepalive_due == math.inf
+    relay.hurry()  # a command handled: the next look at once
+    assert relay.keepalive_due == -math.inf and len(woken) == 2
+
+
+def test_an_event_during_the_keepalive_look_keeps_it_awake() -> None:
+    # The start's event comes while the look reads a snapshot taken before it: the look
+    # must not put the keep-alive to sleep, or that calibration's progress never goes out.
+    relay = CalibrationRelay(clock=lambda: 0.0)
+
+    def snapshot_then_start() -> CalibratorSnapshot:
+        snap = _snap(running=False)
+        relay.packets(_started())
+        return snap
+
+    relay.keepalive(1.0, snapshot_then_start)
+    assert relay.keepalive_due == 1.0 + PROGRESS_PERIOD_S
+
+
+def test_a_report_waiting_for_an_answer_keeps_the_keepalive_awake() -> None:
+    now = [0.0]
+    relay = CalibrationRelay(clock=lambda: now[0])
+    relay.begin("ardupilot")
+    rep = SessionReport(Mode.MAG, "host fit", mag=ArduPilotView((1.0, 2.0, 3.0)))
+    data = {"mode": "mag", "sensor": "mag", "onboard": False, "report": rep.to_dict()}
+    relay.packets(Event("calibration.done", "Calibration done: mag", Severity.INFO, data))
+    reports = 0
+    for _ in range(5):
+        now[0] += 1.0
+        reports += len(relay.keepalive(now[0], lambda: _snap(running=False)))
+        assert relay.keepalive_due < math.inf
+    assert reports == 5  # once a second until answered
+    relay.answered()
+    now[0] += 1.0
+    assert relay.keepalive(now[0], lambda: _snap(running=False)) == []
+    assert relay.keepalive_due == math.inf

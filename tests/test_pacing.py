@@ -12,7 +12,7 @@ import pytest
 
 from bridge.core.pacing import EARLY_MAX_S, early_s, next_slot
 from bridge.mavlink import schedule as S  # noqa: N812 - short
-from bridge.zenoh.pacing import Decimator
+from bridge.zenoh.pacing import Decimator, StatusTiming
 
 FRAME_S = 0.01  # 100 Hz frames
 
@@ -85,3 +85,44 @@ def test_a_sample_may_come_a_little_early_never_more() -> None:
         slot = next_slot(None, now, 0.1)
         assert 0.05 - 1e-9 <= slot - now <= 0.15 + 1e-9
         assert slot / 0.1 == pytest.approx(round(slot / 0.1))
+
+
+# ---------------------------------------------------------------------------
+# <prefix>/status: on the period, and at once on a change (bridge.zenoh.pacing.StatusTiming)
+# ---------------------------------------------------------------------------
+
+
+def test_the_status_goes_out_on_its_period_and_its_key_is_read_only_on_a_change() -> None:
+    timing = StatusTiming(1.0)  # told of link state changes: no polling
+    assert timing.due(0.0)  # the first at once
+    timing.published(("streaming", "idle", "stored"), 0.0)
+    assert timing.next_look == 1.0  # asleep until the period: nothing read meanwhile
+    assert not timing.due(0.99) and not timing.must_look(0.99)
+    timing.note_change()  # an event, or the link's state moved
+    assert timing.next_look == 1.0 and timing.must_look(0.3)
+    assert not timing.must_look(0.3)  # the note is taken by the look
+    assert not timing.changed(("streaming", "idle", "stored"))  # the same: nothing goes out
+    timing.note_change()
+    assert timing.must_look(0.4) and timing.changed(("stale", "idle", "stored"))
+    timing.published(("stale", "idle", "stored"), 0.4)
+    assert timing.next_look == 1.4  # the period starts again from the change's status
+
+
+def test_a_change_noted_while_the_key_is_read_is_looked_at_again() -> None:
+    timing = StatusTiming(1.0)
+    timing.published(("opening",), 0.0)
+    timing.note_change()
+    assert timing.must_look(0.1)
+    timing.note_change()  # the link moves on while the key is read
+    assert not timing.changed(("opening",))
+    assert timing.must_look(0.1)  # the second change is not lost
+
+
+def test_without_change_notices_the_key_is_polled() -> None:
+    timing = StatusTiming(1.0, poll_s=0.5)
+    timing.published(("opening",), 0.0)
+    assert timing.next_look == 0.5
+    assert not timing.must_look(0.49) and timing.must_look(0.5)
+    assert timing.next_look == 1.0  # the period's look comes next
+    with pytest.raises(ValueError):
+        StatusTiming(0.0)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -185,7 +186,15 @@ def test_two_bridges_on_one_key_prefix(tmp_path: Path) -> None:
                 keyexpr=first.prefix, connect=(f"tcp/127.0.0.1:{port}",), once=True,
                 duration=2.5, tty=False, overrides=NO_SCOUTING,
             )  # fmt: skip
+            # Meanwhile the second's publisher sleeps until the claim changes (it spun,
+            # waking on its past status period, while it yielded).
+            thread = second.output._thread
+            assert thread is not None and thread.ident is not None
+            cpu = time.pthread_getcpuclockid(thread.ident)
+            cpu0, wall0 = time.clock_gettime(cpu), time.monotonic()
             assert run_monitor(opts, out) == 1  # a shared prefix is not OK (docs/zenoh.md)
+            spent = time.clock_gettime(cpu) - cpu0
+            assert spent < 0.05 * (time.monotonic() - wall0), spent
             (row,) = [ln for ln in out.getvalue().splitlines() if ln.startswith(first.prefix)]
             assert "DUP2" in row, out.getvalue()
             said = io.StringIO()

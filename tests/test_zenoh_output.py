@@ -21,15 +21,18 @@ import pytest
 import zenoh
 
 from bridge.app.calibration.store import CALIBRATION_DOCUMENT
+from bridge.app.sample import DaemonStatus
 from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.config import load_config
 from bridge.daemon import Daemon, build_daemon, build_outputs
+from bridge.device import LinkCounters, LinkState
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.dialect import mavlink
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import MOTIONS, PtyCompass
 from bridge.storage import StateStore
 from bridge.zenoh import schema
+from bridge.zenoh.contract import FleetServices
 from bridge.zenoh.output import ZenohOutput
 from bridge.zenoh.services import fleet_services
 from bridge.zenoh.session import ZenohSettings
@@ -353,6 +356,52 @@ def test_status_is_published_at_once_when_the_link_changes(tmp_path: Path) -> No
         events = [schema.parse(e.payload.to_bytes(), schema.EVENT) for e in rx.get(b.key("events"))]
         lost = [e for e in events if e["kind"] == "link.lost"]
         assert lost and lost[0]["severity"] == "error"
+
+
+def test_a_link_state_change_without_an_event_is_published_at_once() -> None:
+    """The publisher no longer reads the status twice a second to find a change: the
+    link's state changes are told to it (``subscribe_link_state``; opening a port again
+    comes with no event), and the status goes out at once. A 30 s period: only the notice
+    can explain a new status this soon."""
+    port = free_port()
+    state = [LinkState.OPENING]
+    follow: list[Callable[[Any], None]] = []
+
+    def status() -> DaemonStatus:
+        return DaemonStatus("/dev/ttyX", state[0], LinkCounters(), 0, 0, "stored")
+
+    def subscribe(fn: Callable[[Any], None]) -> Callable[[], None]:
+        follow.append(fn)
+        return lambda: follow.remove(fn)
+
+    services = FleetServices(status=status, subscribe_link_state=subscribe)
+    settings = ZenohSettings(
+        connect=(f"tcp/127.0.0.1:{port}",), key_prefix="test/notice", status_period_s=30.0,
+        overrides=NO_SCOUTING,
+    )  # fmt: skip
+    out = ZenohOutput(settings, services)
+    rx = Received()
+    with peer(listen=[f"tcp/127.0.0.1:{port}"]) as sub:
+        _s = sub.declare_subscriber("test/notice/status", rx)
+        out.start()
+        try:
+
+            def states() -> list[str]:
+                return [d["link"]["state"] for d in rx.docs("test/notice/status")]
+
+            # Routed both ways once a query is answered (the first status may have gone
+            # out before the subscriber was known: it is not waited for).
+            wait_until(lambda: bool(_query(sub, "test/notice/status", 0.5)), what="a route")
+            assert len(follow) == 1
+            n = len(states())
+            for new in (LinkState.STREAMING, LinkState.ABSENT, LinkState.OPENING):
+                state[0] = new
+                follow[0](new)
+                wait_until(lambda v=new.value: states()[-1:] == [v], what=f"a {new.value} status")  # type: ignore[misc]
+            assert states()[n:] == ["streaming", "absent", "opening"]
+        finally:
+            out.close(5.0)
+    assert not follow  # unsubscribed on close
 
 
 # ---------------------------------------------------------------------------

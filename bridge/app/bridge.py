@@ -36,9 +36,9 @@ from bridge.calibration.model import Calibration
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import EarthField, earth_field
-from bridge.device import DevicePort
+from bridge.device import DevicePort, LinkState
 from bridge.documents import DocumentStore
-from bridge.events import EventBus
+from bridge.events import EventBus, Subscribers
 from bridge.types import LEARN_MODES, Clock, HeadingReference
 
 log = logging.getLogger(__name__)
@@ -187,6 +187,8 @@ class Bridge:
         self.pipeline = pipeline
         self.documents = documents
         self.mavlink_tap = MessageTap()
+        #: Told every change of the link's state (:meth:`on_link_state`), in the link's thread.
+        self.link_states: Subscribers[LinkState] = Subscribers()
         settings.subscribe(self._on_settings)
         params.subscribe(self._on_params)
         params.start()
@@ -215,7 +217,19 @@ class Bridge:
             documents=self.documents,
             drift=self.drift,
             tilt=self.tilt,
+            link_states=self.link_states,
         )
+
+    def on_link_state(self, old: LinkState, new: LinkState) -> None:
+        """The link's state changed (called in its reader thread): the pipeline's link
+        events, then whoever follows the state (a status that goes out on a change
+        waits on this instead of looking at the state on a clock)."""
+        self.pipeline.on_link_state(old, new)
+        for fn in self.link_states:
+            try:
+                fn(new)
+            except Exception:  # a follower's bug must not reach the link's reader
+                log.exception("link state subscriber failed")
 
     # -- lifecycle -----------------------------------------------------------------
 

@@ -27,7 +27,7 @@ from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
 from bridge.app.tilt import TiltSources
 from bridge.calibration.model import corrects_iron
-from bridge.device import DevicePort
+from bridge.device import DevicePort, LinkState
 from bridge.documents import DocumentStore
 from bridge.events import EventBus, Subscribers
 
@@ -90,6 +90,9 @@ class BridgeServices:
     * ``drift`` -- the calibration's drift monitor (status, undo of learned offsets);
     * ``tilt`` -- where each frame's tilt comes from: the companion role's MAVLink
       adapter hands it the autopilot's attitude; status reads it;
+    * ``link_states`` -- every change of the link's state (``add`` a quick callback; it
+      runs in the link's reader thread): a status that goes out when the state changes
+      follows it rather than reading ``status()`` on a clock;
     * ``documents`` -- the state directory, for what an adapter must keep across a
       restart (MAVLink's signing replay table); None without one.
     """
@@ -104,6 +107,7 @@ class BridgeServices:
     mavlink_tap: MessageTap
     drift: DriftMonitor
     tilt: TiltSources
+    link_states: Subscribers[LinkState]
     documents: DocumentStore | None = None
 
 

@@ -287,7 +287,7 @@ def build_daemon(
         protocol=cfg.device.protocol,  # type: ignore[arg-type]  # validated by config
         rate_hz=cfg.device.rate_hz if cfg.device.protocol == "gmr" else None,
         stale_after=cfg.device.stale_after,
-        on_state=bridge.pipeline.on_link_state,
+        on_state=bridge.on_link_state,
         # The pipeline runs in the link's reader thread: no second thread to wake for
         # every frame (see bridge.app.pipeline).
         on_frame=bridge.pipeline.on_frame,

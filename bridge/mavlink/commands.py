@@ -212,6 +212,15 @@ class CalibrationRelay:
         self._repeat_left: int | None = None  # repeats still to go (None: until answered)
         self._repeat_at = -math.inf
         self._progress_at = -math.inf
+        # Whether keepalive() may have something to say: from the start (a calibration may
+        # be running already: a reloaded output) and from any calibration event or hurry()
+        # until a look finds no magnetometer calibration running and no report to repeat.
+        # Idle, keepalive_due is +inf and the telemetry thread does not wake for it.
+        self._active = True
+        self._activations = 0  # counts _activate(): a look that began before one keeps it
+        #: Told (any thread) when :attr:`keepalive_due` comes back from +inf (the telemetry
+        #: thread, asleep until its next stream, wakes for it).
+        self.on_due: Callable[[], None] | None = None
         self._tokens = float(TEXT_BURST)
         self._tokens_at = clock()
         self.throttled = 0  #: event STATUSTEXTs not sent (over the bucket's rate)
@@ -220,15 +229,25 @@ class CalibrationRelay:
 
     @property
     def keepalive_due(self) -> float:
-        """When :meth:`keepalive` next has something to say (clock seconds)."""
-        return self._progress_at + PROGRESS_PERIOD_S
+        """When :meth:`keepalive` next may have something to say (clock seconds; +inf while
+        no calibration runs and no report waits for an answer)."""
+        return self._progress_at + PROGRESS_PERIOD_S if self._active else math.inf
+
+    def _activate(self) -> None:
+        with self._lock:
+            self._activations += 1
+            woke, self._active = not self._active, True
+        if woke and self.on_due is not None:
+            self.on_due()
 
     def keepalive(self, now: float, snapshot: Callable[[], CalibratorSnapshot]) -> list[Message]:
         """MAG_CAL_PROGRESS while a magnetometer calibration runs; else the MAG_CAL_REPORT
         waiting for an answer, about once a second."""
-        if now - self._progress_at < PROGRESS_PERIOD_S:
-            return []  # the controller is asked twice a second, not on every frame
+        if not self._active or now - self._progress_at < PROGRESS_PERIOD_S:
+            return []  # asleep; else the controller is asked twice a second, not every frame
         self._progress_at = now
+        with self._lock:
+            activations = self._activations  # before the snapshot: see the idle case below
         snap = snapshot()
         if snap.running and snap.mode in ("mag", "onboard_mag"):
             out = [calmap.progress_message(snap, self.compass_id)]
@@ -242,6 +261,10 @@ class CalibrationRelay:
             return out
         with self._lock:
             report = self._repeat
+            if report is None and activations == self._activations:
+                # Nothing runs, nothing waits: idle until an event or hurry() (one that
+                # came while the snapshot was taken keeps it looking).
+                self._active = False
             if report is None or now - self._repeat_at < REPORT_PERIOD_S:
                 return []
             self._repeat_at = now
@@ -254,6 +277,7 @@ class CalibrationRelay:
     def hurry(self) -> None:
         """A calibration command was handled: progress (or the report) at the next look."""
         self._progress_at = self._repeat_at = -math.inf
+        self._activate()
 
     def answered(self) -> None:
         """DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL for our compass: stop repeating the report."""
@@ -311,6 +335,7 @@ class CalibrationRelay:
         """What to broadcast for ``event`` (any kind; non-calibration events become STATUSTEXT)."""
         if not event.kind.startswith("calibration."):
             return self._text(event)
+        self._activate()  # a calibration started, ended or moved on: keepalive looks again
         if (
             event.kind == "calibration.accepted"
             and event.data.get("source") == "parameters"

@@ -175,12 +175,22 @@ class PendingAcks:
                 else:
                     p.final = result  # long_work sends it after the IN_PROGRESS ack
 
+    @property
+    def due_at(self) -> float:
+        """The earliest deadline of a command answered IN_PROGRESS (+inf: none waits).
+
+        A command is announced, and its deadline set, at most a second before the
+        telemetry thread next plans (its HEARTBEAT): FINAL_ACK_TIMEOUT_S is far longer.
+        """
+        with self.lock:
+            return min((p.deadline for p in self._pending if p.announced), default=math.inf)
+
     def expire(self, now: float) -> None:
         """FAILED for the commands whose outcome did not come in time."""
         with self.lock:
             if not self._pending:
                 return
-            late = [p for p in self._pending if p.announced and now > p.deadline]
+            late = [p for p in self._pending if p.announced and now >= p.deadline]
             self._pending = [p for p in self._pending if p not in late]
         for p in late:
             log.warning("mavlink: no outcome for command %d in time; answering FAILED", p.command)
@@ -217,6 +227,10 @@ class Sender(Protocol):
 
     def broadcast(self, packets: list[Message] | Message) -> None:
         """To every link."""
+        ...
+
+    def streams_changed(self) -> None:
+        """A stream's rate changed: the clock streams are planned anew."""
         ...
 
     def calibration_started(self) -> None:
@@ -472,6 +486,7 @@ class CommandDispatcher:
             schedule.set_override(sid, 1e6 / interval)
         else:
             return C.DENIED
+        self.out.streams_changed()
         return C.ACCEPTED
 
     def _get_message_interval(self, cmd: C.Command, link: Link) -> int | None:

@@ -7,9 +7,10 @@ It is an :class:`~bridge.app.sample.Output` built on the application's
   streams that are due (:class:`~bridge.mavlink.schedule.StreamSchedule`):
   a frame with none due costs one comparison; the messages due on one frame
   leave together (one datagram per UDP peer);
-* the **telemetry** thread wakes on the clock only: HEARTBEAT, SYS_STATUS,
-  MAG_CAL_PROGRESS while a magnetometer calibration runs, MAG_CAL_REPORT
-  (about once a second) while a result waits for accept, command time-outs;
+* the **telemetry** thread wakes on the clock only, when something is due:
+  HEARTBEAT, SYS_STATUS, MAG_CAL_PROGRESS while a magnetometer calibration
+  runs, MAG_CAL_REPORT (about once a second) while a result waits for accept,
+  command time-outs; a rate change or a calibration event wakes it to plan anew;
 * the **dispatch** thread handles what ground stations send, one message at a
   time: parameters (:mod:`~bridge.mavlink.paramproto`), commands
   (:mod:`~bridge.mavlink.dispatch`), the autopilot's position;
@@ -79,6 +80,10 @@ _OBEYED_TYPES = frozenset({"COMMAND_LONG", "COMMAND_INT", "PARAM_SET"})
 #: Name of the signing replay table in the state directory (``<storage.dir>/signing.json``).
 SIGNING_DOCUMENT = "signing"
 _SIGNING_SAVE_S = 10.0  # other valid signed traffic (positions): saved at most this often
+#: Beside an autopilot the telemetry thread also looks this often (TIMESYNC requests, the
+#: streams asked of the autopilot: :mod:`~bridge.mavlink.autopilot`); standalone it sleeps
+#: until its next stream or deadline.
+_COMPANION_LOOK_S = 0.5
 _INBOX_TYPES = _SIGNED_TYPES | {
     "PARAM_REQUEST_LIST",
     "PARAM_REQUEST_READ",
@@ -154,6 +159,7 @@ class MavlinkOutput:
             clock,
         )
         self.autopilot.on_due = self._wake.set
+        self.relay.on_due = self._wake.set
         if self.autopilot_in is not None:  # the tilt source: the autopilot's ATTITUDE, asked for
             for msgid, hz, group in WANTED_STREAMS:
                 self.autopilot.requests.want(msgid, hz, group)
@@ -166,7 +172,7 @@ class MavlinkOutput:
         self._sample_encoders: dict[int, Callable[[CompassSample], Message | None]] = {}
         self._refusal_logged: dict[str, float] = {}
         self._signing_dirty = False  # valid signed packets since the table was last saved
-        self._signing_saved_at = -math.inf
+        self._signing_saved_at = -math.inf  # or last tried, when that failed
         self._signing_save_failed = False
         self._stream_encoders: dict[int, Callable[[CompassSample], Message | None]] = {
             S.ATTITUDE: lambda s: T.attitude(s, self.time_boot_ms(s.t)),
@@ -421,6 +427,11 @@ class MavlinkOutput:
         self.relay.hurry()
         self._wake.set()
 
+    def streams_changed(self) -> None:
+        """A stream's rate changed (MAV_CMD_SET_MESSAGE_INTERVAL, BRG_SR_*): the telemetry
+        thread, asleep until the clock streams' next slot, plans anew."""
+        self._wake.set()
+
     def _sample_streams(self) -> list[int]:
         feed = int(self.services.params.get("BRG_HDG_FEED"))
         ids = list(S.SAMPLE_STREAMS[:-1])  # all but the feed's slot
@@ -453,14 +464,27 @@ class MavlinkOutput:
 
     # ------------------------------------------------------------------ the telemetry thread
 
+    def next_look(self, now: float) -> float:
+        """When the telemetry thread next has something to do (clock seconds): the clock
+        streams' next slot, the calibration keep-alive while one runs or a report waits,
+        a command's deadline, the signing table's save; beside an autopilot at least every
+        :data:`_COMPANION_LOOK_S`. Whatever makes one of them earlier wakes the thread
+        (:meth:`streams_changed`, the relay's and the autopilot watch's ``on_due``)."""
+        due_at = min(
+            self.schedule.next_clock_due(now),
+            self.relay.keepalive_due,
+            self.autopilot.due_at,
+            self.dispatcher.pending.due_at,
+            self._signing_save_due,
+        )
+        return min(due_at, now + _COMPANION_LOOK_S) if self.companion else due_at
+
     def _telemetry_loop(self) -> None:
-        # Paced by the clock streams and calibration keep-alive (samples: from publish()).
+        # Asleep until next_look (samples: from publish()).
         while not self._stop.is_set():
             now = self.clock()
-            due_at = min(
-                self.schedule.next_clock_due(now), self.relay.keepalive_due, self.autopilot.due_at
-            )
-            self._wake.wait(min(0.5, max(0.0, due_at - now)))
+            due_at = self.next_look(now)
+            self._wake.wait(max(0.0, due_at - now))
             self._wake.clear()
             if self._stop.is_set():
                 break
@@ -484,7 +508,7 @@ class MavlinkOutput:
             self.dispatcher.pending.expire(now)
             if self.companion:
                 self.autopilot.tick(now)
-            if self._signing_dirty and now - self._signing_saved_at >= _SIGNING_SAVE_S:
+            if now >= self._signing_save_due:
                 self._save_signing()
 
     def report_answered(self) -> None:
@@ -506,6 +530,7 @@ class MavlinkOutput:
         """Parameters changed (any thread): tell every ground station; follow the rates."""
         if any(n.startswith("BRG_SR_") or n == "BRG_HDG_FEED" for n in change.names):
             self._apply_rates()
+            self.streams_changed()
         if change.source == _OWN_SET:
             return  # the SET's echo is already on its way
         self.broadcast([self.params.value_of(n) for n in change.names])
@@ -539,13 +564,15 @@ class MavlinkOutput:
             self._inbox_cond.notify()
 
     def _dispatch_loop(self) -> None:
-        while not self._stop.is_set():
+        while True:
             with self._inbox_cond:
-                if not self._inbox:
-                    self._inbox_cond.wait(1.0)
-                item = self._inbox.popleft() if self._inbox else None
-            if item is None:
-                continue
+                # Asleep until a message comes or close() (which sets _stop, then notifies
+                # under this lock: looked at here, under it, so the notice is never missed).
+                while not self._inbox and not self._stop.is_set():
+                    self._inbox_cond.wait()
+                if self._stop.is_set():
+                    return
+                item = self._inbox.popleft()
             msg, link = item
             try:
                 # Duck-typed: send() is all the handlers use of a link.
@@ -588,7 +615,9 @@ class MavlinkOutput:
         if kind in _SIGNED_TYPES and self.signing is not None:
             if self._refuse_unsigned(msg):
                 return
-            self._signing_dirty = True
+            if not self._signing_dirty:
+                self._signing_dirty = True
+                self._wake.set()  # the telemetry thread plans the table's next save
             if kind in _OBEYED_TYPES:
                 # Write-ahead: the packet's timestamp is on disk before it changes anything,
                 # so a copy replayed after a restart is still refused.
@@ -625,9 +654,15 @@ class MavlinkOutput:
         if n:
             log.info("mavlink: %d signed streams restored: replays stay refused", n)
 
+    @property
+    def _signing_save_due(self) -> float:
+        """When the telemetry thread saves the replay table next (+inf: nothing new)."""
+        return self._signing_saved_at + _SIGNING_SAVE_S if self._signing_dirty else math.inf
+
     def _save_signing(self) -> None:
         docs = self.services.documents
         if self.signing is None or docs is None:
+            self._signing_dirty = False  # nowhere to keep it: nothing to come back for
             return
         try:
             docs.save(SIGNING_DOCUMENT, self.signing.snapshot())
@@ -639,6 +674,7 @@ class MavlinkOutput:
                     e,
                 )
             self._signing_save_failed = True
+            self._signing_saved_at = self.clock()  # tried: again a period later, not at once
             return
         self._signing_dirty = False
         self._signing_save_failed = False

@@ -289,6 +289,11 @@ class ServiceNotifier:
         return tick
 
     @property
+    def active(self) -> bool:
+        """The thread runs: a service manager is told (``$NOTIFY_SOCKET`` is set)."""
+        return self._thread is not None
+
+    @property
     def ready_sent(self) -> bool:
         """READY=1 has been sent (and no reload is in progress)."""
         return self._ready_sent and not self._reloading

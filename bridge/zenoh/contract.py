@@ -44,8 +44,8 @@ class FleetServices:
     * ``status`` -- the daemon's :class:`~bridge.app.sample.DaemonStatus`.
     * ``calibration_state`` -- a small JSON-ready dict for ``<prefix>/status``
       (``state``, ``source``, ``percent``, ``fitness_mG`` ...).
-    * ``calibration_key`` -- its ``(state, source)`` alone, cheaper (looked at twice
-      a second for a change); without it they are read from ``calibration_state``.
+    * ``calibration_key`` -- its ``(state, source)`` alone, cheaper (looked at when
+      something may have changed); without it they are read from ``calibration_state``.
     * ``calibration`` -- ``{"calibration", "source", "report", "state"}`` for
       the ``<prefix>/calibration`` query.
     * ``params`` -- the parameter table (name -> value), or None without one.
@@ -55,6 +55,9 @@ class FleetServices:
       sends, whichever MAVLink output sends them: a reload does not detach it).
     * ``emit_event`` -- tell the operator on every front end (a key prefix shared
       with another bridge).
+    * ``subscribe_link_state`` -- register a callback told every change of the link's
+      state (any thread; it must be quick); returns its unregister. Without it the
+      output looks for a change of the status twice a second.
     """
 
     status: Callable[[], DaemonStatus]
@@ -67,6 +70,7 @@ class FleetServices:
     subscribe_mavlink: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
     emit_event: Callable[[Event], None] | None = None
     tilt_state: Callable[[], Mapping[str, Any]] | None = None  #: the tilt source (status)
+    subscribe_link_state: Callable[[Callable[[Any], None]], Callable[[], None]] | None = None
 
     def calibration_state_key(self) -> tuple[Any, Any]:
         """``(state, source)`` of the calibration: ``calibration_key`` or ``calibration_state``'s."""

@@ -78,3 +78,63 @@ class RateMeter:
         if t1 - t0 < 1e-3:
             return None
         return (c1 - c0) / (t1 - t0)
+
+
+class StatusTiming:
+    """When ``<prefix>/status`` goes out: at once at the start, then every ``period_s``,
+    and at once when what it says changes (:func:`~bridge.zenoh.schema.change_key`: the
+    link's and the calibration's state).
+
+    The publisher sleeps until :attr:`next_look`. A change is looked for only when
+    something may have changed: an event came or the link's state moved
+    (:meth:`note_change`), so the status key -- a few snapshots -- is not read on a
+    clock. ``poll_s`` is for a bridge that cannot say when its link's state moves:
+    then the key is also looked at every ``poll_s``.
+    """
+
+    def __init__(self, period_s: float, poll_s: float | None = None) -> None:
+        if not period_s > 0.0:
+            raise ValueError(f"period_s must be positive, got {period_s}")
+        if poll_s is not None and not poll_s > 0.0:
+            raise ValueError(f"poll_s must be positive, got {poll_s}")
+        self.period_s = period_s
+        self.poll_s = poll_s
+        self._next_status = -math.inf  # the first status goes out at once
+        self._next_poll = math.inf if poll_s is None else -math.inf
+        self._changed = False
+        self._key: tuple[object, ...] | None = None
+
+    @property
+    def next_look(self) -> float:
+        """When the publisher must look next without being woken (the period, a poll)."""
+        return min(self._next_status, self._next_poll)
+
+    def note_change(self) -> None:
+        """Something the status says may have changed: look at the key at the next look."""
+        self._changed = True
+
+    def due(self, now: float) -> bool:
+        """Whether the period has come round (publish without looking at the key)."""
+        return now >= self._next_status
+
+    def must_look(self, now: float) -> bool:
+        """Whether to read the status key now (a change was noted, or a poll is due); the
+        caller then reads it and hands it to :meth:`changed`. The note is taken here,
+        before the key is read: a change noted while it is read is looked at again."""
+        if not (self._changed or now >= self._next_poll):
+            return False
+        self._changed = False
+        if self.poll_s is not None:
+            self._next_poll = now + self.poll_s
+        return True
+
+    def changed(self, key: tuple[object, ...]) -> bool:
+        """Whether ``key`` (read after :meth:`must_look`) differs from the last published."""
+        return key != self._key
+
+    def published(self, key: tuple[object, ...], now: float) -> None:
+        """A status with ``key`` went out at ``now``: the next one a period later."""
+        self._key = key
+        self._next_status = now + self.period_s
+        if self.poll_s is not None:
+            self._next_poll = now + self.poll_s

@@ -393,6 +393,13 @@ def status_key(doc: Mapping[str, Any]) -> tuple[Any, ...]:
     )
 
 
+def change_key(doc: Mapping[str, Any]) -> tuple[Any, ...]:
+    """What the publisher publishes a status at once for: the link's state, the
+    calibration's state and source (:func:`status_key` without the drift monitor's)."""
+    cal = doc.get("calibration") or {}
+    return (doc.get("link", {}).get("state"), cal.get("state"), cal.get("source"))
+
+
 def drift_detected(doc: Mapping[str, Any]) -> bool:
     """A status document says the calibration has drifted (and it is not learned away yet)."""
     cal = doc.get("calibration")

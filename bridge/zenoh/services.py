@@ -55,9 +55,9 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
 def calibration_key(svc: BridgeServices) -> tuple[str, str]:
     """``(state, source)`` of :func:`calibration_state`, without the rest of the summary.
 
-    The status stream looks for a change twice a second; the whole summary (the drift
-    monitor's status, whether the calibration corrects iron) costs several times more
-    and is built only when a document goes out.
+    The status stream looks for a change when an event or a link state change comes;
+    the whole summary (the drift monitor's status, whether the calibration corrects
+    iron) costs several times more and is built only when a document goes out.
     """
     snap = svc.calibrator.snapshot()
     return _state(snap), _source(svc, snap)
@@ -189,4 +189,5 @@ def fleet_services(svc: BridgeServices) -> FleetServices:
         subscribe_mavlink=subscribe_mavlink,
         emit_event=svc.events.emit,
         tilt_state=svc.tilt.status,
+        subscribe_link_state=svc.link_states.add,
     )

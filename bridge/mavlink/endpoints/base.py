@@ -51,6 +51,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import math
 import os
 import select
 import socket
@@ -79,7 +80,7 @@ PEER_PROTECT_S = 5.0
 CONNECT_TIMEOUT_S = 5.0
 BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 5.0
-_MAX_WAIT_S = 0.5  # select() timeout: bounds how late close() and timers are noticed
+_MAX_WAIT_S = 0.5  # select() timeout of the stream kinds: bounds how late timers are noticed
 _READ_BYTES = 65536
 _PENDING_LOW_WATER = 8192  # stream links: refill the byte buffer below this
 #: UDP: at most this many packets per _DIRECT_WINDOW_S go out from the sender's thread
@@ -241,6 +242,9 @@ class Endpoint:
     """Base of the endpoint kinds: the thread, the wake-up pipe, links and counters."""
 
     kind = "?"
+    #: The longest the thread sleeps in ``select()`` (seconds; ``inf``: until a socket, the
+    #: wake-up pipe -- every queued packet and close() write it -- or :meth:`_next_timer`).
+    max_wait_s = _MAX_WAIT_S
 
     def __init__(
         self,
@@ -387,9 +391,11 @@ class Endpoint:
                 if not self._is_open() and now >= self._retry_at:
                     self._try_open()
                 rlist, wlist = self._select_sets()
-                timeout = min(_MAX_WAIT_S, max(0.0, self._next_timer(now) - now))
+                timeout = min(self.max_wait_s, max(0.0, self._next_timer(now) - now))
                 try:
-                    r, w, _ = select.select([self._wake_r, *rlist], wlist, [], timeout)
+                    r, w, _ = select.select(
+                        [self._wake_r, *rlist], wlist, [], None if timeout == math.inf else timeout
+                    )
                 except (OSError, ValueError):
                     # A socket closed under select (peer reset): rebuild the sets next round.
                     self._prune_closed()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import socket
 import threading
 from collections.abc import Sequence
@@ -57,8 +58,23 @@ class UdpEndpoint(Endpoint):
         self._direct_window = 0.0  # start of the current direct-send window (monotonic)
         self._direct_count = 0  # packets sent directly in it
 
+    #: Nothing of a datagram socket's is timed but a ``udpin`` peer's expiry and a reopen
+    #: (:meth:`_next_timer`): the thread sleeps until a datagram, a queued packet or one of
+    #: them -- not twice a second for nothing.
+    max_wait_s = math.inf
+
     def _is_open(self) -> bool:
         return self._sock is not None
+
+    def _next_timer(self, now: float) -> float:
+        if self._sock is None:
+            return self._retry_at
+        if self.kind == "udpin" and self._by_addr:
+            # The first peer to fall silent for good (a millisecond after, so the look
+            # that wakes for it finds it past the limit, not on it).
+            heard = min(link.last_heard for link in self._by_addr.values())
+            return heard + base.UDP_PEER_TIMEOUT_S + 0.001
+        return math.inf
 
     def send_now(self, link: Link, packet: Message) -> bool:
         """A datagram needs no waiting: frame and send it here, unless packets wait ahead of it."""
