@@ -18,15 +18,28 @@ answered at once with ``bad arguments: <why>``:
 
 Zenoh bounds the rest before any of this runs: the session's
 ``transport/link/rx/max_message_size`` (:mod:`bridge.zenoh.session`) keeps a
-flood of huge queries from costing memory.
+flood of huge queries from costing memory. :func:`query_args` reads a query's
+arguments through these checks; :func:`reply_command` answers it with the
+command's outcome.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import math
 from collections.abc import Iterable
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
+
+from bridge.zenoh import schema
+from bridge.zenoh.contract import CommandOutcome
+from bridge.zenoh.session import describe_error
+
+if TYPE_CHECKING:
+    import zenoh
+
+log = logging.getLogger(__name__)
 
 #: Largest payload, and largest selector parameter string, of a command (bytes).
 MAX_ARGUMENT_BYTES: Final = 4096
@@ -131,3 +144,35 @@ def parse_command_args(
         for k, v in body.items():
             _put(args, k, v)
     return args
+
+
+def query_args(query: zenoh.Query) -> dict[str, Any]:
+    """Arguments from the query's JSON payload (an object) and its selector parameters,
+    bounded (:func:`parse_command_args`); ValueError says why not."""
+    params = query.parameters
+    text = str(params)
+    payload = query.payload
+    size = len(payload) if payload is not None else 0
+    check_sizes(size, len(text))  # refused unread
+    data = payload.to_bytes() if payload is not None and size else None
+    pairs: list[tuple[str, str]] = list(params)  # type: ignore[call-overload]  # stub: __iter__ -> list
+    return parse_command_args(data, text, pairs)
+
+
+def reply_command(query: zenoh.Query, key: str, cmd: str, outcome: CommandOutcome) -> None:
+    """Answer a command's query on ``key`` with its outcome (a command result document),
+    and end the query: its final reply goes now, not when the object is collected."""
+    import zenoh
+
+    doc = schema.command_result_doc(cmd, outcome.ok, outcome.message, outcome.detail)
+    try:
+        query.reply(
+            key,
+            schema.dumps(doc),
+            encoding=zenoh.Encoding(schema.encoding_text(schema.COMMAND_RESULT)),
+        )
+    except Exception as e:
+        log.debug("zenoh: replying to %s failed: %s", key, describe_error(e))
+    finally:
+        with contextlib.suppress(Exception):
+            query.drop()

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any, Final
 from bridge.app.services import SentMessage
 from bridge.types import Clock
 from bridge.zenoh import schema
-from bridge.zenoh.commands import check_sizes, parse_command_args
+from bridge.zenoh.commands import query_args, reply_command
 from bridge.zenoh.contract import CommandOutcome, FleetServices, ZenohCounters, no_unsubscribe
 from bridge.zenoh.instances import Instances, instance_id, instance_key, instance_keyexpr
 from bridge.zenoh.mirror import MirrorMessage, mirror_key
@@ -632,11 +632,11 @@ class ZenohOutput:
                 return
             try:
                 # Here, in zenoh's thread: bounded and quick (bridge.zenoh.commands).
-                args = _command_args(query)
+                args = query_args(query)
             except ValueError as e:
                 self.counters.bad_arguments += 1
                 log.warning("zenoh: %s refused: bad arguments: %s", key, e)
-                self._reply_command(query, key, cmd, CommandOutcome(False, f"bad arguments: {e}"))
+                reply_command(query, key, cmd, CommandOutcome(False, f"bad arguments: {e}"))
                 return
             shared = self._claim.others() if self._claim is not None else []
             if shared:
@@ -644,14 +644,14 @@ class ZenohOutput:
                 why = (
                     f"refused: key prefix {self.settings.key_prefix} is shared with another bridge"
                 )
-                self._reply_command(query, key, cmd, CommandOutcome(False, why))
+                reply_command(query, key, cmd, CommandOutcome(False, why))
                 return
             try:
                 self._commands.put_nowait((cmd, query, args))
             except queue.Full:
                 self.counters.commands_refused += 1
                 outcome = CommandOutcome(False, "busy: too many commands pending")
-                self._reply_command(query, key, cmd, outcome)
+                reply_command(query, key, cmd, outcome)
 
         return handler
 
@@ -678,35 +678,4 @@ class ZenohOutput:
         except Exception as e:
             log.exception("zenoh: calibration command %s failed", cmd)
             outcome = CommandOutcome(False, f"failed: {describe_error(e)}")
-        self._reply_command(query, key, cmd, outcome)
-
-    def _reply_command(
-        self, query: zenoh.Query, key: str, cmd: str, outcome: CommandOutcome
-    ) -> None:
-        import zenoh
-
-        doc = schema.command_result_doc(cmd, outcome.ok, outcome.message, outcome.detail)
-        try:
-            query.reply(
-                key,
-                schema.dumps(doc),
-                encoding=zenoh.Encoding(schema.encoding_text(schema.COMMAND_RESULT)),
-            )
-        except Exception as e:
-            log.debug("zenoh: replying to %s failed: %s", key, describe_error(e))
-        finally:
-            with contextlib.suppress(Exception):
-                query.drop()  # sends the final reply now, not when the object is collected
-
-
-def _command_args(query: zenoh.Query) -> dict[str, Any]:
-    """Arguments from the query's JSON payload (an object) and its selector parameters,
-    bounded (:func:`bridge.zenoh.commands.parse_command_args`); ValueError says why not."""
-    params = query.parameters
-    text = str(params)
-    payload = query.payload
-    size = len(payload) if payload is not None else 0
-    check_sizes(size, len(text))  # refused unread
-    data = payload.to_bytes() if payload is not None and size else None
-    pairs: list[tuple[str, str]] = list(params)  # type: ignore[call-overload]  # stub: __iter__ -> list
-    return parse_command_args(data, text, pairs)
+        reply_command(query, key, cmd, outcome)
