@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
 from bridge.core.geometry import euler_to_dcm
 from bridge.protocol.gmr import ParamsFrame
+from tests.helpers import examples
 
 
 def test_apply_batch_and_scalar_agree() -> None:
@@ -113,7 +114,7 @@ def _numpy_corrects_iron(mag: AffineCalibration, tol: float = 1e-6) -> bool:
     return bool(np.any(np.abs(off) > tol) or not np.allclose(m @ m.T, np.eye(3), atol=tol))
 
 
-@settings(max_examples=300, deadline=None)
+@examples(300)
 @given(
     roll=st.floats(-3.2, 3.2),
     pitch=st.floats(-1.6, 1.6),
