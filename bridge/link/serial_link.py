@@ -76,6 +76,9 @@ BURST_LEAD_S = 0.004
 #: ... and never hold the port longer than this: a serial port's kernel buffer (4 KiB)
 #: holds about 0.35 s of 115200 baud, and samples older than this would be stale news.
 MAX_BURST_S = 0.2
+#: A burst read after the due time (the thread woke late): its frames but the newest are
+#: stamped this long before the due time, so that none of the held ones passes for due.
+HELD_BEFORE_DUE_S = 1e-6
 
 
 class CompassLink:
@@ -370,6 +373,7 @@ class CompassLink:
         machine = self._machine
         on_frame = self._on_frame
         clock = self._clock
+        held_for: float | None = None  # the due time the last hold was for (see _hold)
         while not self._stop.is_set():
             self._wake.clear()  # before the deadline is read: a later command sets it again
             with self._cond:
@@ -409,10 +413,15 @@ class CompassLink:
                 continue
             if not data:
                 continue
+            now = clock()
             with self._lock:
-                received = machine.receive(data, clock())
+                received = machine.receive(data, now)
                 self._act()
                 quiet = machine.quiet
+            if held_for is not None:
+                if now >= held_for and len(received) > 1:
+                    received = _held(received, held_for)
+                held_for = None
             for item in received:
                 try:
                     on_frame(item)
@@ -423,14 +432,18 @@ class CompassLink:
                     if first:
                         log.exception("compass %s: on_frame callback failed", self.name)
             if quiet and received and self._due_at is not None:
-                self._hold(deadline)
+                held_for = self._hold(deadline)
 
-    def _hold(self, deadline: float | None) -> None:
+    def _hold(self, deadline: float | None) -> float | None:
         """Let the port's bytes gather until shortly before the next output falls due (or
         the machine's next deadline, or :data:`MAX_BURST_S`): the frames meanwhile then
         go through the pipeline together -- one wake-up, warm caches -- instead of one
         cold wake-up each; the frames from then on are read as they come, so the one the
-        output carries is as prompt as ever. A command (or close) ends the wait at once."""
+        output carries is as prompt as ever. A command (or close) ends the wait at once.
+
+        Returns the due time it held the port for (None: it did not wait): should the
+        thread wake after it (a loaded machine), the frames held meanwhile must still
+        not pass for the due one (:func:`_held`)."""
         assert self._due_at is not None
         now = self._clock()
         try:
@@ -438,9 +451,25 @@ class CompassLink:
         except Exception:  # an output's bug must not stop the reader: read as frames come
             log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
             self._due_at = None
-            return
+            return None
         until = min(due - BURST_LEAD_S, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
         if until > now:
             self._wake.wait(until - now)
+            return due
+        return None
+
+
+def _held(received: list[Received], due: float) -> list[Received]:
+    """The frames of a burst read that came after the due time ``due`` (the thread woke
+    late): all but the newest stamped just before ``due``.
+
+    Stamped with the read's time, the oldest -- held up to :data:`MAX_BURST_S` -- would
+    be the first an output finds due, and go out as if it were new. The newest is the
+    freshest sample there is, due by its read like any frame read as it comes. (A frame
+    that came after ``due`` but is not the newest -- a wake-up more than a frame period
+    late -- is stamped a little before it came.)
+    """
+    before = due - HELD_BEFORE_DUE_S
+    return [Received(r.frame, before) for r in received[:-1]] + [received[-1]]
