@@ -20,7 +20,8 @@ import pytest
 from harness import PARAMS, Collector
 from test_link_pty import Peer, make_link, wait_until
 
-from bridge.link.serial_link import MAX_BURST_S, LinkState
+from bridge.link.serial_link import BURST_LEAD_S, MAX_BURST_S, CompassLink, LinkState
+from bridge.link.transport import SerialTransport
 from bridge.protocol.gmr import AttitudeFrame
 
 pytestmark = pytest.mark.integration
@@ -84,6 +85,48 @@ def test_frames_wait_for_the_due_time_and_the_one_after_it_is_read_as_it_comes(
         assert wait_until(lambda: len(col.items) - mark >= RATE_HZ, 5.0)
         sizes = [n for _, n in reads(col, mark)]
         assert sorted(sizes)[len(sizes) // 2] == 1
+
+
+class LateReader(SerialTransport):
+    """The port, read by a thread the scheduler wakes ``late`` seconds late once: the first
+    read from ``after`` on sleeps that long first (a loaded machine, made by a sleep)."""
+
+    after = math.inf
+    late = 0.0
+
+    def read(self, max_bytes: int, timeout: float) -> bytes:
+        if time.monotonic() >= self.after:
+            self.after = math.inf
+            time.sleep(self.late)
+        return super().read(max_bytes, timeout)
+
+
+def test_a_late_wake_up_sends_the_newest_held_frame_not_the_oldest(peer: Peer) -> None:
+    col = Collector()
+    due = Due(math.inf)
+    port = LateReader(str(peer.path), 115200)
+    link = CompassLink(port, on_frame=col.on_frame, rate_hz=RATE_HZ, stale_after=2.0, due_at=due)
+    with link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: link.params is not None, 5.0)
+        # An output falls due 0.3 s from now; the reader, meant to wake BURST_LEAD_S
+        # before, wakes 1.5 frame periods after it.
+        mark = len(col.items)
+        due.at = time.monotonic() + 0.3
+        port.late = BURST_LEAD_S + 1.5 / RATE_HZ
+        port.after = due.at - BURST_LEAD_S
+        assert wait_until(lambda: bool(col.items) and col.items[-1].t > due.at + 0.2, 5.0)
+        items = [i for i in col.items[mark:] if isinstance(i.frame, AttitudeFrame)]
+        first = next(k for k, i in enumerate(items) if i.t >= due.at)
+        # The frames held for the due time, read late in one go, stamped before it: an
+        # output finds due the newest of them (read with the others), not the oldest.
+        held = [i for i in items[:first] if due.at - 1e-3 <= i.t < due.at]
+        assert len(held) >= 2  # (holds are MAX_BURST_S at most: not all 0.3 s of them)
+        assert items[first - 1] is held[-1]
+        assert items[first].frame.seq == held[-1].frame.seq + 1
+        assert items[first].t >= due.at + 1.5 / RATE_HZ  # it came with them
+        seqs = col.seqs()
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # none lost
 
 
 def test_a_command_is_not_held(peer: Peer) -> None:

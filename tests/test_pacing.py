@@ -1,7 +1,8 @@
 """The one rule rate-capped streams follow (bridge.core.pacing), in MAVLink's schedule and in
 Zenoh's rate caps alike: exact average rates, no catch-up burst after a pause, and slots on a
 grid of the clock, so streams whose periods divide one another fall due on the same frames
-(the compass link then wakes once for all of them). Pure: in memory."""
+(the compass link then wakes once for all of them), and a slow stream whose period is not a
+multiple of the 10 Hz grid's takes that grid's nearest point. Pure: in memory."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import random
 
 import pytest
 
-from bridge.core.pacing import EARLY_MAX_S, early_s, next_slot
+from bridge.core.pacing import EARLY_MAX_S, GRID_S, early_s, next_slot, slot_time
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.zenoh.pacing import Decimator, StatusTiming
 
@@ -26,7 +27,8 @@ def frames(start: float, seconds: float, jitter: float, seed: int = 1) -> list[f
 def test_streams_started_apart_fall_due_on_the_same_frames() -> None:
     # MAVLink's 10 Hz ATTITUDE and 4 Hz VFR_HUD, Zenoh's 10 Hz heading cap and a 2 Hz one,
     # each starting with a different frame: after their first sends, every 10 Hz send is on
-    # the same frames, and the slower streams' slots on 10 Hz ones where the grids meet.
+    # the same frames, and the slower streams' on 10 Hz ones too (VFR_HUD at the 10 Hz grid
+    # point nearest its quarter-second one).
     sched = S.StreamSchedule({S.ATTITUDE: 10.0, S.VFR_HUD: 4.0})
     sched.set_sample_streams([S.ATTITUDE, S.VFR_HUD])
     zen10, zen2 = Decimator(10.0), Decimator(2.0)
@@ -50,7 +52,11 @@ def test_streams_started_apart_fall_due_on_the_same_frames() -> None:
     assert att == set(settled("z10"))  # the two 10 Hz streams: on one frame
     assert set(settled("z2")) <= att  # 2 Hz: every send with a 10 Hz one
     hud = settled("hud")
-    assert sum(i in att for i in hud) == pytest.approx(len(hud) / 2, abs=1)  # 0.5 s multiples
+    assert set(hud) <= att
+    # 0.2 s and 0.3 s in turn: 20 and 30 frames.
+    gaps = [b - a for a, b in itertools.pairwise(hud)]
+    assert set(gaps) == {20, 30}
+    assert all(a + b == 50 for a, b in itertools.pairwise(gaps))
     # ... and at their rates.
     assert len(sent["att"]) == pytest.approx(200, abs=1)
     assert len(sent["hud"]) == pytest.approx(80, abs=1)
@@ -85,6 +91,36 @@ def test_a_sample_may_come_a_little_early_never_more() -> None:
         slot = next_slot(None, now, 0.1)
         assert 0.05 - 1e-9 <= slot - now <= 0.15 + 1e-9
         assert slot / 0.1 == pytest.approx(round(slot / 0.1))
+
+
+@pytest.mark.parametrize("hz", [0.3, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0])
+def test_a_slow_stream_takes_the_nearest_grid_point(hz: float) -> None:
+    # Every slot of a stream at 5 Hz or slower is a point of the 10 Hz grid, within half a
+    # grid step of its exact time (at most a quarter period), however far the clock has run.
+    period = 1.0 / hz
+    for k0 in (0, 7, 10**6, 4 * 10**7):  # up to about 4e7 / hz seconds of monotonic clock
+        slots = [slot_time(k, period) for k in range(k0, k0 + 200)]
+        for k, s in zip(range(k0, k0 + 200), slots, strict=True):
+            assert s / GRID_S == pytest.approx(round(s / GRID_S), abs=1e-6)
+            err = abs(s - k * period)  # float rounding: about 1e-16 of the clock's value
+            assert err <= GRID_S / 2 + 1e-14 * s + 1e-9
+            assert err <= 0.25 * period + 1e-14 * s + 1e-9
+        gaps = [b - a for a, b in itertools.pairwise(slots)]
+        assert min(gaps) >= period - GRID_S - 1e-6
+        assert max(gaps) <= period + GRID_S + 1e-6
+        # The average stays exact: 200 slots span 199 periods, give or take one grid step.
+        assert slots[-1] - slots[0] == pytest.approx(199 * period, abs=GRID_S + 1e-6)
+
+
+@pytest.mark.parametrize("hz", [6.0, 7.0, 10.0, 20.0, 30.0, 50.0])
+def test_a_stream_faster_than_5_hz_keeps_its_own_grid(hz: float) -> None:
+    period = 1.0 / hz
+    assert [slot_time(k, period) for k in range(50)] == [k * period for k in range(50)]
+    slot = next_slot(None, 100.0, period)
+    for _ in range(100):  # a stream that takes every slot books the next one of its grid
+        nxt = next_slot(slot, slot, period)
+        assert nxt - slot == pytest.approx(period, abs=1e-9)
+        slot = nxt
 
 
 # ---------------------------------------------------------------------------

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -76,6 +77,13 @@ BURST_LEAD_S = 0.004
 #: ... and never hold the port longer than this: a serial port's kernel buffer (4 KiB)
 #: holds about 0.35 s of 115200 baud, and samples older than this would be stale news.
 MAX_BURST_S = 0.2
+#: A frame the compass's rhythm puts within the lead (it would be read on its own, and
+#: not be due yet: a wake-up more): the hold ends this long after it instead (the frames'
+#: jitter on a pty: a few tenths of a millisecond).
+AFTER_FRAME_S = 0.001
+#: A burst read after the due time (the thread woke late): its frames but the newest are
+#: stamped this long before the due time, so that none of the held ones passes for due.
+HELD_BEFORE_DUE_S = 1e-6
 
 
 class CompassLink:
@@ -129,6 +137,7 @@ class CompassLink:
         self._reader: threading.Thread | None = None
         self._said: list[StateChanged | Notice] = []  # to log (and hand to on_state) unlocked
         self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
+        self._arrived: float | None = None  # the last read of one frame: the frames' rhythm
 
     # ------------------------------------------------------------------ public API
 
@@ -370,6 +379,8 @@ class CompassLink:
         machine = self._machine
         on_frame = self._on_frame
         clock = self._clock
+        held_for: float | None = None  # the due time the last hold was for (see _hold)
+        straggler = False  # ... and it ended after a frame expected before that due time
         while not self._stop.is_set():
             self._wake.clear()  # before the deadline is read: a later command sets it again
             with self._cond:
@@ -409,10 +420,17 @@ class CompassLink:
                 continue
             if not data:
                 continue
+            now = clock()
             with self._lock:
-                received = machine.receive(data, clock())
+                received = machine.receive(data, now)
                 self._act()
                 quiet = machine.quiet
+            if held_for is not None:
+                if now >= held_for:
+                    received = _held(received, held_for, keep_newest=not straggler)
+                held_for = None
+            elif len(received) == 1:
+                self._arrived = now  # read as it came: when the compass's frames come
             for item in received:
                 try:
                     on_frame(item)
@@ -423,14 +441,20 @@ class CompassLink:
                     if first:
                         log.exception("compass %s: on_frame callback failed", self.name)
             if quiet and received and self._due_at is not None:
-                self._hold(deadline)
+                held_for, straggler = self._hold(deadline)
 
-    def _hold(self, deadline: float | None) -> None:
-        """Let the port's bytes gather until shortly before the next output falls due (or
-        the machine's next deadline, or :data:`MAX_BURST_S`): the frames meanwhile then
-        go through the pipeline together -- one wake-up, warm caches -- instead of one
-        cold wake-up each; the frames from then on are read as they come, so the one the
-        output carries is as prompt as ever. A command (or close) ends the wait at once."""
+    def _hold(self, deadline: float | None) -> tuple[float | None, bool]:
+        """Let the port's bytes gather until shortly before the next output falls due
+        (:func:`hold_end`; or the machine's next deadline, or :data:`MAX_BURST_S`): the
+        frames meanwhile then go through the pipeline together -- one wake-up, warm caches
+        -- instead of one cold wake-up each; the frames from then on are read as they come,
+        so the one the output carries is as prompt as ever. A command (or close) ends the
+        wait at once.
+
+        Returns the due time it held the port for (None: it did not wait), and whether
+        it ended after a frame expected before that time (:func:`hold_end`): the frames
+        of the read that follows must not pass for the due one if the thread wakes after
+        that time (:func:`_held`)."""
         assert self._due_at is not None
         now = self._clock()
         try:
@@ -438,9 +462,53 @@ class CompassLink:
         except Exception:  # an output's bug must not stop the reader: read as frames come
             log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
             self._due_at = None
-            return
-        until = min(due - BURST_LEAD_S, now + MAX_BURST_S)
+            return None, False
+        end = hold_end(due, self._arrived, self._machine.rate_hz)
+        until = min(end, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
         if until > now:
             self._wake.wait(until - now)
+            return due, until == end > due - BURST_LEAD_S
+        return None, False
+
+
+def hold_end(due: float, arrived: float | None, rate_hz: int | None) -> float:
+    """When a hold for the due time ``due`` ends: :data:`BURST_LEAD_S` before it, or
+    :data:`AFTER_FRAME_S` after the last frame the compass's rhythm puts in between (that
+    frame then comes with the held ones instead of in a wake-up of its own, in which it
+    would not be due yet; the due frame, the next one, is still read as it comes).
+
+    The rhythm: one frame every ``1 / rate_hz`` seconds (the rate asked of the compass),
+    in step with ``arrived``, when the last frame read on its own came (one every due
+    time). Without one (no rate, no frame read on its own in the last second) the lead
+    alone.
+    """
+    until = due - BURST_LEAD_S
+    if arrived is None or not rate_hz or not 0.0 < due - arrived < 1.0:
+        return until
+    period = 1.0 / rate_hz
+    last = arrived + (math.ceil((due - arrived) / period) - 1) * period  # the last before due
+    if last + AFTER_FRAME_S > until and period > 2.0 * AFTER_FRAME_S:
+        return last + AFTER_FRAME_S
+    return until
+
+
+def _held(received: list[Received], due: float, *, keep_newest: bool) -> list[Received]:
+    """The frames of the read after a hold for ``due`` that came after it (the thread woke
+    late): stamped just before ``due`` -- all of them when the hold ended after a frame
+    expected before ``due`` (the due one is the next to come), all but the newest else.
+
+    Stamped with the read's time, the oldest -- held up to :data:`MAX_BURST_S` -- would
+    be the first an output finds due, and go out as if it were new. The newest, when
+    kept, is the freshest sample there is, due by its read like any frame read as it
+    comes. (A frame that came after ``due`` and is stamped before it -- a wake-up more than
+    a frame period late, or a frame not where the rhythm put it -- is stamped a little
+    before it came.)
+    """
+    before = due - HELD_BEFORE_DUE_S
+    if keep_newest:
+        if len(received) < 2:
+            return received
+        return [Received(r.frame, before) for r in received[:-1]] + [received[-1]]
+    return [Received(r.frame, before) for r in received]
