@@ -6,7 +6,8 @@ ATTITUDE to a UDP socket of this process:
 
 * **bridge** -- ``python -m bridge run`` with MAVLink (one ``udpout``) and Zenoh
   (a TCP listener on 127.0.0.1, a subscriber to its documents in a child process
-  from the settling on, as fleet software would be) on, at the shipped stream rates
+  from the settling on, as fleet software would be; ``--no-zenoh-subscriber``:
+  nobody listens, so zenoh sends nothing) on, at the shipped stream rates
   (config/compass-bridge.toml: ATTITUDE 10 Hz, ...);
 * **forwarder** -- :mod:`benchmarks.forwarder`, ~40 lines: pyserial ``readline``,
   a regex, the datasheet's formulas, ``mavutil`` ``udpout``, one ATTITUDE a frame;
@@ -170,8 +171,16 @@ def _machine_jiffies() -> tuple[int, int]:
     return total - idle, total
 
 
-def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float = 2.0) -> LiveRun:
-    """Run ``program`` on the simulated compass at 100 Hz and measure one window."""
+def run_once(
+    program: str,
+    duration_s: float,
+    *,
+    seed: int = 1,
+    settle_s: float = 2.0,
+    subscribe: bool = True,
+) -> LiveRun:
+    """Run ``program`` on the simulated compass at 100 Hz and measure one window
+    (``subscribe``: with a subscriber to its Zenoh documents, if it has Zenoh on)."""
     with tempfile.TemporaryDirectory(prefix="cb-versus-") as tmpname:
         tmp = Path(tmpname)
         link = tmp / "compass"
@@ -192,7 +201,7 @@ def run_once(program: str, duration_s: float, *, seed: int = 1, settle_s: float 
                 time.sleep(0.02)
             if not received:
                 raise RuntimeError(f"{program}: no ATTITUDE within 20 s (exit {proc.poll()})")
-            subscriber = _zenoh_subscriber(cmd)
+            subscriber = _zenoh_subscriber(cmd) if subscribe else None
             time.sleep(settle_s)
             docs0 = subscriber.counts() if subscriber else {}
             n0 = len(received)
@@ -255,14 +264,20 @@ def describe(run: LiveRun, wall_s: float, top: int = 4) -> str:
 
 
 def interleaved(
-    rounds: int, duration_s: float, programs: tuple[str, ...] = PROGRAMS, echo: bool = True
+    rounds: int,
+    duration_s: float,
+    programs: tuple[str, ...] = PROGRAMS,
+    echo: bool = True,
+    *,
+    subscribe: bool = True,
 ) -> dict[str, list[LiveRun]]:
-    """``rounds`` runs of each program, interleaved; the first alternates between rounds."""
+    """``rounds`` runs of each program, interleaved; the first alternates between rounds
+    (``subscribe``: see :func:`run_once`)."""
     runs: dict[str, list[LiveRun]] = {p: [] for p in programs}
     for r in range(rounds):
         order = programs if r % 2 == 0 else tuple(reversed(programs))
         for p in order:
-            run = run_once(p, duration_s)
+            run = run_once(p, duration_s, subscribe=subscribe)
             runs[p].append(run)
             if echo:
                 print(f"round {r + 1}: {describe(run, duration_s)}", flush=True)
@@ -353,13 +368,21 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also run benchmarks.floor (os.read -> ATTITUDE, nothing else): the harness's floor",
     )
+    ap.add_argument(
+        "--no-zenoh-subscriber",
+        dest="subscribe",
+        action="store_false",
+        help="nobody subscribes to the bridge's Zenoh documents (zenoh then sends nothing)",
+    )
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
     args = ap.parse_args(argv)
     if args.rounds < 1 or args.duration <= 0:
         ap.error("--rounds >= 1, --duration > 0")
     logging.disable(logging.WARNING)
     programs = (args.only,) if args.only else PROGRAMS + (("floor",) if args.with_floor else ())
-    runs = interleaved(args.rounds, args.duration, programs, echo=args.json != "-")
+    runs = interleaved(
+        args.rounds, args.duration, programs, echo=args.json != "-", subscribe=args.subscribe
+    )
     logging.disable(logging.NOTSET)
     extra: dict[str, Any] = {
         "runs": {
@@ -384,6 +407,7 @@ def main(argv: list[str] | None = None) -> int:
             for p, rs in runs.items()
         },
         "duration_s": args.duration,
+        "zenoh_subscriber": args.subscribe,
         "cpu_count": os.cpu_count(),
     }
     return report(figures(runs), args.json, **extra)

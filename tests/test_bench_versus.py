@@ -72,15 +72,20 @@ def test_runs_interleave_and_the_first_program_alternates(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     order: list[str] = []
+    subscribed: list[bool] = []
 
-    def fake(program: str, duration_s: float) -> LiveRun:
+    def fake(program: str, duration_s: float, *, subscribe: bool = True) -> LiveRun:
         order.append(program)
+        subscribed.append(subscribe)
         return _run(program, 1.0, 1.0, [1.0])
 
     monkeypatch.setattr(versus, "run_once", fake)
     runs = interleaved(3, 1.0, echo=False)
     assert order == ["bridge", "forwarder", "forwarder", "bridge", "bridge", "forwarder"]
     assert [len(v) for v in runs.values()] == [3, 3]
+    assert all(subscribed)  # fleet software listens unless told otherwise
+    interleaved(1, 1.0, echo=False, subscribe=False)
+    assert subscribed[-2:] == [False, False]
 
 
 @pytest.mark.integration
