@@ -27,6 +27,7 @@ import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -85,6 +86,18 @@ def frame_lines(n: int, seed: int = 1) -> bytes:
     return bytes(out)
 
 
+def pack_every_stream(out: MavlinkOutput, framer: Any, sample: CompassSample) -> tuple[int, int]:
+    """Every MAVLink sample stream of ``sample`` encoded by ``out`` and framed by ``framer``:
+    (packets, bytes)."""
+    packets = nbytes = 0
+    for msgid in STREAMS:
+        p = out.encode_sample(msgid, sample)
+        if p is not None:
+            nbytes += len(p.pack(framer))
+            packets += 1
+    return packets, nbytes
+
+
 def bench_config(state_dir: str) -> Config:
     """The benches' daemon: the simulated compass at the default site, zenoh off, state in
     ``state_dir`` (the daemon is never started: its per-frame work is called directly)."""
@@ -125,11 +138,8 @@ def run(n: int = 20000, *, signed: bool = False, repeat: int = 3) -> BenchResult
                 if not isinstance(sample, CompassSample):
                     continue
                 frames += 1
-                for msgid in STREAMS:
-                    p = out.encode_sample(msgid, sample)
-                    if p is not None:
-                        nbytes += len(p.pack(framer))
-                        packets += 1
+                n, size = pack_every_stream(out, framer, sample)
+                packets, nbytes = packets + n, nbytes + size
             best_cpu = min(best_cpu, time.thread_time() - c0)
             best_wall = min(best_wall, time.perf_counter() - w0)
     return BenchResult(

@@ -59,6 +59,29 @@ def _zenoh_config(*, listen: str | None = None, connect: str | None = None) -> A
     return cfg
 
 
+def _figure(
+    name: str,
+    target: float | None,
+    frames: int,
+    cpu_s: float,
+    wall_s: float,
+    detail: dict[str, Any],
+) -> Figure:
+    """Frames per second of CPU (the best run's ``cpu_s``), and per second of wall clock."""
+    return Figure(
+        name,
+        frames / cpu_s if cpu_s > 0 else math.inf,
+        "frames/s (process CPU)",
+        target,
+        lower_is_better=False,
+        detail={
+            "frames": frames,
+            "wall_fps": round(frames / wall_s, 1) if wall_s > 0 else None,
+            **detail,
+        },
+    )
+
+
 def _lines(data: bytes) -> list[bytes]:
     """``data`` cut after every line end: one read a frame, as the reader gets them at 100 Hz
     when each frame is read as it comes (the daemon reads several at once between outputs)."""
@@ -208,16 +231,13 @@ def shipped(n: int = 20000, *, repeat: int = 3, step: Step = no_step) -> Figure:
             if subscriber is not None:
                 subscriber.close()
             sink.close()
-    fps = frames / best_cpu if best_cpu > 0 else math.inf
-    return Figure(
+    return _figure(
         "throughput",
-        fps,
-        "frames/s (process CPU)",
         TARGET_FPS,
-        lower_is_better=False,
-        detail={
-            "frames": frames,
-            "wall_fps": round(frames / best_wall, 1) if best_wall > 0 else None,
+        frames,
+        best_cpu,
+        best_wall,
+        {
             "frame_rate_hz": FRAME_RATE_HZ,
             "mavlink_packets_per_frame": round(sent / max(1, frames), 3),
             "mavlink_lost": lost,  # dropped from a full queue or by a failed sendto, all runs
@@ -231,7 +251,7 @@ def every_stream(n: int = 20000, *, repeat: int = 3, step: Step = no_step) -> Fi
     """Frames per process-CPU second with every stream encoded and put for every frame."""
     import zenoh
 
-    from benchmarks.mavlink import STREAMS, bench_config, frame_lines
+    from benchmarks.mavlink import STREAMS, bench_config, frame_lines, pack_every_stream
     from bridge.app.sample import CompassSample
     from bridge.daemon import build_daemon
     from bridge.mavlink.dialect import mavlink as mavlink_dialect
@@ -274,10 +294,7 @@ def every_stream(n: int = 20000, *, repeat: int = 3, step: Step = no_step) -> Fi
                     if not isinstance(sample, CompassSample):
                         continue
                     frames += 1
-                    for msgid in STREAMS:
-                        p = out.encode_sample(msgid, sample)
-                        if p is not None:
-                            p.pack(framer)
+                    pack_every_stream(out, framer, sample)
                     ts = pub_session.new_timestamp()
                     times = schema.SampleTimes(
                         t_monotonic=sample.t, t_unix=time.time(), zenoh_time=None
@@ -297,16 +314,13 @@ def every_stream(n: int = 20000, *, repeat: int = 3, step: Step = no_step) -> Fi
     finally:
         sub_session.close()
         pub_session.close()
-    fps = frames / best_cpu if best_cpu > 0 else math.inf
-    return Figure(
+    return _figure(
         "throughput_every_stream",
-        fps,
-        "frames/s (process CPU)",
         None,
-        lower_is_better=False,
-        detail={
-            "frames": frames,
-            "wall_fps": round(frames / best_wall, 1) if best_wall > 0 else None,
+        frames,
+        best_cpu,
+        best_wall,
+        {
             "mavlink_streams": len(STREAMS),
             "zenoh_puts_per_frame": put / max(1, frames),
             "zenoh_received": received[0],

@@ -35,6 +35,7 @@ from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
+from tests.harness import ManualClock
 
 SAMPLE_IDS = S.SAMPLE_STREAMS
 REAL32, INT8 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8
@@ -149,16 +150,6 @@ def expected_count(hz: float, first: float, last: float) -> int:
 # =====================================================================================
 
 
-class Clock:
-    """The output's clock, stepped by the test."""
-
-    def __init__(self, t: float) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
-
-
 class Peer:
     """A ground station on a plain UDP socket; pymavlink encodes and parses."""
 
@@ -200,7 +191,7 @@ class Peer:
 class Bench:
     out: MavlinkOutput
     peer: Peer
-    clock: Clock
+    clock: ManualClock
     sent: list[Packet]  # every broadcast packet (the output's tap)
     sample: CompassSample
 
@@ -232,7 +223,7 @@ def bench(tmp_path: Path) -> Iterator[Callable[..., Bench]]:
             hostname="fastpath",
         )
         daemon = build_daemon(cfg)  # never started: the services the output uses
-        clock = Clock(100.0)
+        clock = ManualClock(100.0)
         out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=clock)
         sent: list[Packet] = []
         daemon.bridge.mavlink_tap.subscribe(lambda m: sent.append(m.message))

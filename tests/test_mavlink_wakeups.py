@@ -26,16 +26,9 @@ from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.dispatch import FINAL_ACK_TIMEOUT_S
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
+from tests.harness import ManualClock
 
 T0 = 100.0
-
-
-class Clock:
-    def __init__(self, t: float) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
 
 
 class Sent:
@@ -61,7 +54,9 @@ def out(tmp_path: Path) -> Iterator[MavlinkOutput]:
         hostname="wakeups",
     )
     daemon = build_daemon(cfg)  # never started: the services the output reads
-    o = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=Clock(T0))
+    o = MavlinkOutput(
+        MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=ManualClock(T0)
+    )
     o._apply_rates()  # what start() does first (BRG_SR_* into the schedule)
     yield o
     daemon.bridge.params.close()
