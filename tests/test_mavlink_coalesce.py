@@ -25,7 +25,6 @@ from typing import Any
 
 import pytest
 from test_mavlink_endpoints import KEY, Inbox, parse_all, ping, recv_udp
-from test_mavlink_fastpath import Clock
 from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 from test_mavlink_telemetry import make_sample
 
@@ -38,6 +37,7 @@ from bridge.mavlink.endpoints import MAX_DATAGRAM_BYTES, open_endpoint
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.signing import Signing
+from tests.harness import ManualClock
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
 
@@ -116,7 +116,7 @@ def output(tmp_path: Path) -> Iterator[Callable[..., tuple[MavlinkOutput, Gcs, l
         )
         daemon = build_daemon(cfg)  # never started: the services the output uses
         settings = replace(MavlinkSettings.from_config(cfg), signing_key=key)
-        out = MavlinkOutput(settings, daemon.bridge.services, clock=Clock(100.0))
+        out = MavlinkOutput(settings, daemon.bridge.services, clock=ManualClock(100.0))
         sent: list[Packet] = []
         daemon.bridge.mavlink_tap.subscribe(lambda m: sent.append(m.message))
         out.start()
