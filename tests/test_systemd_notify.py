@@ -368,3 +368,40 @@ def test_without_a_manager_no_thread_wakes_to_build_statuses() -> None:
         assert calls == [] and not svc.ready_sent  # nothing built, nothing claimed sent
     finally:
         svc.close()
+
+
+class CountingClock(ManualClock):
+    """The manual clock, counting its readings: the thread reads it once a wake-up."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.readings = 0
+
+    def __call__(self) -> float:
+        self.readings += 1
+        return self.t
+
+
+@pytest.mark.integration
+def test_after_ready_the_thread_sleeps_until_its_next_status_look_or_ping(
+    abstract_manager: tuple[FakeManager, str],
+) -> None:
+    """Once READY is out, nothing is due before the next STATUS look (1 s) or ping
+    (watchdog / 3, 2 s here): the thread sleeps until then instead of ticking five times a
+    second. Time stands still here, so over 0.8 s of real time it wakes at most once."""
+    mgr, addr = abstract_manager
+    clock, lv, streaming = CountingClock(), Liveness(), [True]
+    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=6.0).start()
+    try:
+        mgr.wait_for(lambda m: "READY" in m)
+        mgr.pump(0.2)
+        before = clock.readings
+        mgr.pump(0.8)
+        assert clock.readings - before <= 2  # a tick of 0.2 s would read it four times
+        streaming[0] = False
+        clock.t += 1.0  # the status look is due: the change goes out
+        mgr.wait_for(lambda m: m.get("STATUS") == "streaming=False")
+        clock.t += 1.0  # ... and the ping (2 s after the last)
+        mgr.wait_for(lambda m: m.get("WATCHDOG") == "1" and svc.pings >= 2)
+    finally:
+        svc.close()

@@ -25,6 +25,7 @@ Pieces:
 from __future__ import annotations
 
 import logging
+import math
 import os
 import socket
 import threading
@@ -364,8 +365,22 @@ class ServiceNotifier:
             if self.watchdog_s is not None and now >= next_ping:
                 self._ping(now)
                 next_ping = now + self.watchdog_s / 3
-            self._wake.wait(self.tick_s)
+            self._wake.wait(self._sleep_s(next_ping))
             self._wake.clear()
+
+    def _sleep_s(self, next_ping: float) -> float:
+        """How long the thread sleeps: a tick while READY is still to be sent or a reload
+        runs (READY goes out promptly); after that, until the next STATUS look or ping,
+        whichever is first -- not a tick: five wake-ups a second cost about 0.1 % of a
+        core under a service manager."""
+        if not self._ready_sent or self._reloading:
+            return self.tick_s
+        due = math.inf if self._stopping else self._last_status_at + self.status_interval_s
+        if self.watchdog_s is not None:
+            due = min(due, next_ping)
+        if due == math.inf:  # stopping, no watchdog: nothing more to send until close()
+            return self.status_interval_s
+        return max(0.0, due - self._clock())
 
     def _ready_and_status(self, now: float) -> None:
         if not self._ready_sent:
