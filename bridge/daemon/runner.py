@@ -76,7 +76,7 @@ MAIN_TICK_S = 0.2
 #: How often the main loop beats while a service manager watches (sd_notify's STATUS and
 #: pings vouch for the main loop, the pipeline and the worker threads from these beats): a
 #: part is silent after SILENCE_LIMIT_S, four of these, so a hang is seen as soon as before.
-MANAGED_BEAT_S = 1.0
+MANAGED_BEAT_S = SILENCE_LIMIT_S / 4
 
 READER = "serial reader"
 PIPELINE = "pipeline"
@@ -341,7 +341,7 @@ class Service:
         if not self._signals or self.cfg.device.port.startswith("replay:"):
             return MAIN_TICK_S
         if self.notify.active:
-            return min(MANAGED_BEAT_S, SILENCE_LIMIT_S / 4)
+            return MANAGED_BEAT_S
         return None
 
     def run(self, stop: threading.Event) -> int:

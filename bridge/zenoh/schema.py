@@ -381,21 +381,9 @@ def status_doc(
     return doc
 
 
-def status_key(doc: Mapping[str, Any]) -> tuple[Any, ...]:
-    """What makes a status *change* worth an immediate publication (not the counters)."""
-    cal = doc.get("calibration") or {}
-    drift = cal.get("drift") or {}
-    return (
-        doc.get("link", {}).get("state"),
-        cal.get("state"),
-        cal.get("source"),
-        drift.get("state") if isinstance(drift, Mapping) else None,
-    )
-
-
 def change_key(doc: Mapping[str, Any]) -> tuple[Any, ...]:
-    """What the publisher publishes a status at once for: the link's state, the
-    calibration's state and source (:func:`status_key` without the drift monitor's)."""
+    """What makes a status *change* worth an immediate publication (not the counters):
+    the link's state, the calibration's state and source."""
     cal = doc.get("calibration") or {}
     return (doc.get("link", {}).get("state"), cal.get("state"), cal.get("source"))
 
