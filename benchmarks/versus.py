@@ -44,7 +44,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +59,7 @@ from benchmarks.pipeline import (
 )
 from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb, stop_child
 from benchmarks.throughput import Subscriber
+from bridge.config import load_config
 
 log = logging.getLogger(__name__)
 
@@ -100,11 +100,11 @@ def _zenoh_subscriber(cmd: list[str]) -> Subscriber | None:
     program then pays for sending them, as it does in service."""
     if "--config" not in cmd:
         return None
-    with open(cmd[cmd.index("--config") + 1], "rb") as f:
-        zenoh_cfg = tomllib.load(f).get("zenoh", {})
-    if not zenoh_cfg.get("enabled") or not zenoh_cfg.get("listen"):
+    # Read as the daemon reads it (defaults, host-name substitution in the key prefix).
+    z = load_config(cmd[cmd.index("--config") + 1]).zenoh
+    if not z.enabled or not z.listen:
         return None
-    return Subscriber(zenoh_cfg["listen"][0], f"{zenoh_cfg['key_prefix']}/*")
+    return Subscriber(z.listen[0], f"{z.key_prefix}/*")
 
 
 COMMANDS: dict[str, Command] = {
