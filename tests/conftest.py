@@ -4,8 +4,10 @@ Three things here keep the whole suite (real autopilots included) short on two c
 
 * **Bytecode is written** even under ``PYTHONDONTWRITEBYTECODE``: without it every xdist
   worker re-parses and assertion-rewrites all ~110 test modules (about 7 s of CPU each,
-  8.8 s against 1.7 s with the cache), and every ``compass-bridge`` subprocess recompiles
-  the package. The caches go where Python puts them (``__pycache__``, ignored by git).
+  8.8 s against 1.7 s with the cache) and the ~75 Hypothesis modules conftest imports
+  (pytest rewrites a plugin's distribution too: 0.8 s a process), and every
+  ``compass-bridge`` subprocess recompiles the package. The caches go where Python puts
+  them (``__pycache__``, ignored by git; the virtualenv's for Hypothesis).
 * **The controller warms that cache once** before the workers start (a collection in a
   subprocess, only when a test module is newer than its rewritten copy), so a fresh
   checkout (CI) does not have twelve workers rewriting the same modules at once.
@@ -30,9 +32,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-# Before any test module, the package under test or Hypothesis is imported by this process.
-# (Hypothesis is a pytest plugin's distribution: pytest assertion-rewrites all its ~100
-# modules, and with the flag still set, did so again on every run -- 0.8 s of CPU.)
+# Before any test module, the package under test or Hypothesis is imported by this process
+# (set after the import below, it left Hypothesis's rewritten modules uncached: rewritten
+# again by every run and every xdist worker).
 sys.dont_write_bytecode = False
 
 import pytest  # noqa: E402
