@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,6 +21,7 @@ from bridge.core.attitude import (
 from bridge.core.geometry import (
     angle_diff_deg,
     euler_to_dcm,
+    euler_to_quaternion,
     quaternion_to_dcm,
     random_rotations,
 )
@@ -180,6 +182,22 @@ def test_quaternion_matches_euler_and_rotates_field_to_magnetic_north() -> None:
         np.testing.assert_allclose(Rq, R, atol=1e-6)
         # body -> NED with the quaternion puts the calibrated field back on magnetic north
         np.testing.assert_allclose(Rq @ np.array(sol.mag_G), B_NED, atol=1e-7)
+
+
+def test_quaternion_is_made_on_first_use_from_the_solutions_own_angles() -> None:
+    """Made when asked for (most frames' solutions never are), bit for bit the one
+    conversion of the package, once per solution; a copy with other angles has its own."""
+    eng = AttitudeEngine()
+    rng = np.random.default_rng(7)
+    for R in random_rotations(rng, 50):
+        sol = eng.solve_counts(*counts(R.T @ B_NED, R.T @ np.array([0.0, 0.0, 1.0])))
+        q = sol.quaternion
+        assert q == euler_to_quaternion(sol.roll, sol.pitch, sol.yaw)  # exact, not approx
+        assert sol.quaternion is q
+        assert "quaternion" not in repr(sol)
+        turned = dataclasses.replace(sol, yaw=sol.yaw / 2.0)
+        assert turned.quaternion == euler_to_quaternion(sol.roll, sol.pitch, sol.yaw / 2.0)
+        assert turned == dataclasses.replace(sol, yaw=sol.yaw / 2.0)
 
 
 # -- declination and labelling ---------------------------------------------------------------

@@ -287,6 +287,18 @@ def test_client_never_listens_and_explicit_endpoints_win() -> None:
     assert _items(ZenohSettings(multicast_scouting=True))["scouting/multicast/enabled"] is True
 
 
+def test_shared_memory_is_off_unless_a_config_file_turns_it_on(tmp_path: Path) -> None:
+    # Off: zenoh's SHM handoff task would wake its net thread 20 times a second.
+    assert _items(ZenohSettings())["transport/shared_memory/enabled"] is False
+    assert _items(ZenohSettings(mode="client"))["transport/shared_memory/enabled"] is False
+    cfg = build_config(ZenohSettings())
+    assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is False
+    f = tmp_path / "zenoh.json5"
+    f.write_text("{ transport: { shared_memory: { enabled: true } } }")
+    cfg = build_config(ZenohSettings(config_file=str(f)))
+    assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is True
+
+
 def test_a_config_file_passes_through_and_keeps_what_it_sets(tmp_path: Path) -> None:
     f = tmp_path / "zenoh.json5"
     f.write_text(
@@ -307,6 +319,7 @@ def test_a_config_file_passes_through_and_keeps_what_it_sets(tmp_path: Path) -> 
     assert get("connect/retry")["period_init_ms"] == 5000  # type: ignore[index]
     assert get("access_control")["enabled"] is True  # type: ignore[index]
     assert get("scouting/multicast/enabled") is False  # our key still applies
+    assert get("transport/shared_memory/enabled") is False  # the file names no SHM
     assert not uses_default_listener(ZenohSettings(config_file=str(f)), cfg)
     plain = ZenohSettings()
     assert uses_default_listener(plain, build_config(plain))

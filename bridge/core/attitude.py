@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -128,7 +128,8 @@ class AttitudeSolution:
     ("magnetic" or "true"). ``heading_magnetic_deg`` is always there;
     ``heading_true_deg`` and ``declination_deg`` are ``None`` without a
     declination. ``quaternion`` is (w, x, y, z) body->NED with w >= 0 and uses
-    the published yaw. ``mag_G``/``accel_g`` are the calibrated vectors in
+    the published yaw (:func:`~bridge.core.geometry.euler_to_quaternion` of
+    ``roll``, ``pitch``, ``yaw``, made on first use). ``mag_G``/``accel_g`` are the calibrated vectors in
     vehicle axes; ``dip_deg`` is the measured inclination (positive down).
 
     ``tilt_source`` says where roll and pitch (and so the heading's tilt
@@ -147,7 +148,6 @@ class AttitudeSolution:
     heading_true_deg: float | None
     declination_deg: float | None
     heading_reference: HeadingReference
-    quaternion: Quat
     mag_G: Vec3
     accel_g: Vec3
     field_strength_G: float
@@ -157,6 +157,23 @@ class AttitudeSolution:
     accelerating: bool
     tilt_source: TiltSource = "accelerometer"
     heading_sigma_deg: float | None = None
+    #: The quaternion once made (see :attr:`quaternion`).
+    _quaternion: Quat | None = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def quaternion(self) -> Quat:
+        """(w, x, y, z) body->NED, w >= 0, of ``roll``, ``pitch`` and ``yaw``.
+
+        Made on first use, not with the solution: a solution is made for every frame
+        and the quaternion goes out at the rate of ATTITUDE_QUATERNION and Zenoh's
+        ``attitude`` (one frame in ten at 100 Hz). The same function of the same three
+        floats, so the same bits as before; two threads asking at once make the same
+        tuple twice, and either is kept.
+        """
+        q = self._quaternion
+        if q is None:
+            q = self._quaternion = euler_to_quaternion(self.roll, self.pitch, self.yaw)
+        return q
 
     @property
     def heading_deg(self) -> float:
@@ -475,7 +492,6 @@ class AttitudeEngine:
             heading_true,
             decl,
             label,  # type: ignore[arg-type]
-            euler_to_quaternion(roll, pitch, yaw),
             (hx, hy, hz),
             (gx, gy, gz),
             bn,

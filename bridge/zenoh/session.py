@@ -16,6 +16,11 @@ conservative:
   peer or router that comes back is re-joined in about a second.
 * **Bounded input.** A message larger than 1 MiB (``transport/link/rx/max_message_size``,
   zenoh's own bound, 1 GiB by default) is dropped by zenoh before it is assembled.
+* **No shared memory.** ``transport/shared_memory/enabled`` is off: every
+  sensor document is a few hundred bytes and goes over the link's socket
+  anyway, and once a peer on the same host has negotiated SHM, zenoh's ``net``
+  thread wakes 20 times a second for the rest of the process's life
+  (docs/zenoh.md, "Shared memory off").
 * **Never fatal.** ``connect/exit_on_failure`` is off: an absent peer is
   retried in the background; a client's ``open`` gives up after
   ``connect/timeout_ms`` (1 s) and the output retries it itself.
@@ -24,7 +29,8 @@ A full zenoh JSON5 file (``config_file``) is the base when given: its TLS,
 user/password and access-control settings pass straight through. The
 ``[zenoh]`` keys are applied on top: ``mode`` and ``multicast_scouting``
 always; ``connect`` / ``listen`` only when non-empty (an empty list leaves the
-file's endpoints alone); the retry tuning only where the file sets none.
+file's endpoints alone); the retry tuning and the message bound only where the
+file sets none; shared memory only where the file does not name it.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 if TYPE_CHECKING:
@@ -50,6 +57,20 @@ CONNECT_RETRY: Final[Mapping[str, int]] = {
 }
 #: How long ``open`` waits for a connect endpoint (a client needs its router).
 CONNECT_TIMEOUT_MS: Final = 1000
+#: Zenoh's shared-memory transport, off. With it on (zenoh's default) and a peer on the
+#: same host that has it on too, the link negotiates SHM and zenoh starts its handoff
+#: reclamation task (zenoh-transport ``unicast/establishment/ext/shm/handoff.rs``,
+#: ``HandoffReactor::new``: a loop of ``tokio::time::sleep(100 ms)`` on ``ZRuntime::Net``).
+#: It wakes the ``net-0`` thread 20 times a second (each 100 ms sleep is two timer-wheel
+#: wake-ups) from the first such link on, for the life of the process: sent or not, peer
+#: gone or not. The bridge never allocates SHM buffers, and its documents (a few hundred
+#: bytes; the parameter table about 1 KB) are below the 3 KiB from which zenoh copies a
+#: payload into SHM (``transport_optimization/message_size_threshold``); a larger reply
+#: would have gone through SHM to a querier on the same host. Off, everything goes over
+#: the link's socket: subscribers and queriers get the same bytes.
+SHARED_MEMORY: Final = False
+_SHARED_MEMORY_KEY: Final = "transport/shared_memory/enabled"
+_SHARED_MEMORY_SECTION: Final = "shared_memory"
 #: The largest message the bridge's session takes in (zenoh's own bound, 1 GiB by default):
 #: the bridge receives queries (remote commands, a few hundred bytes) and liveliness
 #: tokens, so 1 MiB leaves room; a flood of huge queries then costs no memory
@@ -143,6 +164,8 @@ def config_items(
         items.append(("connect/exit_on_failure", _json(False)))
     if "transport/link/rx/max_message_size" not in file_sets:
         items.append(("transport/link/rx/max_message_size", _json(MAX_MESSAGE_BYTES)))
+    if _SHARED_MEMORY_KEY not in file_sets:
+        items.append((_SHARED_MEMORY_KEY, _json(SHARED_MEMORY)))
     if settings.mode == "client":
         # A client never listens; zenoh's client default is already no listener.
         pass
@@ -163,6 +186,7 @@ def config_items(
 #: Keys whose presence in a base file changes what :func:`config_items` inserts.
 _FILE_KEYS: Final = (
     "transport/link/rx/max_message_size",
+    _SHARED_MEMORY_KEY,
     "connect/retry",
     "connect/timeout_ms",
     "connect/exit_on_failure",
@@ -181,7 +205,12 @@ def build_config(settings: ZenohSettings, *, with_default_listener: bool = True)
         cfg = zenoh.Config.from_file(settings.config_file)
         default = zenoh.Config()
         # A key the file leaves alone reads the same as in a default config.
-        file_sets = frozenset(k for k in _FILE_KEYS if cfg.get_json(k) != default.get_json(k))
+        sets = {k for k in _FILE_KEYS if cfg.get_json(k) != default.get_json(k)}
+        # Shared memory is zenoh's default: a file that turns it on reads like one that
+        # says nothing, so a file that names the section at all decides it.
+        if _SHARED_MEMORY_SECTION in Path(settings.config_file).read_text(errors="replace"):
+            sets.add(_SHARED_MEMORY_KEY)
+        file_sets = frozenset(sets)
     else:
         cfg = zenoh.Config()
         file_sets = frozenset()
