@@ -1,8 +1,9 @@
-"""When the compass link's reader ends a hold (``serial_link.hold_end``): shortly before the
-due time, or just after a frame the compass's rhythm puts in the lead before it, so that
-frame comes with the held ones instead of costing a wake-up of its own; and how the read
-after a hold is stamped when the thread woke after the due time (``serial_link._held``).
-Pure: in memory."""
+"""When the compass link's reader ends a hold (``serial_link.hold_end``): with the compass's
+rhythm known, shortly before the due frame is expected (so the due frame is read as it
+comes, right after the held ones, and every frame before it comes with them instead of
+costing a wake-up of its own); without one, shortly before the due time. Where the rhythm
+comes from (``serial_link.frames_phase``), and how the read after a hold is stamped when
+the thread woke after the due time (``serial_link._held``). Pure: in memory."""
 
 from __future__ import annotations
 
@@ -11,7 +12,15 @@ import math
 import pytest
 
 from bridge.device import Received
-from bridge.link.serial_link import AFTER_FRAME_S, BURST_LEAD_S, _held, hold_end
+from bridge.link.serial_link import (
+    AFTER_FRAME_S,
+    BURST_LEAD_S,
+    RHYTHM_READS,
+    WARM_LEAD_S,
+    _held,
+    frames_phase,
+    hold_end,
+)
 
 RATE_HZ = 100
 PERIOD = 1.0 / RATE_HZ
@@ -37,10 +46,13 @@ def test_every_phase_costs_two_reads(step: int) -> None:
     due_frame = last + PERIOD
     assert reads_per_due_time(phase, end) == 2
     assert last < end < due_frame  # the reader is awake and reading when the due frame comes
-    if last + AFTER_FRAME_S > -BURST_LEAD_S:
-        assert end == pytest.approx(last + AFTER_FRAME_S)  # the frame in the lead: held
-    else:
-        assert end == -BURST_LEAD_S  # no frame in the lead: the lead, as before
+    # ... and has just put the held frames through: the due frame comes WARM_LEAD_S after
+    # the hold's end (AFTER_FRAME_S after the frame before it, at the least) ...
+    assert end == pytest.approx(max(due_frame - WARM_LEAD_S, last + AFTER_FRAME_S))
+    assert due_frame - end <= WARM_LEAD_S + 1e-12
+    # ... never earlier than a lead before the due time: every frame the lead alone held
+    # is held still.
+    assert end >= -BURST_LEAD_S
     # The lead alone: a frame in it costs a third read.
     assert reads_per_due_time(phase, -BURST_LEAD_S) == (3 if last > -BURST_LEAD_S else 2)
 
@@ -69,6 +81,11 @@ def test_without_a_rhythm_the_lead_alone(due: float, arrived: float | None, rate
     assert hold_end(due, arrived, rate) == due - BURST_LEAD_S
 
 
+def test_a_frame_period_too_short_for_the_rhythm_the_lead_alone() -> None:
+    # 1 kHz: a frame every millisecond, not more than twice AFTER_FRAME_S.
+    assert hold_end(10.0, 9.9975, 1000) == 10.0 - BURST_LEAD_S
+
+
 def test_no_due_time_holds_as_long_as_allowed() -> None:
     assert hold_end(math.inf, 5.0, RATE_HZ) == math.inf
     assert hold_end(-math.inf, 5.0, RATE_HZ) == -math.inf
@@ -87,3 +104,39 @@ def test_a_late_read_after_a_hold_passes_no_held_frame_for_due() -> None:
     held = _held(read, due, keep_newest=False)
     assert all(due - 1e-3 < r.t < due for r in held)
     assert _held(read[:1], due, keep_newest=True) == read[:1]
+
+
+def test_the_rhythm_is_the_earliest_of_the_last_reads() -> None:
+    # Frames every 10 ms at phase 0.3 ms; reads come 0.05-0.4 ms after them, one 3 ms
+    # late (a late wake-up): the rhythm is the earliest read's, moved to the newest.
+    lateness = [0.0004, 0.0001, 0.003, 0.0002, 0.00005, 0.0003]
+    reads = [100.0003 + 0.1 * k + late for k, late in enumerate(lateness)]
+    assert frames_phase(reads, RATE_HZ) == pytest.approx(100.0003 + 0.5 + 0.00005)
+    # The late read alone, newest: the rhythm stays where the earlier ones put it.
+    reads.append(100.0003 + 0.6 + 0.003)
+    assert frames_phase(reads, RATE_HZ) == pytest.approx(100.0003 + 0.6 + 0.00005)
+    # A hold for a due time 25 ms after the next grid point ends WARM_LEAD_S before the
+    # due frame where it really comes, not where the late read would put it.
+    due = 100.0003 + 0.6 + 0.075
+    end = hold_end(due, frames_phase(reads, RATE_HZ), RATE_HZ)
+    assert end == pytest.approx(100.0003 + 0.68 + 0.00005 - WARM_LEAD_S)
+
+
+def test_the_rhythm_follows_a_compass_whose_frames_come_later_and_later() -> None:
+    # A compass clock slower than ours by 0.1 % (ten times a crystal's): each read 0.1 ms
+    # later against the rhythm; the rhythm lags the newest by what the window spans.
+    reads = [100.0 + k * 0.1 * 1.001 for k in range(20)]
+    phase = frames_phase(reads[-RHYTHM_READS:], RATE_HZ)
+    assert phase is not None
+    assert reads[-1] - RHYTHM_READS * 0.0001 < phase <= reads[-1]
+
+
+def test_the_rhythm_ignores_reads_more_than_a_second_old() -> None:
+    reads = [100.0 + 0.0001, 101.5 + 0.002]  # the first would put it 1.9 ms earlier
+    assert frames_phase(reads, RATE_HZ) == pytest.approx(101.502)
+
+
+def test_no_read_no_rhythm_and_without_a_rate_the_newest_read() -> None:
+    assert frames_phase([], RATE_HZ) is None
+    assert frames_phase([100.0001, 100.1005], None) == 100.1005
+    assert frames_phase([100.0001, 100.1005], 0) == 100.1005

@@ -23,7 +23,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable
 
 from bridge.device import (
     CommandError,
@@ -81,6 +82,17 @@ MAX_BURST_S = 0.2
 #: not be due yet: a wake-up more): the hold ends this long after it instead (the frames'
 #: jitter on a pty: a few tenths of a millisecond).
 AFTER_FRAME_S = 0.001
+#: With the compass's rhythm known, a hold ends this long before the due frame is expected
+#: (and never before :data:`AFTER_FRAME_S` after the frame before it): the held frames go
+#: through the pipeline just before it comes, so the due frame finds more of the code and
+#: data it runs on still in the caches than after the 4-9 ms of sleep a lead of
+#: :data:`BURST_LEAD_S` before the due *time* leaves (docs/performance.md, "The due frame,
+#: read warm"). Longer than a burst of held frames takes (about 0.7 ms for nine at 100 Hz),
+#: so the due frame does not wait behind them.
+WARM_LEAD_S = 0.002
+#: The rhythm is the earliest the last frames read on their own put it at, of at most this
+#: many of them, none older than a second (:func:`frames_phase`).
+RHYTHM_READS = 8
 #: A burst read after the due time (the thread woke late): its frames but the newest are
 #: stamped this long before the due time, so that none of the held ones passes for due.
 HELD_BEFORE_DUE_S = 1e-6
@@ -137,7 +149,8 @@ class CompassLink:
         self._reader: threading.Thread | None = None
         self._said: list[StateChanged | Notice] = []  # to log (and hand to on_state) unlocked
         self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
-        self._arrived: float | None = None  # the last read of one frame: the frames' rhythm
+        # The last reads of one frame each (read as they came): the frames' rhythm.
+        self._arrived: deque[float] = deque(maxlen=RHYTHM_READS)
 
     # ------------------------------------------------------------------ public API
 
@@ -430,7 +443,7 @@ class CompassLink:
                     received = _held(received, held_for, keep_newest=not straggler)
                 held_for = None
             elif len(received) == 1:
-                self._arrived = now  # read as it came: when the compass's frames come
+                self._arrived.append(now)  # read as it came: when the compass's frames come
             for item in received:
                 try:
                     on_frame(item)
@@ -444,12 +457,13 @@ class CompassLink:
                 held_for, straggler = self._hold(deadline)
 
     def _hold(self, deadline: float | None) -> tuple[float | None, bool]:
-        """Let the port's bytes gather until shortly before the next output falls due
-        (:func:`hold_end`; or the machine's next deadline, or :data:`MAX_BURST_S`): the
-        frames meanwhile then go through the pipeline together -- one wake-up, warm caches
-        -- instead of one cold wake-up each; the frames from then on are read as they come,
-        so the one the output carries is as prompt as ever. A command (or close) ends the
-        wait at once.
+        """Let the port's bytes gather until shortly before the frame the next output
+        falls due on (:func:`hold_end`; or the machine's next deadline, or
+        :data:`MAX_BURST_S`): the frames meanwhile then go through the pipeline together --
+        one wake-up, warm caches -- instead of one cold wake-up each; the frames from then
+        on are read as they come, so the one the output carries is as prompt as ever, and
+        comes while the burst's code is still warm. A command (or close) ends the wait at
+        once.
 
         Returns the due time it held the port for (None: it did not wait), and whether
         it ended after a frame expected before that time (:func:`hold_end`): the frames
@@ -463,35 +477,58 @@ class CompassLink:
             log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
             self._due_at = None
             return None, False
-        end = hold_end(due, self._arrived, self._machine.rate_hz)
+        rate = self._machine.rate_hz
+        end = hold_end(due, frames_phase(self._arrived, rate), rate)
         until = min(end, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
         if until > now:
             self._wake.wait(until - now)
-            return due, until == end > due - BURST_LEAD_S
+            # The rhythm's end comes after the last frame expected before the due time.
+            return due, until == end != due - BURST_LEAD_S
         return None, False
 
 
 def hold_end(due: float, arrived: float | None, rate_hz: int | None) -> float:
-    """When a hold for the due time ``due`` ends: :data:`BURST_LEAD_S` before it, or
-    :data:`AFTER_FRAME_S` after the last frame the compass's rhythm puts in between (that
-    frame then comes with the held ones instead of in a wake-up of its own, in which it
-    would not be due yet; the due frame, the next one, is still read as it comes).
+    """When a hold for the due time ``due`` ends: with the compass's rhythm known,
+    :data:`WARM_LEAD_S` before the due frame (the first after ``due``) is expected, but
+    not before :data:`AFTER_FRAME_S` after the frame before it; so every frame before the
+    due one comes with the held ones (none costs a wake-up of its own, in which it would
+    not be due yet), and the due frame is read as it comes, right after them, while the
+    caches are warm. Without a rhythm, :data:`BURST_LEAD_S` before ``due``.
 
     The rhythm: one frame every ``1 / rate_hz`` seconds (the rate asked of the compass),
-    in step with ``arrived``, when the last frame read on its own came (one every due
-    time). Without one (no rate, no frame read on its own in the last second) the lead
-    alone.
+    in step with ``arrived``, when a frame read on its own came (:func:`frames_phase`;
+    one every due time). Without one (no rate, no frame read on its own in the last
+    second) the lead alone.
     """
     until = due - BURST_LEAD_S
     if arrived is None or not rate_hz or not 0.0 < due - arrived < 1.0:
         return until
     period = 1.0 / rate_hz
+    if period <= 2.0 * AFTER_FRAME_S:
+        return until
     last = arrived + (math.ceil((due - arrived) / period) - 1) * period  # the last before due
-    if last + AFTER_FRAME_S > until and period > 2.0 * AFTER_FRAME_S:
-        return last + AFTER_FRAME_S
-    return until
+    return max(last + AFTER_FRAME_S, last + period - WARM_LEAD_S)
+
+
+def frames_phase(arrivals: Iterable[float], rate_hz: int | None) -> float | None:
+    """When the compass's frames come, from the reads of one frame each in ``arrivals``
+    (oldest first): the newest, moved back to the earliest point of the rhythm (one frame
+    every ``1 / rate_hz`` s) any of those within a second of it puts it at. A read only
+    ever comes late -- the thread's wake-up, a busy machine -- so the earliest is the
+    closest to when the compass sends; one late read does not move the rhythm, which a
+    hold ending :data:`WARM_LEAD_S` before the due frame relies on. None without a read;
+    the newest without a rate.
+    """
+    reads = list(arrivals)
+    if not reads:
+        return None
+    newest = reads[-1]
+    if not rate_hz:
+        return newest
+    period = 1.0 / rate_hz
+    return min(a + round((newest - a) / period) * period for a in reads if newest - a < 1.0)
 
 
 def _held(received: list[Received], due: float, *, keep_newest: bool) -> list[Received]:
