@@ -15,15 +15,18 @@ from bridge.device import Received
 from bridge.link.serial_link import (
     AFTER_FRAME_S,
     BURST_LEAD_S,
+    FIRST_BURST_S,
     RHYTHM_READS,
-    WARM_LEAD_S,
+    WARM_MARGIN_S,
     _held,
+    burst_estimate,
     frames_phase,
     hold_end,
 )
 
 RATE_HZ = 100
 PERIOD = 1.0 / RATE_HZ
+LEAD = FIRST_BURST_S + WARM_MARGIN_S  # the reader's lead before it has timed a burst
 
 
 def frames_at(phase: float) -> list[float]:
@@ -41,15 +44,15 @@ def reads_per_due_time(phase: float, end: float) -> int:
 def test_every_phase_costs_two_reads(step: int) -> None:
     phase = -PERIOD + step * PERIOD / 100  # the frames' phase against the due time
     arrived = phase - 7 * PERIOD  # a frame read on its own, 70 ms ago
-    end = hold_end(0.0, arrived, RATE_HZ)
+    end = hold_end(0.0, arrived, RATE_HZ, LEAD)
     last = max(a for a in frames_at(phase) if a < 0.0)
     due_frame = last + PERIOD
     assert reads_per_due_time(phase, end) == 2
     assert last < end < due_frame  # the reader is awake and reading when the due frame comes
-    # ... and has just put the held frames through: the due frame comes WARM_LEAD_S after
+    # ... and has just put the held frames through: the due frame comes the lead after
     # the hold's end (AFTER_FRAME_S after the frame before it, at the least) ...
-    assert end == pytest.approx(max(due_frame - WARM_LEAD_S, last + AFTER_FRAME_S))
-    assert due_frame - end <= WARM_LEAD_S + 1e-12
+    assert end == pytest.approx(max(due_frame - LEAD, last + AFTER_FRAME_S))
+    assert due_frame - end <= LEAD + 1e-12
     # ... never earlier than a lead before the due time: every frame the lead alone held
     # is held still.
     assert end >= -BURST_LEAD_S
@@ -61,7 +64,7 @@ def test_the_lead_alone_cost_a_third_read_in_four_phases_of_ten() -> None:
     phases = [-PERIOD + i * PERIOD / 1000 for i in range(1000)]
     lead_only = sum(reads_per_due_time(p, -BURST_LEAD_S) > 2 for p in phases)
     with_rhythm = sum(
-        reads_per_due_time(p, hold_end(0.0, p - 7 * PERIOD, RATE_HZ)) > 2 for p in phases
+        reads_per_due_time(p, hold_end(0.0, p - 7 * PERIOD, RATE_HZ, LEAD)) > 2 for p in phases
     )
     assert lead_only == pytest.approx(1000 * BURST_LEAD_S / PERIOD, abs=2)
     assert with_rhythm == 0
@@ -78,17 +81,17 @@ def test_the_lead_alone_cost_a_third_read_in_four_phases_of_ten() -> None:
     ],
 )
 def test_without_a_rhythm_the_lead_alone(due: float, arrived: float | None, rate: int) -> None:
-    assert hold_end(due, arrived, rate) == due - BURST_LEAD_S
+    assert hold_end(due, arrived, rate, LEAD) == due - BURST_LEAD_S
 
 
 def test_a_frame_period_too_short_for_the_rhythm_the_lead_alone() -> None:
     # 1 kHz: a frame every millisecond, not more than twice AFTER_FRAME_S.
-    assert hold_end(10.0, 9.9975, 1000) == 10.0 - BURST_LEAD_S
+    assert hold_end(10.0, 9.9975, 1000, LEAD) == 10.0 - BURST_LEAD_S
 
 
 def test_no_due_time_holds_as_long_as_allowed() -> None:
-    assert hold_end(math.inf, 5.0, RATE_HZ) == math.inf
-    assert hold_end(-math.inf, 5.0, RATE_HZ) == -math.inf
+    assert hold_end(math.inf, 5.0, RATE_HZ, LEAD) == math.inf
+    assert hold_end(-math.inf, 5.0, RATE_HZ, LEAD) == -math.inf
 
 
 def test_a_late_read_after_a_hold_passes_no_held_frame_for_due() -> None:
@@ -115,11 +118,11 @@ def test_the_rhythm_is_the_earliest_of_the_last_reads() -> None:
     # The late read alone, newest: the rhythm stays where the earlier ones put it.
     reads.append(100.0003 + 0.6 + 0.003)
     assert frames_phase(reads, RATE_HZ) == pytest.approx(100.0003 + 0.6 + 0.00005)
-    # A hold for a due time 25 ms after the next grid point ends WARM_LEAD_S before the
-    # due frame where it really comes, not where the late read would put it.
+    # A hold for a due time 25 ms after the next grid point ends the lead before the due
+    # frame where it really comes, not where the late read would put it.
     due = 100.0003 + 0.6 + 0.075
-    end = hold_end(due, frames_phase(reads, RATE_HZ), RATE_HZ)
-    assert end == pytest.approx(100.0003 + 0.68 + 0.00005 - WARM_LEAD_S)
+    end = hold_end(due, frames_phase(reads, RATE_HZ), RATE_HZ, LEAD)
+    assert end == pytest.approx(100.0003 + 0.68 + 0.00005 - LEAD)
 
 
 def test_the_rhythm_follows_a_compass_whose_frames_come_later_and_later() -> None:
@@ -140,3 +143,20 @@ def test_no_read_no_rhythm_and_without_a_rate_the_newest_read() -> None:
     assert frames_phase([], RATE_HZ) is None
     assert frames_phase([100.0001, 100.1005], None) == 100.1005
     assert frames_phase([100.0001, 100.1005], 0) == 100.1005
+
+
+def test_the_lead_is_never_longer_than_the_lead_before_the_due_time() -> None:
+    # A burst that took 10 ms (a busy machine): the hold still ends when the lead before
+    # the due time would have ended it, at the latest BURST_LEAD_S before the due frame.
+    arrived, due = 99.9995, 100.0  # the due frame expected at 100.0095
+    assert hold_end(due, arrived, RATE_HZ, 0.010) == pytest.approx(100.0095 - BURST_LEAD_S)
+    assert hold_end(due, arrived, RATE_HZ, 0.0005) == pytest.approx(100.0095 - 0.0005)
+
+
+def test_a_longer_burst_lengthens_the_lead_at_once_a_shorter_one_a_little() -> None:
+    assert burst_estimate(0.0007, 0.003) == 0.003  # the next due frame must not wait
+    assert burst_estimate(0.003, 0.0007) == pytest.approx(0.003 - 0.25 * 0.0023)
+    est = 0.003
+    for _ in range(30):  # quick bursts from then on: back to what they take
+        est = burst_estimate(est, 0.0007)
+    assert est == pytest.approx(0.0007, abs=1e-5)

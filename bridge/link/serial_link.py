@@ -82,14 +82,16 @@ MAX_BURST_S = 0.2
 #: not be due yet: a wake-up more): the hold ends this long after it instead (the frames'
 #: jitter on a pty: a few tenths of a millisecond).
 AFTER_FRAME_S = 0.001
-#: With the compass's rhythm known, a hold ends this long before the due frame is expected
-#: (and never before :data:`AFTER_FRAME_S` after the frame before it): the held frames go
-#: through the pipeline just before it comes, so the due frame finds more of the code and
-#: data it runs on still in the caches than after the 4-9 ms of sleep a lead of
-#: :data:`BURST_LEAD_S` before the due *time* leaves (docs/performance.md, "The due frame,
-#: read warm"). Longer than a burst of held frames takes (about 0.7 ms for nine at 100 Hz),
-#: so the due frame does not wait behind them.
-WARM_LEAD_S = 0.002
+#: With the compass's rhythm known, a hold ends before the due frame is expected (and never
+#: before :data:`AFTER_FRAME_S` after the frame before it) by what the held frames take to
+#: go through the pipeline (:func:`burst_estimate`) and this much more: the due frame comes
+#: right after them, and finds more of the code and data it runs on still in the caches
+#: than after the 4-9 ms of sleep a lead of :data:`BURST_LEAD_S` before the due *time*
+#: leaves (docs/performance.md, "The due frame, read warm"); nor does it wait behind them.
+WARM_MARGIN_S = 0.0003
+#: ... what a burst is taken to take before one has been timed (nine frames at 100 Hz take
+#: about 0.7 ms on a quiet machine).
+FIRST_BURST_S = 0.0017
 #: The rhythm is the earliest the last frames read on their own put it at, of at most this
 #: many of them, none older than a second (:func:`frames_phase`).
 RHYTHM_READS = 8
@@ -151,6 +153,7 @@ class CompassLink:
         self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
         # The last reads of one frame each (read as they came): the frames' rhythm.
         self._arrived: deque[float] = deque(maxlen=RHYTHM_READS)
+        self._burst_s = FIRST_BURST_S  # what a burst of held frames takes (burst_estimate)
 
     # ------------------------------------------------------------------ public API
 
@@ -438,6 +441,7 @@ class CompassLink:
                 received = machine.receive(data, now)
                 self._act()
                 quiet = machine.quiet
+            burst = held_for is not None and len(received) > 1
             if held_for is not None:
                 if now >= held_for:
                     received = _held(received, held_for, keep_newest=not straggler)
@@ -453,6 +457,8 @@ class CompassLink:
                         first = machine.counters.callback_errors == 1
                     if first:
                         log.exception("compass %s: on_frame callback failed", self.name)
+            if burst:  # the held frames' time through the pipeline: the next hold's lead
+                self._burst_s = burst_estimate(self._burst_s, clock() - now)
             if quiet and received and self._due_at is not None:
                 held_for, straggler = self._hold(deadline)
 
@@ -478,7 +484,7 @@ class CompassLink:
             self._due_at = None
             return None, False
         rate = self._machine.rate_hz
-        end = hold_end(due, frames_phase(self._arrived, rate), rate)
+        end = hold_end(due, frames_phase(self._arrived, rate), rate, self._burst_s + WARM_MARGIN_S)
         until = min(end, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
@@ -489,13 +495,16 @@ class CompassLink:
         return None, False
 
 
-def hold_end(due: float, arrived: float | None, rate_hz: int | None) -> float:
+def hold_end(
+    due: float, arrived: float | None, rate_hz: int | None, lead: float = BURST_LEAD_S
+) -> float:
     """When a hold for the due time ``due`` ends: with the compass's rhythm known,
-    :data:`WARM_LEAD_S` before the due frame (the first after ``due``) is expected, but
-    not before :data:`AFTER_FRAME_S` after the frame before it; so every frame before the
-    due one comes with the held ones (none costs a wake-up of its own, in which it would
-    not be due yet), and the due frame is read as it comes, right after them, while the
-    caches are warm. Without a rhythm, :data:`BURST_LEAD_S` before ``due``.
+    ``lead`` before the due frame (the first after ``due``) is expected (at most
+    :data:`BURST_LEAD_S`), but not before :data:`AFTER_FRAME_S` after the frame before
+    it; so every frame before the due one comes with the held ones (none costs a wake-up
+    of its own, in which it would not be due yet), and the due frame is read as it comes,
+    right after them, while the caches are warm. Without a rhythm, :data:`BURST_LEAD_S`
+    before ``due``.
 
     The rhythm: one frame every ``1 / rate_hz`` seconds (the rate asked of the compass),
     in step with ``arrived``, when a frame read on its own came (:func:`frames_phase`;
@@ -509,7 +518,15 @@ def hold_end(due: float, arrived: float | None, rate_hz: int | None) -> float:
     if period <= 2.0 * AFTER_FRAME_S:
         return until
     last = arrived + (math.ceil((due - arrived) / period) - 1) * period  # the last before due
-    return max(last + AFTER_FRAME_S, last + period - WARM_LEAD_S)
+    return max(last + AFTER_FRAME_S, last + period - min(lead, BURST_LEAD_S))
+
+
+def burst_estimate(previous: float, took: float) -> float:
+    """What the next burst of held frames will take to go through the pipeline, after one
+    took ``took`` seconds: a longer one at once (a busy machine: the due frame must not
+    come before the burst is through), a shorter one a quarter of the way (one quick burst
+    does not shorten the lead that much)."""
+    return took if took >= previous else previous + 0.25 * (took - previous)
 
 
 def frames_phase(arrivals: Iterable[float], rate_hz: int | None) -> float | None:
@@ -518,7 +535,7 @@ def frames_phase(arrivals: Iterable[float], rate_hz: int | None) -> float | None
     every ``1 / rate_hz`` s) any of those within a second of it puts it at. A read only
     ever comes late -- the thread's wake-up, a busy machine -- so the earliest is the
     closest to when the compass sends; one late read does not move the rhythm, which a
-    hold ending :data:`WARM_LEAD_S` before the due frame relies on. None without a read;
+    hold ending shortly before the due frame relies on. None without a read;
     the newest without a rate.
     """
     reads = list(arrivals)
