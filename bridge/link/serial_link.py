@@ -88,7 +88,7 @@ AFTER_FRAME_S = 0.001
 #: right after them, and finds more of the code and data it runs on still in the caches
 #: than after the 4-9 ms of sleep a lead of :data:`BURST_LEAD_S` before the due *time*
 #: leaves (docs/performance.md, "The due frame, read warm"); nor does it wait behind them.
-WARM_MARGIN_S = 0.0003
+WARM_MARGIN_S = 0.0005
 #: ... what a burst is taken to take before one has been timed (nine frames at 100 Hz take
 #: about 0.7 ms on a quiet machine).
 FIRST_BURST_S = 0.0017
