@@ -421,6 +421,10 @@ class CompassLink:
                 continue
             timeout = _READ_TIMEOUT_S if deadline is None else deadline - now
             timeout = min(max(timeout, 0.0), _READ_TIMEOUT_S)
+            if held_for is not None:
+                # The frames that waited through the hold: what is there now, not the due
+                # frame coming after it (a hold with none waiting: a slow compass).
+                timeout = 0.0
             try:
                 data = self._transport.read(_READ_CHUNK, timeout)
             except EndOfRecording as e:
@@ -435,6 +439,7 @@ class CompassLink:
                     self._act()
                 continue
             if not data:
+                held_for = None  # nothing waited: frames from now on are read as they come
                 continue
             now = clock()
             with self._lock:
