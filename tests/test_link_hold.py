@@ -21,6 +21,7 @@ from bridge.link.serial_link import (
     _held,
     burst_estimate,
     frames_phase,
+    held_count,
     hold_end,
 )
 
@@ -97,16 +98,37 @@ def test_no_due_time_holds_as_long_as_allowed() -> None:
 def test_a_late_read_after_a_hold_passes_no_held_frame_for_due() -> None:
     due = 100.0
     read = [Received(object(), due + 0.003) for _ in range(9)]  # type: ignore[arg-type]
-    # The hold ended at the lead: the newest may have come after the due time; it is
-    # the freshest there is and stays due by its read. The rest: just before.
-    kept = _held(read, due, keep_newest=True)
+    # No rhythm: the newest may have come after the due time; it is the freshest there
+    # is and stays due by its read. The rest: just before.
+    kept = _held(read, due, None)
     assert [r.t < due for r in kept] == [True] * 8 + [False]
     assert [r.frame for r in kept] == [r.frame for r in read]
-    # The hold ended after a frame expected before the due time: the due frame is the
-    # next to come, read as it comes; none of these is due.
-    held = _held(read, due, keep_newest=False)
+    assert _held(read[:1], due, None) == read[:1]
+    # The rhythm put nine frames before the due time: none of these is due; the due frame
+    # is the next to come, read as it comes.
+    held = _held(read, due, 9)
     assert all(due - 1e-3 < r.t < due for r in held)
-    assert _held(read[:1], due, keep_newest=True) == read[:1]
+    # ... it put eight there: the thread woke after the due frame came, and that one, the
+    # newest, is due by its read (hiding it would send the next frame a period late).
+    late = _held(read, due, 8)
+    assert [r.t < due for r in late] == [True] * 8 + [False]
+    # ... none: a compass no faster than the stream, every frame read is due.
+    assert _held(read[:2], due, 0) == read[:2]
+
+
+def test_the_rhythm_counts_the_frames_a_hold_holds() -> None:
+    phase = 100.0003  # the rhythm: frames at 100.0003 + k * PERIOD
+    # The due frame read on its own at 100.0004; the next due time 75 ms after its slot's
+    # grid point: nine frames come before it, the tenth is the due one.
+    assert held_count(100.0754, phase, 100.0004, RATE_HZ) == 7
+    assert held_count(100.0999, phase, 100.0004, RATE_HZ) == 9
+    assert held_count(100.1003, phase, 100.0004, RATE_HZ) == 9  # the tenth comes at due
+    assert held_count(100.1004, phase, 100.0004, RATE_HZ) == 10
+    # A read late by most of a period: its newest frame is still the one at the phase.
+    assert held_count(100.0999, phase, 100.0102, RATE_HZ) == 9
+    # A compass at the stream's rate (10 Hz): none held.
+    assert held_count(100.075, phase, 100.0004, 10) == 0
+    assert held_count(100.075, None, 100.0004, RATE_HZ) == 0
 
 
 def test_the_rhythm_is_the_earliest_of_the_last_reads() -> None:

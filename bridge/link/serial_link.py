@@ -396,7 +396,7 @@ class CompassLink:
         on_frame = self._on_frame
         clock = self._clock
         held_for: float | None = None  # the due time the last hold was for (see _hold)
-        straggler = False  # ... and it ended after a frame expected before that due time
+        held_n: int | None = None  # ... and how many frames the rhythm put in it (None: unknown)
         while not self._stop.is_set():
             self._wake.clear()  # before the deadline is read: a later command sets it again
             with self._cond:
@@ -449,7 +449,7 @@ class CompassLink:
             burst = held_for is not None and len(received) > 1
             if held_for is not None:
                 if now >= held_for:
-                    received = _held(received, held_for, keep_newest=not straggler)
+                    received = _held(received, held_for, held_n)
                 held_for = None
             elif len(received) == 1:
                 self._arrived.append(now)  # read as it came: when the compass's frames come
@@ -465,9 +465,9 @@ class CompassLink:
             if burst:  # the held frames' time through the pipeline: the next hold's lead
                 self._burst_s = burst_estimate(self._burst_s, clock() - now)
             if quiet and received and self._due_at is not None:
-                held_for, straggler = self._hold(deadline)
+                held_for, held_n = self._hold(deadline, now)
 
-    def _hold(self, deadline: float | None) -> tuple[float | None, bool]:
+    def _hold(self, deadline: float | None, read_at: float) -> tuple[float | None, int | None]:
         """Let the port's bytes gather until shortly before the frame the next output
         falls due on (:func:`hold_end`; or the machine's next deadline, or
         :data:`MAX_BURST_S`): the frames meanwhile then go through the pipeline together --
@@ -476,10 +476,11 @@ class CompassLink:
         comes while the burst's code is still warm. A command (or close) ends the wait at
         once.
 
-        Returns the due time it held the port for (None: it did not wait), and whether
-        it ended after a frame expected before that time (:func:`hold_end`): the frames
-        of the read that follows must not pass for the due one if the thread wakes after
-        that time (:func:`_held`)."""
+        Returns the due time it held the port for (None: it did not wait), and how many
+        frames the compass's rhythm put between the last read (at ``read_at``) and that
+        time (:func:`held_count`; None without a rhythm): of the read that follows, if the
+        thread wakes after the due time, those must not pass for the due one, and the
+        frames after them are the due one and later (:func:`_held`)."""
         assert self._due_at is not None
         now = self._clock()
         try:
@@ -487,17 +488,19 @@ class CompassLink:
         except Exception:  # an output's bug must not stop the reader: read as frames come
             log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
             self._due_at = None
-            return None, False
+            return None, None
         rate = self._machine.rate_hz
-        end = hold_end(due, frames_phase(self._arrived, rate), rate, self._burst_s + WARM_MARGIN_S)
+        phase = frames_phase(self._arrived, rate)
+        end = hold_end(due, phase, rate, self._burst_s + WARM_MARGIN_S)
         until = min(end, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
         if until > now:
             self._wake.wait(until - now)
-            # The rhythm's end comes after the last frame expected before the due time.
-            return due, until == end != due - BURST_LEAD_S
-        return None, False
+            # Ended by the rhythm (after the last frame expected before the due time)?
+            rhythm = until == end != due - BURST_LEAD_S
+            return due, held_count(due, phase, read_at, rate) if rhythm else None
+        return None, None
 
 
 def hold_end(
@@ -553,21 +556,33 @@ def frames_phase(arrivals: Iterable[float], rate_hz: int | None) -> float | None
     return min(a + round((newest - a) / period) * period for a in reads if newest - a < 1.0)
 
 
-def _held(received: list[Received], due: float, *, keep_newest: bool) -> list[Received]:
+def held_count(due: float, phase: float | None, read_at: float, rate_hz: int | None) -> int:
+    """How many frames the rhythm (one every ``1 / rate_hz`` s in step with ``phase``, as
+    :func:`hold_end` has it) puts after the newest frame read by a read at ``read_at``
+    (the last point of the rhythm at or before it) and before ``due``."""
+    if phase is None or not rate_hz:
+        return 0
+    period = 1.0 / rate_hz
+    newest = phase + math.floor((read_at - phase) / period) * period
+    return max(0, math.ceil((due - newest) / period - 1e-9) - 1)
+
+
+def _held(received: list[Received], due: float, held: int | None) -> list[Received]:
     """The frames of the read after a hold for ``due`` that came after it (the thread woke
-    late): stamped just before ``due`` -- all of them when the hold ended after a frame
-    expected before ``due`` (the due one is the next to come), all but the newest else.
+    late): the ``held`` oldest (the frames the rhythm put before ``due``) stamped just
+    before it, the rest -- the due frame and any after it, which came while the thread
+    was late -- due by the read as frames read as they come are; without a rhythm
+    (``held`` None) all but the newest stamped before ``due``.
 
     Stamped with the read's time, the oldest -- held up to :data:`MAX_BURST_S` -- would
     be the first an output finds due, and go out as if it were new. The newest, when
-    kept, is the freshest sample there is, due by its read like any frame read as it
-    comes. (A frame that came after ``due`` and is stamped before it -- a wake-up more than
-    a frame period late, or a frame not where the rhythm put it -- is stamped a little
+    kept, is the freshest sample there is. (A frame that came after ``due`` and is
+    stamped before it -- a frame not where the rhythm put it -- is stamped a little
     before it came.)
     """
     before = due - HELD_BEFORE_DUE_S
-    if keep_newest:
-        if len(received) < 2:
-            return received
-        return [Received(r.frame, before) for r in received[:-1]] + [received[-1]]
-    return [Received(r.frame, before) for r in received]
+    if held is None:
+        held = len(received) - 1
+    if held <= 0:
+        return received
+    return [Received(r.frame, before) for r in received[:held]] + received[held:]
