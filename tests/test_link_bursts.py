@@ -10,6 +10,7 @@ bounded.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections import Counter
@@ -157,3 +158,26 @@ def test_a_failing_due_time_is_said_once_and_every_frame_read_as_it_comes(
         sizes = [n for _, n in reads(col, mark)]
         assert sorted(sizes)[len(sizes) // 2] == 1  # no bursts without a due time
     assert sum("due_at failed" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_hold_with_no_frame_waiting_does_not_hide_the_due_frame(peer: Peer) -> None:
+    # An output due on every frame (its rate the compass's, e.g. ATTITUDE at 50 Hz from a
+    # 50 Hz compass): each hold ends shortly before the next frame with none waiting, and
+    # that frame, read as it comes, keeps its own read time -- it is the due one, not a
+    # held one stamped before the due time (which would halve the stream's rate).
+    col = Collector()
+    period = 1.0 / RATE_HZ
+
+    def due() -> float:
+        frames = [i for i in col.items[-3:] if isinstance(i.frame, AttitudeFrame)]
+        return frames[-1].t + 0.5 * period if frames else -math.inf
+
+    with make_link(peer.path, col, rate_hz=RATE_HZ, stale_after=2.0, due_at=due) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: link.params is not None, 5.0)
+        mark = len(col.items)
+        assert wait_until(lambda: len(col.items) - mark >= RATE_HZ, 5.0)
+        items = [i for i in col.items[mark:] if isinstance(i.frame, AttitudeFrame)]
+        late = [b for a, b in itertools.pairwise(items) if b.t < a.t + 0.5 * period]
+        assert late == []  # every frame at or after its due time: each one sent
+        assert [n for _, n in reads(col, mark)].count(1) >= 0.9 * len(items)

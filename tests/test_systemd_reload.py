@@ -33,6 +33,7 @@ class Running:
         self.cfg_path = tmp / "bridge.toml"
         self.tmp, self.link = tmp, link
         self.zport = free_port()
+        self.mport = free_port()  # a udpout's destination: nobody needs to listen there
         self.write()
         cfg = load_config(self.cfg_path, env={})
 
@@ -47,18 +48,31 @@ class Running:
         self.thread.start()
         _wait(lambda: self.service.daemon.link.state is LinkState.STREAMING, "streaming")
 
-    def write(self, *, rate_hz: int = 10, prefix: str = "test/a", extra: str = "") -> None:
+    def write(
+        self, *, rate_hz: int = 10, prefix: str = "test/a", extra: str = "", mavlink_id: int = 1
+    ) -> None:
         zenoh = (
             f'[zenoh]\nenabled = true\nlisten = ["tcp/127.0.0.1:{self.zport}"]\n'
             f'key_prefix = "{prefix}"\nmulticast_scouting = false\n\n'
         )
-        text = toml_config(str(self.link), self.tmp / "state", rate_hz=rate_hz, extra=extra)
+        text = toml_config(
+            str(self.link),
+            self.tmp / "state",
+            rate_hz=rate_hz,
+            extra=extra,
+            mavlink=[f"udpout:127.0.0.1:{self.mport}"],
+        )
+        text = text.replace("[mavlink]\n", f"[mavlink]\nsystem_id = {mavlink_id}\n")
         self.cfg_path.write_text(text.replace("[zenoh]\nenabled = false\n\n", zenoh))
 
     def reload(self) -> None:
         n = self.service.reloads + self.service.reloads_refused
         self.service.reload_requested.set()  # what the SIGHUP handler does
         _wait(lambda: self.service.reloads + self.service.reloads_refused > n, "the reload")
+
+    def names(self) -> list[str]:
+        """The outputs' names in the order the pipeline publishes to them."""
+        return [o.name for o in self.service.daemon.bridge.pipeline.outputs]
 
     def output(self, name: str) -> Output:
         (out,) = [o for o in self.service.daemon.bridge.pipeline.outputs if o.name == name]
@@ -98,9 +112,18 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
     samples = daemon.bridge.pipeline.samples
     _wait(lambda: daemon.bridge.pipeline.samples > samples + 5, "samples after the output swap")
     assert link.counters.reconnects == reconnects
+    assert running.names() == ["mavlink", "zenoh", "status"]  # in place, not appended
+
+    # [mavlink] changed: that output restarts, and still publishes first -- its ATTITUDE
+    # does not wait for Zenoh's documents.
+    mavlink = running.output("mavlink")
+    running.write(prefix="test/b", mavlink_id=2)
+    running.reload()
+    assert running.output("mavlink") is not mavlink and running.output("zenoh") is new_zenoh
+    assert running.names() == ["mavlink", "zenoh", "status"]
 
     # [device] changed: the port reopens with it; the outputs keep running.
-    running.write(prefix="test/b", rate_hz=20)
+    running.write(prefix="test/b", rate_hz=20, mavlink_id=2)
     running.reload()
     assert svc.daemon is daemon and running.output("zenoh") is new_zenoh
     assert link.rate_hz == 20
@@ -115,6 +138,7 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
         prefix="test/b",
         rate_hz=20,
         extra="[location]\nlatitude = 52.0\nlongitude = 4.4\n",
+        mavlink_id=2,
     )
     assert daemon.bridge.engine.reference is None
     running.reload()
@@ -130,7 +154,7 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
     assert svc.daemon is daemon and running.output("zenoh") is new_zenoh
 
     # [storage] has no in-place switch: the whole bridge restarts, in-process.
-    running.write(prefix="test/b", rate_hz=20, extra="")
+    running.write(prefix="test/b", rate_hz=20, extra="", mavlink_id=2)
     text = running.cfg_path.read_text().replace(
         str(running.tmp / "state"), str(running.tmp / "state2")
     )

@@ -161,7 +161,7 @@ def test_an_output_reload_restarts_that_output_through_the_pipeline(
 
     [(outputs,)] = set_outputs.args
     assert tuple(pipeline.outputs) == tuple(outputs)
-    [kept, fresh] = pipeline.outputs  # the kept ones first, as before the reload
+    [fresh, kept] = pipeline.outputs  # the restarted one in its own place, as before the reload
     assert isinstance(fresh, Stub) and fresh.built_for is new and fresh.started
     assert old.closed and kept is tap
     assert reopen.args == []  # the port is not touched

@@ -449,13 +449,18 @@ class Service:
             log.info("reload: reopening the compass port with the new settings")
             d.reopen(new.device, transport, simulator)
         if plan.outputs:
-            self._swap_outputs(plan.outputs, keep_new)
+            self._swap_outputs(plan.outputs, keep_new, [o.name for o in fresh])
         self.cfg = new
         what = ", ".join(f"[{s}]" for s in plan.changed)
         log.info("reload: applied %s; other parts kept running", what)
         return f"reloaded {what}"
 
-    def _swap_outputs(self, names: Sequence[str], fresh: Sequence[Output]) -> None:
+    def _swap_outputs(
+        self, names: Sequence[str], fresh: Sequence[Output], order: Sequence[str]
+    ) -> None:
+        """Restart the outputs ``names``: the old ones closed, ``fresh`` started, each in
+        its place of ``order`` (the names in :func:`~bridge.daemon.build_outputs`' order;
+        the status tap and any other output not in it after them, as at the start)."""
         pipeline = self.daemon.bridge.pipeline
         old = [o for o in pipeline.outputs if o.name in names]
         kept = [o for o in pipeline.outputs if o.name not in names]
@@ -463,8 +468,12 @@ class Service:
             o.close(1.0)
         for o in fresh:
             o.start()
+        # The pipeline publishes in this order: MAVLink's ATTITUDE, the latency-critical
+        # output, must not come after Zenoh's documents because [mavlink] was reloaded.
+        rank = {name: i for i, name in enumerate(order)}
+        outputs = sorted([*kept, *fresh], key=lambda o: rank.get(o.name, len(rank)))
         # One reference store: the pipeline reads the list once per sample.
-        pipeline.set_outputs([*kept, *fresh])
+        pipeline.set_outputs(outputs)
         log.info("reload: restarted output(s) %s", ", ".join(names))
 
     def _rebuild(self, new: Config, plan: ReloadPlan) -> str:

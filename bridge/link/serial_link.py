@@ -23,7 +23,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable
 
 from bridge.device import (
     CommandError,
@@ -81,6 +82,19 @@ MAX_BURST_S = 0.2
 #: not be due yet: a wake-up more): the hold ends this long after it instead (the frames'
 #: jitter on a pty: a few tenths of a millisecond).
 AFTER_FRAME_S = 0.001
+#: With the compass's rhythm known, a hold ends before the due frame is expected (and never
+#: before :data:`AFTER_FRAME_S` after the frame before it) by what the held frames take to
+#: go through the pipeline (:func:`burst_estimate`) and this much more: the due frame comes
+#: right after them, and finds more of the code and data it runs on still in the caches
+#: than after the 4-9 ms of sleep a lead of :data:`BURST_LEAD_S` before the due *time*
+#: leaves (docs/performance.md, "The due frame, read warm"); nor does it wait behind them.
+WARM_MARGIN_S = 0.0005
+#: ... what a burst is taken to take before one has been timed (nine frames at 100 Hz take
+#: about 0.7 ms on a quiet machine).
+FIRST_BURST_S = 0.0017
+#: The rhythm is the earliest the last frames read on their own put it at, of at most this
+#: many of them, none older than a second (:func:`frames_phase`).
+RHYTHM_READS = 8
 #: A burst read after the due time (the thread woke late): its frames but the newest are
 #: stamped this long before the due time, so that none of the held ones passes for due.
 HELD_BEFORE_DUE_S = 1e-6
@@ -137,7 +151,9 @@ class CompassLink:
         self._reader: threading.Thread | None = None
         self._said: list[StateChanged | Notice] = []  # to log (and hand to on_state) unlocked
         self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
-        self._arrived: float | None = None  # the last read of one frame: the frames' rhythm
+        # The last reads of one frame each (read as they came): the frames' rhythm.
+        self._arrived: deque[float] = deque(maxlen=RHYTHM_READS)
+        self._burst_s = FIRST_BURST_S  # what a burst of held frames takes (burst_estimate)
 
     # ------------------------------------------------------------------ public API
 
@@ -380,7 +396,7 @@ class CompassLink:
         on_frame = self._on_frame
         clock = self._clock
         held_for: float | None = None  # the due time the last hold was for (see _hold)
-        straggler = False  # ... and it ended after a frame expected before that due time
+        held_n: int | None = None  # ... and how many frames the rhythm put in it (None: unknown)
         while not self._stop.is_set():
             self._wake.clear()  # before the deadline is read: a later command sets it again
             with self._cond:
@@ -405,6 +421,10 @@ class CompassLink:
                 continue
             timeout = _READ_TIMEOUT_S if deadline is None else deadline - now
             timeout = min(max(timeout, 0.0), _READ_TIMEOUT_S)
+            if held_for is not None:
+                # The frames that waited through the hold: what is there now, not the due
+                # frame coming after it (a hold with none waiting: a slow compass).
+                timeout = 0.0
             try:
                 data = self._transport.read(_READ_CHUNK, timeout)
             except EndOfRecording as e:
@@ -419,18 +439,20 @@ class CompassLink:
                     self._act()
                 continue
             if not data:
+                held_for = None  # nothing waited: frames from now on are read as they come
                 continue
             now = clock()
             with self._lock:
                 received = machine.receive(data, now)
                 self._act()
                 quiet = machine.quiet
+            burst = held_for is not None and len(received) > 1
             if held_for is not None:
                 if now >= held_for:
-                    received = _held(received, held_for, keep_newest=not straggler)
+                    received = _held(received, held_for, held_n)
                 held_for = None
             elif len(received) == 1:
-                self._arrived = now  # read as it came: when the compass's frames come
+                self._arrived.append(now)  # read as it came: when the compass's frames come
             for item in received:
                 try:
                     on_frame(item)
@@ -440,21 +462,25 @@ class CompassLink:
                         first = machine.counters.callback_errors == 1
                     if first:
                         log.exception("compass %s: on_frame callback failed", self.name)
+            if burst:  # the held frames' time through the pipeline: the next hold's lead
+                self._burst_s = burst_estimate(self._burst_s, clock() - now)
             if quiet and received and self._due_at is not None:
-                held_for, straggler = self._hold(deadline)
+                held_for, held_n = self._hold(deadline, now)
 
-    def _hold(self, deadline: float | None) -> tuple[float | None, bool]:
-        """Let the port's bytes gather until shortly before the next output falls due
-        (:func:`hold_end`; or the machine's next deadline, or :data:`MAX_BURST_S`): the
-        frames meanwhile then go through the pipeline together -- one wake-up, warm caches
-        -- instead of one cold wake-up each; the frames from then on are read as they come,
-        so the one the output carries is as prompt as ever. A command (or close) ends the
-        wait at once.
+    def _hold(self, deadline: float | None, read_at: float) -> tuple[float | None, int | None]:
+        """Let the port's bytes gather until shortly before the frame the next output
+        falls due on (:func:`hold_end`; or the machine's next deadline, or
+        :data:`MAX_BURST_S`): the frames meanwhile then go through the pipeline together --
+        one wake-up, warm caches -- instead of one cold wake-up each; the frames from then
+        on are read as they come, so the one the output carries is as prompt as ever, and
+        comes while the burst's code is still warm. A command (or close) ends the wait at
+        once.
 
-        Returns the due time it held the port for (None: it did not wait), and whether
-        it ended after a frame expected before that time (:func:`hold_end`): the frames
-        of the read that follows must not pass for the due one if the thread wakes after
-        that time (:func:`_held`)."""
+        Returns the due time it held the port for (None: it did not wait), and how many
+        frames the compass's rhythm put between the last read (at ``read_at``) and that
+        time (:func:`held_count`; None without a rhythm): of the read that follows, if the
+        thread wakes after the due time, those must not pass for the due one, and the
+        frames after them are the due one and later (:func:`_held`)."""
         assert self._due_at is not None
         now = self._clock()
         try:
@@ -462,53 +488,101 @@ class CompassLink:
         except Exception:  # an output's bug must not stop the reader: read as frames come
             log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
             self._due_at = None
-            return None, False
-        end = hold_end(due, self._arrived, self._machine.rate_hz)
+            return None, None
+        rate = self._machine.rate_hz
+        phase = frames_phase(self._arrived, rate)
+        end = hold_end(due, phase, rate, self._burst_s + WARM_MARGIN_S)
         until = min(end, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
         if until > now:
             self._wake.wait(until - now)
-            return due, until == end > due - BURST_LEAD_S
-        return None, False
+            # Ended by the rhythm (after the last frame expected before the due time)?
+            rhythm = until == end != due - BURST_LEAD_S
+            return due, held_count(due, phase, read_at, rate) if rhythm else None
+        return None, None
 
 
-def hold_end(due: float, arrived: float | None, rate_hz: int | None) -> float:
-    """When a hold for the due time ``due`` ends: :data:`BURST_LEAD_S` before it, or
-    :data:`AFTER_FRAME_S` after the last frame the compass's rhythm puts in between (that
-    frame then comes with the held ones instead of in a wake-up of its own, in which it
-    would not be due yet; the due frame, the next one, is still read as it comes).
+def hold_end(
+    due: float, arrived: float | None, rate_hz: int | None, lead: float = BURST_LEAD_S
+) -> float:
+    """When a hold for the due time ``due`` ends: with the compass's rhythm known,
+    ``lead`` before the due frame (the first after ``due``) is expected (at most
+    :data:`BURST_LEAD_S`), but not before :data:`AFTER_FRAME_S` after the frame before
+    it; so every frame before the due one comes with the held ones (none costs a wake-up
+    of its own, in which it would not be due yet), and the due frame is read as it comes,
+    right after them, while the caches are warm. Without a rhythm, :data:`BURST_LEAD_S`
+    before ``due``.
 
     The rhythm: one frame every ``1 / rate_hz`` seconds (the rate asked of the compass),
-    in step with ``arrived``, when the last frame read on its own came (one every due
-    time). Without one (no rate, no frame read on its own in the last second) the lead
-    alone.
+    in step with ``arrived``, when a frame read on its own came (:func:`frames_phase`;
+    one every due time). Without one (no rate, no frame read on its own in the last
+    second) the lead alone.
     """
     until = due - BURST_LEAD_S
     if arrived is None or not rate_hz or not 0.0 < due - arrived < 1.0:
         return until
     period = 1.0 / rate_hz
+    if period <= 2.0 * AFTER_FRAME_S:
+        return until
     last = arrived + (math.ceil((due - arrived) / period) - 1) * period  # the last before due
-    if last + AFTER_FRAME_S > until and period > 2.0 * AFTER_FRAME_S:
-        return last + AFTER_FRAME_S
-    return until
+    return max(last + AFTER_FRAME_S, last + period - min(lead, BURST_LEAD_S))
 
 
-def _held(received: list[Received], due: float, *, keep_newest: bool) -> list[Received]:
+def burst_estimate(previous: float, took: float) -> float:
+    """What the next burst of held frames will take to go through the pipeline, after one
+    took ``took`` seconds: a longer one at once (a busy machine: the due frame must not
+    come before the burst is through), a shorter one a quarter of the way (one quick burst
+    does not shorten the lead that much)."""
+    return took if took >= previous else previous + 0.25 * (took - previous)
+
+
+def frames_phase(arrivals: Iterable[float], rate_hz: int | None) -> float | None:
+    """When the compass's frames come, from the reads of one frame each in ``arrivals``
+    (oldest first): the newest, moved back to the earliest point of the rhythm (one frame
+    every ``1 / rate_hz`` s) any of those within a second of it puts it at. A read only
+    ever comes late -- the thread's wake-up, a busy machine -- so the earliest is the
+    closest to when the compass sends; one late read does not move the rhythm, which a
+    hold ending shortly before the due frame relies on. None without a read;
+    the newest without a rate.
+    """
+    reads = list(arrivals)
+    if not reads:
+        return None
+    newest = reads[-1]
+    if not rate_hz:
+        return newest
+    period = 1.0 / rate_hz
+    return min(a + round((newest - a) / period) * period for a in reads if newest - a < 1.0)
+
+
+def held_count(due: float, phase: float | None, read_at: float, rate_hz: int | None) -> int:
+    """How many frames the rhythm (one every ``1 / rate_hz`` s in step with ``phase``, as
+    :func:`hold_end` has it) puts after the newest frame read by a read at ``read_at``
+    (the last point of the rhythm at or before it) and before ``due``."""
+    if phase is None or not rate_hz:
+        return 0
+    period = 1.0 / rate_hz
+    newest = phase + math.floor((read_at - phase) / period) * period
+    return max(0, math.ceil((due - newest) / period - 1e-9) - 1)
+
+
+def _held(received: list[Received], due: float, held: int | None) -> list[Received]:
     """The frames of the read after a hold for ``due`` that came after it (the thread woke
-    late): stamped just before ``due`` -- all of them when the hold ended after a frame
-    expected before ``due`` (the due one is the next to come), all but the newest else.
+    late): the ``held`` oldest (the frames the rhythm put before ``due``) stamped just
+    before it, the rest -- the due frame and any after it, which came while the thread
+    was late -- due by the read as frames read as they come are; without a rhythm
+    (``held`` None) all but the newest stamped before ``due``.
 
     Stamped with the read's time, the oldest -- held up to :data:`MAX_BURST_S` -- would
     be the first an output finds due, and go out as if it were new. The newest, when
-    kept, is the freshest sample there is, due by its read like any frame read as it
-    comes. (A frame that came after ``due`` and is stamped before it -- a wake-up more than
-    a frame period late, or a frame not where the rhythm put it -- is stamped a little
+    kept, is the freshest sample there is. (A frame that came after ``due`` and is
+    stamped before it -- a frame not where the rhythm put it -- is stamped a little
     before it came.)
     """
     before = due - HELD_BEFORE_DUE_S
-    if keep_newest:
-        if len(received) < 2:
-            return received
-        return [Received(r.frame, before) for r in received[:-1]] + [received[-1]]
-    return [Received(r.frame, before) for r in received]
+    if held is None:
+        held = len(received) - 1
+    if held <= 0:
+        return received
+    return [Received(r.frame, before) for r in received[:held]] + received[held:]
