@@ -120,14 +120,21 @@ def test_a_compass_that_answers_but_streams_nothing_is_not_ok_anywhere(
             assert not any(s.startswith("streaming") for s in statuses), statuses
             hb = gcs.last("HEARTBEAT")
             assert hb is not None and hb.system_status == CRITICAL  # type: ignore[attr-defined]
-            assert not any(m.get("READY") == "1" for m in manager.messages)
+            # READY=1 only as the service manager's timeout one (the daemon must not be
+            # killed for a silent compass: READY_TIMEOUT_S), and then saying why not --
+            # never as a streaming compass's READY (a slow machine reaches the timeout here)
+            readies = [status_text(m) for m in manager.messages if m.get("READY") == "1"]
+            assert all(s.startswith("started without a streaming compass") for s in readies), (
+                readies
+            )
             with tap.lock:
                 assert "link.lost" not in tap.events and "link.restored" not in tap.events
 
             # -- it streams again: every surface follows
             fw.streaming = True
             manager.wait_for(lambda m: status_text(m).startswith("streaming"), proc=d)
-            manager.wait_for(lambda m: m.get("READY") == "1", proc=d)
+            if not readies:  # else READY went out at the timeout, and is not sent twice
+                manager.wait_for(lambda m: m.get("READY") == "1", proc=d)
             wait_for(lambda: "streaming" in tap.states(time.monotonic() - 0.5), "zenoh streaming")
             code, status_out, monitor_out = surfaces(endpoint, prefix)
             # streaming: healthy; the unit carries no calibration, which `status` says apart
