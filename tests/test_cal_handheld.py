@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 
 import numpy as np
 import pytest
 from handheld_rig import FIELD, Tumbled, collect, held, tumble
 
 from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
+from bridge.calibration.fits.handheld import _solve_joint
 from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.fits.series import hann_kernel, motion_rms_g, runs, window_means
 from bridge.calibration.model import AffineCalibration, CalibrationResult
@@ -208,3 +210,27 @@ def test_a_short_series_falls_back_to_single_samples_and_bad_times_are_refused()
     assert any("single samples used" in n for n in res.report.notes)
     with pytest.raises(ValueError, match="t_s"):
         CalibrationData(rec.mag, rec.acc, t_s=rec.t[:-1])
+
+
+def _garbage_rows(trials: int) -> list[np.ndarray]:
+    """Window features no unit could give (random, at scales from 1e-3 to 1e3): the
+    same draws, in the same order, as the search that found the ones that diverge."""
+    rng = np.random.default_rng(1)
+    out = []
+    for _ in range(trials):
+        n = int(rng.integers(15, 60))
+        scale = 10.0 ** rng.uniform(-3, 3)
+        rows = rng.normal(size=(n, 21)) * scale + rng.normal(size=21) * scale * rng.uniform(0, 5)
+        out.append(rows)
+    return out
+
+
+def test_a_joint_fit_that_diverges_gives_no_candidate_and_no_numpy_warning() -> None:
+    """Gauss-Newton sent to infinity by windows that do not pin the model is no candidate,
+    and says nothing on stderr (numpy's overflow warnings reached CI's output, and would
+    reach the daemon's journal during a calibration)."""
+    sets = _garbage_rows(1861)
+    for rows in (sets[895], sets[1860]):  # two of 3000 that overflow
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert _solve_joint(rows) is None

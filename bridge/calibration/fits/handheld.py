@@ -354,28 +354,32 @@ def _solve_joint(
     o, L = accel.offset_array, accel.matrix_array
     F = _with_one(rows)
     wd = wm = 1.0
-    for it in range(iterations):
-        cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
-        r = F @ np.column_stack([cd, cm])
-        if it == 0:
-            wd = _weight(r[:, 0])
-            wm = _weight(r[:, 1]) * magnitude_weight
-        Fr = F.T @ r
-        # J^T J and J^T r of the weighted rows stacked, without stacking them
-        JTJ = (wd * wd) * (Cd.T @ G @ Cd) + (wm * wm) * (Cm.T @ G @ Cm)
-        JTr = (wd * wd) * (Cd.T @ Fr[:, 0]) + (wm * wm) * (Cm.T @ Fr[:, 1])
-        try:
-            step = np.linalg.solve(JTJ, -JTr)
-        except np.linalg.LinAlgError:
-            return None
-        o = o + step[:3]
-        L = L.copy()
-        for c, (a, b) in enumerate(_TRI):
-            L[a, b] += step[3 + c]
-        Q = rotvec_to_dcm(step[9:12]) @ Q
-        s += float(step[12])
-        if float(np.max(np.abs(step))) < _STEP_TOL:
-            break
+    # Windows that do not pin the model (a jackknife replicate, a hand's odd windows) can
+    # send Gauss-Newton off to infinity: judged below (not finite: no candidate), so
+    # numpy's overflow warnings would only be noise in the daemon's log.
+    with np.errstate(over="ignore", invalid="ignore"):
+        for it in range(iterations):
+            cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
+            r = F @ np.column_stack([cd, cm])
+            if it == 0:
+                wd = _weight(r[:, 0])
+                wm = _weight(r[:, 1]) * magnitude_weight
+            Fr = F.T @ r
+            # J^T J and J^T r of the weighted rows stacked, without stacking them
+            JTJ = (wd * wd) * (Cd.T @ G @ Cd) + (wm * wm) * (Cm.T @ G @ Cm)
+            JTr = (wd * wd) * (Cd.T @ Fr[:, 0]) + (wm * wm) * (Cm.T @ Fr[:, 1])
+            try:
+                step = np.linalg.solve(JTJ, -JTr)
+            except np.linalg.LinAlgError:
+                return None
+            o = o + step[:3]
+            L = L.copy()
+            for c, (a, b) in enumerate(_TRI):
+                L[a, b] += step[3 + c]
+            Q = rotvec_to_dcm(step[9:12]) @ Q
+            s += float(step[12])
+            if float(np.max(np.abs(step))) < _STEP_TOL:
+                break
     if not np.all(np.isfinite(L)) or not np.all(np.diag(L) > 0.0):
         return None
     try:
