@@ -354,9 +354,8 @@ def _solve_joint(
     o, L = accel.offset_array, accel.matrix_array
     F = _with_one(rows)
     wd = wm = 1.0
-    # Windows that do not pin the model (a jackknife replicate, a hand's odd windows) can
-    # send Gauss-Newton off to infinity: judged below (not finite: no candidate), so
-    # numpy's overflow warnings would only be noise in the daemon's log.
+    # Windows that do not pin the model can send it off to infinity: judged below (not
+    # finite: no candidate); numpy's overflow warnings would only be noise in the log.
     with np.errstate(over="ignore", invalid="ignore"):
         for it in range(iterations):
             cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
