@@ -1,5 +1,5 @@
 """What the live benchmarks read of a child process from outside (one copy for pipeline,
-versus and the fuzzers): its CPU, its memory, its ATTITUDE datagrams."""
+versus and the fuzzers): its CPU (per thread too), its memory, its ATTITUDE datagrams."""
 
 from __future__ import annotations
 
@@ -28,6 +28,26 @@ def process_cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     # utime, stime are fields 14, 15 (1-based) of stat; after the ")" they are 12th/13th.
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def thread_stats(pid: int) -> dict[int, tuple[str, int, int, int]]:
+    """tid -> (name, run ns, voluntary, involuntary switches) of every live thread of ``pid``
+    (``/proc/PID/task``: schedstat, comm, status)."""
+    out: dict[int, tuple[str, int, int, int]] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            run_ns = int((task / "schedstat").read_text().split()[0])
+            name = (task / "comm").read_text().strip()
+            vol = inv = 0
+            for line in (task / "status").read_text().splitlines():
+                if line.startswith("voluntary_ctxt_switches:"):
+                    vol = int(line.split()[1])
+                elif line.startswith("nonvoluntary_ctxt_switches:"):
+                    inv = int(line.split()[1])
+        except (OSError, ValueError, IndexError):
+            continue  # the thread ended meanwhile
+        out[int(task.name)] = (name, run_ns, vol, inv)
+    return out
 
 
 def free_port(kind: int) -> int:

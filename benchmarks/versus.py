@@ -57,7 +57,13 @@ from benchmarks.pipeline import (
     live_config,
     match_latencies,
 )
-from benchmarks.procstat import AttitudeTap, process_cpu_s, process_rss_mb, stop_child
+from benchmarks.procstat import (
+    AttitudeTap,
+    process_cpu_s,
+    process_rss_mb,
+    stop_child,
+    thread_stats,
+)
 from benchmarks.throughput import Subscriber
 from bridge.config import load_config
 
@@ -144,25 +150,6 @@ class LiveRun:
     zenoh_docs_hz: float = 0.0
 
 
-def _threads(pid: int) -> dict[int, tuple[str, int, int, int]]:
-    """tid -> (name, run ns, voluntary, involuntary switches) of every live thread."""
-    out: dict[int, tuple[str, int, int, int]] = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            run_ns = int((task / "schedstat").read_text().split()[0])
-            name = (task / "comm").read_text().strip()
-            vol = inv = 0
-            for line in (task / "status").read_text().splitlines():
-                if line.startswith("voluntary_ctxt_switches:"):
-                    vol = int(line.split()[1])
-                elif line.startswith("nonvoluntary_ctxt_switches:"):
-                    inv = int(line.split()[1])
-        except (OSError, ValueError, IndexError):
-            continue  # the thread ended meanwhile
-        out[int(task.name)] = (name, run_ns, vol, inv)
-    return out
-
-
 def _machine_jiffies() -> tuple[int, int]:
     """(busy, total) jiffies of all cores so far (/proc/stat's cpu line)."""
     v = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
@@ -205,11 +192,11 @@ def run_once(
             time.sleep(settle_s)
             docs0 = subscriber.counts() if subscriber else {}
             n0 = len(received)
-            th0, (b0, j0) = _threads(proc.pid), _machine_jiffies()
+            th0, (b0, j0) = thread_stats(proc.pid), _machine_jiffies()
             c0, w0 = process_cpu_s(proc.pid), time.monotonic()
             time.sleep(duration_s)
             c1, w1 = process_cpu_s(proc.pid), time.monotonic()
-            th1, (b1, j1) = _threads(proc.pid), _machine_jiffies()
+            th1, (b1, j1) = thread_stats(proc.pid), _machine_jiffies()
             n1 = len(received)
             docs1 = subscriber.counts() if subscriber else {}
             loadavg = " ".join(Path("/proc/loadavg").read_text().split()[:3])

@@ -30,8 +30,8 @@ MAX_NET_WAKES = 4
 DOCUMENT = bytes(range(256)) * 16  # 4 KiB: above zenoh's SHM threshold (3 KiB)
 
 CHILD = """
-import json, sys, time
-from pathlib import Path
+import json, os, sys, time
+from benchmarks.procstat import thread_stats
 from bridge.zenoh.session import ZenohSettings, open_session
 
 settings = ZenohSettings(listen=(sys.argv[1],), overrides=tuple(json.loads(sys.argv[2])))
@@ -39,12 +39,8 @@ session, _ = open_session(settings)
 pub = session.declare_publisher("test/shm/doc")
 
 def net_wakes():
-    n = 0
-    for t in Path("/proc/self/task").iterdir():
-        if (t / "comm").read_text().startswith("net-"):
-            status = (t / "status").read_text().splitlines()
-            n += int(next(s for s in status if s.startswith("voluntary_ctxt")).split()[1])
-    return n
+    stats = thread_stats(os.getpid()).values()
+    return sum(vol for name, _, vol, _ in stats if name.startswith("net-"))
 
 print("ready", flush=True)
 sys.stdin.readline()  # the peer is connected and subscribed
