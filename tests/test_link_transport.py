@@ -225,12 +225,13 @@ def test_open_transport_parses_port_strings(tmp_path: Path) -> None:
 
 
 def decode_until(
-    t: SimTransport, pred: Callable[[list[GmrFrame]], bool], timeout: float
+    t: SimTransport, pred: Callable[[list[GmrFrame]], bool], timeout: float, clock: FakeClock
 ) -> list[GmrFrame]:
+    """Read ``t`` until ``pred`` holds or ``timeout`` passes on its (simulated) ``clock``."""
     dec = GmrDecoder(direction="host")
     frames: list[GmrFrame] = []
-    deadline = time.monotonic() + timeout
-    while not pred(frames) and time.monotonic() < deadline:
+    deadline = clock() + timeout
+    while not pred(frames) and clock() < deadline:
         frames += dec.feed(t.read(4096, 0.05))
     assert dec.counters.dropped.total == 0
     return frames
@@ -258,20 +259,30 @@ def test_sim_transport_paces_frames_on_a_simulated_clock() -> None:
 
 
 def test_sim_transport_answers_commands_without_waiting_for_a_frame() -> None:
-    t = open_transport("sim", 115200, seed=5)
-    assert isinstance(t, SimTransport) and t.interactive and t.name == "sim"
+    made = open_transport("sim", 115200, seed=5)
+    assert isinstance(made, SimTransport) and made.interactive and made.name == "sim"
+    # The firmware the port string made, on a simulated clock: no real time passes, and
+    # how long the answer took is exact.
+    clock = FakeClock()
+    t = SimTransport(made.firmware, clock=clock, sleep=clock.sleep)
     t.open()
     try:
-        frames = decode_until(t, lambda fs: any(isinstance(f, AttitudeFrame) for f in fs), 3.0)
+        frames = decode_until(
+            t, lambda fs: any(isinstance(f, AttitudeFrame) for f in fs), 3.0, clock
+        )
         assert isinstance(frames[0], VersionFrame)
         t.write(encode(CommandFrame.rate(1)))
-        frames = decode_until(t, lambda fs: AckFrame.rate_ok(1) in fs, 3.0)
+        frames = decode_until(t, lambda fs: AckFrame.rate_ok(1) in fs, 3.0, clock)
         assert AckFrame.rate_ok(1) in frames
         # At 1 Hz the next frame is up to a second away; the VER answer must not wait for it.
+        asked = clock.now
         t.write(encode(CommandFrame.ver()))
-        frames = decode_until(t, lambda fs: any(isinstance(f, VersionFrame) for f in fs), 3.0)
+        frames = decode_until(
+            t, lambda fs: any(isinstance(f, VersionFrame) for f in fs), 3.0, clock
+        )
         assert isinstance(frames[-1], VersionFrame)
         assert not any(isinstance(f, AttitudeFrame) for f in frames)
+        assert clock.now - asked < 0.5
     finally:
         t.close()
     with pytest.raises(TransportError):

@@ -167,11 +167,16 @@ class AutopilotAttitude:
         if k_w:
             phi = math.exp(-dt / self.wander_s)
             step = self.wander_deg * math.sqrt(1.0 - phi * phi) * z[:, :2]
-            w = self._wander
-            for i in range(n):
-                w = phi * w + step[i]
-                err[i] = w
-            self._wander = w
+            # The recursion in plain floats (the same products and sums as on the arrays,
+            # without a numpy call per message: thousands a drive).
+            w0, w1 = float(self._wander[0]), float(self._wander[1])
+            walk = []
+            for s0, s1 in step.tolist():
+                w0 = phi * w0 + s0
+                w1 = phi * w1 + s1
+                walk.append((w0, w1))
+            err = np.array(walk)
+            self._wander = err[-1].copy()
         if k_n:
             err = err + self.noise_deg * z[:, k_w : k_w + 2]
         err = np.radians(err)
