@@ -7,7 +7,8 @@ import struct
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings
+from helpers import examples
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from bridge.app.paramspec import (
@@ -120,7 +121,7 @@ def test_view_round_trip_and_orientation_split(rot: np.ndarray, orient: Rotation
     assert np.allclose(back.offset_array, mag.offset_array, atol=1e-12)
 
 
-@settings(max_examples=60, deadline=None)
+@examples(60)
 @given(st.lists(st.floats(-math.pi, math.pi), min_size=3, max_size=3))
 @example([0.0, 0.0, 1.9513015845369315e-09])  # once lost by acos in dcm_to_rotvec
 def test_split_rotation_recomposes(rv: list[float]) -> None:

@@ -26,7 +26,7 @@ from unittest.mock import patch
 import codec_props as props
 import pytest
 from helpers import examples
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.protocol.framing import DecodeError, DropReason, LineSplitter
@@ -493,7 +493,7 @@ def test_every_valid_frame_survives_the_junk_before_it(
     assert all(any(w == f for f in it) for w in wanted)  # in order, as a subsequence
 
 
-@settings(max_examples=50, deadline=None)
+@examples(50)
 @given(st.binary(min_size=1, max_size=64), st.integers(1, 64))
 def test_byte_at_a_time_equals_one_piece(blob: bytes, repeat: int) -> None:
     stream = (blob + DATASHEET_PGMRA) * min(repeat, 8)
