@@ -178,7 +178,7 @@ def test_streams_due_on_one_sample_arrive_in_two_datagrams_the_attitude_first(
     assert alone.get_type() == "ATTITUDE" and alone.get_seq() == (msgs[-1].get_seq() + 1) % 256
 
 
-def test_a_signed_link_signs_every_packet_of_the_datagram(
+def test_a_signed_link_signs_every_packet_of_both_datagrams(
     output: Callable[..., tuple[MavlinkOutput, Gcs, list[Packet]]],
 ) -> None:
     out, gcs, _sent = output(key=KEY, **ALL_ON)
