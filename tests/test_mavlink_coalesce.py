@@ -1,10 +1,13 @@
-"""One datagram per frame: the sample streams due on one sample leave together.
+"""The sample streams due on one sample leave together: the attitude first, the rest in one.
 
 ``MavlinkOutput.publish`` hands the packets one frame produces to every
 endpoint at once (``Endpoint.broadcast_many`` / ``Link.send_many``): a UDP
-peer with nothing queued gets them framed back to back in ONE ``sendto``
+peer with nothing queued gets them framed back to back in one ``sendto``
 (split on packet boundaries beyond ``MAX_DATAGRAM_BYTES``), as ArduPilot packs
-its UDP link. Everything per packet stays: the link's sequence numbers, the
+its UDP link. When more than the attitude (ATTITUDE with its TILT_SRC note,
+ATTITUDE_QUATERNION: ``schedule.ATTITUDE_FIRST``) is due, the attitude leaves in a
+datagram of its own before the others are encoded, and the others follow in a
+second: two datagrams, the same packets in the same order. Everything per packet stays: the link's sequence numbers, the
 signature, the counters, the taps, the direct-send burst window, and the
 fall-back to the endpoint's thread when the socket would block. Real sockets
 only: a UDP ground station on 127.0.0.1, a TCP client, and (for "would block",
@@ -45,6 +48,9 @@ pytestmark = pytest.mark.integration  # real sockets, processes or threads
 ALL_STREAMS = ["ATTITUDE", "ATTITUDE_QUATERNION", "VFR_HUD", "SCALED_IMU", "RAW_IMU", "HIGHRES_IMU"]
 #: The first frame's: ATTITUDE with its tilt source beside it (TILT_SRC, then once a second).
 FIRST_FRAME = ["ATTITUDE", "NAMED_VALUE_INT", *ALL_STREAMS[1:]]
+#: ... in two datagrams: the attitude first, then the rest.
+ATTITUDE_DATAGRAM = FIRST_FRAME[:3]
+REST_DATAGRAM = FIRST_FRAME[3:]
 ALL_ON = {
     "rate_attitude_hz": 50.0,
     "rate_attitude_quaternion_hz": 10.0,
@@ -140,18 +146,22 @@ def output(tmp_path: Path) -> Iterator[Callable[..., tuple[MavlinkOutput, Gcs, l
         gcs.sock.close()
 
 
-def test_streams_due_on_one_sample_arrive_in_one_datagram(
+def test_streams_due_on_one_sample_arrive_in_two_datagrams_the_attitude_first(
     output: Callable[..., tuple[MavlinkOutput, Gcs, list[Packet]]],
 ) -> None:
     out, gcs, sent = output(**ALL_ON)
     ep = out.endpoints[0]
     before, tapped = ep.counters(), len(sent)
     out.publish(make_sample(t=100.0))
-    data = gcs.datagram_with("ATTITUDE")
-    msgs = parse_all(data)
-    assert [m.get_type() for m in msgs] == FIRST_FRAME  # all six, in one datagram, in order
-    assert consecutive([m.get_seq() for m in msgs])
-    assert b"".join(bytes(m.get_msgbuf()) for m in msgs) == data  # nothing else in it
+    first = gcs.datagram_with("ATTITUDE")
+    second = gcs.datagram_with("VFR_HUD")
+    head, rest = parse_all(first), parse_all(second)
+    assert [m.get_type() for m in head] == ATTITUDE_DATAGRAM  # the attitude, on its own
+    assert [m.get_type() for m in rest] == REST_DATAGRAM  # then the other four, together
+    msgs = head + rest
+    assert consecutive([m.get_seq() for m in msgs])  # one sequence: in order, nothing between
+    for data, part in ((first, head), (second, rest)):
+        assert b"".join(bytes(m.get_msgbuf()) for m in part) == data  # nothing else in them
     # each packet handed to the tap once, in the same order, the same payloads
     frame = [p for p in sent[tapped:] if p.get_msgId() in SAMPLE_IDS]
     assert [(p.get_msgId(), bytes(p.get_payload())) for p in frame] == [
@@ -159,7 +169,7 @@ def test_streams_due_on_one_sample_arrive_in_one_datagram(
     ]
     after = ep.counters()
     assert after.packets_sent - before.packets_sent == 7  # packets, not datagrams
-    assert after.bytes_sent - before.bytes_sent == len(data)
+    assert after.bytes_sent - before.bytes_sent == len(first) + len(second)
     assert out.counters.publish_errors == 0
     # A frame with only ATTITUDE due (50 Hz: 20 ms later) still sends it alone.
     out.clock.t += 0.02  # type: ignore[attr-defined]
@@ -168,18 +178,19 @@ def test_streams_due_on_one_sample_arrive_in_one_datagram(
     assert alone.get_type() == "ATTITUDE" and alone.get_seq() == (msgs[-1].get_seq() + 1) % 256
 
 
-def test_a_signed_link_signs_every_packet_of_the_datagram(
+def test_a_signed_link_signs_every_packet_of_both_datagrams(
     output: Callable[..., tuple[MavlinkOutput, Gcs, list[Packet]]],
 ) -> None:
     out, gcs, _sent = output(key=KEY, **ALL_ON)
     out.publish(make_sample(t=100.0))
-    data = gcs.datagram_with("ATTITUDE", KEY)
-    msgs = parse_all(data, KEY)  # pymavlink checks every signature with the key
+    first, second = gcs.datagram_with("ATTITUDE", KEY), gcs.datagram_with("VFR_HUD", KEY)
+    msgs = parse_all(first, KEY) + parse_all(second, KEY)  # pymavlink checks every signature
     assert [m.get_type() for m in msgs] == FIRST_FRAME
     assert all(m._signed and m._link_id == 0 for m in msgs)
     assert consecutive([m.get_seq() for m in msgs])
-    with pytest.raises(M.MAVError):  # and they are really signed: another key fails
-        parse_all(data, bytes(32))
+    for data in (first, second):
+        with pytest.raises(M.MAVError):  # and they are really signed: another key fails
+            parse_all(data, bytes(32))
 
 
 def test_a_stream_that_fails_to_encode_does_not_hold_back_the_others(
@@ -195,6 +206,16 @@ def test_a_stream_that_fails_to_encode_does_not_hold_back_the_others(
     msgs = parse_all(gcs.datagram_with("ATTITUDE"))
     assert [m.get_type() for m in msgs] == ["ATTITUDE", "NAMED_VALUE_INT", "ATTITUDE_QUATERNION"]
     assert out.counters.publish_errors == 1
+    # Broken among the rest: those before it still leave, in the second datagram.
+    out._sample_encoders[T.VFR_HUD] = out._stream_encoders[T.VFR_HUD]
+    out._sample_encoders[T.RAW_IMU] = broken  # the fifth
+    out.clock.t += 1.0  # type: ignore[attr-defined]  # every stream due again (TILT_SRC too)
+    out.publish(make_sample(t=101.0))
+    head = parse_all(gcs.datagram_with("ATTITUDE"))
+    assert [m.get_type() for m in head] == ATTITUDE_DATAGRAM
+    rest = parse_all(gcs.datagram_with("VFR_HUD"))
+    assert [m.get_type() for m in rest] == ["VFR_HUD", "SCALED_IMU"]
+    assert out.counters.publish_errors == 2
 
 
 def test_a_group_larger_than_a_datagram_is_cut_on_packet_boundaries() -> None:

@@ -6,7 +6,7 @@ It is an :class:`~bridge.app.sample.Output` built on the application's
 * ``publish`` (the pipeline, in the link's reader thread) sends the sample
   streams that are due (:class:`~bridge.mavlink.schedule.StreamSchedule`):
   a frame with none due costs one comparison; the messages due on one frame
-  leave together (one datagram per UDP peer);
+  leave together (one datagram per UDP peer, or two: the attitude first);
 * the **telemetry** thread wakes on the clock only, when something is due:
   HEARTBEAT, SYS_STATUS, MAG_CAL_PROGRESS while a magnetometer calibration
   runs, MAG_CAL_REPORT (about once a second) while a result waits for accept,
@@ -233,8 +233,7 @@ class MavlinkOutput:
         """Keep ``sample`` as the latest and send the sample streams now due; never blocks.
 
         Runs in the pipeline's thread; never raises: a failure is counted in
-        ``counters.publish_errors`` and logged once.
-        """
+        ``counters.publish_errors`` and logged once."""
         self.latest = sample
         if not self._running:
             return
@@ -242,15 +241,18 @@ class MavlinkOutput:
             # A sample is due by its own time (its frame's arrival), not by when the pipeline
             # got to it: of frames read in one burst, none is younger than the read.
             now = sample.t
-            # The fast path, most frames at 100 Hz: no sample stream can be due before
-            # sample_due_at (the schedule resets it on every rate, override or stream-set
-            # change, so a change takes effect with the very next sample).
+            # The fast path, most frames at 100 Hz: nothing is due before sample_due_at (reset
+            # on every rate, override or stream-set change: it takes effect at the next sample).
             if now < self.schedule.sample_due_at:
                 return
             encoders = self._sample_encoders
             packets: list[Message] = []
+            head = True  # the attitude streams lead the plan (S.ATTITUDE_FIRST)
             try:
                 for sid in self.schedule.due_samples(now):
+                    if head and sid not in S.ATTITUDE_FIRST:  # the attitude leaves first
+                        self.broadcast_now(packets)  # (nothing when it is not due)
+                        head, packets = False, []
                     p = encoders[sid](sample)
                     if p is not None:
                         packets.append(p)
