@@ -7,9 +7,10 @@ peer with nothing queued gets them framed back to back in one ``sendto``
 its UDP link. When more than the attitude (ATTITUDE with its TILT_SRC note,
 ATTITUDE_QUATERNION: ``schedule.ATTITUDE_FIRST``) is due, the attitude leaves in a
 datagram of its own before the others are encoded, and the others follow in a
-second: two datagrams, the same packets in the same order. Everything per packet stays: the link's sequence numbers, the
-signature, the counters, the taps, the direct-send burst window, and the
-fall-back to the endpoint's thread when the socket would block. Real sockets
+second: two datagrams, the same packets in the same order. Everything per packet
+stays: the link's sequence numbers, the signature, the counters, the taps, the
+direct-send burst window, and the fall-back to the endpoint's thread when the
+socket would block. Real sockets
 only: a UDP ground station on 127.0.0.1, a TCP client, and (for "would block",
 which loopback UDP never reports on Linux: the loopback device frees the
 sender's buffer at once) a Unix datagram socket whose receiver does not read.
