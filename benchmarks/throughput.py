@@ -135,12 +135,13 @@ class Subscriber:
 def _drain(links: list[Any], timeout_s: float = 1.0) -> None:
     """Wait until the endpoint's thread has sent what waits on ``links`` (``timeout_s`` at most).
 
-    A frame's packets go out from the pipeline's thread unless the endpoint's own thread
-    holds the send lock at that instant (its telemetry, once a second or so): then they
-    queue behind it, and every later frame's queue too until that thread has flushed. At
-    100 Hz it has 10 ms between frames for that; fed back to back, the frames would fill
-    the queue faster than a thread waiting for the GIL empties it, and drop packets the
-    daemon never drops. Its flushing is the process's CPU too; the wait is not.
+    A frame's packets go out from the pipeline's thread unless another thread holds the
+    endpoint's send lock at that instant (the telemetry's HEARTBEAT, the endpoint's own
+    flush): then they queue, and every later frame's too until the endpoint's thread has
+    flushed. At 100 Hz it has 10 ms between frames for that; fed back to back, the
+    frames would fill the queue faster than a thread waiting for the GIL empties it,
+    and drop packets the daemon never drops. Its flushing is the process's CPU too;
+    the wait is not.
     """
     end = time.monotonic() + timeout_s
     while any(lk.queue or lk.pending for lk in links) and time.monotonic() < end:
