@@ -132,6 +132,11 @@ class Subscriber:
         stop_child(self.proc)
 
 
+def _queued(links: list[Any]) -> bool:
+    """Whether packets wait on any of ``links`` for the endpoint's thread."""
+    return any(lk.queue or lk.pending for lk in links)
+
+
 def _drain(links: list[Any], timeout_s: float = 1.0) -> None:
     """Wait until the endpoint's thread has sent what waits on ``links`` (``timeout_s`` at most).
 
@@ -144,7 +149,7 @@ def _drain(links: list[Any], timeout_s: float = 1.0) -> None:
     the wait is not.
     """
     end = time.monotonic() + timeout_s
-    while any(lk.queue or lk.pending for lk in links) and time.monotonic() < end:
+    while _queued(links) and time.monotonic() < end:
         time.sleep(0.0002)
 
 
@@ -232,7 +237,7 @@ def shipped(n: int = 20000, *, repeat: int = 3, step: Step = no_step) -> Figure:
                     for item in receive(line, t):
                         on_frame(item)
                     t += period
-                    if any(lk.queue or lk.pending for lk in links):
+                    if _queued(links):
                         _drain(links)
                 cpu, wall = process_cpu() - c0, time.perf_counter() - w0
                 frames = pipeline.samples - samples0
