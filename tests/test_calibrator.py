@@ -347,6 +347,13 @@ def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[...
         settings=settings,
         seed=5,
     )
+    in_use: list[Calibration] = []  # the engine's calibration when the report goes out
+
+    def on_done(e: Event) -> None:
+        if e.kind == "calibration.done":
+            in_use.append(rig.daemon.bridge.engine.calibration)
+
+    rig.daemon.events.subscribe(on_done)
     assert rig.ctl.start_mag(autosave=True, delay_s=5.0).ok
     assert rig.ctl.snapshot().phase is Phase.WAITING
     rig.wait(lambda s: s.phase is Phase.COLLECTING and s.step == 1)
@@ -360,6 +367,8 @@ def test_autosave_with_delay_and_small_buffer(tmp_path: Path, rigs: Callable[...
     stored, _ = load_calibration(str(tmp_path / "state"))
     assert stored == rig.daemon.bridge.engine.calibration != Calibration()
     assert rig.log.kinds().index("calibration.done") < rig.log.kinds().index("calibration.accepted")
+    # An autosaved success is in use when its report says so (ArduPilot accepts, then reports)
+    assert in_use == [stored]
     after = rig.ctl.snapshot()
     assert after.calibration_saved and after.calibration_source == "mag"
     assert rig.daemon.bridge.status().calibration_source == "mag"  # not the start-up "none"

@@ -530,14 +530,14 @@ class CalibrationController:
         return applies
 
     def _after(self, applies: list[Apply]) -> Outcome | None:
-        """Deliver the queued events, then apply (lock released); the last apply's outcome."""
-        self._flush()
+        """Apply (lock released), then deliver the queued events; the last apply's outcome."""
         outcome = None
         for a in applies:
             report = a.report.to_dict() if a.report is not None else None
             outcome = self._apply(
                 a.calibration, source=a.source, report=report, write_device=a.write_device
             )
+        self._flush()  # after: an autosaved fit is in use before its report says so
         return outcome
 
     def _run_job(self, session: Session, job: Job) -> None:
