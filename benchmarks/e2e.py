@@ -25,7 +25,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.handheld import TARGET_SHAKE_G
+from benchmarks.procstat import wait_until
 from benchmarks.scoring import (
     bar_targets,
     estimate_target,
@@ -91,15 +91,6 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
             proc.wait(5.0)
 
 
-def _wait_for_file(path: Path, timeout_s: float) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if path.exists():
-            return True
-        time.sleep(0.1)
-    return path.exists()
-
-
 def run_condition(
     shake_g: float, cfg: E2eConfig, progress: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
@@ -136,7 +127,7 @@ def run_condition(
                 on_progress=on_progress,
                 on_text=texts.append,
             )
-            saved = outcome.accepted and _wait_for_file(state / "calibration.json", 10.0)
+            saved = outcome.accepted and wait_until((state / "calibration.json").exists, 10.0, 0.1)
         finally:
             _stop(proc)
             err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""

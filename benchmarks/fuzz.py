@@ -53,7 +53,7 @@ from typing import Any
 
 from benchmarks import fuzz_hostile
 from benchmarks.figures import Figure, report
-from benchmarks.procstat import process_rss_mb, stop_child
+from benchmarks.procstat import process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
 
@@ -506,15 +506,6 @@ def _config(tmp: Path, device: str, udp_port: int) -> Path:
     return cfg
 
 
-def _wait(pred: Callable[[], bool], timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return pred()
-
-
 def _paced_frames(pty: PtyCompass, gen: SerialFuzz, stop: threading.Event) -> None:
     """Valid frames at 100 Hz (the daemon stays streaming while MAVLink is fuzzed)."""
     nxt = time.monotonic()
@@ -559,7 +550,7 @@ def run(
                 peer.send_msg(heartbeat)  # udpin: the daemon answers the peers it has heard
                 return bool(peer.attitudes)
 
-            if not _wait(started, 20.0):
+            if not wait_until(started, 20.0):
                 raise RuntimeError(f"the daemon sent no ATTITUDE within 20 s (log: {errlog})")
             params_before = peer.read_params()
             files_before = _state_files(tmp / "state")
@@ -587,7 +578,7 @@ def run(
                         break
             pty.write(serial.valid() * 3)  # close the last partial line, flush the decode
             # What is still in the pty's buffer gets decoded and published (or the daemon died).
-            _wait(lambda: proc.poll() is not None, 1.5)
+            wait_until(lambda: proc.poll() is not None, 1.5)
             serial_attitudes = peer.attitudes[n_att:]
             bins = _expected_angles(pty.frames)
             n_false = false_frames(serial_attitudes, bins)

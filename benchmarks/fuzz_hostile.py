@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.figures import Figure
-from benchmarks.procstat import process_rss_mb, stop_child
+from benchmarks.procstat import process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
 
@@ -132,15 +132,6 @@ def _daemon(
 
 def _tracebacks(errlog: Path) -> int:
     return errlog.read_text(errors="replace").count("Traceback (most recent call last)")
-
-
-def _wait(pred: Callable[[], bool], timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return pred()
 
 
 class _Gcs:
@@ -236,7 +227,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
         idle: list[socket.socket] = []
         flood: subprocess.Popen[str] | None = None
         try:
-            if not _wait(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
+            if not wait_until(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
                 raise RuntimeError(f"no ATTITUDE at the signed ground station (log: {errlog})")
             stranger = apm.MAVLink(None, 66, 1)
             samples = [_hb(stranger), _hb(_signed(77, bytes(32))), *gcs.sent[:3]]
@@ -264,7 +255,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
                 if c.recv(4096):
                     served = time.monotonic() - t0
             window_ms = int(seconds * 1000)
-            _wait(lambda: max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE")) >= start + window_ms,
+            wait_until(lambda: max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE")) >= start + window_ms,
                   seconds + 20.0)  # fmt: skip
             n = sum(
                 1 for m in gcs.of("ATTITUDE") if start <= int(m.time_boot_ms) < start + window_ms
@@ -306,7 +297,9 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
         try:
             session = _zenoh_session(zport)
             key = f"{prefix}/cmd/calibration/start"
-            if not _wait(lambda: bool(list(session.get(f"{prefix}/status", timeout=0.5))), 30.0):
+            if not wait_until(
+                lambda: bool(list(session.get(f"{prefix}/status", timeout=0.5))), 30.0
+            ):
                 raise RuntimeError(f"the daemon's Zenoh did not answer (log: {errlog})")
             time.sleep(1.0)
             rss0 = process_rss_mb(proc.pid)[0]
@@ -397,7 +390,7 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
         try:
             session = _zenoh_session(zport)
             states, events, _subs = _watch_zenoh(session, prefix)
-            _wait(lambda: len(states) >= 2, 30.0)
+            wait_until(lambda: len(states) >= 2, 30.0)
             time.sleep(seconds)
         finally:
             if session is not None:
@@ -434,7 +427,7 @@ def late_device(tmp: Path, seconds: float) -> list[Figure]:
         try:
             session = _zenoh_session(zport)
             states, _events, _subs = _watch_zenoh(session, prefix)
-            _wait(lambda: len(states) >= 2, 30.0)
+            wait_until(lambda: len(states) >= 2, 30.0)
             time.sleep(seconds)
             fw.answer_delay_s = 0.6
             key = f"{prefix}/cmd/calibration/start"
@@ -512,7 +505,7 @@ def params_storm(tmp: Path, set_rate: int, seconds: float) -> list[Figure]:
 
         watcher = threading.Thread(target=watch, daemon=True)
         try:
-            if not _wait(lambda: len(gcs.of("HEARTBEAT")) >= 2, 30.0):
+            if not wait_until(lambda: len(gcs.of("HEARTBEAT")) >= 2, 30.0):
                 raise RuntimeError(f"the daemon did not answer (log: {errlog})")
             mav = apm.MAVLink(None, 255, 190)
             real32 = apm.MAV_PARAM_TYPE_REAL32

@@ -1,5 +1,6 @@
 """What the live benchmarks read of a child process from outside (one copy for pipeline,
-versus and the fuzzers): its CPU (per thread too), its memory, its ATTITUDE datagrams."""
+versus and the fuzzers): its CPU (per thread too), its memory, its ATTITUDE datagrams; and
+the one bounded wait they poll it with (:func:`wait_until`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,19 @@ import struct
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+
+
+def wait_until(pred: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
+    """Whether ``pred()`` held within ``timeout_s``, asked every ``poll_s`` and once more at
+    the end. For watching a child process from outside, which has no event to wait on."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(poll_s)
+    return pred()
 
 
 def process_cpu_s(pid: int) -> float:
