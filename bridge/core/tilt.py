@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from operator import itemgetter
 from typing import Literal
 
-from bridge.core.tilt_kalman import basis, match, measure, rotation_about, turned
+from bridge.core.tilt_kalman import Axes, basis, match, measure, rotation_about, turned
 from bridge.core.tilt_settings import TiltSettings
 from bridge.core.vectors import Vec3, angle_deg, dot
 
@@ -160,8 +160,12 @@ class TiltFilter:
         self._turning_at = -math.inf  # last turning (faster than a quarter of turn_dps)
         self._evidence_at = [-math.inf, -math.inf]  # last evidence, per axis
         self._held_since = [-math.inf, -math.inf]
-        # (time, estimate, its covariance, the field's direction then): quiet frames only.
-        self._history: deque[tuple[float, Vec3, tuple[float, float, float], Vec3]] = deque()
+        # (time, estimate, its covariance, the field's direction then, the estimate's basis):
+        # quiet frames only.
+        self._history: deque[tuple[float, Vec3, tuple[float, float, float], Vec3, Axes]] = deque()
+        # The basis of an estimate (made with it: the next frame's and the drift check's).
+        self._axes_of: Vec3 | None = None
+        self._axes: Axes = basis((0.0, 0.0, 1.0))
         self.held = [False, False]  #: per axis (forward, right): in a manoeuvre
         self._dip_push = [0.0, 0.0]  # the dip's corrections to the held axes since the onset
         self._onset: tuple[Vec3, Vec3] | None = None  # (down, field) before the manoeuvre
@@ -207,7 +211,7 @@ class TiltFilter:
         # Its first frames were believed: go back to the estimate from before it began.
         horizon = t - (self.settings.lookback_s if lookback is None else lookback)
         back: tuple[Vec3, tuple[float, float, float], Vec3] | None = None
-        for ht, hd, hp, hm in self._history:
+        for ht, hd, hp, hm, _ha in self._history:
             if ht >= horizon:
                 break
             back = (hd, hp, hm)
@@ -312,8 +316,8 @@ class TiltFilter:
         if not (held[0] or held[1]) and history and t - history[0][0] >= st.drift_s:
             # The estimate of drift_s ago (the newest kept that old, or the oldest).
             i = bisect_right(history, t - st.drift_s, key=_TIME)
-            _ht, old, _hp, old_m = history[i - 1 if i > 1 else 0]  # max(0, i - 1)
-            o1x, o1y, o1z, o2x, o2y, o2z = basis(old)
+            _ht, old, _hp, old_m, old_axes = history[i - 1 if i > 1 else 0]  # max(0, i - 1)
+            o1x, o1y, o1z, o2x, o2y, o2z = old_axes
             rate_dps = st.drift_dps + st.heave_tilt_dps_per_g * heave
             allowed = (rate_dps * st.drift_s + 3.0 * math.degrees(math.sqrt(white / 5.0))) * _DEG
             off1 = abs(lx * o1x + ly * o1y + lz * o1z) > allowed
@@ -481,7 +485,7 @@ class TiltFilter:
         pxx = _MAX_VAR if pxx > _MAX_VAR else pxx
         pyy = _MAX_VAR if pyy > _MAX_VAR else pyy
         self._P = [pxx, pxy, pyy]
-        frame_axes = basis(d)
+        frame_axes = self._axes if self._axes_of is d else basis(d)
         e1x, e1y, e1z, e2x, e2y, e2z = frame_axes
         # -- the accelerometer's down, axis by axis, inside the gate.
         # Frames faster than 10 Hz bring no more information a second (vibration and the
@@ -502,31 +506,39 @@ class TiltFilter:
             if z * z > st.gate * (es * es + R):
                 self._evidence(t, (1,), "autopilot", 0.0)
         gate = st.gate
-        for i, yi, pii in ((0, y1, pxx), (1, y2, pyy)):
-            if yi * yi > gate * (pii + R):
-                since = self._gate_since[i]
-                if since is None or yi * self._gate_sign[i] < 0:
-                    self._gate_since[i], self._gate_sign[i] = t, yi
-                    self._gate_from[i] = (d, mhat)
-                    since = t
-                if not self.held[i]:
-                    gd, gm = self._gate_from[i]
-                    if t - since >= st.persist_s and not turned(gd, ahat, gm, mhat):
-                        self._evidence(t, (i,), "gate", st.persist_s + st.lookback_s)
-                elif t - self._held_since[i] < st.max_hold_s and (
-                    i == 0 or t - self._turning_at < st.release_s
-                ):
-                    # (Not turning, a wheeled vehicle has no lateral acceleration.)
-                    self._evidence(t, (i,), "gate")
-                elif t - self._evidence_at[i] > st.release_s:
-                    # Held this long on the gate alone: no manoeuvre lasts so long, the
-                    # tilt changed meanwhile. Take the accelerometer's again.
-                    self.held[i] = False
-                    self._P[0 if i == 0 else 2] += yi * yi
-            else:
-                self._gate_since[i] = None
-                if self.held[i] and t - self._evidence_at[i] > st.release_s:
-                    self.held[i] = False
+        if y1 * y1 > gate * (pxx + R) or y2 * y2 > gate * (pyy + R):
+            for i, yi, pii in ((0, y1, pxx), (1, y2, pyy)):
+                if yi * yi > gate * (pii + R):
+                    since = self._gate_since[i]
+                    if since is None or yi * self._gate_sign[i] < 0:
+                        self._gate_since[i], self._gate_sign[i] = t, yi
+                        self._gate_from[i] = (d, mhat)
+                        since = t
+                    if not self.held[i]:
+                        gd, gm = self._gate_from[i]
+                        if t - since >= st.persist_s and not turned(gd, ahat, gm, mhat):
+                            self._evidence(t, (i,), "gate", st.persist_s + st.lookback_s)
+                    elif t - self._held_since[i] < st.max_hold_s and (
+                        i == 0 or t - self._turning_at < st.release_s
+                    ):
+                        # (Not turning, a wheeled vehicle has no lateral acceleration.)
+                        self._evidence(t, (i,), "gate")
+                    elif t - self._evidence_at[i] > st.release_s:
+                        # Held this long on the gate alone: no manoeuvre lasts so long, the
+                        # tilt changed meanwhile. Take the accelerometer's again.
+                        self.held[i] = False
+                        self._P[0 if i == 0 else 2] += yi * yi
+                else:
+                    self._gate_since[i] = None
+                    if self.held[i] and t - self._evidence_at[i] > st.release_s:
+                        self.held[i] = False
+        else:  # (both inside the gate, as nearly every frame: the loop's else, written out)
+            gate_since, held, evidence_at = self._gate_since, self.held, self._evidence_at
+            gate_since[0] = gate_since[1] = None
+            if held[0] and t - evidence_at[0] > st.release_s:
+                held[0] = False
+            if held[1] and t - evidence_at[1] > st.release_s:
+                held[1] = False
         if self._d is not d:  # rolled back: the basis moves with it
             d = self._d
             frame_axes = basis(d)
@@ -590,13 +602,14 @@ class TiltFilter:
         n = math.sqrt(ux * ux + uy * uy + uz * uz)
         nd = (ux / n, uy / n, uz / n) if n > 0.0 else (0.0, 0.0, 1.0)
         self._d = nd
+        self._axes_of, self._axes = nd, basis(nd)
         P = self._P = [pxx, pxy, pyy]
         held = self.held  # final for this frame from here on
         manoeuvre = held[0] or held[1]
         w = dt / 0.1 if dt < 0.1 else 1.0  # the frame's weight: its share of a 10 Hz frame
         g0 = self._g0
         if not manoeuvre:
-            history.append((t, nd, (pxx, pxy, pyy), mhat))
+            history.append((t, nd, (pxx, pxy, pyy), mhat, self._axes))
             horizon = t - _HISTORY_S
             while history and history[0][0] < horizon:
                 history.popleft()
@@ -631,7 +644,7 @@ class TiltFilter:
     def _result(
         self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: Sequence[float],
         source: TiltSource, manoeuvre: bool,
-        basis: tuple[float, float, float, float, float, float] | None = None,
+        basis: Axes | None = None,
     ) -> TiltEstimate:  # fmt: skip
         """The estimate ``nd`` with covariance ``P`` (xx, xy, yy on ``basis``'s axes, as
         :func:`~bridge.core.tilt_kalman.basis` gives them; none: the same on every axis) as it goes out."""

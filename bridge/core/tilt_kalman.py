@@ -12,8 +12,11 @@ import math
 
 from bridge.core.vectors import Vec3, angle_deg
 
+#: A basis of the plane normal to a down: its two axes' components, flat (:func:`basis`).
+Axes = tuple[float, float, float, float, float, float]
 
-def basis(d: Vec3) -> tuple[float, float, float, float, float, float]:
+
+def basis(d: Vec3) -> Axes:
     """Two unit vectors spanning the plane normal to ``d``: forward-ish, right-ish (their
     six components, flat: one to three bases a frame)."""
     # dot, unit and cross written out: the same arithmetic. (x . d with x = (1, 0, 0) or
