@@ -499,10 +499,11 @@ class TiltFilter:
         if external is not None:
             # Beside an autopilot its down judges the accelerometer's, axis by axis.
             ex, ey, ez = external
-            z = y1 - (ex * e1x + ey * e1y + ez * e1z)
+            z1, z2 = ex * e1x + ey * e1y + ez * e1z, ex * e2x + ey * e2y + ez * e2z
+            z = y1 - z1
             if z * z > st.gate * (es * es + R):
                 self._evidence(t, (0,), "autopilot", 0.0)
-            z = y2 - (ex * e2x + ey * e2y + ez * e2z)
+            z = y2 - z2
             if z * z > st.gate * (es * es + R):
                 self._evidence(t, (1,), "autopilot", 0.0)
         gate = st.gate
@@ -544,6 +545,8 @@ class TiltFilter:
             frame_axes = basis(d)
             e1x, e1y, e1z, e2x, e2y, e2z = frame_axes
             y1, y2 = ax * e1x + ay * e1y + az * e1z, ax * e2x + ay * e2y + az * e2z
+            if external is not None:
+                z1, z2 = ex * e1x + ey * e1y + ez * e1z, ex * e2x + ey * e2y + ez * e2z
         held = self.held
         x0 = x1 = 0.0
         pxx, pxy, pyy = self._P
@@ -588,12 +591,9 @@ class TiltFilter:
             pxx, pxy, pyy = self._P
         # -- the autopilot's down.
         if external is not None:
-            x0, x1, pxx, pxy, pyy = measure(
-                ex * e1x + ey * e1y + ez * e1z, 0, es * es, x0, x1, pxx, pxy, pyy
-            )
-            x0, x1, pxx, pxy, pyy = measure(
-                ex * e2x + ey * e2y + ez * e2z, 1, es * es, x0, x1, pxx, pxy, pyy
-            )
+            # (its components on the axes as they now are: z1, z2)
+            x0, x1, pxx, pxy, pyy = measure(z1, 0, es * es, x0, x1, pxx, pxy, pyy)
+            x0, x1, pxx, pxy, pyy = measure(z2, 1, es * es, x0, x1, pxx, pxy, pyy)
         ux, uy, uz = (
             d[0] + x0 * e1x + x1 * e2x,
             d[1] + x0 * e1y + x1 * e2y,
