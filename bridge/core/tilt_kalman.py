@@ -20,8 +20,8 @@ def basis(d: Vec3) -> Axes:
     """Two unit vectors spanning the plane normal to ``d``: forward-ish, right-ish (their
     six components, flat: one to three bases a frame)."""
     # dot, unit and cross written out: the same arithmetic. (x . d with x = (1, 0, 0) or
-    # (0, 1, 0) is d's component: the terms times 0 only change the sign of a zero k,
-    # which 0.0 - k * d and 1.0 - k * d do not see.)
+    # (0, 1, 0) is d's component: for a finite d the terms times 0 only change the sign
+    # of a zero k, which 0.0 - k * d and 1.0 - k * d do not see.)
     dx, dy, dz = d
     if abs(dx) < 0.9:
         k = dx
@@ -101,9 +101,11 @@ def measure(
     """One scalar measurement ``y = x[axis] + noise(R)`` on the correction ``(x0, x1)`` with
     covariance ``(pxx, pxy, pyy)``: the Kalman update, their new values.
 
-    (``h`` is a unit axis: the terms times its zero are left out. They add only a zero's
-    sign, and never to a -0.0: the correction starts at +0.0 and is only added to, the
-    variances are positive and the covariance's +0.0 stays one -- the same bits.)"""
+    (``h`` is a unit axis, so ``h . x`` and ``P h`` are written as what they are: a term
+    times 1.0 is the term; for finite values a term times 0.0 adds only a zero's sign,
+    and never to a -0.0 -- the correction starts at +0.0 and is only added to, the
+    variances are positive and the covariance's +0.0 stays one. The same bits as the
+    general form.)"""
     if axis == 0:
         ph0, ph1, S, r = pxx, pxy, pxx + R, y - x0
     else:
