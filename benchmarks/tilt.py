@@ -139,23 +139,32 @@ def solve(
     (None: the accelerometer's); ``feed(t)`` delivers what arrives by ``t`` first."""
     engine = AttitudeEngine(cal)
     engine.set_tilt_policy(tilt)
+    solve_counts, clock, nan = engine.solve_counts, time.perf_counter, math.nan
     n = len(frames.ts)
-    hdg, sig = np.empty(n), np.full(n, np.nan)
+    # (Python lists filled, numpy arrays made once: a numpy item store costs more than a frame's
+    # bookkeeping should.)
+    hdg: list[float] = []
+    sig: list[float] = []
     src: list[str] = []
-    mc, ac = frames.mag.tolist(), frames.acc.tolist()
     spent = 0.0
-    for i, t in enumerate(frames.ts.tolist()):
+    for t, (m0, m1, m2), (a0, a1, a2) in zip(
+        frames.ts.tolist(), frames.mag.tolist(), frames.acc.tolist(), strict=True
+    ):
         if feed is not None:
             feed(t)
-        m, a = mc[i], ac[i]
-        t0 = time.perf_counter()
-        sol = engine.solve_counts(m[0], m[1], m[2], a[0], a[1], a[2], t if tilt else None)
-        spent += time.perf_counter() - t0
-        hdg[i] = sol.heading_magnetic_deg
-        if sol.heading_sigma_deg is not None:
-            sig[i] = sol.heading_sigma_deg
+        t0 = clock()
+        sol = solve_counts(m0, m1, m2, a0, a1, a2, t if tilt else None)
+        spent += clock() - t0
+        hdg.append(sol.heading_magnetic_deg)
+        s = sol.heading_sigma_deg
+        sig.append(nan if s is None else s)
         src.append(sol.tilt_source)
-    return Solved(hdg, sig, src, 1e6 * spent / max(1, n))
+    return Solved(
+        np.array(hdg, dtype=np.float64),
+        np.array(sig, dtype=np.float64),
+        src,
+        1e6 * spent / max(1, n),
+    )
 
 
 def _attitude(tilt: TiltSources, m: AttitudeMessage) -> None:

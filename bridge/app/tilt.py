@@ -37,7 +37,7 @@ from typing import Any
 from bridge.core.aligned import AttitudeSample, AttitudeTrack, ClockMap, MountingResidual
 from bridge.core.tilt import TILT_SOURCES, TiltEstimate, TiltFilter, TiltSource
 from bridge.core.tilt_settings import TiltSettings
-from bridge.core.vectors import Vec3, norm, unit
+from bridge.core.vectors import Vec3, unit
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +113,12 @@ class TiltSources:
         rates (rad/s) when given."""
         # (Written out, not all() over generators: this runs for every message.)
         dx, dy, dz = down
-        if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz) and norm(down) > 0.5):
+        if not (
+            math.isfinite(dx)
+            and math.isfinite(dy)
+            and math.isfinite(dz)
+            and math.sqrt(dx * dx + dy * dy + dz * dz) > 0.5  # norm(down)
+        ):
             self.link.refused += 1
             return
         if rate is not None and not (
@@ -178,11 +183,14 @@ class TiltSources:
             self._reset_pending = False
             self.filter.reset()
             self.residual.reset()
-        ap = self._autopilot_down(t)
+        f = self.filter
+        # (No autopilot's clock, no autopilot's down: checked here, not in a call, for the
+        # standalone frames.)
+        ap = None if self._clock_map.offset is None else self._autopilot_down(t)
         if ap is None:  # standalone (nearly always where no autopilot streams)
-            est = self.filter.update(mag, accel, t, field_ok=field_ok)
+            est = f.update(mag, accel, t, field_ok=field_ok)
         else:
-            est = self.filter.update(
+            est = f.update(
                 mag,
                 accel,
                 t,
@@ -190,16 +198,15 @@ class TiltSources:
                 external_sigma_deg=self._autopilot_sigma_deg(),
                 field_ok=field_ok,
             )
-        f = self.filter
-        if (
-            ap is not None
-            and not est.manoeuvre
-            and ap[2] < 0.3
-            and abs(norm(accel) - 1.0) < 0.03
-            and abs(f.turn_rate_dps) < 0.5 * f.settings.turn_dps
-        ):
-            # Quasi-static: the accelerometer's down is gravity's; it teaches the residual.
-            self.residual.add(unit(accel), ap[0])
+            gx, gy, gz = accel
+            if (
+                not est.manoeuvre
+                and ap[2] < 0.3
+                and abs(math.sqrt(gx * gx + gy * gy + gz * gz) - 1.0) < 0.03  # norm(accel)
+                and abs(f.turn_rate_dps) < 0.5 * f.settings.turn_dps
+            ):
+                # Quasi-static: the accelerometer's down is gravity's; it teaches the residual.
+                self.residual.add(unit(accel), ap[0])
         self.counts.by_source[est.source] += 1
         self.last = est
         return est

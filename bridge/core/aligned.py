@@ -132,11 +132,14 @@ class ClockMap:
         return None if self.offset is None else local_s - self.offset
 
 
-@dataclass(frozen=True, slots=True)
+# Not frozen, on purpose: one is made for every message the autopilot sends (two a compass
+# frame), and a frozen dataclass's __init__ (object.__setattr__ per field) costs four times
+# plain slot stores. Read-only by contract: the track shares them between threads.
+@dataclass(slots=True)
 class AttitudeSample:
     """One autopilot attitude: its instant on the autopilot's clock (s), its unit down
     vector in the autopilot's body axes, and its body rates (rad/s: ATTITUDE's
-    rollspeed, pitchspeed, yawspeed -- its gyros) when it sent them."""
+    rollspeed, pitchspeed, yawspeed -- its gyros) when it sent them (read-only by contract)."""
 
     t: float
     down: Vec3
@@ -292,10 +295,12 @@ class MountingResidual:
             miss = min(miss, 9.0 * self._scatter2)
         self._scatter2 += max(0.002, 1.0 / self._scatter_n) * (miss - self._scatter2)
         k = 1.0 - 1.0 / self.memory
-        B = self._B
-        for i in range(3):
-            for j in range(3):
-                B[i][j] = k * B[i][j] + compass_down[i] * autopilot_down[j]
+        # B = k B + a b^T, written out (the same arithmetic as a loop over i, j, without one)
+        (a0, a1, a2), (b0, b1, b2) = compass_down, autopilot_down
+        r0, r1, r2 = self._B
+        r0[0], r0[1], r0[2] = k * r0[0] + a0 * b0, k * r0[1] + a0 * b1, k * r0[2] + a0 * b2
+        r1[0], r1[1], r1[2] = k * r1[0] + a1 * b0, k * r1[1] + a1 * b1, k * r1[2] + a1 * b2
+        r2[0], r2[1], r2[2] = k * r2[0] + a2 * b0, k * r2[1] + a2 * b1, k * r2[2] + a2 * b2
         self._n = k * self._n + 1.0
         self._since += 1
         if self._since >= 10:  # solved every tenth pair: the rotation moves slowly

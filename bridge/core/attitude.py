@@ -378,16 +378,19 @@ class AttitudeEngine:
         Raises ``ValueError`` on non-finite input (the quality state is left untouched).
         """
         s = self._state  # one read: a concurrent update cannot mix two configurations
-        dx, dy, dz = mx - s.mo[0], my - s.mo[1], mz - s.mo[2]
-        m = s.mm
-        hx = m[0] * dx + m[1] * dy + m[2] * dz
-        hy = m[3] * dx + m[4] * dy + m[5] * dz
-        hz = m[6] * dx + m[7] * dy + m[8] * dz
-        ex, ey, ez = ax - s.ao[0], ay - s.ao[1], az - s.ao[2]
-        a = s.am
-        gx = a[0] * ex + a[1] * ey + a[2] * ez
-        gy = a[3] * ex + a[4] * ey + a[5] * ez
-        gz = a[6] * ex + a[7] * ey + a[8] * ez
+        # (The tuples unpacked at once rather than indexed entry by entry: every frame.)
+        o0, o1, o2 = s.mo
+        dx, dy, dz = mx - o0, my - o1, mz - o2
+        m0, m1, m2, m3, m4, m5, m6, m7, m8 = s.mm
+        hx = m0 * dx + m1 * dy + m2 * dz
+        hy = m3 * dx + m4 * dy + m5 * dz
+        hz = m6 * dx + m7 * dy + m8 * dz
+        o0, o1, o2 = s.ao
+        dx, dy, dz = ax - o0, ay - o1, az - o2
+        m0, m1, m2, m3, m4, m5, m6, m7, m8 = s.am
+        gx = m0 * dx + m1 * dy + m2 * dz
+        gy = m3 * dx + m4 * dy + m5 * dz
+        gz = m6 * dx + m7 * dy + m8 * dz
         if not math.isfinite(hx + hy + hz + gx + gy + gz):
             # The codec only passes 0..4095 integers; anything else is a caller bug.
             raise ValueError(f"non-finite frame: {(mx, my, mz, ax, ay, az)!r}")
@@ -420,7 +423,10 @@ class AttitudeEngine:
     ) -> AttitudeSolution:
         an = math.sqrt(gx * gx + gy * gy + gz * gz)  # the accelerometer's |g|
         if est is not None:
-            gx, gy, gz = est.down  # the tilt policy's down replaces the accelerometer's
+            accel = est.down  # the tilt policy's down replaces the accelerometer's
+            gx, gy, gz = accel
+        else:
+            accel = (gx, gy, gz)
         gn = math.sqrt(gx * gx + gy * gy + gz * gz)
         bn = math.sqrt(hx * hx + hy * hy + hz * hz)
         degraded = False
@@ -472,6 +478,7 @@ class AttitudeEngine:
             source: TiltSource = "accelerometer"
             heading_sigma: float | None = None
         else:
+            source, heading_sigma = est.source, est.heading_sigma_deg
             # The dip says something about the field only against a down it was not
             # matched to: the accelerometer's while quiet, or the autopilot's.
             disturbed, accelerating = self._quality.update(
@@ -480,10 +487,9 @@ class AttitudeEngine:
                 an,
                 s.total_G,
                 s.dip_deg,
-                down_trusted=est.source != "magnetometer"
-                and not (est.source == "accelerometer" and est.manoeuvre),
+                down_trusted=source != "magnetometer"
+                and not (source == "accelerometer" and est.manoeuvre),
             )
-            source, heading_sigma = est.source, est.heading_sigma_deg
         return AttitudeSolution(
             roll,
             pitch,
@@ -493,7 +499,7 @@ class AttitudeEngine:
             decl,
             label,  # type: ignore[arg-type]
             (hx, hy, hz),
-            (gx, gy, gz),
+            accel,
             bn,
             dip,
             degraded,

@@ -162,7 +162,18 @@ class QualityMonitor:
         field_bad = field_out_of_limits(
             field_G, dip_deg if trusted else None, expected_total_G, expected_dip_deg, lim
         )
-        return self._field.update(field_bad), self._accel.update(accel_bad)
+        # (Debounce.update's first case -- the input agrees with the flag -- written out:
+        # nearly every frame is one, and this runs for every frame.)
+        f, a = self._field, self._accel
+        if field_bad == f.state:
+            f._count = 0
+        else:
+            f.update(field_bad)
+        if accel_bad == a.state:
+            a._count = 0
+        else:
+            a.update(accel_bad)
+        return f.state, a.state
 
     @property
     def disturbed(self) -> bool:

@@ -40,8 +40,9 @@ from dataclasses import dataclass
 from operator import itemgetter
 from typing import Literal
 
+from bridge.core.tilt_kalman import Axes, basis, match, measure, rotation_about, turned
 from bridge.core.tilt_settings import TiltSettings
-from bridge.core.vectors import Vec3, angle_deg, dot, unit
+from bridge.core.vectors import Vec3, angle_deg, dot
 
 TiltSource = Literal["accelerometer", "autopilot", "magnetometer"]
 #: The tilt sources, in the order MAVLink's ``TILT_SRC`` value numbers them (0, 1, 2).
@@ -147,7 +148,6 @@ class TiltFilter:
         self.spin_dps = 0.0  #: the field's turn rate about any axis over the last second
         self._white = self.settings.accel_noise_g**2  # learnt white noise (vibration)
         self._heave = 0.0  # low-passed vertical acceleration, g
-        self._excess = 0.0  # low-passed |g| - 1 g, signed
         self._an_mean = 1.0  # |g| over the last 2 s
         self._prev: Vec3 | None = None  # an accelerometer direction ~0.1 s ago (white noise)
         self._prev_t = -math.inf
@@ -160,8 +160,12 @@ class TiltFilter:
         self._turning_at = -math.inf  # last turning (faster than a quarter of turn_dps)
         self._evidence_at = [-math.inf, -math.inf]  # last evidence, per axis
         self._held_since = [-math.inf, -math.inf]
-        # (time, estimate, its covariance, the field's direction then): quiet frames only.
-        self._history: deque[tuple[float, Vec3, tuple[float, float, float], Vec3]] = deque()
+        # (time, estimate, its covariance, the field's direction then, the estimate's basis):
+        # quiet frames only.
+        self._history: deque[tuple[float, Vec3, tuple[float, float, float], Vec3, Axes]] = deque()
+        # The basis of an estimate (made with it: the next frame's and the drift check's).
+        self._axes_of: Vec3 | None = None
+        self._axes: Axes = basis((0.0, 0.0, 1.0))
         self.held = [False, False]  #: per axis (forward, right): in a manoeuvre
         self._dip_push = [0.0, 0.0]  # the dip's corrections to the held axes since the onset
         self._onset: tuple[Vec3, Vec3] | None = None  # (down, field) before the manoeuvre
@@ -189,69 +193,6 @@ class TiltFilter:
         """The accelerometer's learnt white noise (vibration) per axis and frame, degrees."""
         return math.degrees(math.sqrt(self._white))
 
-    @staticmethod
-    def _basis(d: Vec3) -> tuple[Vec3, Vec3]:
-        """Two unit vectors spanning the plane normal to ``d``: forward-ish, right-ish."""
-        # dot, unit and cross written out (one to three bases a frame): the same arithmetic.
-        dx, dy, dz = d
-        x0, x1, x2 = (1.0, 0.0, 0.0) if abs(dx) < 0.9 else (0.0, 1.0, 0.0)
-        k = x0 * dx + x1 * dy + x2 * dz
-        ux, uy, uz = x0 - k * dx, x1 - k * dy, x2 - k * dz
-        n = math.sqrt(ux * ux + uy * uy + uz * uz)
-        if n > 0.0:
-            ux, uy, uz = ux / n, uy / n, uz / n
-        else:
-            ux, uy, uz = 0.0, 0.0, 1.0
-        return (ux, uy, uz), (dy * uz - dz * uy, dz * ux - dx * uz, dx * uy - dy * ux)
-
-    def _update(self, y: float, h0: float, h1: float, R: float, x: list[float]) -> None:
-        """One scalar measurement ``y = h . x + noise(R)`` on the correction ``x``."""
-        pxx, pxy, pyy = self._P
-        ph0 = pxx * h0 + pxy * h1
-        ph1 = pxy * h0 + pyy * h1
-        S = h0 * ph0 + h1 * ph1 + R
-        if S <= 0.0:
-            return
-        k0, k1 = ph0 / S, ph1 / S
-        r = y - (h0 * x[0] + h1 * x[1])
-        x[0] += k0 * r
-        x[1] += k1 * r
-        self._P = [pxx - k0 * ph0, pxy - k0 * ph1, pyy - k1 * ph1]
-
-    def _match(self, y: float, h0: float, h1: float, R: float, x: list[float]) -> None:
-        """The dip: a scalar measurement that moves the estimate only along what it
-        observes (``h``, the field's east axis) -- the minimal correction. The optimal
-        gain would also move it across, through the covariance's cross term: with a
-        dip a few tenths off (the learnt one is a mean over frames), every frame
-        would push the held, unobserved axis a little further. Joseph form: the
-        covariance stays positive whatever the gain."""
-        hn2 = h0 * h0 + h1 * h1
-        if hn2 <= 1e-12:
-            return
-        pxx, pxy, pyy = self._P
-        ph0 = pxx * h0 + pxy * h1
-        ph1 = pxy * h0 + pyy * h1
-        S = h0 * ph0 + h1 * ph1 + R
-        if S <= 0.0:
-            return
-        # The optimal gain projected onto h's direction.
-        a = (h0 * ph0 + h1 * ph1) / (S * hn2)
-        k0, k1 = a * h0, a * h1
-        r = y - (h0 * x[0] + h1 * x[1])
-        x[0] += k0 * r
-        x[1] += k1 * r
-        # P' = (I - k h^T) P (I - k h^T)^T + R k k^T
-        i00, i01, i10, i11 = 1.0 - k0 * h0, -k0 * h1, -k1 * h0, 1.0 - k1 * h1
-        a00 = i00 * pxx + i01 * pxy
-        a01 = i00 * pxy + i01 * pyy
-        a10 = i10 * pxx + i11 * pxy
-        a11 = i10 * pxy + i11 * pyy
-        self._P = [
-            a00 * i00 + a01 * i01 + R * k0 * k0,
-            a00 * i10 + a01 * i11 + R * k0 * k1,
-            a10 * i10 + a11 * i11 + R * k1 * k1,
-        ]
-
     def _evidence(
         self, t: float, axes: tuple[int, ...], why: str, lookback: float | None = None
     ) -> None:
@@ -270,7 +211,7 @@ class TiltFilter:
         # Its first frames were believed: go back to the estimate from before it began.
         horizon = t - (self.settings.lookback_s if lookback is None else lookback)
         back: tuple[Vec3, tuple[float, float, float], Vec3] | None = None
-        for ht, hd, hp, hm in self._history:
+        for ht, hd, hp, hm, _ha in self._history:
             if ht >= horizon:
                 break
             back = (hd, hp, hm)
@@ -280,46 +221,10 @@ class TiltFilter:
         if (
             back is not None
             and self._lp is not None
-            and not self._turned(back[0], self._lp, back[2], self._m_now)
+            and not turned(back[0], self._lp, back[2], self._m_now)
         ):
             self._d, self._P = back[0], list(back[1])
         self._onset = None if back is None else (back[0], back[2])
-
-    @staticmethod
-    def _turned(d0: Vec3, d1: Vec3, m0: Vec3, m1: Vec3) -> bool:
-        """Whether the down's move from ``d0`` to ``d1`` came with the field's own: the
-        unit turned. Any tilt turns the field (dipping at I) in the unit's axes by at
-        least ``sin(I)`` times as much; an acceleration moves the down alone."""
-        if m0 == (0.0, 0.0, 0.0) or m1 == (0.0, 0.0, 0.0):
-            return False
-        return angle_deg(m0, m1) > 0.5 * angle_deg(d0, d1)
-
-    def _turn_rate(self, t: float, mhat: Vec3, d: Vec3) -> float:
-        """The field's rotation about down over the last second, rad/s (the yaw rate:
-        the tilt changes it only through its own rate, which a vehicle keeps low)."""
-        mags = self._mags
-        mags.append((t, mhat))
-        while len(mags) > 2 and mags[1][0] <= t - self._TURN_BASE_S:
-            mags.popleft()
-        t0, m0 = mags[0]
-        if t - t0 < 0.5 * self._TURN_BASE_S:
-            return 0.0
-        self.spin_dps = angle_deg(m0, mhat) / (t - t0)
-        return self._rotation_about(m0, mhat, d) / (t - t0)
-
-    @staticmethod
-    def _rotation_about(m0: Vec3, m1: Vec3, d: Vec3) -> float:
-        """The angle from ``m0`` to ``m1`` about ``d``, both projected onto its normal plane
-        (dot and cross written out: once or twice a frame)."""
-        ax, ay, az = m0
-        bx, by, bz = m1
-        dx, dy, dz = d
-        k0 = ax * dx + ay * dy + az * dz
-        k1 = bx * dx + by * dy + bz * dz
-        p0x, p0y, p0z = ax - k0 * dx, ay - k0 * dy, az - k0 * dz
-        p1x, p1y, p1z = bx - k1 * dx, by - k1 * dy, bz - k1 * dz
-        cx, cy, cz = p0y * p1z - p0z * p1y, p0z * p1x - p0x * p1z, p0x * p1y - p0y * p1x
-        return math.atan2(cx * dx + cy * dy + cz * dz, p0x * p1x + p0y * p1y + p0z * p1z)
 
     def update(
         self,
@@ -338,99 +243,103 @@ class TiltFilter:
         disturbed (the dip is only learnt and used then).
         """
         st = self.settings
-        # (The vectors' lengths and directions are written out here rather than through
-        # norm() and unit(): the same arithmetic, without a call and a tuple per vector.
-        # This runs for every frame.)
+        # (Every frame runs this: the state it reads more than once is held in locals, and
+        # the vector helpers -- norm, unit, dot, angle_deg -- are written out where they run
+        # on most frames: the same arithmetic, in the same order, without a call and a tuple.)
         gx, gy, gz = accel
         an = math.sqrt(gx * gx + gy * gy + gz * gz)
         ahat = (gx / an, gy / an, gz / an) if an > 1e-6 else (0.0, 0.0, 1.0)
-        if self._d is None or self._t is None:
-            self._d, self._t = ahat, t
+        ax, ay, az = ahat
+        t_last = self._t
+        if self._d is None or t_last is None:
+            self._d, t_last = ahat, t
         else:  # frames read in one burst share their arrival: half the mean interval apart
-            gap = t - self._t
+            gap = t - t_last
             gap = gap if gap < 1.0 else 1.0  # max(0, min(1, gap)) as comparisons: every frame
             self._interval += 0.02 * ((gap if gap > 0.0 else 0.0) - self._interval)
-            if t <= self._t:
-                t = self._t + 0.5 * max(self._interval, 0.005)
-        dt = t - self._t
+            if t <= t_last:
+                t = t_last + 0.5 * max(self._interval, 0.005)
+        dt = t - t_last
         dt = dt if dt < 1.0 else 1.0  # in [0, 1]: a gain dt / tau for tau >= 1 s needs no clamp
         self._t = t
         # -- what the frame says beside its down: vibration, heave, turning, dip.
         # Its scatter between frames ~0.1 s apart, whatever the rate: a hand's shake is
         # smooth from one 50 Hz frame to the next, and would pass for no noise at all.
-        if t - self._prev_t >= _WHITE_SPACING_S or t < self._prev_t:
+        prev_t = self._prev_t
+        if t - prev_t >= _WHITE_SPACING_S or t < prev_t:
             prev, self._prev, self._prev_t = self._prev, ahat, t
             if prev is not None:
-                dd = (ahat[0] - prev[0]) ** 2 + (ahat[1] - prev[1]) ** 2 + (ahat[2] - prev[2]) ** 2
-                self._white += 0.005 * (max(0.25 * dd, st.accel_noise_g**2) - self._white)
+                dd = (ax - prev[0]) ** 2 + (ay - prev[1]) ** 2 + (az - prev[2]) ** 2
+                v, floor = 0.25 * dd, st.accel_noise_g**2  # max(v, floor) as a comparison
+                self._white += 0.005 * ((floor if floor > v else v) - self._white)
+        white = self._white
+        white_deg = math.degrees(math.sqrt(white))  # (self.white_deg)
         # (The low-pass gains min(1, dt / tau) as comparisons: they are calls otherwise.)
         k = dt / 0.5 if dt < 0.5 else 1.0
         # Heave: the swinging part of |g| (about its 2 s mean), not its offset -- a
         # braking vehicle's |g| grows steadily by a_h^2 / 2 without rocking it.
-        self._an_mean += dt / 2.0 * (an - self._an_mean)
-        self._heave += k * (abs(an - self._an_mean) - self._heave)
-        self._excess += k * (an - self._g0 - self._excess)  # vibration averages out of it
+        an_mean = self._an_mean = self._an_mean + dt / 2.0 * (an - self._an_mean)
+        heave = self._heave = self._heave + k * (abs(an - an_mean) - self._heave)
         lp = self._lp
         if lp is None:
             lp = ahat
         else:
-            lp = unit(
-                (
-                    lp[0] + k * (ahat[0] - lp[0]),
-                    lp[1] + k * (ahat[1] - lp[1]),
-                    lp[2] + k * (ahat[2] - lp[2]),
-                )
+            ux, uy, uz = (
+                lp[0] + k * (ax - lp[0]),
+                lp[1] + k * (ay - lp[1]),
+                lp[2] + k * (az - lp[2]),
             )
+            n = math.sqrt(ux * ux + uy * uy + uz * uz)
+            lp = (ux / n, uy / n, uz / n) if n > 0.0 else (0.0, 0.0, 1.0)
         self._lp = lp
+        lx, ly, lz = lp
         lg = self._long
-        k = dt / 20.0
-        self._long = (
-            unit(
-                (
-                    lg[0] + k * (ahat[0] - lg[0]),
-                    lg[1] + k * (ahat[1] - lg[1]),
-                    lg[2] + k * (ahat[2] - lg[2]),
-                )
+        if lg is None:
+            self._long = ahat
+        else:
+            k = dt / 20.0
+            ux, uy, uz = (
+                lg[0] + k * (ax - lg[0]),
+                lg[1] + k * (ay - lg[1]),
+                lg[2] + k * (az - lg[2]),
             )
-            if lg is not None
-            else ahat
-        )
+            n = math.sqrt(ux * ux + uy * uy + uz * uz)
+            self._long = (ux / n, uy / n, uz / n) if n > 0.0 else (0.0, 0.0, 1.0)
         bx, by, bz = mag
         bn = math.sqrt(bx * bx + by * by + bz * bz)
         mhat = (bx / bn, by / bn, bz / bn) if bn > 0.0 else (0.0, 0.0, 0.0)
         has_field = mhat != (0.0, 0.0, 0.0)
+        mx, my, mz = mhat
         self._m_now = mhat
         held = self.held  # (a new list wherever it changes: read again after those)
-        if not (held[0] or held[1]) and self._history and t - self._history[0][0] >= st.drift_s:
+        history = self._history
+        if not (held[0] or held[1]) and history and t - history[0][0] >= st.drift_s:
             # The estimate of drift_s ago (the newest kept that old, or the oldest).
-            i = bisect_right(self._history, t - st.drift_s, key=_TIME)
-            _ht, old, _hp, old_m = self._history[max(0, i - 1)]
-            o1, o2 = self._basis(old)
-            rate_dps = st.drift_dps + st.heave_tilt_dps_per_g * self._heave
-            allowed = (
-                rate_dps * st.drift_s + 3.0 * math.degrees(math.sqrt(self._white / 5.0))
-            ) * _DEG
-            off1, off2 = abs(dot(lp, o1)) > allowed, abs(dot(lp, o2)) > allowed
+            i = bisect_right(history, t - st.drift_s, key=_TIME)
+            _ht, old, _hp, old_m, old_axes = history[i - 1 if i > 1 else 0]  # max(0, i - 1)
+            o1x, o1y, o1z, o2x, o2y, o2z = old_axes
+            rate_dps = st.drift_dps + st.heave_tilt_dps_per_g * heave
+            allowed = (rate_dps * st.drift_s + 3.0 * math.degrees(math.sqrt(white / 5.0))) * _DEG
+            off1 = abs(lx * o1x + ly * o1y + lz * o1z) > allowed
+            off2 = abs(lx * o2x + ly * o2y + lz * o2z) > allowed
             # Moving away from the long-run mean down: a manoeuvre's onset. Moving back
             # towards it is the end of one the estimate followed: no rollback then.
             # (Judged only when the down has left along an axis: nearly every frame it has not.)
             if (
                 (off1 or off2)
                 and angle_deg(lp, self._long) > angle_deg(old, self._long) + 1.0
-                and not self._turned(old, lp, old_m, mhat)
+                and not turned(old, lp, old_m, mhat)
             ):
                 axes: tuple[int, ...] = (0, 1) if off1 and off2 else ((0,) if off1 else (1,))
                 self._evidence(t, axes, "drift", st.drift_s)
         sin_dip = self._dip if self._dip_n >= _DIP_FRAMES else None
+        steady_lp = self._steady_lp
         still = (
             abs(an - self._g0) < 0.01
-            and self._heave < 0.02
+            and heave < 0.02
             and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
             # its down where it was when this began (the tail of a braking creeps back)
-            and (
-                self._steady_lp is None
-                or angle_deg(ahat, self._steady_lp) < 1.0 + 2.0 * self.white_deg
-            )
+            and (steady_lp is None or angle_deg(ahat, steady_lp) < 1.0 + 2.0 * white_deg)
         )
         if not still:
             self._steady_since, self._steady_lp = None, None
@@ -439,66 +348,98 @@ class TiltFilter:
         #: How long the accelerometer has been still (1 g, its down not moving, no turn).
         self.still_s = 0.0 if self._steady_since is None else t - self._steady_since
         if has_field:
-            rate = self._turn_rate(t, mhat, self._d)
+            # The field's rotation about down over the last second, rad/s (the yaw rate: the
+            # tilt changes it only through its own rate, which a vehicle keeps low).
+            d = self._d
+            mags = self._mags
+            mags.append((t, mhat))
+            horizon = t - self._TURN_BASE_S
+            while len(mags) > 2 and mags[1][0] <= horizon:
+                mags.popleft()
+            t0, then = mags[0]
+            if t - t0 < 0.5 * self._TURN_BASE_S:
+                rate = 0.0
+            else:
+                # (angle_deg(then, mhat) written out)
+                m0x, m0y, m0z = then
+                cx, cy, cz = m0y * mz - m0z * my, m0z * mx - m0x * mz, m0x * my - m0y * mx
+                self.spin_dps = math.degrees(
+                    math.atan2(
+                        math.sqrt(cx * cx + cy * cy + cz * cz), m0x * mx + m0y * my + m0z * mz
+                    )
+                ) / (t - t0)
+                rate = rotation_about(then, mhat, d) / (t - t0)
             self.turn_rate_dps = math.degrees(rate)
             # The low-passed down turning fast, with the field: a tilt faster than a
             # vehicle's (swell aside) -- a hand.
             rec = self._recent
             rec.append((t, lp, mhat))
-            while len(rec) > 2 and rec[1][0] <= t - 0.5:
+            horizon = t - 0.5
+            while len(rec) > 2 and rec[1][0] <= horizon:
                 rec.popleft()
             tr, dr, mr = rec[0]
+            # (angle_deg(lp, d) written out)
+            dx, dy, dz = d
+            cx, cy, cz = ly * dz - lz * dy, lz * dx - lx * dz, lx * dy - ly * dx
             # (A turn by hand is a spin far more often than a tilt alone: no need to look
             # at the tilt then.)
             if self.spin_dps > st.spin_dps or (
                 # A down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
-                angle_deg(lp, self._d) > st.max_accel_deg
+                math.degrees(
+                    math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), lx * dx + ly * dy + lz * dz)
+                )
+                > st.max_accel_deg
                 or (
                     t - tr >= 0.25
                     and angle_deg(dr, lp) / (t - tr) > st.spin_dps
-                    and self._turned(dr, lp, mr, mhat)
-                    and self._heave < st.heave_g
+                    and turned(dr, lp, mr, mhat)
+                    and heave < st.heave_g
                 )
             ):
                 # Faster than a vehicle turns: a hand. Follow the accelerometer as it is.
                 self._spinning_until = t + 0.5
                 self.held, self._d = [False, False], ahat
                 # Nothing from before the turn may be rolled back to, nor drifted from.
-                self._history.clear()
+                history.clear()
                 P, f = self._P, _SPIN_FLOOR_VAR  # each variance at least f (max() as comparisons)
                 self._P = [f if P[0] < f else P[0], P[1], f if P[2] < f else P[2]]
                 if external is None:  # nothing to weigh: the frame's own down, its noise
-                    w = _SPIN_MIN_WHITE if self._white < _SPIN_MIN_WHITE else self._white
+                    w = _SPIN_MIN_WHITE if white < _SPIN_MIN_WHITE else white
                     return self._result(ahat, ahat, mhat, (w, 0.0, w), "accelerometer", False)
             # (While the vehicle heaves, its rocking about the field's horizontal looks
             # like turning -- the same illusion that makes that tilt unobservable.)
             # When the turn began (its rate above a quarter of the threshold): a slowly
             # tightening turn builds its centripetal acceleration before it is caught.
-            if abs(rate) < 0.25 * st.turn_dps * _DEG:
+            quarter = 0.25 * st.turn_dps * _DEG
+            if abs(rate) < quarter:
                 self._turn_from = t
-            elif not self.held[1] or abs(
-                self._rotation_about(self._mags[0][1], mhat, lp)
-            ) >= 0.25 * st.turn_dps * _DEG * (t - self._mags[0][0]):
+            elif not self.held[1] or abs(rotation_about(mags[0][1], mhat, lp)) >= quarter * (
+                t - mags[0][0]
+            ):
                 # (About the accelerometer's down too while the lateral axis is held: a
                 # held down far off makes a changing tilt look like a turn.)
                 self._turning_at = t
-            if abs(rate) > st.turn_dps * _DEG and self._heave < st.heave_g:
+            if abs(rate) > st.turn_dps * _DEG and heave < st.heave_g:
                 # ... if it pulls the accelerometer sideways: a turn on the spot (a
                 # turntable, a pivoting boat) has no centripetal acceleration to hide.
                 # (Against the estimate from before the turn began: the one since may
                 # have followed the centripetal pull.)
-                i = bisect_right(self._history, self._turn_from, key=_TIME)
-                pre = self._history[i - 1][1] if i > 0 else self._d
-                _b1, b2 = self._basis(pre)
-                if abs(dot(lp, b2)) > max(0.5 * _DEG, 2.0 * math.sqrt(self._white / 5.0)):
+                i = bisect_right(history, self._turn_from, key=_TIME)
+                pre = history[i - 1][1] if i > 0 else self._d
+                _b, _b, _b, b2x, b2y, b2z = basis(pre)
+                if abs(lx * b2x + ly * b2y + lz * b2z) > max(
+                    0.5 * _DEG, 2.0 * math.sqrt(white / 5.0)
+                ):
                     self._evidence(t, (1,), "turn", t - self._turn_from + st.lookback_s)
             if field_ok and sin_dip is not None:
-                off = math.asin(max(-1.0, min(1.0, dot(mhat, ahat)))) - math.asin(sin_dip)
+                v = mx * ax + my * ay + mz * az  # dot(mhat, ahat), clamped to [-1, 1]
+                v = v if v < 1.0 else 1.0
+                off = math.asin(v if v > -1.0 else -1.0) - math.asin(sin_dip)
                 if abs(off) <= st.dip_alarm_deg * _DEG:
                     self._dip_alarm_since = None
                 elif self._dip_alarm_since is None or off * self._dip_alarm_sign < 0:
                     self._dip_alarm_since, self._dip_alarm_sign = t, off
-                elif t - self._dip_alarm_since > st.max_hold_s and self._heave < st.heave_g:
+                elif t - self._dip_alarm_since > st.max_hold_s and heave < st.heave_g:
                     # The accelerometer has contradicted the learnt dip longer than any
                     # manoeuvre lasts: the field (or its calibration) changed. Learn it anew.
                     self._dip, self._dip_n, self._dip_alarm_since = None, 0.0, None
@@ -511,12 +452,13 @@ class TiltFilter:
                     and (t - since >= st.persist_s)
                 ):
                     # The axes the accelerometer's down has left the estimate along.
-                    b1, b2 = self._basis(self._d)
-                    lim = max(st.dip_alarm_deg * _DEG, 3.0 * math.sqrt(self._white))
-                    axes = tuple(i for i, e in enumerate((b1, b2)) if abs(dot(ahat, e)) > lim)
+                    b = basis(self._d)
+                    lim = max(st.dip_alarm_deg * _DEG, 3.0 * math.sqrt(white))
+                    axes = tuple(i for i, e in enumerate((b[:3], b[3:])) if abs(dot(ahat, e)) > lim)
                     self._evidence(t, axes or (0, 1), "dip", st.persist_s + st.lookback_s)
+        held = self.held
         if (
-            self.manoeuvre
+            (held[0] or held[1])
             and self._steady_since is not None
             and t - self._steady_since > st.settle_s
             # ... and the field turned with the down since the onset (a braking vehicle's
@@ -525,78 +467,101 @@ class TiltFilter:
             and (
                 self._onset is None
                 or angle_deg(self._d, lp) > 10.0
-                or self._turned(self._onset[0], lp, self._onset[1], mhat)
+                or turned(self._onset[0], lp, self._onset[1], mhat)
             )
         ):
             # Settled: re-oriented, not accelerated. Take the accelerometer's down.
             self.held = [False, False]
             self._d = lp
-            r = max(self._white, (0.5 * _DEG) ** 2)
+            r = max(white, (0.5 * _DEG) ** 2)
             self._P = [r, 0.0, r]
-            self._history.clear()
+            history.clear()
         d = self._d
         # -- predict: the tilt drifts, faster while the vehicle heaves.
-        rate_dps = st.tilt_rate_dps + st.heave_tilt_dps_per_g * self._heave
+        rate_dps = st.tilt_rate_dps + st.heave_tilt_dps_per_g * heave
         q = (rate_dps * _DEG) ** 2 * dt
-        P = self._P
-        p0, p2 = P[0] + q, P[2] + q
-        self._P = [_MAX_VAR if p0 > _MAX_VAR else p0, P[1], _MAX_VAR if p2 > _MAX_VAR else p2]
-        e1, e2 = self._basis(d)
+        pxx, pxy, pyy = self._P
+        pxx, pyy = pxx + q, pyy + q
+        pxx = _MAX_VAR if pxx > _MAX_VAR else pxx
+        pyy = _MAX_VAR if pyy > _MAX_VAR else pyy
+        self._P = [pxx, pxy, pyy]
+        frame_axes = self._axes if self._axes_of is d else basis(d)
+        e1x, e1y, e1z, e2x, e2y, e2z = frame_axes
         # -- the accelerometer's down, axis by axis, inside the gate.
         # Frames faster than 10 Hz bring no more information a second (vibration and the
         # device's filtering correlate them): their noise, and the dip's, as 10 Hz frames'.
         slow = 0.1 / dt if 0.0 < dt < 0.1 else 1.0  # max(1, 0.1 / dt)
-        R = self._white * slow
-        y1, y2 = dot(ahat, e1), dot(ahat, e2)
-        pxx, _pxy, pyy = self._P
+        R = white * slow
+        y1, y2 = ax * e1x + ay * e1y + az * e1z, ax * e2x + ay * e2y + az * e2z
         es = (
             external_sigma_deg if external_sigma_deg is not None else st.autopilot_sigma_deg
         ) * _DEG
         if external is not None:
             # Beside an autopilot its down judges the accelerometer's, axis by axis.
-            for i, e in enumerate((e1, e2)):
-                z = dot(ahat, e) - dot(external, e)
-                if z * z > st.gate * (es * es + R):
-                    self._evidence(t, (i,), "autopilot", 0.0)
-        for i, yi, pii in ((0, y1, pxx), (1, y2, pyy)):
-            if yi * yi > st.gate * (pii + R):
-                since = self._gate_since[i]
-                if since is None or yi * self._gate_sign[i] < 0:
-                    self._gate_since[i], self._gate_sign[i] = t, yi
-                    self._gate_from[i] = (d, mhat)
-                    since = t
-                if not self.held[i]:
-                    gd, gm = self._gate_from[i]
-                    if t - since >= st.persist_s and not self._turned(gd, ahat, gm, mhat):
-                        self._evidence(t, (i,), "gate", st.persist_s + st.lookback_s)
-                elif t - self._held_since[i] < st.max_hold_s and (
-                    i == 0 or t - self._turning_at < st.release_s
-                ):
-                    # (Not turning, a wheeled vehicle has no lateral acceleration.)
-                    self._evidence(t, (i,), "gate")
-                elif t - self._evidence_at[i] > st.release_s:
-                    # Held this long on the gate alone: no manoeuvre lasts so long, the
-                    # tilt changed meanwhile. Take the accelerometer's again.
-                    self.held[i] = False
-                    self._P[0 if i == 0 else 2] += yi * yi
-            else:
-                self._gate_since[i] = None
-                if self.held[i] and t - self._evidence_at[i] > st.release_s:
-                    self.held[i] = False
+            ex, ey, ez = external
+            z1, z2 = ex * e1x + ey * e1y + ez * e1z, ex * e2x + ey * e2y + ez * e2z
+            z = y1 - z1
+            if z * z > st.gate * (es * es + R):
+                self._evidence(t, (0,), "autopilot", 0.0)
+            z = y2 - z2
+            if z * z > st.gate * (es * es + R):
+                self._evidence(t, (1,), "autopilot", 0.0)
+        gate = st.gate
+        if y1 * y1 > gate * (pxx + R) or y2 * y2 > gate * (pyy + R):
+            for i, yi, pii in ((0, y1, pxx), (1, y2, pyy)):
+                if yi * yi > gate * (pii + R):
+                    since = self._gate_since[i]
+                    if since is None or yi * self._gate_sign[i] < 0:
+                        self._gate_since[i], self._gate_sign[i] = t, yi
+                        self._gate_from[i] = (d, mhat)
+                        since = t
+                    if not self.held[i]:
+                        gd, gm = self._gate_from[i]
+                        if t - since >= st.persist_s and not turned(gd, ahat, gm, mhat):
+                            self._evidence(t, (i,), "gate", st.persist_s + st.lookback_s)
+                    elif t - self._held_since[i] < st.max_hold_s and (
+                        i == 0 or t - self._turning_at < st.release_s
+                    ):
+                        # (Not turning, a wheeled vehicle has no lateral acceleration.)
+                        self._evidence(t, (i,), "gate")
+                    elif t - self._evidence_at[i] > st.release_s:
+                        # Held this long on the gate alone: no manoeuvre lasts so long, the
+                        # tilt changed meanwhile. Take the accelerometer's again.
+                        self.held[i] = False
+                        self._P[0 if i == 0 else 2] += yi * yi
+                else:
+                    self._gate_since[i] = None
+                    if self.held[i] and t - self._evidence_at[i] > st.release_s:
+                        self.held[i] = False
+        else:  # (both inside the gate, as nearly every frame: the loop's else, written out)
+            gate_since, held, evidence_at = self._gate_since, self.held, self._evidence_at
+            gate_since[0] = gate_since[1] = None
+            if held[0] and t - evidence_at[0] > st.release_s:
+                held[0] = False
+            if held[1] and t - evidence_at[1] > st.release_s:
+                held[1] = False
         if self._d is not d:  # rolled back: the basis moves with it
             d = self._d
-            e1, e2 = self._basis(d)
-            y1, y2 = dot(ahat, e1), dot(ahat, e2)
-        x = [0.0, 0.0]
-        if not self.held[0]:
-            self._update(y1, 1.0, 0.0, R, x)
-        if not self.held[1]:
-            self._update(y2, 0.0, 1.0, R, x)
+            frame_axes = basis(d)
+            e1x, e1y, e1z, e2x, e2y, e2z = frame_axes
+            y1, y2 = ax * e1x + ay * e1y + az * e1z, ax * e2x + ay * e2y + az * e2z
+            if external is not None:
+                z1, z2 = ex * e1x + ey * e1y + ez * e1z, ex * e2x + ey * e2y + ez * e2z
+        held = self.held
+        x0 = x1 = 0.0
+        pxx, pxy, pyy = self._P
+        if not held[0]:
+            x0, x1, pxx, pxy, pyy = measure(y1, 0, R, x0, x1, pxx, pxy, pyy)
+        if not held[1]:
+            x0, x1, pxx, pxy, pyy = measure(y2, 1, R, x0, x1, pxx, pxy, pyy)
         # -- the field's dip (attitude matching), every regime.
-        if self.manoeuvre and field_ok and has_field and sin_dip is not None:
+        if (held[0] or held[1]) and field_ok and has_field and sin_dip is not None:
+            self._P = [pxx, pxy, pyy]
+            x = [x0, x1]
             cos_dip = math.sqrt(max(1e-6, 1.0 - sin_dip * sin_dip))
             Rm = (cos_dip * st.dip_sigma_deg * _DEG) ** 2 * slow
-            h0, h1 = dot(mhat, e1), dot(mhat, e2)
+            h0 = mx * e1x + my * e1y + mz * e1z
+            h1 = mx * e2x + my * e2y + mz * e2z
             # The residual with the accelerometer's axes as they now are; the dip then
             # corrects the held axes only, and only where it sees them well: pushed
             # through a small part of it along a held axis, a residual a few tenths off
@@ -604,9 +569,8 @@ class TiltFilter:
             # that axis far, frame after frame.
             r = sin_dip - dot(mhat, d) - h0 * x[0] - h1 * x[1]
             hn = math.hypot(h0, h1)
-            m0 = h0 if self.held[0] else 0.0
-            m1 = h1 if self.held[1] else 0.0
-            pxx, pxy, pyy = self._P
+            m0 = h0 if held[0] else 0.0
+            m1 = h1 if held[1] else 0.0
             S = h0 * h0 * pxx + 2 * h0 * h1 * pxy + h1 * h1 * pyy + Rm
             lp_off = math.asin(max(-1.0, min(1.0, dot(mhat, lp)))) - math.asin(sin_dip)
             if r * r > st.gate * S and abs(lp_off) > st.dip_alarm_deg * _DEG:
@@ -617,64 +581,73 @@ class TiltFilter:
                 self._evidence(t, (0, 1), "dip", 0.0)
             elif max(map(abs, self._dip_push)) < st.dip_push_deg * _DEG:
                 x_before = (x[0], x[1])
-                if (self.held[0] and self.held[1]) or math.hypot(m0, m1) > 0.5 * hn:
-                    self._match(r + m0 * x[0] + m1 * x[1], m0, m1, Rm, x)
+                if (held[0] and held[1]) or math.hypot(m0, m1) > 0.5 * hn:
+                    self._P = match(r + m0 * x[0] + m1 * x[1], m0, m1, Rm, x, self._P)
                 else:
-                    self._match(r + h0 * x[0] + h1 * x[1], h0, h1, Rm, x)
+                    self._P = match(r + h0 * x[0] + h1 * x[1], h0, h1, Rm, x, self._P)
                 self._dip_push[0] += x[0] - x_before[0]
                 self._dip_push[1] += x[1] - x_before[1]
+            x0, x1 = x
+            pxx, pxy, pyy = self._P
         # -- the autopilot's down.
         if external is not None:
-            self._update(dot(external, e1), 1.0, 0.0, es * es, x)
-            self._update(dot(external, e2), 0.0, 1.0, es * es, x)
-        nd = unit(
-            (
-                d[0] + x[0] * e1[0] + x[1] * e2[0],
-                d[1] + x[0] * e1[1] + x[1] * e2[1],
-                d[2] + x[0] * e1[2] + x[1] * e2[2],
-            )
+            # (its components on the axes as they now are: z1, z2)
+            x0, x1, pxx, pxy, pyy = measure(z1, 0, es * es, x0, x1, pxx, pxy, pyy)
+            x0, x1, pxx, pxy, pyy = measure(z2, 1, es * es, x0, x1, pxx, pxy, pyy)
+        ux, uy, uz = (
+            d[0] + x0 * e1x + x1 * e2x,
+            d[1] + x0 * e1y + x1 * e2y,
+            d[2] + x0 * e1z + x1 * e2z,
         )
+        n = math.sqrt(ux * ux + uy * uy + uz * uz)
+        nd = (ux / n, uy / n, uz / n) if n > 0.0 else (0.0, 0.0, 1.0)
         self._d = nd
-        P = self._P
+        self._axes_of, self._axes = nd, basis(nd)
+        P = self._P = [pxx, pxy, pyy]
         held = self.held  # final for this frame from here on
         manoeuvre = held[0] or held[1]
         w = dt / 0.1 if dt < 0.1 else 1.0  # the frame's weight: its share of a 10 Hz frame
+        g0 = self._g0
         if not manoeuvre:
-            history = self._history
-            history.append((t, nd, (P[0], P[1], P[2]), mhat))
-            while history and history[0][0] < t - _HISTORY_S:
+            history.append((t, nd, (pxx, pxy, pyy), mhat, self._axes))
+            horizon = t - _HISTORY_S
+            while history and history[0][0] < horizon:
                 history.popleft()
-            if abs(an - self._g0) < 0.05:
-                self._g0 += 0.01 * w * (an - self._g0)
+            if abs(an - g0) < 0.05:
+                g0 = self._g0 = g0 + 0.01 * w * (an - g0)
         # Steady: learn the local dip. Steady is no manoeuvre, the accelerometer's
         # length at |g|, its down not moving, the vehicle not turning.
-        steady = (
-            not manoeuvre
-            and abs(an - self._g0) < 0.02
-            and self._heave < 0.02
-            and angle_deg(lp, ahat) < 3.0 * self.white_deg + 0.5
-            and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
-        )
-        if steady and field_ok and has_field and w > 0.0:
-            sd = dot(mhat, ahat)
-            self._dip_n += w
-            rate = w / self._dip_n
-            if 0.005 * w > rate:  # at least 0.005 of a 10 Hz frame: max() as a comparison
-                rate = 0.005 * w
-            self._dip = sd if self._dip is None else self._dip + rate * (sd - self._dip)
+        if not manoeuvre and abs(an - g0) < 0.02 and heave < 0.02:
+            # (angle_deg(lp, ahat) written out)
+            cx, cy, cz = ly * az - lz * ay, lz * ax - lx * az, lx * ay - ly * ax
+            steady = (
+                math.degrees(
+                    math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), lx * ax + ly * ay + lz * az)
+                )
+                < 3.0 * white_deg + 0.5
+                and abs(self.turn_rate_dps) < 0.5 * st.turn_dps
+            )
+            if steady and field_ok and has_field and w > 0.0:
+                sd = mx * ax + my * ay + mz * az
+                self._dip_n += w
+                rate = w / self._dip_n
+                if 0.005 * w > rate:  # at least 0.005 of a 10 Hz frame: max() as a comparison
+                    rate = 0.005 * w
+                self._dip = sd if self._dip is None else self._dip + rate * (sd - self._dip)
         # -- which source carried it, and how well.
         if external is not None and (manoeuvre or es * es < R):
             source: TiltSource = "autopilot"
         else:
             source = "magnetometer" if manoeuvre else "accelerometer"
-        return self._result(nd, ahat, mhat, P, source, manoeuvre, (e1, e2))
+        return self._result(nd, ahat, mhat, P, source, manoeuvre, frame_axes)
 
     def _result(
         self, nd: Vec3, ahat: Vec3, mhat: Vec3, P: Sequence[float],
-        source: TiltSource, manoeuvre: bool, basis: tuple[Vec3, Vec3] | None = None,
+        source: TiltSource, manoeuvre: bool,
+        basis: Axes | None = None,
     ) -> TiltEstimate:  # fmt: skip
-        """The estimate ``nd`` with covariance ``P`` (xx, xy, yy on ``basis``'s axes; none:
-        the same on every axis) as it goes out."""
+        """The estimate ``nd`` with covariance ``P`` (xx, xy, yy on ``basis``'s axes, as
+        :func:`~bridge.core.tilt_kalman.basis` gives them; none: the same on every axis) as it goes out."""
         sxx, sxy, syy = P
         v = 0.5 * (sxx + syy) + math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy)
         sigma = math.sqrt(v if v > 0.0 else 0.0)  # (max(0, v) as a comparison: every frame)
@@ -688,7 +661,7 @@ class TiltFilter:
             if en > 1e-3:
                 var = sxx
                 if basis is not None:
-                    (b1x, b1y, b1z), (b2x, b2y, b2z) = basis
+                    b1x, b1y, b1z, b2x, b2y, b2z = basis
                     f1 = (ex * b1x + ey * b1y + ez * b1z) / en
                     f2 = (ex * b2x + ey * b2y + ez * b2z) / en
                     var = f1 * f1 * sxx + 2 * f1 * f2 * sxy + f2 * f2 * syy
