@@ -17,7 +17,7 @@ import pytest
 from handheld_rig import FIELD, Tumbled, collect, held, tumble
 
 from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
-from bridge.calibration.fits.handheld import _solve_joint
+from bridge.calibration.fits.handheld_models import _solve_joint
 from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.fits.series import hann_kernel, motion_rms_g, runs, window_means
 from bridge.calibration.model import AffineCalibration, CalibrationResult
