@@ -77,6 +77,7 @@ def _gram(rows: FloatArray) -> FloatArray:
 
 
 _DOT_SIGN = np.array([1.0] * 9 + [-1.0] * 3)
+_DOT_SIGNS = _DOT_SIGN[:, None] * _DOT_SIGN[None, :]
 
 
 def _linear_joint(gram: FloatArray) -> Candidate | None:
@@ -84,7 +85,7 @@ def _linear_joint(gram: FloatArray) -> Candidate | None:
     scale from ``|g| = 1``."""
     n = gram[-1, -1]
     # D = (m (x) x, -m) per row: D^T D and D^T 1 are the Gram's entries with signs.
-    DTD = _DOT_SIGN[:, None] * gram[:12, :12] * _DOT_SIGN[None, :]
+    DTD = gram[:12, :12] * _DOT_SIGNS  # (a sign flip is exact: the same as row, then column)
     ev = np.linalg.eigvalsh(DTD)
     if not ev[0] > 1e-18 * ev[-1]:  # (singular values 1e-9 apart): turned about one axis only
         return None
@@ -125,38 +126,54 @@ _T_ROW, _T_COL, _T_A, _T_J = np.array(
 
 
 _C = np.arange(6)
+#: Rows and columns of the coefficient entries set from a list (_joint_coefficients).
+_CM_XX = (15 + _T_ROW, 3 + _T_COL)
+_CM_MU = (12 + _TRI_B, 3 + _C)
+#: vee(K - K^T)'s terms: K[i, l] - K[l, i] for (i, l) = (2, 1), (0, 2), (1, 0).
+_VEE_I = np.array([2, 0, 1])
+_VEE_L = np.array([1, 2, 0])
+#: The identity's entries [m, b] for L's entries' columns b (the Jacobian of Q G' in L).
+_EYE_TRI = _EYE3[None, :, _TRI_B]
+#: A's entries in the order of the six means of x x^T, and their weight in tr(A M).
+_A_UPPER = np.array([3 * i + j for i, j in _UPPER])
+_A_TWICE = np.array([1.0 if i == j else 2.0 for i, j in _UPPER])
 
 
 def _joint_coefficients(
     o: FloatArray, L: FloatArray, Q: FloatArray, s: float
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
 
     All are linear in a row's features and 1 (``G' = G - m o^T`` is): returned are their
-    coefficients, (22,) or (22, 13), on :func:`_with_one`'s ``F`` (``F @ Cd``: the Jacobian).
+    coefficients on :func:`_with_one`'s ``F``: the residuals' (22, 2) (``F @ c``: the dot
+    and the magnitude residual of each row), the dot's and the magnitude's Jacobians
+    (22, 13) each (``F @ Cd``). Every entry is a product or a sum of a few: this runs
+    once per Gauss-Newton step, so it is written for few numpy calls.
     """
     P = Q.T @ L
     # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
-    # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m].
-    K = np.einsum("ij,lm->jmil", Q, L).reshape(9, 3, 3)
-    E = np.einsum("aj,mb->jmab", Q, _EYE3).reshape(9, 3, 3)
+    # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m]:
+    # Q[a, j] I[m, b] for L's entry (a, b), Q[i, j] L[l, m] for K[i, l].
     CD = np.zeros((_JOINT_FEATURES + 1, 10))
     W = CD[:9]
     W[:, 0] = P.reshape(9)
-    W[:, 1:7] = E[:, _TRI_A, _TRI_B]
-    W[:, 7] = K[:, 2, 1] - K[:, 1, 2]
-    W[:, 8] = K[:, 0, 2] - K[:, 2, 0]
-    W[:, 9] = K[:, 1, 0] - K[:, 0, 1]
+    W[:, 1:7] = (Q.T[:, None, _TRI_A] * _EYE_TRI).reshape(9, 6)
+    W[:, 7:10] = (
+        Q[_VEE_I].T[:, None, :] * L[_VEE_L].T[None, :, :]
+        - Q[_VEE_L].T[:, None, :] * L[_VEE_I].T[None, :, :]
+    ).reshape(9, 3)
+    W[:, 1:10] += 0.0  # a zero product as +0.0: the sign of zero an einsum of these gave
     # G' W = G W - m (o's contraction of W): the m features' coefficients.
     CD[9:12] = -np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
     # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
     # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
-    cd = CD[:, 0] / s
-    cd[-1] -= 1.0
+    c = np.zeros((_JOINT_FEATURES + 1, 2))
+    c[:, 0] = CD[:, 0] / s
+    c[-1, 0] -= 1.0
     Cd = np.zeros((_JOINT_FEATURES + 1, 13))
     Cd[9:12, :3] = -P / s
-    Cd[:, 3:9] = CD[:, 1:7] / s
-    Cd[:, 9:12] = -CD[:, 7:10] / s
+    Cd[:, 3:12] = CD[:, 1:10] / s
+    Cd[:, 9:12] *= -1.0  # the rotation's: -(CD / s), exactly
     Cd[:, 12] = -CD[:, 0] / (s * s)
     # The magnitude rows: tr(A M) and 2 (L M)[a, b] with M = S - mu o^T - o mu^T + o o^T
     # (_magnitude_moment), from the window means of x (mu, features 12-14) and of
@@ -164,19 +181,18 @@ def _joint_coefficients(
     A = L.T @ L
     Ao = A @ o
     Lo = L @ o
-    cm = np.zeros(_JOINT_FEATURES + 1)
-    cm[12:15] = -2.0 * Ao
-    cm[15:21] = [A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]]
-    cm[-1] = float(o @ Ao) - 1.0
+    c[12:15, 1] = -2.0 * Ao
+    c[15:21, 1] = A.reshape(9)[_A_UPPER] * _A_TWICE
+    c[-1, 1] = float(o @ Ao) - 1.0
     Cm = np.zeros((_JOINT_FEATURES + 1, 13))
     Cm[12:15, :3] = -2.0 * A  # -2 (mu - o) A
     Cm[-1, :3] = 2.0 * (o @ A)
     # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means of x x^T
-    Cm[15 + _T_ROW, 3 + _T_COL] = 2.0 * L[_T_A, _T_J]
+    Cm[_CM_XX] = 2.0 * L[_T_A, _T_J]
     Cm[12:15, 3:9] = -2.0 * L[_TRI_A, :].T * o[_TRI_B]  # -(L mu)[a] o[b]
-    Cm[12 + _TRI_B, 3 + _C] -= 2.0 * Lo[_TRI_A]  # -(L o)[a] mu[b]
+    Cm[_CM_MU] -= 2.0 * Lo[_TRI_A]  # -(L o)[a] mu[b]
     Cm[-1, 3:9] = 2.0 * Lo[_TRI_A] * o[_TRI_B]
-    return cd, Cd, cm, Cm
+    return c, Cd, Cm
 
 
 def _correlation_time(r: FloatArray) -> float:
@@ -240,8 +256,8 @@ def _solve_joint(
     # finite: no candidate); numpy's overflow warnings would only be noise in the log.
     with np.errstate(over="ignore", invalid="ignore"):
         for it in range(iterations):
-            cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
-            r = F @ np.column_stack([cd, cm])
+            c, Cd, Cm = _joint_coefficients(o, L, Q, s)
+            r = F @ c
             if it == 0:
                 wd = _weight(r[:, 0])
                 wm = _weight(r[:, 1]) * magnitude_weight
@@ -255,8 +271,7 @@ def _solve_joint(
                 return None
             o = o + step[:3]
             L = L.copy()
-            for c, (a, b) in enumerate(_TRI):
-                L[a, b] += step[3 + c]
+            L[_TRI_A, _TRI_B] += step[3:9]
             Q = rotvec_to_dcm(step[9:12]) @ Q
             s += float(step[12])
             if float(np.max(np.abs(step))) < _STEP_TOL:
