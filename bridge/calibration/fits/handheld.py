@@ -55,8 +55,8 @@ from bridge.calibration.fits.handheld_models import (
     _gram,
     _joint_features,
     _linear_joint,
-    _solve_joint,
     _solve_rotation,
+    solve_joints,
 )
 from bridge.calibration.fits.scalar import fit_scalar_accel
 from bridge.calibration.fits.series import (
@@ -237,18 +237,18 @@ def _trial(
     edges = np.linspace(0, len(wm), blocks + 1).astype(int)
     # Each replicate's Gram matrix is the sum of the other blocks': one pass over the rows.
     grams = [_gram(wm.rows[edges[b] : edges[b + 1]]) for b in range(blocks)]
-    first = solve(wm.rows, np.sum(grams, axis=0))
-    if first is None:
-        return None
-    full = finish(first)
-    reps: list[Candidate] = []
+    # The whole series first, then each replicate: solved together (solve_joints).
+    rows = [wm.rows]
+    gram_sums = [np.sum(grams, axis=0)]
     for b in range(blocks):
         keep = np.ones(len(wm), dtype=bool)
         keep[edges[b] : edges[b + 1]] = False
-        r = solve(wm.rows[keep], np.sum(grams[:b] + grams[b + 1 :], axis=0))
-        if r is None:
-            return None
-        reps.append(finish(r))
+        rows.append(wm.rows[keep])
+        gram_sums.append(np.sum(grams[:b] + grams[b + 1 :], axis=0))
+    solved = solve(rows, gram_sums)
+    if any(r is None for r in solved):
+        return None
+    full, *reps = (finish(r) for r in solved if r is not None)
     return _Trial(window_s, len(wm), full, spread(full, reps, field_dir))
 
 
@@ -333,7 +333,12 @@ def fit_handheld(
         def finish(c: Candidate) -> Candidate:
             return given, c[1], c[2]
 
-        return _best(feats, spans, period, windows_s, _solve_rotation, finish, fdir, blocks)
+        def rotations(
+            rows: Sequence[FloatArray], grams: Sequence[FloatArray]
+        ) -> list[Candidate | None]:
+            return [_solve_rotation(r, g) for r, g in zip(rows, grams, strict=True)]
+
+        return _best(feats, spans, period, windows_s, rotations, finish, fdir, blocks)
 
     if accel is not None:
         tr = rotation_only(accel)
@@ -346,8 +351,10 @@ def fit_handheld(
         # Shaken: its squares of the shake beat slowly, so it only sets the scale.
         weight = 1.0 if motion <= STILL_MOTION_G else SHAKEN_MAGNITUDE_WEIGHT
 
-        def joint(rows: FloatArray, gram: FloatArray) -> Candidate | None:
-            return _solve_joint(rows, gram, weight)
+        def joint(
+            rows: Sequence[FloatArray], grams: Sequence[FloatArray]
+        ) -> list[Candidate | None]:
+            return solve_joints(rows, grams, weight)
 
         tr = _best(feats, spans, period, windows_s, joint, lambda c: c, fdir, blocks)
         fitted = tr is not None

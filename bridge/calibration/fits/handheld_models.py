@@ -9,15 +9,16 @@ module's docstring for the models.
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from bridge.calibration.fits.scalar import _lower_factor
 from bridge.calibration.model import AffineCalibration
 from bridge.core.geometry import rotvec_to_dcm
-from bridge.types import FloatArray
+from bridge.types import BoolArray, FloatArray
 
 #: Smallest per-row eigenvalue of the normal matrix (unit vectors): below, an axis is unobserved.
 _MIN_INFORMATION = 1e-4
@@ -44,7 +45,8 @@ def _joint_features(m_unit: FloatArray, x: FloatArray) -> FloatArray:
 
 
 Candidate = tuple[AffineCalibration, FloatArray, float]  # accel, rotation, sin(dip)
-Solver = Callable[[FloatArray, FloatArray], "Candidate | None"]  # rows, their _gram
+#: Several sets of rows and their _gram in, a candidate (or None) for each out.
+Solver = Callable[[Sequence[FloatArray], Sequence[FloatArray]], "list[Candidate | None]"]
 Finisher = Callable[[Candidate], Candidate]
 
 
@@ -140,58 +142,65 @@ _A_TWICE = np.array([1.0 if i == j else 2.0 for i, j in _UPPER])
 
 
 def _joint_coefficients(
-    o: FloatArray, L: FloatArray, Q: FloatArray, s: float
+    o: FloatArray, L: FloatArray, Q: FloatArray, s: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
 
     All are linear in a row's features and 1 (``G' = G - m o^T`` is): returned are their
     coefficients on :func:`_with_one`'s ``F``: the residuals' (22, 2) (``F @ c``: the dot
     and the magnitude residual of each row), the dot's and the magnitude's Jacobians
-    (22, 13) each (``F @ Cd``). Every entry is a product or a sum of a few: this runs
-    once per Gauss-Newton step, so it is written for few numpy calls.
+    (22, 13) each (``F @ Cd``). For ``B`` problems at once: ``o`` (B, 3), ``L`` and ``Q``
+    (B, 3, 3), ``s`` (B,); the results have a leading axis of ``B``. Every entry is a
+    product or a sum of a few, each problem's computed as it would be alone: this runs
+    once per Gauss-Newton step of all the jackknife's problems, so it is written for few
+    numpy calls.
     """
-    P = Q.T @ L
+    B = o.shape[0]
+    QT = np.swapaxes(Q, 1, 2)
+    P = QT @ L
     # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
     # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m]:
     # Q[a, j] I[m, b] for L's entry (a, b), Q[i, j] L[l, m] for K[i, l].
-    CD = np.zeros((_JOINT_FEATURES + 1, 10))
-    W = CD[:9]
-    W[:, 0] = P.reshape(9)
-    W[:, 1:7] = (Q.T[:, None, _TRI_A] * _EYE_TRI).reshape(9, 6)
-    W[:, 7:10] = (
-        Q[_VEE_I].T[:, None, :] * L[_VEE_L].T[None, :, :]
-        - Q[_VEE_L].T[:, None, :] * L[_VEE_I].T[None, :, :]
-    ).reshape(9, 3)
-    W[:, 1:10] += 0.0  # a zero product as +0.0: the sign of zero an einsum of these gave
+    CD = np.zeros((B, _JOINT_FEATURES + 1, 10))
+    W = CD[:, :9]
+    W[:, :, 0] = P.reshape(B, 9)
+    W[:, :, 1:7] = (QT[:, :, None, _TRI_A] * _EYE_TRI).reshape(B, 9, 6)
+    W[:, :, 7:10] = (
+        np.swapaxes(Q[:, _VEE_I], 1, 2)[:, :, None, :] * np.swapaxes(L[:, _VEE_L], 1, 2)[:, None]
+        - np.swapaxes(Q[:, _VEE_L], 1, 2)[:, :, None, :] * np.swapaxes(L[:, _VEE_I], 1, 2)[:, None]
+    ).reshape(B, 9, 3)
+    W[:, :, 1:10] += 0.0  # a zero product as +0.0: the sign of zero an einsum of these gave
     # G' W = G W - m (o's contraction of W): the m features' coefficients.
-    CD[9:12] = -np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
+    CD[:, 9:12] = -np.einsum("bm,bimc->bic", o, W.reshape(B, 3, 3, 10))
     # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
     # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
-    c = np.zeros((_JOINT_FEATURES + 1, 2))
-    c[:, 0] = CD[:, 0] / s
-    c[-1, 0] -= 1.0
-    Cd = np.zeros((_JOINT_FEATURES + 1, 13))
-    Cd[9:12, :3] = -P / s
-    Cd[:, 3:12] = CD[:, 1:10] / s
-    Cd[:, 9:12] *= -1.0  # the rotation's: -(CD / s), exactly
-    Cd[:, 12] = -CD[:, 0] / (s * s)
+    s3 = s[:, None, None]
+    c = np.zeros((B, _JOINT_FEATURES + 1, 2))
+    c[:, :, 0] = CD[:, :, 0] / s[:, None]
+    c[:, -1, 0] -= 1.0
+    Cd = np.zeros((B, _JOINT_FEATURES + 1, 13))
+    Cd[:, 9:12, :3] = -P / s3
+    Cd[:, :, 3:12] = CD[:, :, 1:10] / s3
+    Cd[:, :, 9:12] *= -1.0  # the rotation's: -(CD / s), exactly
+    Cd[:, :, 12] = -CD[:, :, 0] / (s * s)[:, None]
     # The magnitude rows: tr(A M) and 2 (L M)[a, b] with M = S - mu o^T - o mu^T + o o^T
     # (_magnitude_moment), from the window means of x (mu, features 12-14) and of
     # x x^T (xx, the six after).
-    A = L.T @ L
-    Ao = A @ o
-    Lo = L @ o
-    c[12:15, 1] = -2.0 * Ao
-    c[15:21, 1] = A.reshape(9)[_A_UPPER] * _A_TWICE
-    c[-1, 1] = float(o @ Ao) - 1.0
-    Cm = np.zeros((_JOINT_FEATURES + 1, 13))
-    Cm[12:15, :3] = -2.0 * A  # -2 (mu - o) A
-    Cm[-1, :3] = 2.0 * (o @ A)
+    A = np.swapaxes(L, 1, 2) @ L
+    oc = o[:, :, None]  # o as a column, o[:, None] as a row: each product as with one o
+    Ao = (A @ oc)[:, :, 0]
+    Lo = (L @ oc)[:, :, 0]
+    c[:, 12:15, 1] = -2.0 * Ao
+    c[:, 15:21, 1] = A.reshape(B, 9)[:, _A_UPPER] * _A_TWICE
+    c[:, -1, 1] = (o[:, None] @ Ao[:, :, None])[:, 0, 0] - 1.0
+    Cm = np.zeros((B, _JOINT_FEATURES + 1, 13))
+    Cm[:, 12:15, :3] = -2.0 * A  # -2 (mu - o) A
+    Cm[:, -1, :3] = 2.0 * (o[:, None] @ A)[:, 0]
     # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means of x x^T
-    Cm[_CM_XX] = 2.0 * L[_T_A, _T_J]
-    Cm[12:15, 3:9] = -2.0 * L[_TRI_A, :].T * o[_TRI_B]  # -(L mu)[a] o[b]
-    Cm[_CM_MU] -= 2.0 * Lo[_TRI_A]  # -(L o)[a] mu[b]
-    Cm[-1, 3:9] = 2.0 * Lo[_TRI_A] * o[_TRI_B]
+    Cm[:, _CM_XX[0], _CM_XX[1]] = 2.0 * L[:, _T_A, _T_J]
+    Cm[:, 12:15, 3:9] = -2.0 * np.swapaxes(L[:, _TRI_A], 1, 2) * o[:, None, _TRI_B]
+    Cm[:, _CM_MU[0], _CM_MU[1]] -= 2.0 * Lo[:, _TRI_A]  # -(L o)[a] mu[b]
+    Cm[:, -1, 3:9] = 2.0 * Lo[:, _TRI_A] * o[:, _TRI_B]
     return c, Cd, Cm
 
 
@@ -225,6 +234,22 @@ def _weight(r: FloatArray) -> float:
 _STEP_TOL = 1e-10
 
 
+def _steps(JTJ: FloatArray, rhs: FloatArray) -> tuple[FloatArray, BoolArray]:
+    """Each problem's Gauss-Newton step ``JTJ[k] \\ rhs[k]``, and which are singular (no step)."""
+    try:
+        step = np.asarray(np.linalg.solve(JTJ, rhs[:, :, None])[:, :, 0], dtype=np.float64)
+        return step, np.zeros(len(rhs), dtype=bool)
+    except np.linalg.LinAlgError:  # one of them: tell which
+        step = np.zeros_like(rhs)
+        bad = np.zeros(len(rhs), dtype=bool)
+        for k in range(len(rhs)):
+            try:
+                step[k] = np.linalg.solve(JTJ[k], rhs[k])
+            except np.linalg.LinAlgError:
+                bad[k] = True
+        return step, bad
+
+
 def _solve_joint(
     rows: FloatArray,
     gram: FloatArray | None = None,
@@ -243,45 +268,81 @@ def _solve_joint(
     ``gram``: the rows' :func:`_gram`, if known. ``J^T J = C^T gram C`` with the
     coefficients ``C`` (:func:`_joint_coefficients`); only the residuals are formed
     per row (for ``J^T r``, which the Gram matrix would give with cancellation).
+    One problem of :func:`solve_joints`.
     """
     G = _gram(rows) if gram is None else gram
-    start = _linear_joint(G)
-    if start is None:
-        return None
-    accel, Q, s = start
-    o, L = accel.offset_array, accel.matrix_array
-    F = _with_one(rows)
-    wd = wm = 1.0
+    return solve_joints([rows], [G], magnitude_weight, iterations)[0]
+
+
+def solve_joints(
+    rows: Sequence[FloatArray],
+    grams: Sequence[FloatArray],
+    magnitude_weight: float = 1.0,
+    iterations: int = 8,
+) -> list[Candidate | None]:
+    """:func:`_solve_joint` of several sets of rows (and their :func:`_gram`) at once.
+
+    The jackknife's problems (the whole series and each one without a block) step
+    together: the small matrices of all of them go through each numpy call at once
+    (one call instead of one per problem: they cost their call, not their size), the
+    rows of each through its own products. Each problem's numbers are what it would
+    give alone, and it stops when its own step is small.
+    """
+    B = len(rows)
+    out: list[Candidate | None] = [None] * B
+    begun = [(b, st) for b, st in enumerate(map(_linear_joint, grams)) if st is not None]
+    if not begun:
+        return out
+    act = [b for b, _ in begun]
+    G = np.stack([grams[b] for b in act])
+    o = np.stack([st[0].offset_array for _, st in begun])
+    L = np.stack([st[0].matrix_array for _, st in begun])
+    Q = np.stack([st[1] for _, st in begun])
+    s = np.array([st[2] for _, st in begun])
+    F = [_with_one(rows[b]) for b in act]
+    wd = np.ones(len(act))
+    wm = np.ones(len(act))
+    live = np.arange(len(act))  # of act: still stepping
+    failed = np.zeros(len(act), dtype=bool)
     # Windows that do not pin the model can send it off to infinity: judged below (not
     # finite: no candidate); numpy's overflow warnings would only be noise in the log.
     with np.errstate(over="ignore", invalid="ignore"):
         for it in range(iterations):
-            c, Cd, Cm = _joint_coefficients(o, L, Q, s)
-            r = F @ c
-            if it == 0:
-                wd = _weight(r[:, 0])
-                wm = _weight(r[:, 1]) * magnitude_weight
-            Fr = F.T @ r
+            c, Cd, Cm = _joint_coefficients(o[live], L[live], Q[live], s[live])
+            JTr = np.empty((live.size, 13))
+            for k, b in enumerate(live):
+                r = F[b] @ c[k]
+                if it == 0:
+                    wd[b] = _weight(r[:, 0])
+                    wm[b] = _weight(r[:, 1]) * magnitude_weight
+                Fr = F[b].T @ r
+                JTr[k] = (wd[b] * wd[b]) * (Cd[k].T @ Fr[:, 0]) + (wm[b] * wm[b]) * (
+                    Cm[k].T @ Fr[:, 1]
+                )
             # J^T J and J^T r of the weighted rows stacked, without stacking them
-            JTJ = (wd * wd) * (Cd.T @ G @ Cd) + (wm * wm) * (Cm.T @ G @ Cm)
-            JTr = (wd * wd) * (Cd.T @ Fr[:, 0]) + (wm * wm) * (Cm.T @ Fr[:, 1])
-            try:
-                step = np.linalg.solve(JTJ, -JTr)
-            except np.linalg.LinAlgError:
-                return None
-            o = o + step[:3]
-            L = L.copy()
-            L[_TRI_A, _TRI_B] += step[3:9]
-            Q = rotvec_to_dcm(step[9:12]) @ Q
-            s += float(step[12])
-            if float(np.max(np.abs(step))) < _STEP_TOL:
+            Gl = G[live]
+            w2d = (wd[live] * wd[live])[:, None, None]
+            w2m = (wm[live] * wm[live])[:, None, None]
+            JTJ = w2d * (np.swapaxes(Cd, 1, 2) @ Gl @ Cd) + w2m * (np.swapaxes(Cm, 1, 2) @ Gl @ Cm)
+            step, bad = _steps(JTJ, -JTr)
+            failed[live[bad]] = True
+            o[live] = o[live] + step[:, :3]
+            Ll = L[live]
+            Ll[:, _TRI_A, _TRI_B] += step[:, 3:9]
+            L[live] = Ll
+            for k, b in enumerate(live):
+                Q[b] = rotvec_to_dcm(step[k, 9:12]) @ Q[b]
+            s[live] = s[live] + step[:, 12]
+            live = live[~bad & ~(np.max(np.abs(step), axis=1) < _STEP_TOL)]
+            if live.size == 0:
                 break
-    if not np.all(np.isfinite(L)) or not np.all(np.diag(L) > 0.0):
-        return None
-    try:
-        return AffineCalibration.from_arrays(o, L), Q, s
-    except ValueError:
-        return None
+    for k, i in enumerate(act):
+        Lk = L[k]
+        if failed[k] or not np.all(np.isfinite(Lk)) or not np.all(np.diag(Lk) > 0.0):
+            continue
+        with contextlib.suppress(ValueError):  # not a calibration: no candidate
+            out[i] = AffineCalibration.from_arrays(o[k], Lk), Q[k].copy(), float(s[k])
+    return out
 
 
 #: ``a m^T`` one feature at a time: the rotation's Jacobian on them is its coefficients.
