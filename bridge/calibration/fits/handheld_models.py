@@ -60,9 +60,13 @@ def _second_moments(rows: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def _magnitude_moment(mu: FloatArray, S: FloatArray, o: FloatArray) -> FloatArray:
-    """``M`` with ``tr(L^T L M)`` the window mean of ``|L (x - o)|^2`` (exact for any turn)."""
+    """``M`` with ``tr(L^T L M)`` the window mean of ``|L (x - o)|^2`` (exact for any turn);
+    ``o`` (n, 3): each row's own offset."""
     return np.asarray(
-        S - mu[:, :, None] * o[None, None, :] - o[None, :, None] * mu[:, None, :] + np.outer(o, o),
+        S
+        - mu[:, :, None] * o[:, None, :]
+        - o[:, :, None] * mu[:, None, :]
+        + o[:, :, None] * o[:, None, :],
         dtype=np.float64,
     )
 
@@ -84,21 +88,37 @@ _DOT_SIGNS = _DOT_SIGN[:, None] * _DOT_SIGN[None, :]
 
 def _linear_joint(gram: FloatArray) -> Candidate | None:
     """Closed-form start from the rows' :func:`_gram`: (P, q) from the dot constraint, the
-    scale from ``|g| = 1``."""
-    n = gram[-1, -1]
+    scale from ``|g| = 1``. One problem of :func:`_linear_joints`."""
+    return _linear_joints(gram[None])[0]
+
+
+def _linear_joints(grams: FloatArray) -> list[Candidate | None]:
+    """:func:`_linear_joint` of a stack of Gram matrices (B, 22, 22): the factorisations
+    of all the problems in one numpy call each, every problem's numbers as alone."""
+    out: list[Candidate | None] = [None] * len(grams)
+    n = grams[:, -1, -1]
     # D = (m (x) x, -m) per row: D^T D and D^T 1 are the Gram's entries with signs.
-    DTD = gram[:12, :12] * _DOT_SIGNS  # (a sign flip is exact: the same as row, then column)
+    DTD = grams[:, :12, :12] * _DOT_SIGNS  # (a sign flip is exact: the same as row, then column)
     ev = np.linalg.eigvalsh(DTD)
-    if not ev[0] > 1e-18 * ev[-1]:  # (singular values 1e-9 apart): turned about one axis only
-        return None
-    v = np.linalg.solve(DTD, _DOT_SIGN * gram[:12, -1])
-    P = v[:9].reshape(3, 3)
-    if not np.linalg.det(P) > 0.0:
-        return None
-    o = np.linalg.solve(P, v[9:12])
+    # (singular values 1e-9 apart): turned about one axis only
+    k = np.flatnonzero(ev[:, 0] > 1e-18 * ev[:, -1])
+    v = np.linalg.solve(DTD[k], (_DOT_SIGN * grams[k, :12, -1])[:, :, None])[:, :, 0]
+    P = v[:, :9].reshape(-1, 3, 3)
+    det_ok = np.linalg.det(P) > 0.0
+    k, v, P = k[det_ok], v[det_ok], P[det_ok]
+    o = np.linalg.solve(P, v[:, 9:12, None])[:, :, 0]
     # The mean of |P (x - o)|^2 over the rows is linear in their means (_magnitude_moment).
-    mu, S = _second_moments(gram[-1:, :-1] / n)
-    mean_sq = float(np.einsum("ij,kij->", P.T @ P, _magnitude_moment(mu, S, o)))
+    mu, S = _second_moments(grams[k, -1, :-1] / n[k, None])
+    M = _magnitude_moment(mu, S, o)
+    for j, b in enumerate(k):
+        out[b] = _scaled_start(P[j], o[j], M[j : j + 1])
+    return out
+
+
+def _scaled_start(P: FloatArray, o: FloatArray, M: FloatArray) -> Candidate | None:
+    """The linear start of one problem from its ``P``, ``o`` and :func:`_magnitude_moment`:
+    scaled so the rows' mean ``|P (x - o)|^2`` is 1, ``P`` split into ``Q^T L``."""
+    mean_sq = float(np.einsum("ij,kij->", P.T @ P, M))
     if not (math.isfinite(mean_sq) and mean_sq > 0.0):
         return None
     c = 1.0 / math.sqrt(mean_sq)
@@ -290,7 +310,7 @@ def solve_joints(
     """
     B = len(rows)
     out: list[Candidate | None] = [None] * B
-    begun = [(b, st) for b, st in enumerate(map(_linear_joint, grams)) if st is not None]
+    begun = [(b, st) for b, st in enumerate(_linear_joints(np.stack(grams))) if st is not None]
     if not begun:
         return out
     act = [b for b, _ in begun]
