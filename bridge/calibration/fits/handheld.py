@@ -55,8 +55,8 @@ from bridge.calibration.fits.handheld_models import (
     _gram,
     _joint_features,
     _linear_joint,
-    _solve_rotation,
     solve_joints,
+    solve_rotations,
 )
 from bridge.calibration.fits.scalar import fit_scalar_accel
 from bridge.calibration.fits.series import (
@@ -333,12 +333,7 @@ def fit_handheld(
         def finish(c: Candidate) -> Candidate:
             return given, c[1], c[2]
 
-        def rotations(
-            rows: Sequence[FloatArray], grams: Sequence[FloatArray]
-        ) -> list[Candidate | None]:
-            return [_solve_rotation(r, g) for r, g in zip(rows, grams, strict=True)]
-
-        return _best(feats, spans, period, windows_s, rotations, finish, fdir, blocks)
+        return _best(feats, spans, period, windows_s, solve_rotations, finish, fdir, blocks)
 
     if accel is not None:
         tr = rotation_only(accel)

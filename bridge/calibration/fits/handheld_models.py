@@ -369,27 +369,47 @@ def solve_joints(
 _ROTATION_BASIS = np.eye(9).reshape(9, 3, 3)
 
 
-def _solve_rotation(
-    rows: FloatArray, gram: FloatArray | None = None, iterations: int = 12
-) -> Candidate | None:
-    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)."""
-    G = _gram(rows) if gram is None else gram
-    n = G[-1, -1]
-    F = _with_one(rows)
-    R = np.eye(3)
-    s = float(np.sum(G[-1, [0, 4, 8]]) / n)
-    C = np.zeros((10, 4))  # J = F C
-    C[-1, 3] = -1.0
+def solve_rotations(
+    rows: Sequence[FloatArray], grams: Sequence[FloatArray], iterations: int = 12
+) -> list[Candidate | None]:
+    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)
+    for several sets of rows (and their :func:`_gram`) at once, as :func:`solve_joints`
+    does: each problem's numbers as alone."""
+    B = len(rows)
+    out: list[Candidate | None] = [None] * B
+    G = np.stack(grams)
+    n = G[:, -1, -1]
+    F = [_with_one(r) for r in rows]
+    R = np.repeat(np.eye(3)[None], B, axis=0)
+    s = np.array([float(np.sum(g[-1, [0, 4, 8]]) / g[-1, -1]) for g in grams])
+    C = np.zeros((B, 10, 4))  # J = F C
+    C[:, -1, 3] = -1.0
+    live = np.arange(B)
+    unobserved = np.zeros(B, dtype=bool)
     for _ in range(iterations):
-        e = F @ np.append(R.reshape(9), -s)
-        RE = np.einsum("ij,klj->kil", R, _ROTATION_BASIS)  # (R m) a^T per row
-        C[:-1, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
-        JTJ = C.T @ G @ C
-        if not float(np.linalg.eigvalsh(JTJ)[0]) / n >= _MIN_INFORMATION:
-            return None
-        step = np.linalg.solve(JTJ, -(C.T @ (F.T @ e)))
-        R = rotvec_to_dcm(step[:3]) @ R
-        s += float(step[3])
-        if float(np.linalg.norm(step)) < _STEP_TOL:
+        RE = np.einsum("bij,klj->bkil", R[live], _ROTATION_BASIS)  # (R m) a^T per row
+        Cl = C[live]
+        Cl[:, :-1, :3] = _vee(np.swapaxes(RE, 2, 3) - RE)
+        C[live] = Cl
+        JTJ = np.swapaxes(Cl, 1, 2) @ G[live] @ Cl
+        informed = np.linalg.eigvalsh(JTJ)[:, 0] / n[live] >= _MIN_INFORMATION
+        unobserved[live[~informed]] = True
+        live, JTJ, Cl = live[informed], JTJ[informed], Cl[informed]
+        if live.size == 0:
             break
-    return AffineCalibration(), R, s
+        rhs = np.empty((live.size, 4))
+        for k, b in enumerate(live):
+            e = F[b] @ np.append(R[b].reshape(9), -s[b])
+            rhs[k] = -(Cl[k].T @ (F[b].T @ e))
+        step = np.linalg.solve(JTJ, rhs[:, :, None])[:, :, 0]
+        small = np.zeros(live.size, dtype=bool)
+        for k, b in enumerate(live):
+            R[b] = rotvec_to_dcm(step[k, :3]) @ R[b]
+            small[k] = float(np.linalg.norm(step[k])) < _STEP_TOL
+        s[live] = s[live] + step[:, 3]
+        live = live[~small]
+        if live.size == 0:
+            break
+    for b in np.flatnonzero(~unobserved):
+        out[b] = AffineCalibration(), R[b].copy(), float(s[b])
+    return out
