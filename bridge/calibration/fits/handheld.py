@@ -55,6 +55,8 @@ from bridge.calibration.fits.handheld_models import (
     _gram,
     _joint_features,
     _linear_joint,
+    _with_one,
+    gram_of,
     solve_joints,
     solve_rotations,
 )
@@ -153,12 +155,14 @@ def _unit_rows(v: FloatArray) -> FloatArray:
 
 
 def _headings(
-    accel: AffineCalibration, Q: FloatArray, x: FloatArray, m_sym: FloatArray
+    cals: Sequence[Candidate], x: FloatArray, m_sym: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    g = accel.apply(x)
-    m = m_sym @ Q.T
+    """Headings (B, N) and unit gravity vectors (B, N, 3) of raw ``x`` and ``m_sym`` read
+    through each calibration: one call of the (row by row) formulas for all of them."""
+    g = np.concatenate([accel.apply(x) for accel, _, _ in cals])
+    m = np.concatenate([m_sym @ Q.T for _, Q, _ in cals])
     _, _, h = tilt_compensated_heading(m, g)
-    return h, _unit_rows(g)
+    return h.reshape(len(cals), -1), _unit_rows(g).reshape(len(cals), -1, 3)
 
 
 def spread(base: Candidate, replicates: Sequence[Candidate], field_dir_ned: FloatArray) -> Spread:
@@ -176,16 +180,12 @@ def spread(base: Candidate, replicates: Sequence[Candidate], field_dir_ned: Floa
     L0 = accel0.matrix_array
     x = np.linalg.solve(L0, g_b.T).T + accel0.offset_array
     m_sym = m_b @ Q0  # Q0^T m_b per row
-    h0, u0 = _headings(accel0, Q0, x, m_sym)
     B = len(replicates)
     if B < 2:
         return Spread(math.nan, math.nan)
-    dh = np.empty((B, x.shape[0]))
-    du = np.empty((B, x.shape[0], 3))
-    for b, (acc_b, Q_b, _) in enumerate(replicates):
-        h, u = _headings(acc_b, Q_b, x, m_sym)
-        dh[b] = (h - h0 + 180.0) % 360.0 - 180.0
-        du[b] = u - u0
+    h, u = _headings([base, *replicates], x, m_sym)
+    dh = (h[1:] - h[0] + 180.0) % 360.0 - 180.0
+    du = u[1:] - u[0]
     k = (B - 1) / B
     var_h = k * np.sum((dh - dh.mean(axis=0)) ** 2, axis=0)
     var_u = k * np.sum((du - du.mean(axis=0)) ** 2, axis=(0, 2))
@@ -199,8 +199,7 @@ def change(a: Candidate, b: Candidate, base: Candidate, field_dir_ned: FloatArra
     m_b = np.einsum("nji,j->ni", _EVAL_R, field_dir_ned)
     x = np.linalg.solve(accel0.matrix_array, g_b.T).T + accel0.offset_array
     m_sym = m_b @ Q0
-    ha, ua = _headings(a[0], a[1], x, m_sym)
-    hb, ub = _headings(b[0], b[1], x, m_sym)
+    (ha, hb), (ua, ub) = _headings([a, b], x, m_sym)
     dh = (ha - hb + 180.0) % 360.0 - 180.0
     cos = np.clip(np.sum(ua * ub, axis=1), -1.0, 1.0)
     return Spread(
@@ -236,14 +235,15 @@ def _trial(
         return None
     edges = np.linspace(0, len(wm), blocks + 1).astype(int)
     # Each replicate's Gram matrix is the sum of the other blocks': one pass over the rows.
-    grams = [_gram(wm.rows[edges[b] : edges[b + 1]]) for b in range(blocks)]
+    F = _with_one(wm.rows)
+    grams = [gram_of(F[edges[b] : edges[b + 1]]) for b in range(blocks)]
     # The whole series first, then each replicate: solved together (solve_joints).
-    rows = [wm.rows]
+    rows = [F]
     gram_sums = [np.sum(grams, axis=0)]
     for b in range(blocks):
         keep = np.ones(len(wm), dtype=bool)
         keep[edges[b] : edges[b + 1]] = False
-        rows.append(wm.rows[keep])
+        rows.append(F[keep])
         gram_sums.append(np.sum(grams[:b] + grams[b + 1 :], axis=0))
     solved = solve(rows, gram_sums)
     if any(r is None for r in solved):

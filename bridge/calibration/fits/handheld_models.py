@@ -45,7 +45,8 @@ def _joint_features(m_unit: FloatArray, x: FloatArray) -> FloatArray:
 
 
 Candidate = tuple[AffineCalibration, FloatArray, float]  # accel, rotation, sin(dip)
-#: Several sets of rows and their _gram in, a candidate (or None) for each out.
+#: Several sets of rows (each with its 1: _with_one) and their _gram in, a candidate
+#: (or None) for each out.
 Solver = Callable[[Sequence[FloatArray], Sequence[FloatArray]], "list[Candidate | None]"]
 Finisher = Callable[[Candidate], Candidate]
 
@@ -78,7 +79,11 @@ def _with_one(rows: FloatArray) -> FloatArray:
 
 def _gram(rows: FloatArray) -> FloatArray:
     """``F^T F`` (:func:`_with_one`): what ``J^T J`` and the linear start need of the rows."""
-    F = _with_one(rows)
+    return gram_of(_with_one(rows))
+
+
+def gram_of(F: FloatArray) -> FloatArray:
+    """:func:`_gram` of rows given with their 1 (``F``, as :func:`_with_one` makes them)."""
     return np.asarray(F.T @ F, dtype=np.float64)
 
 
@@ -291,16 +296,17 @@ def _solve_joint(
     One problem of :func:`solve_joints`.
     """
     G = _gram(rows) if gram is None else gram
-    return solve_joints([rows], [G], magnitude_weight, iterations)[0]
+    return solve_joints([_with_one(rows)], [G], magnitude_weight, iterations)[0]
 
 
 def solve_joints(
-    rows: Sequence[FloatArray],
+    rows_1: Sequence[FloatArray],
     grams: Sequence[FloatArray],
     magnitude_weight: float = 1.0,
     iterations: int = 8,
 ) -> list[Candidate | None]:
-    """:func:`_solve_joint` of several sets of rows (and their :func:`_gram`) at once.
+    """:func:`_solve_joint` of several sets of rows (each with its 1, :func:`_with_one`;
+    and their :func:`_gram`) at once.
 
     The jackknife's problems (the whole series and each one without a block) step
     together: the small matrices of all of them go through each numpy call at once
@@ -308,7 +314,7 @@ def solve_joints(
     rows of each through its own products. Each problem's numbers are what it would
     give alone, and it stops when its own step is small.
     """
-    B = len(rows)
+    B = len(rows_1)
     out: list[Candidate | None] = [None] * B
     begun = [(b, st) for b, st in enumerate(_linear_joints(np.stack(grams))) if st is not None]
     if not begun:
@@ -319,7 +325,7 @@ def solve_joints(
     L = np.stack([st[0].matrix_array for _, st in begun])
     Q = np.stack([st[1] for _, st in begun])
     s = np.array([st[2] for _, st in begun])
-    F = [_with_one(rows[b]) for b in act]
+    F = [rows_1[b] for b in act]
     wd = np.ones(len(act))
     wm = np.ones(len(act))
     live = np.arange(len(act))  # of act: still stepping
@@ -370,16 +376,16 @@ _ROTATION_BASIS = np.eye(9).reshape(9, 3, 3)
 
 
 def solve_rotations(
-    rows: Sequence[FloatArray], grams: Sequence[FloatArray], iterations: int = 12
+    rows_1: Sequence[FloatArray], grams: Sequence[FloatArray], iterations: int = 12
 ) -> list[Candidate | None]:
     """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)
-    for several sets of rows (and their :func:`_gram`) at once, as :func:`solve_joints`
+    for several sets of rows (each with its 1, and their :func:`_gram`) at once, as :func:`solve_joints`
     does: each problem's numbers as alone."""
-    B = len(rows)
+    B = len(rows_1)
     out: list[Candidate | None] = [None] * B
     G = np.stack(grams)
     n = G[:, -1, -1]
-    F = [_with_one(r) for r in rows]
+    F = list(rows_1)
     R = np.repeat(np.eye(3)[None], B, axis=0)
     s = np.array([float(np.sum(g[-1, [0, 4, 8]]) / g[-1, -1]) for g in grams])
     C = np.zeros((B, 10, 4))  # J = F C
@@ -398,18 +404,18 @@ def solve_rotations(
         if live.size == 0:
             break
         rhs = np.empty((live.size, 4))
-        for k, b in enumerate(live):
+        for k, b in enumerate(live.tolist()):
             e = F[b] @ np.append(R[b].reshape(9), -s[b])
             rhs[k] = -(Cl[k].T @ (F[b].T @ e))
         step = np.linalg.solve(JTJ, rhs[:, :, None])[:, :, 0]
         small = np.zeros(live.size, dtype=bool)
-        for k, b in enumerate(live):
+        for k, b in enumerate(live.tolist()):
             R[b] = rotvec_to_dcm(step[k, :3]) @ R[b]
             small[k] = float(np.linalg.norm(step[k])) < _STEP_TOL
         s[live] = s[live] + step[:, 3]
         live = live[~small]
         if live.size == 0:
             break
-    for b in np.flatnonzero(~unobserved):
+    for b in np.flatnonzero(~unobserved).tolist():
         out[b] = AffineCalibration(), R[b].copy(), float(s[b])
     return out
