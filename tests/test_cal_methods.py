@@ -109,7 +109,7 @@ def test_every_method_is_selectable_and_succeeds(name: str, unit: dict[str, obje
         assert off_err < 0.01, off_err
 
 
-@pytest.mark.parametrize("name", [*METHOD_NAMES, "best"])
+@pytest.mark.parametrize("name", [n if n != BEST else "best" for n in METHOD_NAMES])
 def test_one_fit_judged_twice_is_what_calibrate_gives_for_each_target(
     name: str, unit: dict[str, object]
 ) -> None:
