@@ -335,6 +335,8 @@ def solve_joints(
     with np.errstate(over="ignore", invalid="ignore"):
         for it in range(iterations):
             c, Cd, Cm = _joint_coefficients(o[live], L[live], Q[live], s[live])
+            # J^T J and J^T r of the weighted rows stacked, without stacking them: the
+            # residuals row by row (each problem's own rows), J^T J from the Gram matrices
             JTr = np.empty((live.size, 13))
             for k, b in enumerate(live):
                 r = F[b] @ c[k]
@@ -345,7 +347,6 @@ def solve_joints(
                 JTr[k] = (wd[b] * wd[b]) * (Cd[k].T @ Fr[:, 0]) + (wm[b] * wm[b]) * (
                     Cm[k].T @ Fr[:, 1]
                 )
-            # J^T J and J^T r of the weighted rows stacked, without stacking them
             Gl = G[live]
             w2d = (wd[live] * wd[live])[:, None, None]
             w2m = (wm[live] * wm[live])[:, None, None]
