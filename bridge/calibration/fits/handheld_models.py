@@ -107,11 +107,12 @@ def _linear_joints(grams: FloatArray) -> list[Candidate | None]:
     ev = np.linalg.eigvalsh(DTD)
     # (singular values 1e-9 apart): turned about one axis only
     k = np.flatnonzero(ev[:, 0] > 1e-18 * ev[:, -1])
-    v = np.linalg.solve(DTD[k], (_DOT_SIGN * grams[k, :12, -1])[:, :, None])[:, :, 0]
+    v, singular = _steps(DTD[k], _DOT_SIGN * grams[k, :12, -1])  # (a singular one: no start)
+    k, v = k[~singular], v[~singular]
     P = v[:, :9].reshape(-1, 3, 3)
     det_ok = np.linalg.det(P) > 0.0
     k, v, P = k[det_ok], v[det_ok], P[det_ok]
-    o = np.linalg.solve(P, v[:, 9:12, None])[:, :, 0]
+    o = np.linalg.solve(P, v[:, 9:12, None])[:, :, 0]  # (det > 0: none singular)
     # The mean of |P (x - o)|^2 over the rows is linear in their means (_magnitude_moment).
     mu, S = _second_moments(grams[k, -1, :-1] / n[k, None])
     M = _magnitude_moment(mu, S, o)
@@ -260,7 +261,8 @@ _STEP_TOL = 1e-10
 
 
 def _steps(JTJ: FloatArray, rhs: FloatArray) -> tuple[FloatArray, BoolArray]:
-    """Each problem's Gauss-Newton step ``JTJ[k] \\ rhs[k]``, and which are singular (no step)."""
+    """Each problem's solution ``JTJ[k] \\ rhs[k]`` (a Gauss-Newton step), and which are
+    singular (no solution: zeros)."""
     try:
         step = np.asarray(np.linalg.solve(JTJ, rhs[:, :, None])[:, :, 0], dtype=np.float64)
         return step, np.zeros(len(rhs), dtype=bool)
