@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from bridge.calibration.fits.accel_faces import detect_face
+from bridge.calibration.fits.acceptance import Acceptance
 from bridge.calibration.fits.methods import (
     BEST,
     METHOD_NAMES,
@@ -16,6 +17,8 @@ from bridge.calibration.fits.methods import (
     accel_calibration_for,
     calibrate,
     canonical_name,
+    fit,
+    judge,
 )
 from bridge.calibration.fits.twelve_position import twelve_position_attitudes
 from bridge.calibration.model import AffineCalibration
@@ -104,6 +107,27 @@ def test_every_method_is_selectable_and_succeeds(name: str, unit: dict[str, obje
         # every magnetometer method removes most of the hard iron (raw offset ~100 mG)
         off_err = np.abs(res.calibration.mag.offset_array - truth.mag.offset_array).max()
         assert off_err < 0.01, off_err
+
+
+@pytest.mark.parametrize("name", [n if n != BEST else "best" for n in METHOD_NAMES])
+def test_one_fit_judged_twice_is_what_calibrate_gives_for_each_target(
+    name: str, unit: dict[str, object]
+) -> None:
+    # fit, then judge: calibrate's two steps, so one fit can be held to two targets
+    data = _data_for(name, unit)
+    fitted = fit(name, data)
+    kept = repr(fitted)
+    assert fitted.report.method == canonical_name(name)
+    tight = Acceptance(heading_max_deg=1e-4, fitness_max_mG=1e-3)
+    for acceptance in (None, tight):
+        judged = judge(fitted, data, acceptance)
+        assert repr(judged) == repr(calibrate(name, data, acceptance))
+        assert repr(fitted) == kept  # judging does not change the fit
+    # the tight target fails what the default passes: the judge, not the fit, decides
+    assert not judge(fitted, data, tight).report.ok
+    assert judge(fitted, data).report.ok == (canonical_name(name) != "minmax")
+    with pytest.raises(ValueError, match="choose one of"):
+        fit("magic", data)
 
 
 def test_full_matrix_methods_beat_symmetric_ones(unit: dict[str, object]) -> None:

@@ -7,6 +7,7 @@ code under test.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -24,7 +25,7 @@ from bridge.calibration.fits.accel_faces import Face
 from bridge.calibration.fits.acceptance import Acceptance
 from bridge.calibration.fits.coverage import section
 from bridge.calibration.fits.fixed_yaw import fixed_yaw_calibration
-from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
+from bridge.calibration.fits.methods import BEST, CalibrationData, fit, judge
 from bridge.calibration.fits.sanity import orientation_confidence
 from bridge.calibration.model import (
     AffineCalibration,
@@ -439,15 +440,24 @@ def test_fixed_yaw_recovers_the_hard_iron(orient: Rotation) -> None:
 # -- COMPASS_CAL_FIT ------------------------------------------------------------------
 
 
-def _judged(sigma_G: float, limit_mG: float) -> CalibrationResult:
-    """The best method on 4000 sphere samples with ``sigma_G`` of noise, COMPASS_CAL_FIT = limit."""
+@functools.cache
+def _fitted(sigma_G: float) -> tuple[CalibrationData, CalibrationResult]:
+    """4000 sphere samples with ``sigma_G`` of noise and the best method's fit of them, not
+    yet judged: each is judged against several limits below (deterministic, never changed)."""
     rng = np.random.default_rng(1)
     R = random_rotations(rng, 4000)
     mag = np.einsum("nji,j->ni", R, B_NED) + np.array([0.05, -0.08, 0.1])
     mag += rng.normal(0.0, sigma_G, mag.shape)
     acc = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, 1.0]))
     data = CalibrationData(mag, acc, reference=float(np.linalg.norm(B_NED)))
-    return calibrate(BEST, data, Acceptance(fitness_max_mG=limit_mG))
+    return data, fit(BEST, data)
+
+
+def _judged(sigma_G: float, limit_mG: float) -> CalibrationResult:
+    """The best method on 4000 sphere samples with ``sigma_G`` of noise, COMPASS_CAL_FIT = limit
+    (``calibrate``: the fit, judged)."""
+    data, fitted = _fitted(sigma_G)
+    return judge(fitted, data, Acceptance(fitness_max_mG=limit_mG))
 
 
 def test_the_fitness_limit_is_compass_cal_fit() -> None:

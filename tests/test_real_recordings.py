@@ -38,7 +38,8 @@ from realdata import (
 )
 
 from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptance
-from bridge.calibration.fits.methods import CalibrationData, calibrate
+from bridge.calibration.fits.methods import CalibrationData, calibrate, judge
+from bridge.calibration.fits.methods import fit as fit_method
 from bridge.calibration.fits.series import runs
 from bridge.calibration.model import Calibration, CalibrationResult
 from bridge.cli import main
@@ -141,20 +142,26 @@ def _fit(v: RecordedVectors, method: str) -> CalibrationResult:
     return calibrate(method, _data(v))
 
 
-Fit = Callable[[str, str], CalibrationResult]
+Fit = Callable[..., CalibrationResult]
 
 
 @pytest.fixture(scope="module")
 def fit(recorded: dict[str, tuple[Path, RecordedVectors]]) -> Fit:
-    """``fit(name, method)``: that method's fit of the recording, made once per module.
-    Several tests check different facts of the same fit (the 100 Hz tumble's is the
-    reference of every decimated rate); a fit is deterministic and no test changes one."""
-    made: dict[tuple[str, str], CalibrationResult] = {}
+    """``fit(name, method, acceptance=None)``: that method's fit of the recording, judged
+    against ``acceptance`` (``calibrate``'s result). The fit is made once per module:
+    several tests check different facts of the same fit (the 100 Hz tumble's is the
+    reference of every decimated rate), or hold it to a tighter target; a fit is
+    deterministic and no test changes one (``methods.fit``, then ``methods.judge``)."""
+    fitted: dict[tuple[str, str], CalibrationResult] = {}
+    judged: dict[tuple[str, str, Acceptance | None], CalibrationResult] = {}
 
-    def get(name: str, method: str) -> CalibrationResult:
-        if (name, method) not in made:
-            made[name, method] = _fit(recorded[name][1], method)
-        return made[name, method]
+    def get(name: str, method: str, acceptance: Acceptance | None = None) -> CalibrationResult:
+        v = recorded[name][1]
+        if (name, method) not in fitted:
+            fitted[name, method] = fit_method(method, _data(v))
+        if (name, method, acceptance) not in judged:
+            judged[name, method, acceptance] = judge(fitted[name, method], _data(v), acceptance)
+        return judged[name, method, acceptance]
 
     return get
 
@@ -289,14 +296,12 @@ def test_the_default_method_calibrates_the_real_hand_tumble_and_saves_it(
 
 
 def test_a_real_hand_tumble_is_judged_on_its_accelerometer_and_alignment_too(
-    recorded: dict[str, tuple[Path, RecordedVectors]],
     fit: Fit,
 ) -> None:
     # 394 frames of a hand tumble with 0.05 g of shake: the magnetometer's part leaves
     # ~0.1 deg, the accelerometer and alignment a jackknife ~0.6 deg -- within the 1 deg
     # target, so it succeeds; asked for 0.25 deg, it fails naming that part, not the
     # magnetometer
-    _, v = recorded["ck_tumble"]
     rep = fit("ck_tumble", "best").report
     mag_only = fit("ck_tumble", "ellipsoid").report
     assert mag_only.ok and mag_only.predicted_heading_deg < 0.2
@@ -307,7 +312,7 @@ def test_a_real_hand_tumble_is_judged_on_its_accelerometer_and_alignment_too(
     )
     assert 0.03 < rep.motion_g < 0.08
     assert any("alignment from 394 frames" in n for n in rep.notes)
-    strict = calibrate("best", _data(v), Acceptance(heading_max_deg=0.25)).report
+    strict = fit("ck_tumble", "best", Acceptance(heading_max_deg=0.25)).report
     assert not strict.ok and strict.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
     assert strict.reason.startswith("heading error ~") and "> 0.25" in strict.reason
     assert strict.reason.endswith("turn slower / steadier")
@@ -416,17 +421,13 @@ def test_a_noisy_sparse_sensor_is_held_to_what_its_noise_and_count_allow(
 
 
 def test_a_quiet_sensor_is_held_to_the_operators_target(
-    recorded: dict[str, tuple[Path, RecordedVectors]],
     fit: Fit,
 ) -> None:
-    _, v = recorded["sap6_HC"]
     rep = fit("sap6_HC", "ellipsoid").report
     assert rep.noise_mG < 1.0 and rep.heading_limit_deg == DEFAULT_HEADING_MAX_DEG
     assert rep.ok and rep.predicted_heading_deg < rep.heading_limit_deg
     # the same samples judged against a target they cannot reach fail, saying why
-    from bridge.calibration.fits.acceptance import Acceptance
-
-    tight = calibrate("ellipsoid", _data(v), Acceptance(heading_max_deg=0.01))
+    tight = fit("sap6_HC", "ellipsoid", Acceptance(heading_max_deg=0.01))
     assert not tight.report.ok and "turn the unit through more directions" in tight.report.reason
 
 

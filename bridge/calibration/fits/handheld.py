@@ -42,13 +42,25 @@ made worse by noise.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.fits.scalar import _lower_factor, fit_scalar_accel
+from bridge.calibration.fits.handheld_models import (
+    Candidate,
+    Finisher,
+    Solver,
+    _gram,
+    _joint_features,
+    _linear_joint,
+    _with_one,
+    gram_of,
+    solve_joints,
+    solve_rotations,
+)
+from bridge.calibration.fits.scalar import fit_scalar_accel
 from bridge.calibration.fits.series import (
     MOTION_WINDOW_S,
     frame_period_s,
@@ -60,7 +72,7 @@ from bridge.calibration.fits.series import (
 )
 from bridge.calibration.model import AffineCalibration
 from bridge.core.attitude import tilt_compensated_heading
-from bridge.core.geometry import axis_angle_to_dcm, dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
+from bridge.core.geometry import axis_angle_to_dcm, dcm_to_rotvec, euler_to_dcm
 from bridge.types import FloatArray
 
 #: Averaging windows tried, seconds (0: single frames).
@@ -70,8 +82,6 @@ JACKKNIFE_BLOCKS = 10
 MIN_ROWS = 60
 #: A fitted accelerometer replaces the one in use only when it differs by this many sigmas.
 SIGNIFICANCE = 2.0
-#: Smallest per-row eigenvalue of the normal matrix (unit vectors): below, an axis is unobserved.
-_MIN_INFORMATION = 1e-4
 #: Linear acceleration (RMS per axis, g; see :func:`series.motion_rms_g`) up to which a
 #: tumble counts as still: a smooth 45 deg/s turn reads about 0.016 g, a hand's
 #: 0.05 g shake about 0.04 g.
@@ -141,292 +151,18 @@ def _unit_rows(v: FloatArray) -> FloatArray:
     return np.asarray(v / np.where(n > 0.0, n, 1.0), dtype=np.float64)
 
 
-def _vee(M: FloatArray) -> FloatArray:
-    return np.stack([M[..., 2, 1], M[..., 0, 2], M[..., 1, 0]], axis=-1)
-
-
-# -- the two models --------------------------------------------------------------------
-
-_JOINT_FEATURES = 21  # m (x) x (9), m (3), x (3), x x^T (6 unique)
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def _joint_features(m_unit: FloatArray, x: FloatArray) -> FloatArray:
-    f = np.empty((x.shape[0], _JOINT_FEATURES))
-    f[:, :9] = (m_unit[:, :, None] * x[:, None, :]).reshape(-1, 9)
-    f[:, 9:12] = m_unit
-    f[:, 12:15] = x
-    for k, (i, j) in enumerate(_UPPER):
-        f[:, 15 + k] = x[:, i] * x[:, j]
-    return f
-
-
-Candidate = tuple[AffineCalibration, FloatArray, float]  # accel, rotation, sin(dip)
-Solver = Callable[[FloatArray, FloatArray], "Candidate | None"]  # rows, their _gram
-Finisher = Callable[[Candidate], Candidate]
-
-
-def _second_moments(rows: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Window means of ``x`` (n, 3) and of ``x x^T`` (n, 3, 3) from the joint features."""
-    mu = rows[:, 12:15]
-    S = np.empty((rows.shape[0], 3, 3))
-    for k, (i, j) in enumerate(_UPPER):
-        S[:, i, j] = S[:, j, i] = rows[:, 15 + k]
-    return mu, S
-
-
-def _magnitude_moment(mu: FloatArray, S: FloatArray, o: FloatArray) -> FloatArray:
-    """``M`` with ``tr(L^T L M)`` the window mean of ``|L (x - o)|^2`` (exact for any turn)."""
-    return np.asarray(
-        S - mu[:, :, None] * o[None, None, :] - o[None, :, None] * mu[:, None, :] + np.outer(o, o),
-        dtype=np.float64,
-    )
-
-
-def _with_one(rows: FloatArray) -> FloatArray:
-    """The rows with a constant 1 appended (``F``): every model here is linear in ``F``."""
-    return np.concatenate([rows, np.ones((rows.shape[0], 1))], axis=1)
-
-
-def _gram(rows: FloatArray) -> FloatArray:
-    """``F^T F`` (:func:`_with_one`): what ``J^T J`` and the linear start need of the rows."""
-    F = _with_one(rows)
-    return np.asarray(F.T @ F, dtype=np.float64)
-
-
-_DOT_SIGN = np.array([1.0] * 9 + [-1.0] * 3)
-
-
-def _linear_joint(gram: FloatArray) -> Candidate | None:
-    """Closed-form start from the rows' :func:`_gram`: (P, q) from the dot constraint, the
-    scale from ``|g| = 1``."""
-    n = gram[-1, -1]
-    # D = (m (x) x, -m) per row: D^T D and D^T 1 are the Gram's entries with signs.
-    DTD = _DOT_SIGN[:, None] * gram[:12, :12] * _DOT_SIGN[None, :]
-    ev = np.linalg.eigvalsh(DTD)
-    if not ev[0] > 1e-18 * ev[-1]:  # (singular values 1e-9 apart): turned about one axis only
-        return None
-    v = np.linalg.solve(DTD, _DOT_SIGN * gram[:12, -1])
-    P = v[:9].reshape(3, 3)
-    if not np.linalg.det(P) > 0.0:
-        return None
-    o = np.linalg.solve(P, v[9:12])
-    # The mean of |P (x - o)|^2 over the rows is linear in their means (_magnitude_moment).
-    mu, S = _second_moments(gram[-1:, :-1] / n)
-    mean_sq = float(np.einsum("ij,kij->", P.T @ P, _magnitude_moment(mu, S, o)))
-    if not (math.isfinite(mean_sq) and mean_sq > 0.0):
-        return None
-    c = 1.0 / math.sqrt(mean_sq)
-    P = c * P
-    try:
-        L = _lower_factor(P.T @ P)
-    except np.linalg.LinAlgError:
-        return None
-    Q = (P @ np.linalg.inv(L)).T
-    try:
-        accel = AffineCalibration.from_arrays(o, L)
-    except ValueError:
-        return None
-    return accel, Q, c
-
-
-_TRI = ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2))  # lower-triangular entries of L
-_TRI_A = np.array([a for a, _ in _TRI])
-_TRI_B = np.array([b for _, b in _TRI])
-#: Which of the six unique window means of ``x x^T`` (the features after ``x``) is ``[i, j]``.
-_XX = np.array([[_UPPER.index((min(i, j), max(i, j))) for j in range(3)] for i in range(3)])
-_EYE3 = np.eye(3)
-#: (L S)'s coefficients (_joint_coefficients): [_XX[j, b], c] takes L[a, j], (a, b) = _TRI[c].
-_T_ROW, _T_COL, _T_A, _T_J = np.array(
-    [(_XX[j, b], c, a, j) for c, (a, b) in enumerate(_TRI) for j in range(3)]
-).T
-
-
-_C = np.arange(6)
-
-
-def _joint_coefficients(
-    o: FloatArray, L: FloatArray, Q: FloatArray, s: float
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Dot and magnitude residuals and their Jacobians in (o 3, L 6, rotation 3, s 1).
-
-    All are linear in a row's features and 1 (``G' = G - m o^T`` is): returned are their
-    coefficients, (22,) or (22, 13), on :func:`_with_one`'s ``F`` (``F @ Cd``: the Jacobian).
-    """
-    P = Q.T @ L
-    # The dot rows: <P, G'>, (Q G')[a, b] for L's entries, and vee(K - K^T) with
-    # K = Q G' L^T for the rotation; column by column, G'[j, m]'s coefficient W[3 j + m].
-    K = np.einsum("ij,lm->jmil", Q, L).reshape(9, 3, 3)
-    E = np.einsum("aj,mb->jmab", Q, _EYE3).reshape(9, 3, 3)
-    CD = np.zeros((_JOINT_FEATURES + 1, 10))
-    W = CD[:9]
-    W[:, 0] = P.reshape(9)
-    W[:, 1:7] = E[:, _TRI_A, _TRI_B]
-    W[:, 7] = K[:, 2, 1] - K[:, 1, 2]
-    W[:, 8] = K[:, 0, 2] - K[:, 2, 0]
-    W[:, 9] = K[:, 1, 0] - K[:, 0, 1]
-    # G' W = G W - m (o's contraction of W): the m features' coefficients.
-    CD[9:12] = -np.einsum("m,imc->ic", o, W.reshape(3, 3, 10))
-    # Relative to s: a common scale of P and s leaves the dot rows unchanged, so they never
-    # pull the scale (towards P = 0, where they would vanish); |g| = 1 alone sets it.
-    cd = CD[:, 0] / s
-    cd[-1] -= 1.0
-    Cd = np.zeros((_JOINT_FEATURES + 1, 13))
-    Cd[9:12, :3] = -P / s
-    Cd[:, 3:9] = CD[:, 1:7] / s
-    Cd[:, 9:12] = -CD[:, 7:10] / s
-    Cd[:, 12] = -CD[:, 0] / (s * s)
-    # The magnitude rows: tr(A M) and 2 (L M)[a, b] with M = S - mu o^T - o mu^T + o o^T
-    # (_magnitude_moment), from the window means of x (mu, features 12-14) and of
-    # x x^T (xx, the six after).
-    A = L.T @ L
-    Ao = A @ o
-    Lo = L @ o
-    cm = np.zeros(_JOINT_FEATURES + 1)
-    cm[12:15] = -2.0 * Ao
-    cm[15:21] = [A[0, 0], 2 * A[0, 1], 2 * A[0, 2], A[1, 1], 2 * A[1, 2], A[2, 2]]
-    cm[-1] = float(o @ Ao) - 1.0
-    Cm = np.zeros((_JOINT_FEATURES + 1, 13))
-    Cm[12:15, :3] = -2.0 * A  # -2 (mu - o) A
-    Cm[-1, :3] = 2.0 * (o @ A)
-    # (L S)[a, b] = sum_j L[a, j] S[j, b] from the six means of x x^T
-    Cm[15 + _T_ROW, 3 + _T_COL] = 2.0 * L[_T_A, _T_J]
-    Cm[12:15, 3:9] = -2.0 * L[_TRI_A, :].T * o[_TRI_B]  # -(L mu)[a] o[b]
-    Cm[12 + _TRI_B, 3 + _C] -= 2.0 * Lo[_TRI_A]  # -(L o)[a] mu[b]
-    Cm[-1, 3:9] = 2.0 * Lo[_TRI_A] * o[_TRI_B]
-    return cd, Cd, cm, Cm
-
-
-def _correlation_time(r: FloatArray) -> float:
-    """Integrated autocorrelation time of a residual series, in rows (1 for white noise).
-
-    Summed over the initial positive run of the autocorrelation (up to a tenth
-    of the series), so slow beats count fully and noise does not.
-    """
-    x = r - float(np.mean(r))
-    n = x.size
-    var = float(x @ x)
-    if n < 4 or not var > 0.0:
-        return 1.0
-    tau = 1.0
-    for lag in range(1, max(2, n // 10)):
-        rho = float(x[:-lag] @ x[lag:]) / var
-        if rho <= 0.0:
-            break
-        tau += 2.0 * rho
-    return tau
-
-
-def _weight(r: FloatArray) -> float:
-    """Weight of a residual series in a joint fit: 1 / sqrt(variance x correlation time)."""
-    return 1.0 / max(math.sqrt(float(np.var(r)) * _correlation_time(r)), 1e-12)
-
-
-#: Gauss-Newton stops after a step this small (the parameters are of order 1): over the tests'
-#: fits the step after one below 1e-10 was below 3e-13, a change that counts for nothing.
-_STEP_TOL = 1e-10
-
-
-def _solve_joint(
-    rows: FloatArray,
-    gram: FloatArray | None = None,
-    magnitude_weight: float = 1.0,
-    iterations: int = 8,
-) -> Candidate | None:
-    """Accelerometer calibration and rotation from window means (see the module docstring).
-
-    Gauss-Newton on both constraints at once: the dot product with the field
-    (linear in the shake) and ``|g| = 1`` (which pins the accelerometer's own
-    shape and scale, but carries the shake's squares): each weighted by the
-    inverse scatter of its residuals, so a shaken tumble leans on the first
-    and a still one uses both. The scatter counts its correlation time: the
-    slow beats a shake leaves in ``|g|`` weigh as the few samples they are.
-
-    ``gram``: the rows' :func:`_gram`, if known. ``J^T J = C^T gram C`` with the
-    coefficients ``C`` (:func:`_joint_coefficients`); only the residuals are formed
-    per row (for ``J^T r``, which the Gram matrix would give with cancellation).
-    """
-    G = _gram(rows) if gram is None else gram
-    start = _linear_joint(G)
-    if start is None:
-        return None
-    accel, Q, s = start
-    o, L = accel.offset_array, accel.matrix_array
-    F = _with_one(rows)
-    wd = wm = 1.0
-    # Windows that do not pin the model can send it off to infinity: judged below (not
-    # finite: no candidate); numpy's overflow warnings would only be noise in the log.
-    with np.errstate(over="ignore", invalid="ignore"):
-        for it in range(iterations):
-            cd, Cd, cm, Cm = _joint_coefficients(o, L, Q, s)
-            r = F @ np.column_stack([cd, cm])
-            if it == 0:
-                wd = _weight(r[:, 0])
-                wm = _weight(r[:, 1]) * magnitude_weight
-            Fr = F.T @ r
-            # J^T J and J^T r of the weighted rows stacked, without stacking them
-            JTJ = (wd * wd) * (Cd.T @ G @ Cd) + (wm * wm) * (Cm.T @ G @ Cm)
-            JTr = (wd * wd) * (Cd.T @ Fr[:, 0]) + (wm * wm) * (Cm.T @ Fr[:, 1])
-            try:
-                step = np.linalg.solve(JTJ, -JTr)
-            except np.linalg.LinAlgError:
-                return None
-            o = o + step[:3]
-            L = L.copy()
-            for c, (a, b) in enumerate(_TRI):
-                L[a, b] += step[3 + c]
-            Q = rotvec_to_dcm(step[9:12]) @ Q
-            s += float(step[12])
-            if float(np.max(np.abs(step))) < _STEP_TOL:
-                break
-    if not np.all(np.isfinite(L)) or not np.all(np.diag(L) > 0.0):
-        return None
-    try:
-        return AffineCalibration.from_arrays(o, L), Q, s
-    except ValueError:
-        return None
-
-
-#: ``a m^T`` one feature at a time: the rotation's Jacobian on them is its coefficients.
-_ROTATION_BASIS = np.eye(9).reshape(9, 3, 3)
-
-
-def _solve_rotation(
-    rows: FloatArray, gram: FloatArray | None = None, iterations: int = 12
-) -> Candidate | None:
-    """Rotation ``R`` and ``s`` with ``<R, mean(a m^T)> = s`` (Gauss-Newton from the identity)."""
-    G = _gram(rows) if gram is None else gram
-    n = G[-1, -1]
-    F = _with_one(rows)
-    R = np.eye(3)
-    s = float(np.sum(G[-1, [0, 4, 8]]) / n)
-    C = np.zeros((10, 4))  # J = F C
-    C[-1, 3] = -1.0
-    for _ in range(iterations):
-        e = F @ np.append(R.reshape(9), -s)
-        RE = np.einsum("ij,klj->kil", R, _ROTATION_BASIS)  # (R m) a^T per row
-        C[:-1, :3] = _vee(np.swapaxes(RE, 1, 2) - RE)  # (R m) x a
-        JTJ = C.T @ G @ C
-        if not float(np.linalg.eigvalsh(JTJ)[0]) / n >= _MIN_INFORMATION:
-            return None
-        step = np.linalg.solve(JTJ, -(C.T @ (F.T @ e)))
-        R = rotvec_to_dcm(step[:3]) @ R
-        s += float(step[3])
-        if float(np.linalg.norm(step)) < _STEP_TOL:
-            break
-    return AffineCalibration(), R, s
-
-
 # -- predicted errors ------------------------------------------------------------------
 
 
 def _headings(
-    accel: AffineCalibration, Q: FloatArray, x: FloatArray, m_sym: FloatArray
+    cals: Sequence[Candidate], x: FloatArray, m_sym: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    g = accel.apply(x)
-    m = m_sym @ Q.T
+    """Headings (B, N) and unit gravity vectors (B, N, 3) of raw ``x`` and ``m_sym`` read
+    through each calibration: one call of the (row by row) formulas for all of them."""
+    g = np.concatenate([accel.apply(x) for accel, _, _ in cals])
+    m = np.concatenate([m_sym @ Q.T for _, Q, _ in cals])
     _, _, h = tilt_compensated_heading(m, g)
-    return h, _unit_rows(g)
+    return h.reshape(len(cals), -1), _unit_rows(g).reshape(len(cals), -1, 3)
 
 
 def spread(base: Candidate, replicates: Sequence[Candidate], field_dir_ned: FloatArray) -> Spread:
@@ -444,16 +180,12 @@ def spread(base: Candidate, replicates: Sequence[Candidate], field_dir_ned: Floa
     L0 = accel0.matrix_array
     x = np.linalg.solve(L0, g_b.T).T + accel0.offset_array
     m_sym = m_b @ Q0  # Q0^T m_b per row
-    h0, u0 = _headings(accel0, Q0, x, m_sym)
     B = len(replicates)
     if B < 2:
         return Spread(math.nan, math.nan)
-    dh = np.empty((B, x.shape[0]))
-    du = np.empty((B, x.shape[0], 3))
-    for b, (acc_b, Q_b, _) in enumerate(replicates):
-        h, u = _headings(acc_b, Q_b, x, m_sym)
-        dh[b] = (h - h0 + 180.0) % 360.0 - 180.0
-        du[b] = u - u0
+    h, u = _headings([base, *replicates], x, m_sym)
+    dh = (h[1:] - h[0] + 180.0) % 360.0 - 180.0
+    du = u[1:] - u[0]
     k = (B - 1) / B
     var_h = k * np.sum((dh - dh.mean(axis=0)) ** 2, axis=0)
     var_u = k * np.sum((du - du.mean(axis=0)) ** 2, axis=(0, 2))
@@ -467,8 +199,7 @@ def change(a: Candidate, b: Candidate, base: Candidate, field_dir_ned: FloatArra
     m_b = np.einsum("nji,j->ni", _EVAL_R, field_dir_ned)
     x = np.linalg.solve(accel0.matrix_array, g_b.T).T + accel0.offset_array
     m_sym = m_b @ Q0
-    ha, ua = _headings(a[0], a[1], x, m_sym)
-    hb, ub = _headings(b[0], b[1], x, m_sym)
+    (ha, hb), (ua, ub) = _headings([a, b], x, m_sym)
     dh = (ha - hb + 180.0) % 360.0 - 180.0
     cos = np.clip(np.sum(ua * ub, axis=1), -1.0, 1.0)
     return Spread(
@@ -504,19 +235,20 @@ def _trial(
         return None
     edges = np.linspace(0, len(wm), blocks + 1).astype(int)
     # Each replicate's Gram matrix is the sum of the other blocks': one pass over the rows.
-    grams = [_gram(wm.rows[edges[b] : edges[b + 1]]) for b in range(blocks)]
-    first = solve(wm.rows, np.sum(grams, axis=0))
-    if first is None:
-        return None
-    full = finish(first)
-    reps: list[Candidate] = []
+    F = _with_one(wm.rows)
+    grams = [gram_of(F[edges[b] : edges[b + 1]]) for b in range(blocks)]
+    # The whole series first, then each replicate: solved together (solve_joints).
+    rows = [F]
+    gram_sums = [np.sum(grams, axis=0)]
     for b in range(blocks):
         keep = np.ones(len(wm), dtype=bool)
         keep[edges[b] : edges[b + 1]] = False
-        r = solve(wm.rows[keep], np.sum(grams[:b] + grams[b + 1 :], axis=0))
-        if r is None:
-            return None
-        reps.append(finish(r))
+        rows.append(F[keep])
+        gram_sums.append(np.sum(grams[:b] + grams[b + 1 :], axis=0))
+    solved = solve(rows, gram_sums)
+    if any(r is None for r in solved):
+        return None
+    full, *reps = (finish(r) for r in solved if r is not None)
     return _Trial(window_s, len(wm), full, spread(full, reps, field_dir))
 
 
@@ -601,7 +333,7 @@ def fit_handheld(
         def finish(c: Candidate) -> Candidate:
             return given, c[1], c[2]
 
-        return _best(feats, spans, period, windows_s, _solve_rotation, finish, fdir, blocks)
+        return _best(feats, spans, period, windows_s, solve_rotations, finish, fdir, blocks)
 
     if accel is not None:
         tr = rotation_only(accel)
@@ -614,8 +346,10 @@ def fit_handheld(
         # Shaken: its squares of the shake beat slowly, so it only sets the scale.
         weight = 1.0 if motion <= STILL_MOTION_G else SHAKEN_MAGNITUDE_WEIGHT
 
-        def joint(rows: FloatArray, gram: FloatArray) -> Candidate | None:
-            return _solve_joint(rows, gram, weight)
+        def joint(
+            rows: Sequence[FloatArray], grams: Sequence[FloatArray]
+        ) -> list[Candidate | None]:
+            return solve_joints(rows, grams, weight)
 
         tr = _best(feats, spans, period, windows_s, joint, lambda c: c, fdir, blocks)
         fitted = tr is not None

@@ -350,6 +350,34 @@ def canonical_name(name: str) -> str:
     return key
 
 
+def fit(name: str, data: CalibrationData) -> CalibrationResult:
+    """Run method ``name`` (or an alias such as ``"best"``) on ``data``, not yet judged.
+
+    The first of :func:`calibrate`'s two steps: the result's report carries the fit's own
+    figures and status, and ``method`` its canonical name; :func:`judge` applies the
+    acceptance rule. A caller that needs the same fit judged against more than one
+    :class:`Acceptance` (an operator's tighter target beside the default) fits once and
+    judges each: ``judge(fit(name, data), data, acceptance)`` is ``calibrate(name, data,
+    acceptance)``. Raises ``ValueError`` as :func:`calibrate` does.
+    """
+    key = canonical_name(name)
+    res = _CANONICAL[key](data)
+    if res.report.method != key:
+        res = CalibrationResult(res.calibration, replace(res.report, method=key))
+    return res
+
+
+def judge(
+    fitted: CalibrationResult, data: CalibrationData, acceptance: Acceptance | None = None
+) -> CalibrationResult:
+    """A :func:`fit` result of ``data`` judged by the acceptance rule (see :func:`calibrate`).
+
+    ``fitted`` is not changed: judging it again with another ``acceptance`` gives what
+    :func:`calibrate` with that acceptance gives.
+    """
+    return accept(fitted, data, acceptance, check_rotation=fitted.report.method == BEST)
+
+
 def calibrate(
     name: str, data: CalibrationData, acceptance: Acceptance | None = None
 ) -> CalibrationResult:
@@ -362,10 +390,6 @@ def calibrate(
     The report's ``method`` is the canonical name; a failure's cause is in its
     ``reason``. Raises ``ValueError`` for an unknown name or when the data lack
     what the method needs; a fit that runs but fails comes back with a failure
-    status, never an exception.
+    status, never an exception. The two steps are :func:`fit` and :func:`judge`.
     """
-    key = canonical_name(name)
-    res = _CANONICAL[key](data)
-    if res.report.method != key:
-        res = CalibrationResult(res.calibration, replace(res.report, method=key))
-    return accept(res, data, acceptance, check_rotation=key == BEST)
+    return judge(fit(name, data), data, acceptance)
