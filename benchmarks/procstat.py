@@ -15,15 +15,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 
-def wait_until(pred: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
+def wait_until(pred: Callable[[], object], timeout_s: float, poll_s: float = 0.05) -> bool:
     """Whether ``pred()`` held within ``timeout_s``, asked every ``poll_s`` and once more at
-    the end. For watching a child process from outside, which has no event to wait on."""
+    the end. For watching a child process, or a real thread, from outside: nothing to wait
+    on but the thing itself (the integration tests poll through it too: tests/waiting.py)."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         if pred():
             return True
         time.sleep(poll_s)
-    return pred()
+    return bool(pred())
 
 
 def process_cpu_s(pid: int) -> float:

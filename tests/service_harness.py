@@ -25,6 +25,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import waiting
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
 DEADLINE_S = 20.0
@@ -138,13 +139,9 @@ def streaming_rate(m: Message) -> float:
 
 
 def wait_for(pred: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:
-    """Poll ``pred`` every 50 ms until true; AssertionError naming ``what`` after ``timeout``."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+    """Poll ``pred`` until true; AssertionError naming ``what`` after ``timeout`` (this
+    harness's deadline by default: :func:`waiting.wait_for`)."""
+    waiting.wait_for(pred, what, timeout, step=0.05)
 
 
 def toml_config(

@@ -52,6 +52,7 @@ from autopilots import (
     start_ardupilot,
     start_bridge,
 )
+from waiting import wait_for
 
 from bridge.app.calibration.store import LEARNED_SOURCE
 from bridge.calibration.drift.estimator import with_offset_change
@@ -126,11 +127,7 @@ def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
 
 
 def _wait(cond: Any, timeout: float, what: str) -> None:
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.05)
+    wait_for(cond, what, timeout, step=0.05)
 
 
 @pytest.fixture(scope="module")

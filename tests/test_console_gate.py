@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import io
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from waiting import wait_for
 
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.console import ConsoleOutput, TerminalGate, format_line
@@ -51,11 +53,8 @@ def test_the_line_shows_the_truth_and_how_far_off_in_the_published_reference() -
     assert "sim truth" not in format_line(_sample(5.5), _status())  # a real compass: no truth
 
 
-def _wait(cond: object, what: str) -> None:
-    end = time.monotonic() + DEADLINE_S
-    while not cond() and time.monotonic() < end:  # type: ignore[operator]
-        time.sleep(0.01)
-    assert cond(), what  # type: ignore[operator]
+def _wait(cond: Callable[[], object], what: str) -> None:
+    wait_for(cond, what, DEADLINE_S)
 
 
 @pytest.mark.integration

@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 from harness import LinePlayer, LinkHarness, bridge_on
 from helpers import load_calibration
+from waiting import wait_until
 
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
 from bridge.calibration.model import Calibration
@@ -572,9 +573,7 @@ class Record(LatestSampleWorker):
 
 
 def _wait(cond: Callable[[], bool]) -> None:
-    end = time.monotonic() + DEADLINE_S
-    while not cond() and time.monotonic() < end:
-        time.sleep(0.01)
+    wait_until(cond, DEADLINE_S)  # the test asserts what it needs after
 
 
 @pytest.mark.integration

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from waiting import wait_until
 
 from bridge.cli import stop_on_signals
 from bridge.config import Config, config_from_mapping
@@ -42,12 +43,7 @@ def config(state: Path, **device: Any) -> Config:
 
 
 def wait_for(pred: Callable[[], bool]) -> bool:
-    end = time.monotonic() + DEADLINE_S
-    while not pred():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.01)
-    return True
+    return wait_until(pred, DEADLINE_S)
 
 
 def test_sighup_and_sigterm_wake_the_sleeping_main_loop(tmp_path: Path) -> None:

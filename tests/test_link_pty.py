@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from harness import PARAMS, VERSION, Collector, ScriptedCompass, default_reply
+from waiting import wait_until
 
 from bridge.link.serial_link import (
     CommandLate,
@@ -36,16 +37,6 @@ from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
 pytestmark = pytest.mark.integration
-
-
-def wait_until(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bool:
-    """Poll ``pred`` until true or ``timeout`` s pass (bounded)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 class Peer:

@@ -13,6 +13,7 @@ import zlib
 from pathlib import Path
 
 import pytest
+from waiting import wait_until
 
 from bridge.link.record import (
     MAGIC,
@@ -189,16 +190,6 @@ class PtyFeeder:
         for fd in (self.master, self.slave):
             with contextlib.suppress(OSError):
                 os.close(fd)
-
-
-def wait_until(pred: object, timeout: float) -> bool:
-    assert callable(pred)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return bool(pred())
 
 
 def _recorded(path: Path) -> bytes:

@@ -28,6 +28,7 @@ from typing import Any
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect module
+import waiting
 from pymavlink import mavutil
 
 from bridge.calibration.sessions import CalibratorSettings
@@ -340,12 +341,8 @@ def start_rig(
 
 
 def wait_until(cond: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
+    """:func:`waiting.wait_until` with the rig's deadline by default."""
+    return waiting.wait_until(cond, timeout, step=0.02)
 
 
 def rig_factory() -> Iterator[Callable[..., Rig]]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
+from waiting import wait_until
 
 from bridge.protocol.gmr import (
     AckFrame,
@@ -70,16 +71,6 @@ class Reader:
 
     def close(self) -> None:
         self.port.close()
-
-
-def wait_until(pred: object, timeout: float) -> bool:
-    assert callable(pred)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return bool(pred())
 
 
 def open_fds() -> int:

@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from waiting import wait_for
 
 from bridge.app.calibration.store import CALIBRATION_DOCUMENT
 from bridge.app.sample import DaemonStatus
@@ -54,13 +55,9 @@ def free_port() -> int:
 
 
 def wait_until(pred: Callable[[], bool], timeout: float = DEADLINE_S, what: str = "") -> float:
-    """Poll ``pred`` until true; returns the seconds it took; fails after ``timeout``."""
-    start = time.monotonic()
-    while not pred():
-        if time.monotonic() - start > timeout:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what or pred}")
-        time.sleep(0.01)
-    return time.monotonic() - start
+    """Poll ``pred`` until true; returns the seconds it took; fails after ``timeout``
+    (:func:`waiting.wait_for` with this module's deadline by default)."""
+    return wait_for(pred, what or repr(pred), timeout)
 
 
 def peer_config(
