@@ -152,8 +152,18 @@ def test_ardupilot_flow_end_to_end(tmp_path: Path, rigs: Callable[..., Rig]) -> 
     # the direction to turn to next: a unit vector, or zero once nothing is missing
     norms = [math.sqrt(p.direction_x**2 + p.direction_y**2 + p.direction_z**2) for p in progress]
     assert all(n == 0.0 or abs(n - 1.0) < 1e-5 for n in norms) and max(norms) > 0.99
+    # ArduPilot's completion: step one fills a third, step two the rest. The ground station
+    # is sent it about once a second of real time while the 20x clock runs the session
+    # (10-50 % of it between two messages), so how far into step two the last one falls
+    # is the phase of the two, not behaviour: what is checked is the split and the order.
     pct = [p.completion_pct for p in progress]
-    assert pct == sorted(pct) and pct[-1] >= 50
+    assert pct == sorted(pct) and progress[-1].cal_status == M.MAG_CAL_RUNNING_STEP_TWO
+    assert all(
+        p.completion_pct <= 33 for p in progress if p.cal_status != M.MAG_CAL_RUNNING_STEP_TWO
+    )
+    assert all(
+        p.completion_pct >= 33 for p in progress if p.cal_status == M.MAG_CAL_RUNNING_STEP_TWO
+    )
     sections = sum(bin(b).count("1") for b in progress[-1].completion_mask)
     assert sections >= 40  # of ArduPilot's 80 sphere sections
     assert all(p.compass_id == 0 and p.cal_mask == 1 and p.attempt == 1 for p in progress)
