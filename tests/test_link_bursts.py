@@ -182,9 +182,21 @@ def test_a_hold_with_no_frame_waiting_does_not_hide_the_due_frame(peer: Peer) ->
         # (Two frames of one read -- the thread woke a period late on a busy machine --
         # share the read's time, each due by it: not this.)
         late = [
-            b
+            (a, b)
             for a, b in itertools.pairwise(items)
             if a.t + 0.5 * period - 1e-3 < b.t < a.t + 0.5 * period
         ]
-        assert late == []  # every frame at or after its due time: each one sent
+        # ... except where the frame that set the due time was itself read more than half a
+        # period after the compass sent it (a loaded machine): its successor then comes
+        # before that due time, as read as it came it would too. The compass's rhythm: its
+        # frame counter against the earliest read (a read only ever comes late).
+        # (The link's own rhythm spans the last second, not this window: a margin.)
+        sent = [i.frame.seq for i in items]
+        k = [0, *itertools.accumulate((b - a) % 65536 for a, b in itertools.pairwise(sent))]
+        start = min(i.t - n * period for i, n in zip(items, k, strict=True))
+        behind = {id(i): i.t - (start + n * period) for i, n in zip(items, k, strict=True)}
+        assert all(behind[id(a)] > 0.25 * period for a, _b in late), [
+            (a.frame.seq, round(behind[id(a)], 4)) for a, _b in late
+        ]
+        assert len(late) <= 0.1 * len(items)  # every other frame at or after its due time
         assert [n for _, n in reads(col, mark)].count(1) >= 0.9 * len(items)
