@@ -395,7 +395,9 @@ def test_a_link_state_change_without_an_event_is_published_at_once() -> None:
                 state[0] = new
                 follow[0](new)
                 wait_until(lambda v=new.value: states()[-1:] == [v], what=f"a {new.value} status")  # type: ignore[misc]
-            assert states()[n:] == ["streaming", "absent", "opening"]
+            # (The first status, "opening", may still have been on its way when n was read.)
+            told = ["streaming", "absent", "opening"]
+            assert states()[n:] in (told, ["opening", *told])
         finally:
             out.close(5.0)
     assert not follow  # unsubscribed on close
