@@ -126,10 +126,6 @@ def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
     return with_offset_change(settings.calibration, settings.mounting.matrix(), tuple(h - turned))
 
 
-def _wait(cond: Any, timeout: float, what: str) -> None:
-    wait_for(cond, what, timeout, step=0.05)
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
     work = tmp_path_factory.mktemp("ardupilot")
@@ -168,7 +164,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         # 3. armed: a mounting change and a learned step are refused
         ack = obs.command(ap.target, M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         assert ack.result == M.MAV_RESULT_ACCEPTED, ack
-        _wait(lambda: a.out.autopilot.armed, 5.0, "the bridge to see ArduPilot armed")
+        wait_for(lambda: a.out.autopilot.armed, "the bridge to see ArduPilot armed", 5.0, step=0.05)
         tl.armed_at = time.time()
         since = time.monotonic()
         obs.mav.param_set_send(*BRIDGE, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32)
@@ -184,7 +180,12 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(1.0)
         ack = obs.command(ap.target, M.MAV_CMD_COMPONENT_ARM_DISARM, 0)
         assert ack.result == M.MAV_RESULT_ACCEPTED, ack
-        _wait(lambda: not a.out.autopilot.armed, 5.0, "the bridge to see ArduPilot disarmed")
+        wait_for(
+            lambda: not a.out.autopilot.armed,
+            "the bridge to see ArduPilot disarmed",
+            5.0,
+            step=0.05,
+        )
         tl.disarmed_at = time.time()
         time.sleep(0.5)
         # 4. disarmed: the mounting change goes through and ArduPilot follows
@@ -220,7 +221,12 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
             mavlink={"heading_feed_sigma_deg": RESTART_SIGMA_DEG},
         )
         bridges.append(b)
-        _wait(lambda: b.daemon.bridge.settings.field is not None, 20.0, "a position from ArduPilot")
+        wait_for(
+            lambda: b.daemon.bridge.settings.field is not None,
+            "a position from ArduPilot",
+            20.0,
+            step=0.05,
+        )
         tl.position_at = time.time()
         tl.request_lines = [ln for ln in b.log if "asking it for" in ln]
         time.sleep(6.0)
