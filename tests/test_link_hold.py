@@ -8,6 +8,7 @@ the thread woke after the due time (``serial_link._held``). Pure: in memory."""
 from __future__ import annotations
 
 import math
+import threading
 
 import pytest
 
@@ -18,6 +19,7 @@ from bridge.link.serial_link import (
     FIRST_BURST_S,
     RHYTHM_READS,
     WARM_MARGIN_S,
+    Wake,
     _held,
     burst_estimate,
     frames_phase,
@@ -182,3 +184,62 @@ def test_a_longer_burst_lengthens_the_lead_at_once_a_shorter_one_a_little() -> N
     for _ in range(30):  # quick bursts from then on: back to what they take
         est = burst_estimate(est, 0.0007)
     assert est == pytest.approx(0.0007, abs=1e-5)
+
+
+# -- the flag the reader's hold waits on -------------------------------------------------
+
+
+def test_the_wake_flag_is_an_event_for_one_waiter() -> None:
+    w = Wake()
+    assert not w.is_set() and w.wait(0.0) is False
+    w.set()
+    w.set()  # idempotent
+    assert w.is_set()
+    assert w.wait(0.0) is True and w.wait(0.0) is True  # stays raised until cleared
+    w.clear()
+    assert not w.is_set() and w.wait(0.001) is False
+    w.clear()  # clearing a clear flag: still clear
+    assert w.wait(0.0) is False
+
+
+def test_a_set_from_another_thread_ends_the_wait() -> None:
+    w = Wake()
+    waiting = threading.Event()
+    got: list[bool] = []
+
+    def waiter() -> None:
+        waiting.set()
+        got.append(w.wait(30.0))
+
+    t = threading.Thread(target=waiter)
+    t.start()
+    assert waiting.wait(30.0)
+    w.set()
+    t.join(30.0)
+    assert got == [True] and w.is_set()
+
+
+def test_a_set_racing_the_waiters_put_back_leaves_the_flag_raised() -> None:
+    """set() between the waiter taking the lock and putting it back: the put-back finds
+    the lock already released; no error, and the flag stays raised."""
+    w = Wake()
+    real = threading.Lock()
+    real.acquire()
+
+    class Racing:
+        def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+            got = real.acquire(blocking, timeout)
+            if got:
+                real.release()  # another thread's set() comes in right here
+            return got
+
+        def release(self) -> None:
+            real.release()
+
+        def locked(self) -> bool:
+            return real.locked()
+
+    w._lock = Racing()  # type: ignore[assignment]
+    w.set()
+    assert w.wait(0.0) is True
+    assert w.is_set()
