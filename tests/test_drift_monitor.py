@@ -67,8 +67,13 @@ class Rig:
     def drive(self, seconds: float, changed: bool = False) -> None:
         model = self.unit.model.with_hard_iron_change(CHANGE_G) if changed else None
         ts, s = self.unit.frames(self.t, self.t + seconds, model)
-        for t, m, a, sat in zip(ts, s.mag_counts, s.acc_counts, s.saturated, strict=True):
-            self.monitor.observe(self.engine.solve_counts(*m, *a), float(t), bool(sat))
+        # (As Python numbers, as the decoder gives them: numpy scalars through the engine's
+        # plain-float formulas give the same values at three times the cost.)
+        frames = zip(
+            ts.tolist(), s.mag_counts.tolist(), s.acc_counts.tolist(), s.saturated.tolist(), strict=True
+        )
+        for t, m, a, sat in frames:
+            self.monitor.observe(self.engine.solve_counts(*m, *a), t, sat)
         self.t += seconds
 
     def kinds(self) -> list[str]:
