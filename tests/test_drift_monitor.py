@@ -69,11 +69,9 @@ class Rig:
         ts, s = self.unit.frames(self.t, self.t + seconds, model)
         # (As Python numbers, as the decoder gives them: numpy scalars through the engine's
         # plain-float formulas give the same values at three times the cost.)
-        frames = zip(
-            ts.tolist(), s.mag_counts.tolist(), s.acc_counts.tolist(), s.saturated.tolist(), strict=True
-        )
-        for t, m, a, sat in frames:
-            self.monitor.observe(self.engine.solve_counts(*m, *a), t, sat)
+        mc, ac, sat = s.mag_counts.tolist(), s.acc_counts.tolist(), s.saturated.tolist()
+        for t, m, a, sa in zip(ts.tolist(), mc, ac, sat, strict=True):
+            self.monitor.observe(self.engine.solve_counts(*m, *a), t, sa)
         self.t += seconds
 
     def kinds(self) -> list[str]:
