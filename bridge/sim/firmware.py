@@ -432,8 +432,10 @@ class Firmware:
 
     def _send_frame(self, t: float) -> None:
         R, s = self._sample(t)
-        m = (int(s.mag_counts[0, 0]), int(s.mag_counts[0, 1]), int(s.mag_counts[0, 2]))
-        a = (int(s.acc_counts[0, 0]), int(s.acc_counts[0, 1]), int(s.acc_counts[0, 2]))
+        # One conversion of each row to Python ints (six numpy scalars taken apart before).
+        m0, m1, m2 = s.mag_counts[0].tolist()
+        a0, a1, a2 = s.acc_counts[0].tolist()
+        m, a = (m0, m1, m2), (a0, a1, a2)
         if self._magcal is not None:
             self._track(m, a)
         hdg, pitch, roll = onboard_attitude(m, a, self.flash.page)
