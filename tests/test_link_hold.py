@@ -200,6 +200,9 @@ def test_the_wake_flag_is_an_event_for_one_waiter() -> None:
     assert not w.is_set() and w.wait(0.001) is False
     w.clear()  # clearing a clear flag: still clear
     assert w.wait(0.0) is False
+    assert w.wait(-1.0) is False  # a deadline already past: at once, as Event.wait
+    w.set()
+    assert w.wait(-1.0) is True
 
 
 def test_a_set_from_another_thread_ends_the_wait() -> None:

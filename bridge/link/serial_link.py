@@ -131,8 +131,9 @@ class Wake:
         return not self._lock.locked()
 
     def wait(self, timeout: float) -> bool:
-        """Return True as soon as the flag is raised, False after ``timeout`` seconds."""
-        if self._lock.acquire(True, timeout):
+        """Return True as soon as the flag is raised, False after ``timeout`` seconds (at
+        once for ``timeout <= 0``, as ``Event.wait``: a lock's -1 would wait for ever)."""
+        if self._lock.acquire(True, timeout) if timeout > 0 else self._lock.acquire(False):
             # Put the flag back as it was (raised). A set() racing in between has
             # released the lock already: nothing to put back.
             with contextlib.suppress(RuntimeError):
