@@ -2,10 +2,10 @@
 
 While no output can send (every rate-capped stream between its slots), the frames may
 wait in the port's buffer and go through the pipeline together: one wake-up instead of
-one each (docs/performance.md has what it saves). The frame an output carries must not
-wait: from shortly before the due time on, frames are read as they come. A command is
-never held. On a real pseudo-terminal with the harness's scripted compass; every wait is
-bounded.
+one each (docs/performance-history.md, "Reading in bursts", has what it saves). The frame
+an output carries must not wait: from shortly before the due time on, frames are read as
+they come. A command is never held. On a real pseudo-terminal with the harness's scripted
+compass; every wait is bounded.
 """
 
 from __future__ import annotations

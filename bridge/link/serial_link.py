@@ -87,7 +87,8 @@ AFTER_FRAME_S = 0.001
 #: go through the pipeline (:func:`burst_estimate`) and this much more: the due frame comes
 #: right after them, and finds more of the code and data it runs on still in the caches
 #: than after the 4-9 ms of sleep a lead of :data:`BURST_LEAD_S` before the due *time*
-#: leaves (docs/performance.md, "The due frame, read warm"); nor does it wait behind them.
+#: leaves (docs/performance-history.md, "The due frame, read warm"); nor does it wait
+#: behind them.
 WARM_MARGIN_S = 0.0005
 #: ... what a burst is taken to take before one has been timed (nine frames at 100 Hz take
 #: about 0.7 ms on a quiet machine).
@@ -107,7 +108,7 @@ class Wake:
     The reader waits on it ten times a second at 100 Hz (its hold), and an ``Event``'s
     timed wait goes through a :class:`threading.Condition` -- a lock made, taken and
     dropped, a list of waiters kept -- which cost ~120 us of CPU a 90 ms wait on this VM
-    against ~80 us for the lock alone (docs/performance.md, "The hold's wait"). Any
+    against ~80 us for the lock alone (docs/performance-history.md, "The hold's wait"). Any
     thread may ``set``; only the reader clears and waits.
     """
 

@@ -71,8 +71,8 @@ SAMPLE_STREAMS: tuple[int, ...] = tuple(s.msgid for s in STREAMS if not s.clock)
 #: when others fall due on the same frame (VFR_HUD, the IMU streams, the heading feed: about
 #: half the due frames at the shipped rates): the attitude is what an autopilot or a ground
 #: station waits for, and it no longer waits for up to five more messages to be encoded and
-#: framed (docs/performance.md, "The due frame's tail"). The order stays; the rest follow in
-#: one datagram; a frame with nothing else due still sends everything in one.
+#: framed (docs/performance-history.md, "The due frame's tail"). The order stays; the rest
+#: follow in one datagram; a frame with nothing else due still sends everything in one.
 ATTITUDE_FIRST: frozenset[int] = frozenset((ATTITUDE, ATTITUDE_QUATERNION))
 #: VISION_POSITION_ESTIMATE shares the feed's rate (only one of the two is ever on).
 FEED_MSGIDS = (ODOMETRY, VISION_POSITION_ESTIMATE)
