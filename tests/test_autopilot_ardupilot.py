@@ -41,15 +41,17 @@ from autopilots import (
     ARDUPILOT_FEED_PARAMS,
     ARDUPILOT_HOME,
     Autopilot,
-    Bridge,
     M,
-    angle_diff,
     check_all,
     dataflash,
+    start_ardupilot,
+)
+from companion_bridge import (
+    Bridge,
+    angle_diff,
     heading_at,
     mean_heading,
     overshoot_deg,
-    start_ardupilot,
     start_bridge,
 )
 from waiting import wait_for

@@ -31,16 +31,18 @@ import numpy as np
 import pytest
 from autopilots import (
     Autopilot,
-    Bridge,
     M,
-    angle_diff,
     check_all,
+    start_px4,
+    ulog,
+)
+from companion_bridge import (
+    Bridge,
+    angle_diff,
     heading_at,
     mean_heading,
     overshoot_deg,
     start_bridge,
-    start_px4,
-    ulog,
 )
 
 from bridge.app.calibration.store import LEARNED_SOURCE

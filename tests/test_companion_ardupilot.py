@@ -25,7 +25,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
-from autopilots import ARDUPILOT_HOME, Bridge, M, check_all, start_ardupilot, start_bridge
+from autopilots import (
+    ARDUPILOT_HOME,
+    M,
+    check_all,
+    start_ardupilot,
+)
+from companion_bridge import (
+    Bridge,
+    start_bridge,
+)
 from mavlink_clients import MavProxy
 
 from bridge.events import Event, Severity

@@ -29,7 +29,16 @@ from typing import Any
 
 import mavsdk
 import pytest
-from autopilots import Autopilot, Bridge, M, check_all, start_bridge, start_px4
+from autopilots import (
+    Autopilot,
+    M,
+    check_all,
+    start_px4,
+)
+from companion_bridge import (
+    Bridge,
+    start_bridge,
+)
 from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult, ProtocolVersion
 

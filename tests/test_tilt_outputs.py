@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_zenoh_output import Bridge, free_port, wait_until
+from zenoh_rig import Bridge, free_port, wait_until
 
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.calibration.model import Calibration

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
-from test_zenoh_output import Bridge, free_port, wait_until
+from zenoh_rig import Bridge, free_port, wait_until
 
 from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
 from bridge.zenoh.monitor import MonitorOptions

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from test_zenoh_output import (
+from zenoh_rig import (
     Bridge,
     Received,
     contiguous,

@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 import zenoh
-from test_zenoh_output import (
+from zenoh_rig import (
     NO_SCOUTING,
     Bridge,
     Received,
