@@ -7,9 +7,7 @@ The firmware is sans-I/O: :class:`Host` steps time, polls, decodes what arrives 
 
 from __future__ import annotations
 
-import functools
 import math
-import operator
 from collections.abc import Callable
 
 import numpy as np
@@ -34,12 +32,6 @@ from bridge.sim.physics import SensorModel, UnitErrors
 FIELD = np.array([0.2152, 0.0138, 0.4333])  # NED gauss, about Zurich
 DECL_DEG = math.degrees(math.atan2(FIELD[1], FIELD[0]))
 FACTORY_FIELDS = "2458.0,2458.0,2458.0,1.0000,1.0000,1.0000,2458.0,2458.0,2949.5"
-
-
-def raw_line(body: str, cs: int | None = None) -> bytes:
-    """A line built by hand (checksum = XOR of the body), independent of the codec."""
-    value = functools.reduce(operator.xor, body.encode(), 0) if cs is None else cs
-    return f"${body}*{value:02X}\r\n".encode()
 
 
 class Host:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from codec_props import line
 from firmware_host import (
     DECL_DEG,
     FACTORY_FIELDS,
@@ -22,7 +23,6 @@ from firmware_host import (
     angle_err,
     firmware,
     radians3,
-    raw_line,
     reference_attitude,
 )
 
@@ -183,16 +183,16 @@ def test_lines_with_a_bad_or_missing_checksum_get_no_answer() -> None:
     fw = firmware()
     h = Host(fw, step=0.005)
     h.run(0.05)
-    h.send(raw_line("PGMRQ,VER", cs=0x00))
+    h.send(line("PGMRQ,VER", cs=0x00))
     h.send(b"$PGMRQ,VER\r\n")
-    h.send(raw_line("PGMRA,1,2"))  # a device sentence sent to the device: not a command
+    h.send(line("PGMRA,1,2"))  # a device sentence sent to the device: not a command
     log = h.run(1.0)
     assert not [f for _, f in log if not isinstance(f, AttitudeFrame)]
     assert fw.decoder.counters.dropped["checksum"] == 1
     assert fw.decoder.counters.dropped["no_checksum"] == 1
     assert fw.decoder.counters.dropped["unknown_id"] == 1
     # a good line split into single bytes is still answered
-    for b in raw_line("PGMRQ,VER"):
+    for b in line("PGMRQ,VER"):
         h.send(bytes([b]))
         h.run(0.002)
     h.wait_for(lambda f: isinstance(f, VersionFrame), 0.2)
