@@ -333,7 +333,11 @@ class Autopilot:
         return sorted(self.workdir.glob(pattern), key=lambda p: p.stat().st_mtime)
 
 
-def _ardupilot_ports(n: int) -> list[tuple[int, int]]:
+#: The SITL instance numbers (-I) the tests claim ArduPilot on.
+ARDUPILOT_INSTANCES = tuple(range(10, 40))
+
+
+def ardupilot_ports(n: int) -> list[tuple[int, int]]:
     # SITL's own fixed ports for instance n: simulated RC input (UDP) and the TCP serial
     # ports it would open for SERIAL0..2 were they not redirected (checked all the same).
     base = 10 * n
@@ -350,7 +354,7 @@ def start_ardupilot(
     params: Mapping[str, float] | None = None,
     *,
     home: tuple[float, float, float, float] = ARDUPILOT_HOME,
-    instances: Sequence[int] = tuple(range(10, 40)),
+    instances: Sequence[int] = ARDUPILOT_INSTANCES,
     gcs2: bool = False,
 ) -> Autopilot:
     """ArduPilot Rover SITL in ``workdir`` at real-time speed.
@@ -369,7 +373,7 @@ def start_ardupilot(
         values["SERIAL2_PROTOCOL"] = 2
     extra = workdir / "extra.parm"
     extra.write_text("".join(f"{k} {v:g}\n" for k, v in values.items()))
-    claim = claim_instance("ardupilot", instances, _ardupilot_ports)
+    claim = claim_instance("ardupilot", instances, ardupilot_ports)
     gcs_port, companion_port = free_udp_port(), free_udp_port()
     observer = Observer(f"udpin:127.0.0.1:{gcs_port}")
     console = workdir / "ardupilot.console"

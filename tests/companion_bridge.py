@@ -3,7 +3,10 @@ companion bridge daemon in this process (a simulated compass lying still, in rea
 that feeds its heading to the autopilot; :class:`HeadingRecorder` keeps what it published,
 and :func:`mean_heading` / :func:`overshoot_deg` compare the autopilot's yaw with it.
 
-The autopilots themselves are started by tests/autopilots.py.
+What a ground station asks of the bridge through the autopilot's router --
+QGroundControl's parameter load (:func:`load_parameters`), a storm of
+GET_MESSAGE_INTERVAL (:func:`message_interval_storm`) -- is asked the same way of both
+autopilots. The autopilots themselves are started by tests/autopilots.py.
 """
 
 from __future__ import annotations
@@ -17,8 +20,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
-from autopilots import DEADLINE_S
+from autopilots import DEADLINE_S, M, Observer
 
 
 class HeadingRecorder:
@@ -225,3 +229,74 @@ def overshoot_deg(
         if b is not None:
             worst = max(worst, angle_diff(y, b) * sign)
     return worst
+
+
+def learned_calibration(bridge: Bridge, step_deg: float) -> Any:
+    """The calibration whose offsets turn the (level, still) unit's heading by ``step_deg``:
+    what the drift monitor would apply for a hard-iron change of that size."""
+    from bridge.calibration.drift.estimator import with_offset_change
+
+    a = bridge.out.latest.attitude
+    h = np.asarray(a.mag_G, dtype=float)
+    # Heading ψ = atan2(-h_y, h_x) for a level unit: turning ψ by +step turns the field
+    # seen in body axes by -step about z; the offset change is what takes h there.
+    c, s_ = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
+    turned = np.array([c * h[0] - s_ * h[1], s_ * h[0] + c * h[1], h[2]])
+    settings = bridge.daemon.bridge.settings
+    return with_offset_change(settings.calibration, settings.mounting.matrix(), tuple(h - turned))
+
+
+def from_bridge(m: Any) -> bool:
+    """Sent by the bridge (component 200)."""
+    return bool(m.get_srcComponent() == 200)
+
+
+def load_parameters(obs: Observer, system_id: int, since: float) -> tuple[float, set[int], int]:
+    """QGroundControl's initial load: PARAM_REQUEST_LIST to every component of
+    ``system_id``; waits for the bridge's last PARAM_VALUE. Returns the seconds from
+    ``since`` to the bridge's last PARAM_VALUE, the indices it sent in that first round and
+    the param_count it gave."""
+    obs.mav.param_request_list_send(system_id, 0)
+    obs.wait(
+        "PARAM_VALUE",
+        lambda m: from_bridge(m) and m.param_index == m.param_count - 1,
+        since=since,
+    )
+    got = obs.history("PARAM_VALUE", from_bridge, since=since)
+    return max(t for t, _ in got) - since, {m.param_index for _, m in got}, got[0][1].param_count
+
+
+def set_bridge_parameter(obs: Observer, system_id: int, name: str, value: float) -> Any:
+    """PARAM_SET of a REAL32 ``name`` to the bridge (component 200 of ``system_id``)
+    through the autopilot; returns the bridge's PARAM_VALUE echo (the value it kept)."""
+    since = time.monotonic()
+    obs.mav.param_set_send(system_id, 200, name.encode(), value, M.MAV_PARAM_TYPE_REAL32)
+    return obs.wait(
+        "PARAM_VALUE",
+        lambda m: m.param_id == name and m.get_srcComponent() == 200,
+        since=since,
+    )
+
+
+def message_interval_storm(obs: Observer, system_id: int) -> tuple[int, int]:
+    """30 GET_MESSAGE_INTERVAL (ATTITUDE, VFR_HUD, SYS_STATUS in turn) to the bridge at
+    QGroundControl's pace, one per 20 ms; returns the bridge's COMMAND_ACKs and
+    MESSAGE_INTERVALs for them, 2 s after the last."""
+    since = time.monotonic()
+    ids = [M.MAVLINK_MSG_ID_ATTITUDE, M.MAVLINK_MSG_ID_VFR_HUD, M.MAVLINK_MSG_ID_SYS_STATUS]
+    for i in range(30):
+        # PX4 forwards the ground station's commands through the same two-message
+        # buffer: the storm comes at QGroundControl's pace, one command per 20 ms.
+        obs.mav.command_long_send(
+            system_id, 200, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, ids[i % 3], 0, 0, 0, 0, 0, 0
+        )
+        time.sleep(0.02)
+    time.sleep(2.0)
+    acks = len(
+        obs.history(
+            "COMMAND_ACK",
+            lambda m: from_bridge(m) and m.command == M.MAV_CMD_GET_MESSAGE_INTERVAL,
+            since=since,
+        )
+    )
+    return acks, len(obs.history("MESSAGE_INTERVAL", from_bridge, since=since))

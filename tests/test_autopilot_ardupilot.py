@@ -35,7 +35,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import pytest
 from autopilots import (
     ARDUPILOT_FEED_PARAMS,
@@ -50,14 +49,15 @@ from companion_bridge import (
     Bridge,
     angle_diff,
     heading_at,
+    learned_calibration,
     mean_heading,
     overshoot_deg,
+    set_bridge_parameter,
     start_bridge,
 )
 from waiting import wait_for
 
 from bridge.app.calibration.store import LEARNED_SOURCE
-from bridge.calibration.drift.estimator import with_offset_change
 from bridge.core.wmm import earth_field
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -115,19 +115,6 @@ class Timeline:
     log: dict[str, list[Any]] = field(default_factory=dict)
 
 
-def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
-    """The calibration whose offsets turn the (level, still) unit's heading by ``step_deg``:
-    what the drift monitor would apply for a hard-iron change of that size."""
-    a = bridge.out.latest.attitude
-    h = np.asarray(a.mag_G, dtype=float)
-    # Heading ψ = atan2(-h_y, h_x) for a level unit: turning ψ by +step turns the field
-    # seen in body axes by -step about z; the offset change is what takes h there.
-    c, s_ = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
-    turned = np.array([c * h[0] - s_ * h[1], s_ * h[0] + c * h[1], h[2]])
-    settings = bridge.daemon.bridge.settings
-    return with_offset_change(settings.calibration, settings.mounting.matrix(), tuple(h - turned))
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
     work = tmp_path_factory.mktemp("ardupilot")
@@ -154,7 +141,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         # 1. steady state: 30 s of fusion after the first second
         time.sleep(32.5)
         # 2. a learned drift correction of 5 deg, ArduPilot disarmed
-        cal = _learned_calibration(a, LEARNED_STEP_DEG)
+        cal = learned_calibration(a, LEARNED_STEP_DEG)
         tl.learned_at = time.time()
         out = a.daemon.bridge.calibrator.apply_calibration(
             cal, source=LEARNED_SOURCE, write_device=False
@@ -168,15 +155,9 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         assert ack.result == M.MAV_RESULT_ACCEPTED, ack
         wait_for(lambda: a.out.autopilot.armed, "the bridge to see ArduPilot armed", 5.0, step=0.05)
         tl.armed_at = time.time()
-        since = time.monotonic()
-        obs.mav.param_set_send(*BRIDGE, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32)
-        tl.refused_mount = obs.wait(
-            "PARAM_VALUE",
-            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
-            since=since,
-        )
+        tl.refused_mount = set_bridge_parameter(obs, BRIDGE[0], MOUNT_PARAM, MOUNT_YAW45)
         refused = a.daemon.bridge.calibrator.apply_calibration(
-            _learned_calibration(a, 2.0), source=LEARNED_SOURCE, write_device=False
+            learned_calibration(a, 2.0), source=LEARNED_SOURCE, write_device=False
         )
         tl.refused_learned = "" if refused.ok else refused.message
         time.sleep(1.0)
@@ -192,13 +173,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(0.5)
         # 4. disarmed: the mounting change goes through and ArduPilot follows
         tl.mount_at = time.time()
-        since = time.monotonic()
-        obs.mav.param_set_send(*BRIDGE, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32)
-        echo = obs.wait(
-            "PARAM_VALUE",
-            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
-            since=since,
-        )
+        echo = set_bridge_parameter(obs, BRIDGE[0], MOUNT_PARAM, MOUNT_YAW45)
         assert echo.param_value == MOUNT_YAW45, echo
         time.sleep(SETTLE_S)
         tl.mount_settled = time.time()

@@ -40,13 +40,14 @@ from companion_bridge import (
     Bridge,
     angle_diff,
     heading_at,
+    learned_calibration,
     mean_heading,
     overshoot_deg,
+    set_bridge_parameter,
     start_bridge,
 )
 
 from bridge.app.calibration.store import LEARNED_SOURCE
-from bridge.calibration.drift.estimator import with_offset_change
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -91,14 +92,6 @@ def _yaw_of(q0: Any, q1: Any, q2: Any, q3: Any) -> Any:
     return np.degrees(np.arctan2(2 * (q0 * q3 + q1 * q2), 1 - 2 * (q2 * q2 + q3 * q3)))
 
 
-def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
-    h = np.asarray(bridge.out.latest.attitude.mag_G, dtype=float)
-    c, s = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
-    turned = np.array([c * h[0] - s * h[1], s * h[0] + c * h[1], h[2]])
-    st = bridge.daemon.bridge.settings
-    return with_offset_change(st.calibration, st.mounting.matrix(), tuple(h - turned))
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
     work = tmp_path_factory.mktemp("px4")
@@ -129,7 +122,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         # a learned drift correction of 5 deg
         tl.learned_at = time.time()
         out = a.daemon.bridge.calibrator.apply_calibration(
-            _learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
+            learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
         )
         assert out.ok, out
         time.sleep(SETTLE_S)
@@ -137,15 +130,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(3.0)
         # an operator's mounting change, from the ground station through PX4
         tl.mount_at = time.time()
-        since = time.monotonic()
-        obs.mav.param_set_send(
-            ap.system_id, 200, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32
-        )
-        echo = obs.wait(
-            "PARAM_VALUE",
-            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
-            since=since,
-        )
+        echo = set_bridge_parameter(obs, ap.system_id, MOUNT_PARAM, MOUNT_YAW45)
         assert echo.param_value == MOUNT_YAW45, echo
         time.sleep(SETTLE_S)
         tl.mount_settled = time.time()

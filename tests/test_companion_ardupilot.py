@@ -33,6 +33,9 @@ from autopilots import (
 )
 from companion_bridge import (
     Bridge,
+    from_bridge,
+    load_parameters,
+    message_interval_storm,
     start_bridge,
 )
 from mavlink_clients import MavProxy
@@ -87,17 +90,9 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         s.bridge_params = len(bridge.out.params.params)
         obs = ap.observer
 
-        def ours(m: Any) -> bool:
-            return m.get_srcComponent() == 200
-
-        obs.wait("HEARTBEAT", ours)  # routed by ArduPilot
+        obs.wait("HEARTBEAT", from_bridge)  # routed by ArduPilot
         t0 = time.monotonic()
-        obs.mav.param_request_list_send(1, 0)
-        obs.wait("PARAM_VALUE", lambda m: ours(m) and m.param_index == m.param_count - 1, since=t0)
-        got = obs.history("PARAM_VALUE", ours, since=t0)
-        s.list_seconds = max(t for t, _ in got) - t0
-        s.list_first_round = {m.param_index for _, m in got}
-        s.list_count = got[0][1].param_count
+        s.list_seconds, s.list_first_round, s.list_count = load_parameters(obs, 1, t0)
         time.sleep(2.0)
         s.ardupilot_params = len(
             {
@@ -117,25 +112,11 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
                 "PARAM_VALUE", lambda m: m.param_id == "BRG_YAW_SIGMA", since=t1
             )
         ]
-        t2 = time.monotonic()
-        for i in range(30):
-            obs.mav.command_long_send(
-                1, 200, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, (30, 74, 1)[i % 3], 0, 0, 0, 0, 0, 0
-            )
-            time.sleep(0.02)
-        time.sleep(2.0)
-        s.storm_acks = len(
-            obs.history(
-                "COMMAND_ACK",
-                lambda m: ours(m) and m.command == M.MAV_CMD_GET_MESSAGE_INTERVAL,
-                since=t2,
-            )
-        )
-        s.storm_intervals = len(obs.history("MESSAGE_INTERVAL", ours, since=t2))
+        s.storm_acks, s.storm_intervals = message_interval_storm(obs, 1)
         t3 = time.monotonic()
         bridge.daemon.bridge.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
         time.sleep(1.0)
-        s.text_chunks = [m for _, m in obs.history("STATUSTEXT", ours, since=t3)]
+        s.text_chunks = [m for _, m in obs.history("STATUSTEXT", from_bridge, since=t3)]
         # MAVProxy on SERIAL2, aimed at the bridge's component
         mp = MavProxy(
             f"udpin:127.0.0.1:{ap.gcs2_port}",
