@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib.metadata
 import itertools
-import logging
 import os
 import re
 import selectors
@@ -12,7 +11,6 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -27,15 +25,7 @@ HEADING_RE = re.compile(r"^hdg +(\d+\.\d) mag +pitch +(\S+) +roll +(\S+)")
 STOP_BOUND_S = SHUTDOWN_TIMEOUT_S  # a clean stop must beat the forced exit
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() configures the root logger (force=True) for the process; in-process
-    # calls must not leave a handler writing to a finished test's captured stderr.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 def _env(tmp_path: Path) -> dict[str, str]:
@@ -160,16 +150,9 @@ def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Pat
 
     real_state = tmp_path / "state"
     StateStore(real_state).save("calibration", {"not": "for the simulator"})
-    env = _env(tmp_path)
-    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge", "run", "--simulate", "--log-level", "INFO"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-    )
+    proc = spawn(
+        tmp_path, "run", "--simulate", "--log-level", "INFO"
+    )  # its XDG_STATE_HOME is tmp_path / "xdg"
     try:
         read_lines(proc, want=1, deadline_s=20)
     finally:
@@ -347,16 +330,9 @@ def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None
     mine = tmp_path / "mine"
     cfg = tmp_path / "sim.toml"
     cfg.write_text(f'[storage]\ndir = "{mine}"\n\n[zenoh]\nenabled = false\n')
-    env = _env(tmp_path)
-    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge", "run", "--simulate", "--config", str(cfg), "-v"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-    )
+    proc = spawn(
+        tmp_path, "run", "--simulate", "--config", str(cfg), "-v"
+    )  # its XDG_STATE_HOME is tmp_path / "xdg"
     try:
         read_lines(proc, want=1, deadline_s=20)
     finally:

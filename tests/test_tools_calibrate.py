@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import logging
 import struct
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -43,14 +41,7 @@ def make_recording(path: Path, motion: Motion, seconds: float, seed: int = 5) ->
     return path
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ stored file, COMPASS_* parameters, RAW_IMU rate) is checked afterwards.
 
 from __future__ import annotations
 
-import logging
 import re
 import struct
 from collections.abc import Callable, Iterator
@@ -45,14 +44,7 @@ def rigs() -> Iterator[Callable[..., Rig]]:
     yield from rig_factory()
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 def tumbling_rig(rigs: Callable[..., Rig], tmp_path: Path, **kw: Any) -> Rig:
