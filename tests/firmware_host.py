@@ -12,21 +12,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bridge.protocol.gmr import (
-    AckFrame,
-    AttitudeFrame,
-    CommandFrame,
-    GmrDecoder,
-    GmrFrame,
-    ParamsFrame,
-    encode,
-)
+from bridge.protocol.gmr import AttitudeFrame, CommandFrame, GmrDecoder, GmrFrame, encode
 from bridge.sim.firmware import Firmware
 from bridge.sim.flash import Flash
-from bridge.sim.motion import (
-    Motion,
-    Still,
-)
+from bridge.sim.motion import Motion, Still
 from bridge.sim.physics import SensorModel, UnitErrors
 
 FIELD = np.array([0.2152, 0.0138, 0.4333])  # NED gauss, about Zurich
@@ -105,27 +94,5 @@ def firmware(
     )
 
 
-def reference_attitude(f: AttitudeFrame, p: ParamsFrame) -> tuple[float, float, float]:
-    """The datasheet's angles written as a rotation (de-tilt H by Ry(theta) Rx(gamma))."""
-    H = np.array([p.kx * (f.mx - p.xoff), p.ky * (f.my - p.yoff), p.kz * (f.mz - p.zoff)])
-    g = np.array([f.ax - p.gxoff, f.ay - p.gyoff, f.az - p.gzoff + 491.5])
-    theta = -math.asin(g[0] / np.linalg.norm(g))
-    gamma = math.atan2(g[1], g[2])
-    c, s = math.cos(gamma), math.sin(gamma)
-    Rx = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    c, s = math.cos(theta), math.sin(theta)
-    Ry = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    X, Y, _ = Ry @ Rx @ H
-    return math.degrees(math.atan2(-Y, X)) % 360.0, math.degrees(theta), math.degrees(gamma)
-
-
-def radians3(e: tuple[float, float, float] | list[float]) -> tuple[float, float, float]:
-    return (math.radians(e[0]), math.radians(e[1]), math.radians(e[2]))
-
-
 def angle_err(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
-
-
-def acks(log: list[tuple[float, GmrFrame]]) -> list[AckFrame]:
-    return [f for _, f in log if isinstance(f, AckFrame)]

@@ -29,13 +29,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from autopilots import (
-    Autopilot,
-    M,
-    check_all,
-    start_px4,
-    ulog,
-)
+from autopilots import Autopilot, M, check_all, start_px4, ulog
 from companion_bridge import (
     Bridge,
     angle_diff,

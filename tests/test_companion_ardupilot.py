@@ -25,12 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
-from autopilots import (
-    ARDUPILOT_HOME,
-    M,
-    check_all,
-    start_ardupilot,
-)
+from autopilots import ARDUPILOT_HOME, M, check_all, start_ardupilot
 from companion_bridge import (
     Bridge,
     from_bridge,

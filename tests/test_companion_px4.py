@@ -29,12 +29,7 @@ from typing import Any
 
 import mavsdk
 import pytest
-from autopilots import (
-    Autopilot,
-    M,
-    check_all,
-    start_px4,
-)
+from autopilots import Autopilot, M, check_all, start_px4
 from companion_bridge import (
     Bridge,
     from_bridge,

@@ -26,7 +26,14 @@ from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
-from service_harness import DaemonProcess, free_port, free_udp_port, toml_config, wait_for
+from service_harness import (
+    DaemonProcess,
+    free_port,
+    free_udp_port,
+    receive_datagrams,
+    toml_config,
+    wait_for,
+)
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
@@ -103,17 +110,13 @@ class SignedGcs:
             self._stop.wait(1.0)
 
     def _recv(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            for m in self.parser.parse_buffer(data) or []:
-                if m.get_type() == "ATTITUDE":
-                    with self.lock:
-                        self.att_boot_ms.append(int(m.time_boot_ms))
+        receive_datagrams(self.sock, self._stop, self._keep)
+
+    def _keep(self, data: bytes) -> None:
+        for m in self.parser.parse_buffer(data) or []:
+            if m.get_type() == "ATTITUDE":
+                with self.lock:
+                    self.att_boot_ms.append(int(m.time_boot_ms))
 
     def attitudes(self) -> list[int]:
         with self.lock:

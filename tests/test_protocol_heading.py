@@ -4,13 +4,7 @@ from __future__ import annotations
 
 import codec_props as props
 import pytest
-from codec_props import (
-    assert_chunking_changes_nothing,
-    line,
-    only,
-    stream_with_noise,
-    xor_cs,
-)
+from codec_props import assert_chunking_changes_nothing, line, only, stream_with_noise, xor_cs
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st

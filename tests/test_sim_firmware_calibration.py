@@ -10,12 +10,7 @@ import math
 
 import numpy as np
 import pytest
-from firmware_host import (
-    DECL_DEG,
-    Host,
-    angle_err,
-    firmware,
-)
+from firmware_host import DECL_DEG, Host, angle_err, firmware
 
 from bridge.protocol.gmr import (
     AckFrame,
@@ -26,14 +21,7 @@ from bridge.protocol.gmr import (
     ParamsFrame,
 )
 from bridge.sim.flash import Flash
-from bridge.sim.motion import (
-    AttitudeList,
-    OnboardCalRotation,
-    Sequence,
-    Shaken,
-    Still,
-    YawTurns,
-)
+from bridge.sim.motion import AttitudeList, OnboardCalRotation, Sequence, Shaken, Still, YawTurns
 from bridge.sim.physics import UnitErrors
 
 # ---------------------------------------------------------------- MAGCAL

@@ -14,22 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from firmware_host import (
-    FACTORY_FIELDS,
-    Host,
-    firmware,
-)
+from firmware_host import FACTORY_FIELDS, Host, firmware
 
-from bridge.protocol.gmr import (
-    AckFrame,
-    CommandFrame,
-    Flags,
-    ParamsFrame,
-)
+from bridge.protocol.gmr import AckFrame, CommandFrame, Flags, ParamsFrame
 from bridge.sim.flash import FLASH_FILE_MAX_BYTES, Flash
-from bridge.sim.motion import (
-    AttitudeList,
-)
+from bridge.sim.motion import AttitudeList
 from bridge.sim.physics import UnitErrors
 
 # ---------------------------------------------------------------- PAR,SET and flash

@@ -10,15 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from zenoh_rig import (
-    Bridge,
-    MavlinkSink,
-    Received,
-    contiguous,
-    free_port,
-    peer,
-    wait_until,
-)
+from service_harness import GroundStation
+from zenoh_rig import Bridge, Received, contiguous, free_port, peer, wait_until
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
 
@@ -32,7 +25,7 @@ def test_publishing_resumes_within_2s_of_the_peer_returning(tmp_path: Path) -> N
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with (
-        MavlinkSink() as gcs,
+        GroundStation() as gcs,
         Bridge(tmp_path, "b5", connect=[endpoint], rate_hz=20, mavlink_port=gcs.port) as b,
     ):
         rx = Received()
@@ -81,7 +74,7 @@ def test_a_stalled_subscriber_does_not_slow_the_daemon(tmp_path: Path) -> None:
     with (
         peer(listen=[f"tcp/127.0.0.1:{stalled_port}{small}"]) as s1,
         peer(listen=[f"tcp/127.0.0.1:{healthy_port}"]) as s2,
-        MavlinkSink() as gcs,
+        GroundStation() as gcs,
     ):
         _a = s1.declare_subscriber("fleet/**", stalled)
         _b = s2.declare_subscriber("fleet/**", healthy)

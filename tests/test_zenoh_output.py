@@ -16,17 +16,8 @@ from typing import Any
 
 import pytest
 import zenoh
-from zenoh_rig import (
-    NO_SCOUTING,
-    Bridge,
-    MavlinkSink,
-    Received,
-    _query,
-    contiguous,
-    free_port,
-    peer,
-    wait_until,
-)
+from service_harness import GroundStation
+from zenoh_rig import NO_SCOUTING, Bridge, Received, _query, contiguous, free_port, peer, wait_until
 
 from bridge.app.calibration.store import CALIBRATION_DOCUMENT
 from bridge.app.sample import DaemonStatus
@@ -225,7 +216,7 @@ def test_queryables_answer_status_and_calibration(tmp_path: Path) -> None:
     port = free_port()
     with (
         peer(listen=[f"tcp/127.0.0.1:{port}"]) as s,
-        MavlinkSink() as gcs,
+        GroundStation() as gcs,
         Bridge(tmp_path, "b3", connect=[f"tcp/127.0.0.1:{port}"], mavlink_port=gcs.port) as b,
     ):
         wait_until(b.output.connected.is_set, what="the bridge's session")

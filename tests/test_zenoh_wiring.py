@@ -10,15 +10,8 @@ from typing import Any
 
 import pytest
 import zenoh
-from zenoh_rig import (
-    Bridge,
-    MavlinkSink,
-    Received,
-    contiguous,
-    free_port,
-    peer,
-    wait_until,
-)
+from service_harness import GroundStation
+from zenoh_rig import Bridge, Received, contiguous, free_port, peer, wait_until
 
 from bridge.config import load_config
 from bridge.daemon import Daemon, build_daemon, build_outputs
@@ -45,7 +38,7 @@ def test_the_daemon_builds_the_zenoh_output_from_the_configuration(tmp_path: Pat
     with (
         PtyCompass(make_firmware(3), str(link)),
         peer(listen=[f"tcp/127.0.0.1:{port}"]) as s,
-        MavlinkSink() as gcs,
+        GroundStation() as gcs,
     ):
         cfg = load_config(
             None,
@@ -98,7 +91,7 @@ def test_mavlink_mirror_republishes_what_the_bridge_sends(tmp_path: Path) -> Non
     rx = Received()
     with (
         peer(listen=[f"tcp/127.0.0.1:{port}"]) as s,
-        MavlinkSink() as gcs,
+        GroundStation() as gcs,
     ):
         _s = s.declare_subscriber("mavlink/**", rx)
         with Bridge(
@@ -166,7 +159,7 @@ def test_after_a_mavlink_reload_the_mirror_follows_the_new_output(tmp_path: Path
     with (
         PtyCompass(make_firmware(5), str(link)),
         peer(listen=[f"tcp/127.0.0.1:{port}"]) as s,
-        MavlinkSink() as gcs,
+        GroundStation() as gcs,
     ):
         common = (
             f"zenoh.connect=['tcp/127.0.0.1:{port}']",

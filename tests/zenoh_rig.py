@@ -3,7 +3,8 @@
 :class:`Bridge` is a simulated compass on a real pty, the real daemon and a real
 :class:`~bridge.zenoh.output.ZenohOutput`; :func:`peer` a second, real zenoh session
 (scouting off, explicit endpoints); :class:`Received` what a test subscriber got;
-:class:`MavlinkSink` a UDP socket the bridge's MAVLink output sends to. Every wait is bounded.
+:class:`~service_harness.GroundStation` is the UDP socket a bridge's MAVLink output sends
+to. Every wait is bounded.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ from waiting import wait_for
 from bridge.config import load_config
 from bridge.daemon import build_daemon
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
-from bridge.mavlink.dialect import mavlink
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import MOTIONS, PtyCompass
 from bridge.zenoh import schema
@@ -184,42 +184,6 @@ class Bridge:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-class MavlinkSink:
-    """A UDP socket the bridge's MAVLink output sends to; counts what it decodes, by type."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.05)
-        self.port = int(self.sock.getsockname()[1])
-        self.parser = mavlink.MAVLink(None)
-        self.counts: dict[str, int] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            for msg in self.parser.parse_buffer(data) or []:
-                t = msg.get_type()
-                self.counts[t] = self.counts.get(t, 0) + 1
-
-    def count(self, mtype: str) -> int:
-        return self.counts.get(mtype, 0)
-
-    def __enter__(self) -> MavlinkSink:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        self.sock.close()
 
 
 def contiguous(seqs: Sequence[int]) -> bool:
