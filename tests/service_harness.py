@@ -297,6 +297,11 @@ class GroundStation:
         with self.lock:
             return sum(1 for t, k, _ in self.seen if k == kind and since <= t < until)
 
+    def kinds(self) -> set[str]:
+        """Every message type received so far."""
+        with self.lock:
+            return {k for _, k, _ in self.seen}
+
     def last(self, kind: str) -> object | None:
         with self.lock:
             found = [m for _, k, m in self.seen if k == kind]
