@@ -68,6 +68,19 @@ def inside_noise(max_size: int) -> st.SearchStrategy[bytes]:
     )
 
 
+def noisy_frames(
+    frames: st.SearchStrategy[T],
+) -> st.SearchStrategy[list[tuple[T, bytes, tuple[int, bytes] | None]]]:
+    """Up to six ``(frame, between, inside)`` items for :func:`stream_with_noise`: junk of
+    up to 30 bytes before each frame, and maybe up to 4 bytes spliced into it."""
+    return st.lists(
+        st.tuples(
+            frames, between_noise(30), st.none() | st.tuples(st.integers(0, 200), inside_noise(4))
+        ),
+        max_size=6,
+    )
+
+
 def feed_in_chunks(decoder: Feeder[T], stream: bytes, cuts: Sequence[int]) -> list[T]:
     """Feed ``stream`` cut at the sorted positions ``cuts``; all frames out, in order."""
     got: list[T] = []

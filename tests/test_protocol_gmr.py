@@ -489,19 +489,8 @@ def test_any_chunking_gives_the_same_frames(
     assert_chunking_changes_nothing(GmrDecoder, stream, cuts)
 
 
-between_noise = props.between_noise(30)
-inside_noise = props.inside_noise(4)
-
-
 @FAST
-@given(
-    st.lists(
-        st.tuples(
-            host_frames, between_noise, st.none() | st.tuples(st.integers(0, 200), inside_noise)
-        ),
-        max_size=6,
-    )
-)
+@given(props.noisy_frames(host_frames))
 def test_noise_yields_exactly_the_frames_it_did_not_touch(
     items: list[tuple[GmrFrame, bytes, tuple[int, bytes] | None]],
 ) -> None:
