@@ -246,6 +246,10 @@ def learned_calibration(bridge: Bridge, step_deg: float) -> Any:
     return with_offset_change(settings.calibration, settings.mounting.matrix(), tuple(h - turned))
 
 
+#: Longer than one STATUSTEXT (50 characters): the bridge sends it in chunks.
+LONG_TEXT = "Compass bridge test: " + "a long status text in several chunks; " * 4
+
+
 def from_bridge(m: Any) -> bool:
     """Sent by the bridge (component 200)."""
     return bool(m.get_srcComponent() == 200)
@@ -300,3 +304,30 @@ def message_interval_storm(obs: Observer, system_id: int) -> tuple[int, int]:
         )
     )
     return acks, len(obs.history("MESSAGE_INTERVAL", from_bridge, since=since))
+
+
+def autopilot_parameters(obs: Observer, since: float) -> int:
+    """How many of the autopilot's own parameters (component 1) arrived since ``since``."""
+    return len(
+        {
+            m.param_index
+            for _, m in obs.history("PARAM_VALUE", lambda m: m.get_srcComponent() == 1, since=since)
+        }
+    )
+
+
+def send_long_status_text(bridge: Bridge, obs: Observer) -> list[Any]:
+    """The bridge announces :data:`LONG_TEXT`; the STATUSTEXT chunks of it that reached
+    ``obs`` within a second."""
+    from bridge.events import Event, Severity
+
+    since = time.monotonic()
+    bridge.daemon.bridge.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
+    time.sleep(1.0)
+    return [m for _, m in obs.history("STATUSTEXT", from_bridge, since=since)]
+
+
+def joined_text(chunks: Sequence[Any]) -> str:
+    """The text STATUSTEXT chunks carry, joined (the last one's NUL padding stripped)."""
+    text = b"".join((c.text.encode() if isinstance(c.text, str) else bytes(c.text)) for c in chunks)
+    return text.rstrip(b"\0").decode()
