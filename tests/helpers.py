@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -66,3 +67,12 @@ def heading_errors(
     acc = cal.accel.apply(acc_counts_to_g(s.acc_counts[ok]))
     _, _, h = tilt_compensated_heading(mag, acc)
     return np.asarray((h - truth + 180.0) % 360.0 - 180.0)
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """A PNG file's (width, height) from its IHDR chunk; fails on anything else."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
+    assert data[12:16] == b"IHDR"
+    w, h = struct.unpack(">II", data[16:24])
+    return w, h

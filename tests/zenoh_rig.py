@@ -10,6 +10,7 @@ to. Every wait is bounded.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import socket
 import threading
@@ -207,3 +208,17 @@ def _command(session: zenoh.Session, key: str, args: dict[str, Any] | None = Non
         assert str(r.ok.encoding) == schema.encoding_text(schema.COMMAND_RESULT)
         out.append(schema.parse(r.ok.payload.to_bytes(), schema.COMMAND_RESULT))
     return out
+
+
+def status_of(port: int) -> tuple[int, dict[str, Any], str]:
+    """``compass-bridge status`` asking the bridges on ``tcp/127.0.0.1:port``: its exit
+    code and ``--json`` document, then its text for people."""
+    from bridge.tools.status import run_status
+    from bridge.zenoh.monitor import MonitorOptions
+
+    opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
+    out = io.StringIO()
+    code = run_status(opts, out, as_json=True, timeout=5.0)
+    human = io.StringIO()
+    run_status(opts, human, timeout=5.0)
+    return code, json.loads(out.getvalue()), human.getvalue()
