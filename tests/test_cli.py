@@ -98,6 +98,18 @@ def run(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.Completed
 # --- run --simulate --------------------------------------------------------------------
 
 
+def simulate_until_a_heading(tmp_path: Path, *args: str) -> str:
+    """``run --simulate ARGS`` (its XDG_STATE_HOME is ``tmp_path / "xdg"``) until it shows
+    a heading (20 s at most), then SIGTERM: it must exit 0; returns its stderr (the log)."""
+    proc = spawn(tmp_path, "run", "--simulate", *args)
+    try:
+        read_lines(proc, want=1, deadline_s=20)
+    finally:
+        code, _, err = stop(proc, signal.SIGTERM)
+    assert code == 0, err
+    return err
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 @pytest.mark.integration
@@ -150,14 +162,7 @@ def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Pat
 
     real_state = tmp_path / "state"
     StateStore(real_state).save("calibration", {"not": "for the simulator"})
-    proc = spawn(
-        tmp_path, "run", "--simulate", "--log-level", "INFO"
-    )  # its XDG_STATE_HOME is tmp_path / "xdg"
-    try:
-        read_lines(proc, want=1, deadline_s=20)
-    finally:
-        code, _, err = stop(proc, signal.SIGTERM)
-    assert code == 0, err
+    err = simulate_until_a_heading(tmp_path, "--log-level", "INFO")
     assert str(tmp_path / "xdg" / "compass-bridge" / "sim") in err
     assert str(real_state) not in err
 
@@ -330,14 +335,7 @@ def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None
     mine = tmp_path / "mine"
     cfg = tmp_path / "sim.toml"
     cfg.write_text(f'[storage]\ndir = "{mine}"\n\n[zenoh]\nenabled = false\n')
-    proc = spawn(
-        tmp_path, "run", "--simulate", "--config", str(cfg), "-v"
-    )  # its XDG_STATE_HOME is tmp_path / "xdg"
-    try:
-        read_lines(proc, want=1, deadline_s=20)
-    finally:
-        code, _, err = stop(proc, signal.SIGTERM)
-    assert code == 0, err
+    err = simulate_until_a_heading(tmp_path, "--config", str(cfg), "-v")
     assert f"simulated compass: state directory {mine}" in err
     assert str(tmp_path / "xdg") not in err
 
