@@ -49,16 +49,6 @@ class HeadingRecorder:
     def close(self, timeout: float) -> None:
         """Nothing to stop."""
 
-    def heading_at(self, t_unix: float) -> float | None:
-        """The last heading published at or before ``t_unix``."""
-        with self._lock:
-            found = None
-            for t, h in self.samples:
-                if t > t_unix:
-                    break
-                found = h
-        return found
-
     def latest(self) -> float | None:
         """The newest heading."""
         with self._lock:
@@ -188,7 +178,8 @@ def angle_diff(a: float, b: float) -> float:
 
 
 def heading_at(record: Sequence[tuple[float, float]], t: float) -> float | None:
-    """The bridge's heading in force at ``t`` (a record of (time, heading)), None before it."""
+    """The bridge's heading in force at ``t`` (a record of (time, heading)), None before it;
+    any (time, value) record alike (the fed yaw ArduPilot logged)."""
     last = None
     for tb, h in record:
         if tb > t:

@@ -94,5 +94,15 @@ def firmware(
     )
 
 
+def failing_flash_host(step: float) -> Host:
+    """The host of an ideal unit 50 ms after power-up, polling every ``step`` s; the
+    unit's next flash write will fail."""
+    fw = firmware()
+    h = Host(fw, step=step)
+    h.run(0.05)
+    fw.flash.fail_next_write()
+    return h
+
+
 def angle_err(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)

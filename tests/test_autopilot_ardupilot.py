@@ -242,15 +242,6 @@ def _fed(tl: Timeline) -> list[tuple[float, float]]:
     return [(m.TimeUS / 1e6 + off, m.Y % 360.0) for m in tl.log["VISP"]]
 
 
-def _fed_at(fed: list[tuple[float, float]], t: float) -> float | None:
-    last = None
-    for tf, y in fed:
-        if tf > t:
-            break
-        last = y
-    return last
-
-
 def _bridge_at(tl: Timeline, t: float) -> float | None:
     return companion.heading_at(tl.bridge_heading, t)
 
@@ -281,7 +272,7 @@ def check_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     errs = [
         companion.angle_diff(y, f)
         for t, y, _ in _window(series, t0, t0 + 30.0)
-        if (f := _fed_at(fed, t)) is not None
+        if (f := companion.heading_at(fed, t)) is not None
     ]
     rms = math.sqrt(statistics.fmean(e * e for e in errs))
     print(

@@ -15,7 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from codec_props import line
-from firmware_host import DECL_DEG, FACTORY_FIELDS, FIELD, Host, angle_err, firmware
+from firmware_host import (
+    DECL_DEG,
+    FACTORY_FIELDS,
+    FIELD,
+    Host,
+    angle_err,
+    failing_flash_host,
+    firmware,
+)
 
 from bridge.protocol.gmr import (
     AckFrame,
@@ -283,10 +291,8 @@ def test_garbage_appears_in_the_output_and_is_only_noise() -> None:
 
 
 def test_power_cycle_keeps_flash_and_forgets_ram() -> None:
-    fw = firmware()
-    h = Host(fw, step=0.005)
-    h.run(0.05)
-    fw.flash.fail_next_write()
+    h = failing_flash_host(step=0.005)
+    fw = h.fw
     params = ParamsFrame(2500.0, 2400.0, 2600.0, 1.0, 1.0, 1.0, 2458.0, 2458.0, 2950.0)
     h.command(CommandFrame.par_set(params))  # fails: FLASHERR
     assert h.command(CommandFrame.par_set(params))[1] == AckFrame("PAR", True)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from firmware_host import FACTORY_FIELDS, Host, firmware
+from firmware_host import FACTORY_FIELDS, Host, failing_flash_host, firmware
 
 from bridge.protocol.gmr import AckFrame, CommandFrame, Flags, ParamsFrame
 from bridge.sim.flash import FLASH_FILE_MAX_BYTES, Flash
@@ -109,10 +109,7 @@ def test_flash_write_pauses_frames_without_a_seq_gap() -> None:
 
 
 def test_failed_flash_write_sets_flasherr_and_keeps_the_content() -> None:
-    fw = firmware()
-    h = Host(fw, step=0.002)
-    h.run(0.05)
-    fw.flash.fail_next_write()
+    h = failing_flash_host(step=0.002)
     params = ParamsFrame(2500.0, 2400.0, 2600.0, 1.0, 1.0, 1.0, 2458.0, 2458.0, 2949.5)
     lat, f = h.command(CommandFrame.par_set(params))
     assert f == AckFrame.failure("PAR", "FLASH") and lat <= 0.5
