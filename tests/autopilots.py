@@ -18,18 +18,19 @@ one FAILS (:func:`autopilot_dir`), it never skips.
 * ``stop()`` ends the process (SIGTERM, then SIGKILL), releases the instance and,
   for PX4, removes its ``px4-sock-N`` from the temporary folder.
 * :func:`dataflash` reads ArduPilot's log (pymavlink), :func:`ulog` PX4's (pyulog).
+* :func:`check_all` runs every check on one autopilot run.
+
+The bridge beside them (a companion daemon feeding its heading) is tests/companion_bridge.py.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
-import math
 import os
 import random
 import signal
 import socket
-import statistics
 import subprocess
 import tempfile
 import threading
@@ -332,7 +333,11 @@ class Autopilot:
         return sorted(self.workdir.glob(pattern), key=lambda p: p.stat().st_mtime)
 
 
-def _ardupilot_ports(n: int) -> list[tuple[int, int]]:
+#: The SITL instance numbers (-I) the tests claim ArduPilot on.
+ARDUPILOT_INSTANCES = tuple(range(10, 40))
+
+
+def ardupilot_ports(n: int) -> list[tuple[int, int]]:
     # SITL's own fixed ports for instance n: simulated RC input (UDP) and the TCP serial
     # ports it would open for SERIAL0..2 were they not redirected (checked all the same).
     base = 10 * n
@@ -349,7 +354,7 @@ def start_ardupilot(
     params: Mapping[str, float] | None = None,
     *,
     home: tuple[float, float, float, float] = ARDUPILOT_HOME,
-    instances: Sequence[int] = tuple(range(10, 40)),
+    instances: Sequence[int] = ARDUPILOT_INSTANCES,
     gcs2: bool = False,
 ) -> Autopilot:
     """ArduPilot Rover SITL in ``workdir`` at real-time speed.
@@ -368,7 +373,7 @@ def start_ardupilot(
         values["SERIAL2_PROTOCOL"] = 2
     extra = workdir / "extra.parm"
     extra.write_text("".join(f"{k} {v:g}\n" for k, v in values.items()))
-    claim = claim_instance("ardupilot", instances, _ardupilot_ports)
+    claim = claim_instance("ardupilot", instances, ardupilot_ports)
     gcs_port, companion_port = free_udp_port(), free_udp_port()
     observer = Observer(f"udpin:127.0.0.1:{gcs_port}")
     console = workdir / "ardupilot.console"
@@ -500,215 +505,6 @@ def ulog(path: Path, topics: Sequence[str]) -> dict[str, dict[str, Any]]:
         if d.multi_id == 0 and d.name not in out:
             out[d.name] = d.data
     return out
-
-
-# ------------------------------------------------------------------------------ the bridge
-
-
-class HeadingRecorder:
-    """An output that keeps every sample's true heading with its wall-clock time: the
-    bridge's heading to compare the autopilot's yaw with."""
-
-    name = "recorder"
-    due_at = -math.inf  # every sample as it comes (the compass link reads no bursts for it)
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self.samples: list[tuple[float, float]] = []  #: (unix time, true heading deg)
-
-    def start(self) -> None:
-        """Nothing to start."""
-
-    def publish(self, sample: Any) -> None:
-        """Keep the sample's true heading (never blocks)."""
-        h = sample.heading_true_deg
-        if h is not None:
-            with self._lock:
-                self.samples.append((time.time(), float(h)))
-
-    def close(self, timeout: float) -> None:
-        """Nothing to stop."""
-
-    def heading_at(self, t_unix: float) -> float | None:
-        """The last heading published at or before ``t_unix``."""
-        with self._lock:
-            found = None
-            for t, h in self.samples:
-                if t > t_unix:
-                    break
-                found = h
-        return found
-
-    def latest(self) -> float | None:
-        """The newest heading."""
-        with self._lock:
-            return self.samples[-1][1] if self.samples else None
-
-
-@dataclass
-class Bridge:
-    """A bridge daemon in this process (simulated compass in real time) beside an autopilot."""
-
-    daemon: Any
-    out: Any  #: its MavlinkOutput
-    recorder: HeadingRecorder
-    log: list[str]  #: the ``bridge`` loggers' lines (INFO and up) while it ran
-    #: The time stamp (us) of every heading-feed message it sent (the MAVLink tap's view).
-    sent_feed: list[int] = field(default_factory=list)
-    #: The yaw sigma (rad) of every heading-feed message it sent, as the autopilot reads it
-    #: back from the covariance (ArduPilot's angErr, PX4's yaw variance's root).
-    sent_sigma: list[float] = field(default_factory=list)
-    _restore: Callable[[], None] = lambda: None
-
-    def stop(self) -> None:
-        """Stop the daemon (and the log capture)."""
-        try:
-            self.daemon.stop(timeout=5.0)
-        finally:
-            self._restore()
-            self._restore = lambda: None
-
-
-def start_bridge(
-    workdir: Path,
-    endpoint: str,
-    *,
-    feed: str,
-    location: tuple[float, float, float] | None,
-    compass_at: tuple[float, float, float],
-    yaw_deg: float,
-    system_id: int = 1,
-    mavlink: Mapping[str, Any] | None = None,
-) -> Bridge:
-    """A companion bridge (component 200) whose simulated compass lies still at
-    ``yaw_deg`` (true) at ``compass_at``, feeding ``feed`` on ``endpoint``; ``location``
-    None leaves ``[location]`` out (the position must come from the autopilot)."""
-    import logging
-
-    from bridge.config import config_from_mapping
-    from bridge.daemon import build_daemon
-    from bridge.link.serial_link import LinkState
-    from bridge.link.transport import SimTransport
-    from bridge.mavlink import MavlinkOutput, MavlinkSettings
-    from bridge.sim.firmware import make_firmware
-    from bridge.sim.motion import Still
-
-    raw: dict[str, Any] = {
-        "device": {"port": "sim", "stale_after": 5.0},
-        "storage": {"dir": str(workdir)},
-        "zenoh": {"enabled": False},
-        "mavlink": {
-            "endpoints": [endpoint],
-            "role": "companion",
-            "heading_feed": feed,
-            "system_id": system_id,
-            **dict(mavlink or {}),
-        },
-    }
-    if location is not None:
-        raw["location"] = dict(zip(("latitude", "longitude", "altitude_m"), location, strict=True))
-    cfg = config_from_mapping(raw, env={}, hostname="test")
-    # A real unit's errors and noise, calibrated with its true errors (what a good
-    # calibration gives: `run --simulate`'s default).
-    fw = make_firmware(3, motion=Still.from_deg(yaw_deg=yaw_deg), location=compass_at)
-    daemon = build_daemon(cfg, transport=SimTransport(fw))
-    daemon.bridge.settings.update_calibration(fw.sensor.errors.true_calibration(), "simulator")
-    out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services)
-    recorder = HeadingRecorder()
-    lines: list[str] = []
-
-    class _Keep(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            lines.append(record.getMessage())
-
-    handler = _Keep(logging.INFO)
-    logger = logging.getLogger("bridge")
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-
-    def restore() -> None:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
-
-    sent: list[int] = []
-    sigmas: list[float] = []
-
-    def tap(m: Any) -> None:
-        kind = m.message.get_type()
-        if kind == "VISION_POSITION_ESTIMATE":
-            sent.append(int(m.message.usec))
-            c = m.message.covariance  # GCS_Common.cpp: angErr = cbrt(c15^2 + c18^2 + c20^2)
-            sigmas.append((c[15] ** 2 + c[18] ** 2 + c[20] ** 2) ** (1.0 / 3.0))
-        elif kind == "ODOMETRY":
-            sent.append(int(m.message.time_usec))
-            sigmas.append(math.sqrt(m.message.pose_covariance[20]))
-
-    unsubscribe = daemon.bridge.services.mavlink_tap.subscribe(tap)
-
-    def restore_all() -> None:
-        unsubscribe()
-        restore()
-
-    daemon.bridge.pipeline.set_outputs([out, recorder])
-    daemon.start()
-    bridge = Bridge(daemon, out, recorder, lines, sent, sigmas, restore_all)
-    deadline = time.monotonic() + DEADLINE_S
-    while daemon.link.state is not LinkState.STREAMING or daemon.bridge.pipeline.samples < 3:
-        if time.monotonic() > deadline:
-            bridge.stop()
-            pytest.fail("the simulated compass does not stream")
-        time.sleep(0.02)
-    return bridge
-
-
-def angle_diff(a: float, b: float) -> float:
-    """``a - b`` in degrees, wrapped to [-180, 180)."""
-    return (a - b + 180.0) % 360.0 - 180.0
-
-
-def heading_at(record: Sequence[tuple[float, float]], t: float) -> float | None:
-    """The bridge's heading in force at ``t`` (a record of (time, heading)), None before it."""
-    last = None
-    for tb, h in record:
-        if tb > t:
-            break
-        last = h
-    return last
-
-
-def mean_heading(
-    record: Sequence[tuple[float, float]], t0: float, t1: float, min_samples: int = 3
-) -> float:
-    """The bridge's mean heading over [t0, t1) of a record of (time, heading): a step is
-    measured between two means, not two single samples, which differ by the sensor's noise
-    (0.1-0.2 deg each) on their own."""
-    hs = [h for t, h in record if t0 <= t < t1]
-    assert len(hs) >= min_samples, (t0, t1, len(hs))
-    return hs[0] + statistics.fmean(angle_diff(h, hs[0]) for h in hs)
-
-
-def overshoot_deg(
-    yaw: Iterable[tuple[float, float]],
-    record: Sequence[tuple[float, float]],
-    settled_at: float,
-    step: float,
-) -> float:
-    """How far the autopilot's yaw went past the bridge's new heading, in the step's direction.
-
-    ``yaw`` is the autopilot's (time, yaw) after a change, ``record`` the bridge's
-    headings; from ``settled_at`` on the record holds the new heading. Each yaw is
-    compared with the heading at ``max(t, settled_at)``: a yaw that already shows the
-    change is never compared with the old heading, so a few milliseconds of error in
-    mapping the autopilot's clock onto ours cannot pass for an overshoot of the whole step.
-    """
-    sign = math.copysign(1.0, step)
-    worst = -math.inf
-    for t, y in yaw:
-        b = heading_at(record, max(t, settled_at))
-        if b is not None:
-            worst = max(worst, angle_diff(y, b) * sign)
-    return worst
 
 
 def check_all(subject: Any, checks: Sequence[Callable[[Any], None]]) -> None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import itertools
+import logging
 import os
 import subprocess
 import sys
@@ -152,3 +153,19 @@ def manager() -> Iterator[FakeServiceManager]:
     m = FakeServiceManager()
     yield m
     m.close()
+
+
+@pytest.fixture
+def restore_logging() -> Iterator[None]:
+    """The root logger's handlers and level put back after the test.
+
+    ``main()`` configures the root logger (``force=True``) for the process; an in-process
+    call must not leave a handler writing to a finished test's captured stderr. The
+    modules that call ``main()`` in-process ask for it with
+    ``pytestmark = pytest.mark.usefixtures("restore_logging")``.
+    """
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)

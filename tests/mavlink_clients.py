@@ -8,6 +8,7 @@ Imported by ``test_mavlink_client_*.py`` (``from mavlink_clients import ...``).
   ``--daemon``/``--non-interactive`` (those stop it reading its stdin); its
   ``--cmd`` runs before the link is up, so commands are typed after
   "Detected vehicle". Every wait has a deadline.
+* :func:`signed_mav` is a pymavlink sender that signs what it packs (MAVLink 2 signing).
 * :func:`new_value` picks, for any writable parameter, a valid value other
   than the current one (a float one that is not a whole number, so an integer
   reading would show).
@@ -26,8 +27,10 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from bridge.app.paramspec import REAL32, SPECS, ParamSpec
 
@@ -168,3 +171,14 @@ class MavProxy:
         self._reader.join(2.0)
         while not self._queue.empty():
             self.lines.append(self._queue.get_nowait())
+
+
+def signed_mav(key: bytes, sysid: int, link_id: int = 0) -> Any:
+    """A pymavlink sender as system ``sysid`` (component 190) that signs everything it
+    packs with ``key`` on ``link_id``, its timestamp taken from the wall clock now."""
+    mav = apm.MAVLink(None, sysid, 190)
+    mav.signing.secret_key = key
+    mav.signing.sign_outgoing = True
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
+    return mav

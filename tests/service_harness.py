@@ -4,6 +4,8 @@
   a real ``AF_UNIX`` datagram socket (abstract, so nothing is left on disk)
   handed over as ``$NOTIFY_SOCKET``; a thread records every message with the
   monotonic time it arrived.
+* :class:`GroundStation` -- a UDP socket the bridge's MAVLink output sends to, decoding
+  what arrives; :func:`receive_datagrams` is the receiving thread's loop.
 * :class:`DaemonProcess` -- ``python -m bridge run --config FILE`` with
   ``$NOTIFY_SOCKET``, ``$WATCHDOG_USEC`` (and optional test hooks) set, stderr
   to a file; signals, bounded waits, exit code.
@@ -45,6 +47,21 @@ class Message:
         return self.fields.get(key, default)
 
 
+def receive_datagrams(
+    sock: socket.socket, stop: threading.Event, handle: Callable[[bytes], None]
+) -> None:
+    """A receiving thread's loop: every datagram on ``sock`` (which has a short timeout, so
+    ``stop`` is seen) to ``handle``, until ``stop`` is set or the socket is closed."""
+    while not stop.is_set():
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+        handle(data)
+
+
 class FakeServiceManager:
     """A notify socket and the messages a service sent to it."""
 
@@ -65,19 +82,15 @@ class FakeServiceManager:
         return "@" + self.name
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            now = time.monotonic()
-            fields = dict(
-                line.split("=", 1) for line in data.decode("utf-8").split("\n") if "=" in line
-            )
-            with self._lock:
-                self._messages.append(Message(now, fields))
+        receive_datagrams(self.sock, self._stop, self._keep)
+
+    def _keep(self, data: bytes) -> None:
+        now = time.monotonic()
+        fields = dict(
+            line.split("=", 1) for line in data.decode("utf-8").split("\n") if "=" in line
+        )
+        with self._lock:
+            self._messages.append(Message(now, fields))
 
     @property
     def messages(self) -> list[Message]:
@@ -272,19 +285,22 @@ class GroundStation:
         self._thread.start()
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            now = time.monotonic()
-            for msg in self.mav.parse_buffer(data) or []:
-                with self.lock:
-                    self.seen.append((now, msg.get_type(), msg))
+        receive_datagrams(self.sock, self._stop, self._keep)
 
-    def count(self, kind: str, since: float, until: float = float("inf")) -> int:
+    def _keep(self, data: bytes) -> None:
+        now = time.monotonic()
+        for msg in self.mav.parse_buffer(data) or []:
+            with self.lock:
+                self.seen.append((now, msg.get_type(), msg))
+
+    def count(self, kind: str, since: float = float("-inf"), until: float = float("inf")) -> int:
         with self.lock:
             return sum(1 for t, k, _ in self.seen if k == kind and since <= t < until)
+
+    def kinds(self) -> set[str]:
+        """Every message type received so far."""
+        with self.lock:
+            return {k for _, k, _ in self.seen}
 
     def last(self, kind: str) -> object | None:
         with self.lock:
@@ -295,3 +311,9 @@ class GroundStation:
         self._stop.set()
         self._thread.join(2.0)
         self.sock.close()
+
+    def __enter__(self) -> GroundStation:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -35,27 +35,21 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
+import companion_bridge as companion
 import pytest
 from autopilots import (
     ARDUPILOT_FEED_PARAMS,
     ARDUPILOT_HOME,
     Autopilot,
-    Bridge,
     M,
-    angle_diff,
     check_all,
     dataflash,
-    heading_at,
-    mean_heading,
-    overshoot_deg,
     start_ardupilot,
-    start_bridge,
 )
+from companion_bridge import Bridge, start_bridge
 from waiting import wait_for
 
 from bridge.app.calibration.store import LEARNED_SOURCE
-from bridge.calibration.drift.estimator import with_offset_change
 from bridge.core.wmm import earth_field
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -113,19 +107,6 @@ class Timeline:
     log: dict[str, list[Any]] = field(default_factory=dict)
 
 
-def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
-    """The calibration whose offsets turn the (level, still) unit's heading by ``step_deg``:
-    what the drift monitor would apply for a hard-iron change of that size."""
-    a = bridge.out.latest.attitude
-    h = np.asarray(a.mag_G, dtype=float)
-    # Heading ψ = atan2(-h_y, h_x) for a level unit: turning ψ by +step turns the field
-    # seen in body axes by -step about z; the offset change is what takes h there.
-    c, s_ = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
-    turned = np.array([c * h[0] - s_ * h[1], s_ * h[0] + c * h[1], h[2]])
-    settings = bridge.daemon.bridge.settings
-    return with_offset_change(settings.calibration, settings.mounting.matrix(), tuple(h - turned))
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
     work = tmp_path_factory.mktemp("ardupilot")
@@ -152,7 +133,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         # 1. steady state: 30 s of fusion after the first second
         time.sleep(32.5)
         # 2. a learned drift correction of 5 deg, ArduPilot disarmed
-        cal = _learned_calibration(a, LEARNED_STEP_DEG)
+        cal = companion.learned_calibration(a, LEARNED_STEP_DEG)
         tl.learned_at = time.time()
         out = a.daemon.bridge.calibrator.apply_calibration(
             cal, source=LEARNED_SOURCE, write_device=False
@@ -166,15 +147,9 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         assert ack.result == M.MAV_RESULT_ACCEPTED, ack
         wait_for(lambda: a.out.autopilot.armed, "the bridge to see ArduPilot armed", 5.0, step=0.05)
         tl.armed_at = time.time()
-        since = time.monotonic()
-        obs.mav.param_set_send(*BRIDGE, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32)
-        tl.refused_mount = obs.wait(
-            "PARAM_VALUE",
-            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
-            since=since,
-        )
+        tl.refused_mount = companion.set_bridge_parameter(obs, BRIDGE[0], MOUNT_PARAM, MOUNT_YAW45)
         refused = a.daemon.bridge.calibrator.apply_calibration(
-            _learned_calibration(a, 2.0), source=LEARNED_SOURCE, write_device=False
+            companion.learned_calibration(a, 2.0), source=LEARNED_SOURCE, write_device=False
         )
         tl.refused_learned = "" if refused.ok else refused.message
         time.sleep(1.0)
@@ -190,13 +165,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(0.5)
         # 4. disarmed: the mounting change goes through and ArduPilot follows
         tl.mount_at = time.time()
-        since = time.monotonic()
-        obs.mav.param_set_send(*BRIDGE, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32)
-        echo = obs.wait(
-            "PARAM_VALUE",
-            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
-            since=since,
-        )
+        echo = companion.set_bridge_parameter(obs, BRIDGE[0], MOUNT_PARAM, MOUNT_YAW45)
         assert echo.param_value == MOUNT_YAW45, echo
         time.sleep(SETTLE_S)
         tl.mount_settled = time.time()
@@ -273,17 +242,8 @@ def _fed(tl: Timeline) -> list[tuple[float, float]]:
     return [(m.TimeUS / 1e6 + off, m.Y % 360.0) for m in tl.log["VISP"]]
 
 
-def _fed_at(fed: list[tuple[float, float]], t: float) -> float | None:
-    last = None
-    for tf, y in fed:
-        if tf > t:
-            break
-        last = y
-    return last
-
-
 def _bridge_at(tl: Timeline, t: float) -> float | None:
-    return heading_at(tl.bridge_heading, t)
+    return companion.heading_at(tl.bridge_heading, t)
 
 
 def _window(series: list[tuple[float, float, float]], t0: float, t1: float) -> list[Any]:
@@ -300,7 +260,9 @@ def check_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     assert fed, "ArduPilot logged no vision sample"
     first = fed[0][0]
     series = _yaw_series(run)
-    aligned = next(t for t, y, _ in series if t >= first and abs(angle_diff(y, fed[0][1])) < 1.0)
+    aligned = next(
+        t for t, y, _ in series if t >= first and abs(companion.angle_diff(y, fed[0][1])) < 1.0
+    )
     print(
         f"ArduPilot: first VISP {first - run.bridge_start:.2f} s after the bridge started, "
         f"yaw on the fed heading {aligned - first:.2f} s after it"
@@ -308,9 +270,9 @@ def check_ardupilot_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     assert aligned - first < 2.0
     t0 = aligned + 1.0
     errs = [
-        angle_diff(y, f)
+        companion.angle_diff(y, f)
         for t, y, _ in _window(series, t0, t0 + 30.0)
-        if (f := _fed_at(fed, t)) is not None
+        if (f := companion.heading_at(fed, t)) is not None
     ]
     rms = math.sqrt(statistics.fmean(e * e for e in errs))
     print(
@@ -358,19 +320,23 @@ def check_the_yaw_noise_arduPilot_uses_is_the_bridges_sigma_floored_at_viso_yaw_
 def check_a_learned_correction_resets_a_disarmed_ardupilots_yaw_without_moving_its_gyro_bias(
     run: Timeline,
 ) -> None:
-    step = angle_diff(
-        mean_heading(run.bridge_heading, run.learned_settled, run.armed_at),
-        mean_heading(run.bridge_heading, run.learned_at - 1.0, run.learned_at),
+    step = companion.angle_diff(
+        companion.mean_heading(run.bridge_heading, run.learned_settled, run.armed_at),
+        companion.mean_heading(run.bridge_heading, run.learned_at - 1.0, run.learned_at),
     )
     assert abs(step - LEARNED_STEP_DEG) < 0.3, step
     series = _yaw_series(run)
     before = _window(series, run.learned_at - 5.0, run.learned_at)
     after = _window(series, run.learned_at, run.armed_at)
     bias0 = statistics.fmean(g for *_, g in before)
-    errs = [(t, angle_diff(y, b)) for t, y, _ in after if (b := _bridge_at(run, t)) is not None]
+    errs = [
+        (t, companion.angle_diff(y, b))
+        for t, y, _ in after
+        if (b := _bridge_at(run, t)) is not None
+    ]
     late = [(t, e) for t, e in errs if abs(e) > 1.0]
     followed = max((t for t, _ in late), default=run.learned_at) - run.learned_at
-    overshoot = overshoot_deg(
+    overshoot = companion.overshoot_deg(
         [(t, y) for t, y, _ in after], run.bridge_heading, run.learned_settled, step
     )
     bias_move = max(abs(g - bias0) for *_, g in after)
@@ -394,23 +360,27 @@ def check_heading_changes_are_refused_while_ardupilot_is_armed(run: Timeline) ->
     armed = _window(series, run.armed_at, run.disarmed_at)
     ref = _bridge_at(run, run.armed_at)
     assert ref is not None
-    worst = max(abs(angle_diff(y, ref)) for _, y, _ in armed)
+    worst = max(abs(companion.angle_diff(y, ref)) for _, y, _ in armed)
     print(f"ArduPilot armed: yaw stayed within {worst:.2f} deg of the unchanged heading")
     assert worst < 1.0
 
 
 def check_an_operator_change_reaches_a_disarmed_ardupilot_within_seconds(run: Timeline) -> None:
-    step = angle_diff(
-        mean_heading(run.bridge_heading, run.mount_settled, run.restart_at),
-        mean_heading(run.bridge_heading, run.disarmed_at, run.mount_at),
+    step = companion.angle_diff(
+        companion.mean_heading(run.bridge_heading, run.mount_settled, run.restart_at),
+        companion.mean_heading(run.bridge_heading, run.disarmed_at, run.mount_at),
     )
     assert abs(abs(step) - 45.0) < 1.0, step
     series = _yaw_series(run)
     after = _window(series, run.mount_at, run.restart_at)
-    errs = [(t, angle_diff(y, b)) for t, y, _ in after if (b := _bridge_at(run, t)) is not None]
+    errs = [
+        (t, companion.angle_diff(y, b))
+        for t, y, _ in after
+        if (b := _bridge_at(run, t)) is not None
+    ]
     late = [t for t, e in errs if abs(e) > 5.0]
     within5 = (max(late) - run.mount_at) if late else 0.0
-    overshoot = overshoot_deg(
+    overshoot = companion.overshoot_deg(
         [(t, y) for t, y, _ in after], run.bridge_heading, run.mount_settled, step
     )
     print("ArduPilot yaw after a 45 deg mounting change (t s: yaw - bridge deg):")

@@ -27,24 +27,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+import companion_bridge as companion
 import numpy as np
 import pytest
-from autopilots import (
-    Autopilot,
-    Bridge,
-    M,
-    angle_diff,
-    check_all,
-    heading_at,
-    mean_heading,
-    overshoot_deg,
-    start_bridge,
-    start_px4,
-    ulog,
-)
+from autopilots import Autopilot, M, check_all, start_px4, ulog
+from companion_bridge import Bridge, start_bridge
 
 from bridge.app.calibration.store import LEARNED_SOURCE
-from bridge.calibration.drift.estimator import with_offset_change
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -89,14 +78,6 @@ def _yaw_of(q0: Any, q1: Any, q2: Any, q3: Any) -> Any:
     return np.degrees(np.arctan2(2 * (q0 * q3 + q1 * q2), 1 - 2 * (q2 * q2 + q3 * q3)))
 
 
-def _learned_calibration(bridge: Bridge, step_deg: float) -> Any:
-    h = np.asarray(bridge.out.latest.attitude.mag_G, dtype=float)
-    c, s = math.cos(math.radians(-step_deg)), math.sin(math.radians(-step_deg))
-    turned = np.array([c * h[0] - s * h[1], s * h[0] + c * h[1], h[2]])
-    st = bridge.daemon.bridge.settings
-    return with_offset_change(st.calibration, st.mounting.matrix(), tuple(h - turned))
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
     work = tmp_path_factory.mktemp("px4")
@@ -127,7 +108,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         # a learned drift correction of 5 deg
         tl.learned_at = time.time()
         out = a.daemon.bridge.calibrator.apply_calibration(
-            _learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
+            companion.learned_calibration(a, 5.0), source=LEARNED_SOURCE, write_device=False
         )
         assert out.ok, out
         time.sleep(SETTLE_S)
@@ -135,15 +116,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Timeline]:
         time.sleep(3.0)
         # an operator's mounting change, from the ground station through PX4
         tl.mount_at = time.time()
-        since = time.monotonic()
-        obs.mav.param_set_send(
-            ap.system_id, 200, MOUNT_PARAM.encode(), MOUNT_YAW45, M.MAV_PARAM_TYPE_REAL32
-        )
-        echo = obs.wait(
-            "PARAM_VALUE",
-            lambda m: m.param_id == MOUNT_PARAM and m.get_srcComponent() == 200,
-            since=since,
-        )
+        echo = companion.set_bridge_parameter(obs, ap.system_id, MOUNT_PARAM, MOUNT_YAW45)
         assert echo.param_value == MOUNT_YAW45, echo
         time.sleep(SETTLE_S)
         tl.mount_settled = time.time()
@@ -211,7 +184,7 @@ def _attitude(tl: Timeline) -> tuple[Any, Any]:
 
 
 def _bridge_at(tl: Timeline, t: float) -> float | None:
-    return heading_at(tl.bridge_heading, t)
+    return companion.heading_at(tl.bridge_heading, t)
 
 
 def _follow(
@@ -220,13 +193,15 @@ def _follow(
     """(seconds until PX4's yaw stays within ``tol`` of the bridge's heading, overshoot)."""
     ts, yaw = _attitude(tl)
     errs = [
-        (t, angle_diff(y, b))
+        (t, companion.angle_diff(y, b))
         for t, y in zip(ts, yaw, strict=True)
         if t0 <= t < t1 and (b := _bridge_at(tl, t)) is not None
     ]
     late = [t for t, e in errs if abs(e) > tol]
     after = [(t, y) for t, y in zip(ts, yaw, strict=True) if t0 <= t < t1]
-    return (max(late) - t0 if late else 0.0), overshoot_deg(after, tl.bridge_heading, settled, step)
+    return (max(late) - t0 if late else 0.0), companion.overshoot_deg(
+        after, tl.bridge_heading, settled, step
+    )
 
 
 def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
@@ -245,7 +220,7 @@ def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     t0 = fused_t[0] + 1.0
     sel = (ts >= t0) & (ts < t0 + 30.0)
     idx = np.searchsorted(fed_t, ts[sel], side="right") - 1
-    errs = [angle_diff(y, fed[i]) for y, i in zip(yaw[sel], idx, strict=True) if i >= 0]
+    errs = [companion.angle_diff(y, fed[i]) for y, i in zip(yaw[sel], idx, strict=True) if i >= 0]
     rms = math.sqrt(statistics.fmean(e * e for e in errs))
     print(
         f"PX4 steady state: {len(errs)} attitudes, yaw - fed RMS {rms:.3f} deg, "
@@ -275,9 +250,13 @@ def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
 
 
 def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: Timeline) -> None:
-    step = angle_diff(
-        mean_heading(run.bridge_heading, run.learned_settled, run.mount_at, min_samples=5),
-        mean_heading(run.bridge_heading, run.learned_at - 1.0, run.learned_at, min_samples=5),
+    step = companion.angle_diff(
+        companion.mean_heading(
+            run.bridge_heading, run.learned_settled, run.mount_at, min_samples=5
+        ),
+        companion.mean_heading(
+            run.bridge_heading, run.learned_at - 1.0, run.learned_at, min_samples=5
+        ),
     )
     assert abs(step - 5.0) < 0.3, step
     took, over = _follow(run, run.learned_at, run.mount_at, run.learned_settled, step, 1.0)
@@ -286,9 +265,11 @@ def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: T
         f"overshoot {over:.2f} deg"
     )
     assert took < 0.5 and over < 1.0
-    step = angle_diff(
-        mean_heading(run.bridge_heading, run.mount_settled, run.restart_at, min_samples=5),
-        mean_heading(run.bridge_heading, run.mount_at - 1.0, run.mount_at, min_samples=5),
+    step = companion.angle_diff(
+        companion.mean_heading(
+            run.bridge_heading, run.mount_settled, run.restart_at, min_samples=5
+        ),
+        companion.mean_heading(run.bridge_heading, run.mount_at - 1.0, run.mount_at, min_samples=5),
     )
     assert abs(abs(step) - 45.0) < 1.0, step
     took, over = _follow(run, run.mount_at, run.restart_at, run.mount_settled, step, 5.0)

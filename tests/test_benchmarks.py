@@ -3,10 +3,8 @@ from a checkout (the benchmarks are not installed with the package)."""
 
 from __future__ import annotations
 
-import logging
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,15 +14,7 @@ from benchmarks.__main__ import BENCHMARKS, build_parser, main
 ROOT = Path(__file__).resolve().parent.parent
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() configures the root logger for the process; in-process calls must not leave
-    # a handler writing to a finished test's captured stderr.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 def test_a_benchmark_is_required(capsys: pytest.CaptureFixture[str]) -> None:

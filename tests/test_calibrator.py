@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pytest
 from harness import LinkHarness, bridge_on
-from helpers import load_calibration
+from helpers import heading_errors, load_calibration, random_attitudes
 
 from bridge.app.calibration import CalibrationController
 from bridge.calibration.fits.sanity import MagCalStatus
@@ -39,9 +39,7 @@ from bridge.calibration.sessions import (
     Result,
 )
 from bridge.config import Config, config_from_mapping
-from bridge.core.attitude import tilt_compensated_heading
-from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
-from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
+from bridge.core.sensor import acc_counts_to_g
 from bridge.core.wmm import EarthField, earth_field
 from bridge.device import LinkState
 from bridge.events import Event, Severity
@@ -225,29 +223,6 @@ def _lead_in(motion: Motion, seconds: float = 12.0) -> Motion:
 # -- ground truth helpers --------------------------------------------------------------
 
 
-def _attitudes(rng: np.random.Generator, n: int, max_tilt_deg: float) -> np.ndarray:
-    """Random heading, tilt uniform over the cap up to ``max_tilt_deg`` (as the benchmark)."""
-    out = np.empty((n, 3, 3))
-    cos_lo = math.cos(math.radians(max_tilt_deg))
-    for i in range(n):
-        yaw, az = rng.uniform(0.0, 2.0 * math.pi, 2)
-        tilt = math.acos(rng.uniform(cos_lo, 1.0))
-        axis = (math.cos(az), math.sin(az), 0.0)
-        out[i] = axis_angle_to_dcm(axis, tilt) @ euler_to_dcm(0.0, 0.0, yaw)
-    return out
-
-
-def _heading_errors(fw: Firmware, cal: Calibration, R: np.ndarray, seed: int) -> np.ndarray:
-    """Heading error (deg) of ``cal`` on fresh physics samples of ``fw``'s unit at attitudes R."""
-    s = fw.sensor.sample(R, np.random.default_rng(seed))
-    ok = ~s.saturated
-    truth = np.degrees(np.arctan2(R[ok, 1, 0], R[ok, 0, 0])) - FIELD.declination_deg
-    mag = cal.mag.apply(mag_counts_to_gauss(s.mag_counts[ok]))
-    acc = cal.accel.apply(acc_counts_to_g(s.acc_counts[ok]))
-    _, _, h = tilt_compensated_heading(mag, acc)
-    return np.asarray((h - truth + 180.0) % 360.0 - 180.0)
-
-
 def _params(fw: Firmware) -> tuple[float, ...]:
     p = fw.flash.page
     return (p.xoff, p.yoff, p.zoff, p.kx, p.ky, p.kz, p.gxoff, p.gyoff, p.gzoff)
@@ -328,14 +303,16 @@ def test_host_mag_calibration_end_to_end(tmp_path: Path, rigs: Callable[..., Rig
     # unit's true parameters reach, RMS and max, up to 60 deg of tilt)
     rng = np.random.default_rng(7)
     for tilt in (0.0, 30.0, 60.0):
-        R = _attitudes(rng, 1000, tilt)
-        err = _heading_errors(rig.fw, accepted, R, seed=int(tilt) + 1)
-        floor = _heading_errors(rig.fw, truth, R, seed=int(tilt) + 1)
+        R = random_attitudes(rng, 1000, tilt)
+        err = heading_errors(rig.fw, accepted, R, seed=int(tilt) + 1, field=FIELD)
+        floor = heading_errors(rig.fw, truth, R, seed=int(tilt) + 1, field=FIELD)
         rms, frms = float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(floor**2)))
         assert rms <= 1.3 * frms, (tilt, rms, frms)
         assert float(np.max(np.abs(err))) <= 1.3 * float(np.max(np.abs(floor))), tilt
     # the uncalibrated unit was far off: the test can tell a good calibration from none
-    err0 = _heading_errors(rig.fw, Calibration(), _attitudes(rng, 300, 30.0), seed=99)
+    err0 = heading_errors(
+        rig.fw, Calibration(), random_attitudes(rng, 300, 30.0), seed=99, field=FIELD
+    )
     assert float(np.sqrt(np.mean(err0**2))) > 5.0
 
 
@@ -515,7 +492,7 @@ def test_six_face_accel_calibration(tmp_path: Path, rigs: Callable[..., Rig]) ->
     new = rig.daemon.bridge.engine.calibration
     stored, _ = load_calibration(str(tmp_path / "state"))
     assert stored == new and new.accel != Calibration().accel
-    R = _attitudes(np.random.default_rng(3), 200, 180.0)
+    R = random_attitudes(np.random.default_rng(3), 200, 180.0)
     s = rig.fw.sensor.sample(R, np.random.default_rng(4))
     g_new = new.accel.apply(acc_counts_to_g(s.acc_counts))
     g_true = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, 1.0]))

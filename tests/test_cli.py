@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib.metadata
 import itertools
-import logging
 import os
 import re
 import selectors
@@ -12,7 +11,6 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -27,15 +25,7 @@ HEADING_RE = re.compile(r"^hdg +(\d+\.\d) mag +pitch +(\S+) +roll +(\S+)")
 STOP_BOUND_S = SHUTDOWN_TIMEOUT_S  # a clean stop must beat the forced exit
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() configures the root logger (force=True) for the process; in-process
-    # calls must not leave a handler writing to a finished test's captured stderr.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 def _env(tmp_path: Path) -> dict[str, str]:
@@ -108,6 +98,18 @@ def run(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.Completed
 # --- run --simulate --------------------------------------------------------------------
 
 
+def simulate_until_a_heading(tmp_path: Path, *args: str) -> str:
+    """``run --simulate ARGS`` (its XDG_STATE_HOME is ``tmp_path / "xdg"``) until it shows
+    a heading (20 s at most), then SIGTERM: it must exit 0; returns its stderr (the log)."""
+    proc = spawn(tmp_path, "run", "--simulate", *args)
+    try:
+        read_lines(proc, want=1, deadline_s=20)
+    finally:
+        code, _, err = stop(proc, signal.SIGTERM)
+    assert code == 0, err
+    return err
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 @pytest.mark.integration
@@ -160,21 +162,7 @@ def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Pat
 
     real_state = tmp_path / "state"
     StateStore(real_state).save("calibration", {"not": "for the simulator"})
-    env = _env(tmp_path)
-    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge", "run", "--simulate", "--log-level", "INFO"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-    )
-    try:
-        read_lines(proc, want=1, deadline_s=20)
-    finally:
-        code, _, err = stop(proc, signal.SIGTERM)
-    assert code == 0, err
+    err = simulate_until_a_heading(tmp_path, "--log-level", "INFO")
     assert str(tmp_path / "xdg" / "compass-bridge" / "sim") in err
     assert str(real_state) not in err
 
@@ -347,21 +335,7 @@ def test_run_simulate_honours_a_config_files_storage_dir(tmp_path: Path) -> None
     mine = tmp_path / "mine"
     cfg = tmp_path / "sim.toml"
     cfg.write_text(f'[storage]\ndir = "{mine}"\n\n[zenoh]\nenabled = false\n')
-    env = _env(tmp_path)
-    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge", "run", "--simulate", "--config", str(cfg), "-v"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-    )
-    try:
-        read_lines(proc, want=1, deadline_s=20)
-    finally:
-        code, _, err = stop(proc, signal.SIGTERM)
-    assert code == 0, err
+    err = simulate_until_a_heading(tmp_path, "--config", str(cfg), "-v")
     assert f"simulated compass: state directory {mine}" in err
     assert str(tmp_path / "xdg") not in err
 

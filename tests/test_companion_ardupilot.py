@@ -24,16 +24,15 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+import companion_bridge as companion
 import pytest
-from autopilots import ARDUPILOT_HOME, Bridge, M, check_all, start_ardupilot, start_bridge
+from autopilots import ARDUPILOT_HOME, M, check_all, start_ardupilot
+from companion_bridge import Bridge, start_bridge
 from mavlink_clients import MavProxy
-
-from bridge.events import Event, Severity
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HOME = ARDUPILOT_HOME[:3]
-LONG_TEXT = "Compass bridge test: " + "a long status text in several chunks; " * 4
 #: ArduPilot with its own compass (for its own calibration), MAVLink 2 on SERIAL1.
 PARAMS = {"SERIAL1_PROTOCOL": 2, "ARMING_CHECK": 0}
 
@@ -78,26 +77,11 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         s.bridge_params = len(bridge.out.params.params)
         obs = ap.observer
 
-        def ours(m: Any) -> bool:
-            return m.get_srcComponent() == 200
-
-        obs.wait("HEARTBEAT", ours)  # routed by ArduPilot
+        obs.wait("HEARTBEAT", companion.from_bridge)  # routed by ArduPilot
         t0 = time.monotonic()
-        obs.mav.param_request_list_send(1, 0)
-        obs.wait("PARAM_VALUE", lambda m: ours(m) and m.param_index == m.param_count - 1, since=t0)
-        got = obs.history("PARAM_VALUE", ours, since=t0)
-        s.list_seconds = max(t for t, _ in got) - t0
-        s.list_first_round = {m.param_index for _, m in got}
-        s.list_count = got[0][1].param_count
+        s.list_seconds, s.list_first_round, s.list_count = companion.load_parameters(obs, 1, t0)
         time.sleep(2.0)
-        s.ardupilot_params = len(
-            {
-                m.param_index
-                for _, m in obs.history(
-                    "PARAM_VALUE", lambda m: m.get_srcComponent() == 1, since=t0
-                )
-            }
-        )
+        s.ardupilot_params = companion.autopilot_parameters(obs, since=t0)
         t1 = time.monotonic()
         obs.mav.param_request_read_send(1, 0, b"BRG_YAW_SIGMA", -1)
         obs.wait("PARAM_VALUE", lambda m: m.param_id == "BRG_YAW_SIGMA", since=t1)
@@ -108,25 +92,8 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
                 "PARAM_VALUE", lambda m: m.param_id == "BRG_YAW_SIGMA", since=t1
             )
         ]
-        t2 = time.monotonic()
-        for i in range(30):
-            obs.mav.command_long_send(
-                1, 200, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, (30, 74, 1)[i % 3], 0, 0, 0, 0, 0, 0
-            )
-            time.sleep(0.02)
-        time.sleep(2.0)
-        s.storm_acks = len(
-            obs.history(
-                "COMMAND_ACK",
-                lambda m: ours(m) and m.command == M.MAV_CMD_GET_MESSAGE_INTERVAL,
-                since=t2,
-            )
-        )
-        s.storm_intervals = len(obs.history("MESSAGE_INTERVAL", ours, since=t2))
-        t3 = time.monotonic()
-        bridge.daemon.bridge.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
-        time.sleep(1.0)
-        s.text_chunks = [m for _, m in obs.history("STATUSTEXT", ours, since=t3)]
+        s.storm_acks, s.storm_intervals = companion.message_interval_storm(obs, 1)
+        s.text_chunks = companion.send_long_status_text(bridge, obs)
         # MAVProxy on SERIAL2, aimed at the bridge's component
         mp = MavProxy(
             f"udpin:127.0.0.1:{ap.gcs2_port}",
@@ -194,10 +161,7 @@ def check_every_burst_arrives_whole_through_ardupilot(seen: Seen) -> None:
         f"{seen.storm_intervals} answers of 30; status text chunks {len(seen.text_chunks)}"
     )
     assert seen.storm_acks == 30 and seen.storm_intervals == 30
-    text = b"".join(
-        (c.text.encode() if isinstance(c.text, str) else bytes(c.text)) for c in seen.text_chunks
-    )
-    assert text.rstrip(b"\0").decode() == LONG_TEXT
+    assert companion.joined_text(seen.text_chunks) == companion.LONG_TEXT
 
 
 def check_mavproxy_starts_and_cancels_the_bridges_calibration_through_ardupilot(

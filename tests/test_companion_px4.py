@@ -27,18 +27,17 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+import companion_bridge as companion
 import mavsdk
 import pytest
-from autopilots import Autopilot, Bridge, M, check_all, start_bridge, start_px4
+from autopilots import Autopilot, M, check_all, start_px4
+from companion_bridge import Bridge, start_bridge
 from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult, ProtocolVersion
-
-from bridge.events import Event, Severity
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HOME = (47.397742, 8.545594, 488.0)
-LONG_TEXT = "Compass bridge test: " + "a long status text in several chunks; " * 4
 
 
 @dataclass
@@ -96,29 +95,13 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         s.bridge_params = len(bridge.out.params.params)
         obs = ap.observer
         sysid = ap.system_id
-        obs.wait("HEARTBEAT", lambda m: m.get_srcComponent() == 200)  # forwarded by PX4
+        obs.wait("HEARTBEAT", companion.from_bridge)  # forwarded by PX4
         s.errors_before = forwarding_errors(ap)
         # QGroundControl's initial load: PARAM_REQUEST_LIST to every component
         t0 = time.monotonic()
-        obs.mav.param_request_list_send(sysid, 0)
-
-        def ours(m: Any) -> bool:
-            return m.get_srcComponent() == 200
-
-        obs.wait("PARAM_VALUE", lambda m: ours(m) and m.param_index == m.param_count - 1, since=t0)
-        got = obs.history("PARAM_VALUE", ours, since=t0)
-        s.list_seconds = max(t for t, _ in got) - t0
-        s.list_first_round = {m.param_index for _, m in got}
-        s.list_count = got[0][1].param_count
+        s.list_seconds, s.list_first_round, s.list_count = companion.load_parameters(obs, sysid, t0)
         time.sleep(3.0)
-        s.px4_params = len(
-            {
-                m.param_index
-                for _, m in obs.history(
-                    "PARAM_VALUE", lambda m: m.get_srcComponent() == 1, since=t0
-                )
-            }
-        )
+        s.px4_params = companion.autopilot_parameters(obs, since=t0)
         # PARAM_REQUEST_READ to every component: the bridge answers what it has
         t1 = time.monotonic()
         obs.mav.param_request_read_send(sysid, 0, b"BRG_YAW_SIGMA", -1)
@@ -134,39 +117,27 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         t2 = time.monotonic()
         obs.conn.target_system, obs.conn.target_component = sysid, 200
         obs.conn.param_fetch_all()
-        obs.wait("PARAM_VALUE", lambda m: ours(m) and m.param_index == m.param_count - 1, since=t2)
-        s.fetch_all = {m.param_index for _, m in obs.history("PARAM_VALUE", ours, since=t2)}
-        # a storm of GET_MESSAGE_INTERVAL: every answer comes back
-        t3 = time.monotonic()
-        ids = [M.MAVLINK_MSG_ID_ATTITUDE, M.MAVLINK_MSG_ID_VFR_HUD, M.MAVLINK_MSG_ID_SYS_STATUS]
-        for i in range(30):
-            # PX4 forwards the ground station's commands through the same two-message
-            # buffer: the storm comes at QGroundControl's pace, one command per 20 ms.
-            obs.mav.command_long_send(
-                sysid, 200, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, ids[i % 3], 0, 0, 0, 0, 0, 0
-            )
-            time.sleep(0.02)
-        time.sleep(2.0)
-        s.storm_acks = len(
-            obs.history(
-                "COMMAND_ACK",
-                lambda m: ours(m) and m.command == M.MAV_CMD_GET_MESSAGE_INTERVAL,
-                since=t3,
-            )
+        obs.wait(
+            "PARAM_VALUE",
+            lambda m: companion.from_bridge(m) and m.param_index == m.param_count - 1,
+            since=t2,
         )
-        s.storm_intervals = len(obs.history("MESSAGE_INTERVAL", ours, since=t3))
+        s.fetch_all = {
+            m.param_index for _, m in obs.history("PARAM_VALUE", companion.from_bridge, since=t2)
+        }
+        # a storm of GET_MESSAGE_INTERVAL: every answer comes back
+        s.storm_acks, s.storm_intervals = companion.message_interval_storm(obs, sysid)
         # a long status text, in chunks
-        t4 = time.monotonic()
-        bridge.daemon.bridge.events.emit(Event("test.long", LONG_TEXT, Severity.NOTICE))
-        time.sleep(1.0)
-        s.text_chunks = [m for _, m in obs.history("STATUSTEXT", ours, since=t4)]
+        s.text_chunks = companion.send_long_status_text(bridge, obs)
         # commands keep their own-component rule: a broadcast is PX4's alone
         t5 = time.monotonic()
         obs.mav.command_long_send(
-            sysid, 0, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, ids[0], 0, 0, 0, 0, 0, 0
+            sysid, 0, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, M.MAVLINK_MSG_ID_ATTITUDE, 0, 0, 0, 0, 0, 0
         )
         time.sleep(1.0)
-        s.broadcast_command_acks = [m for _, m in obs.history("COMMAND_ACK", ours, since=t5)]
+        s.broadcast_command_acks = [
+            m for _, m in obs.history("COMMAND_ACK", companion.from_bridge, since=t5)
+        ]
         s.errors_after = forwarding_errors(ap)
         # MAVSDK as a ground station on another of PX4's forwarding links (its GCS link
         # answers only the first peer it heard, the pymavlink one): the gimbal link, which
@@ -214,10 +185,7 @@ def check_every_burst_arrives_whole_and_px4_forwards_without_error(seen: Seen) -
     )
     assert seen.errors_after == seen.errors_before
     assert seen.storm_acks == 30 and seen.storm_intervals == 30
-    text = b"".join(
-        (c.text.encode() if isinstance(c.text, str) else bytes(c.text)) for c in seen.text_chunks
-    )
-    assert text.rstrip(b"\0").decode() == LONG_TEXT
+    assert companion.joined_text(seen.text_chunks) == companion.LONG_TEXT
 
 
 def check_reads_for_every_component_are_answered_and_commands_keep_their_rule(seen: Seen) -> None:

@@ -6,7 +6,6 @@ and the watchdog never notice; publishing resumes by itself.
 from __future__ import annotations
 
 import contextlib
-import json
 import threading
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from service_harness import (
     toml_config,
     wait_for,
 )
+from zenoh_rig import peer_config
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
@@ -34,14 +34,9 @@ class Peer:
     """The fleet's zenoh peer: listens on a fixed loopback port, counts headings it gets."""
 
     def __init__(self, port: int, key: str) -> None:
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "false")
-        c.insert_json5("scouting/gossip/enabled", "false")
-        c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
         self.lock = threading.Lock()
         self.headings: list[float] = []  # monotonic arrival times
-        self.session = zenoh.open(c)
+        self.session = zenoh.open(peer_config(listen=[f"tcp/127.0.0.1:{port}"]))
         self.sub = self.session.declare_subscriber(key, self._on)
 
     def _on(self, sample: zenoh.Sample) -> None:

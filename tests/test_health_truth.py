@@ -28,6 +28,7 @@ from service_harness import (
     toml_config,
     wait_for,
 )
+from zenoh_rig import peer_config
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
@@ -43,15 +44,10 @@ class FleetTap:
     """A zenoh session on the bridge's listener: every status document and event under it."""
 
     def __init__(self, endpoint: str, prefix: str) -> None:
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "false")
-        c.insert_json5("listen/endpoints", "[]")
-        c.insert_json5("connect/endpoints", json.dumps([endpoint]))
         self.lock = threading.Lock()
         self.status: list[tuple[float, dict[str, Any]]] = []
         self.events: list[str] = []
-        self.session = zenoh.open(c)
+        self.session = zenoh.open(peer_config(connect=[endpoint]))  # no scouting
         self.subs = [
             self.session.declare_subscriber(f"{prefix}/status", self._on_status),
             self.session.declare_subscriber(f"{prefix}/events", self._on_event),

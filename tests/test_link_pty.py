@@ -10,6 +10,7 @@ Every wait is bounded by a deadline.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Iterator
@@ -33,7 +34,7 @@ from bridge.protocol.gmr import (
     ParamsFrame,
     encode,
 )
-from bridge.sim.firmware import make_firmware
+from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.pty import PtyCompass
 
 pytestmark = pytest.mark.integration
@@ -218,15 +219,25 @@ def sim_path(tmp_path: Path) -> Path:
     return tmp_path / "ttySIM"
 
 
-def test_pty_compass_streams_and_survives_garbage(sim_path: Path) -> None:
-    fw = make_firmware(seed=6)
-    col = Collector()
+@contextlib.contextmanager
+def streaming_at_20hz(
+    sim_path: Path, seed: int, col: Collector
+) -> Iterator[tuple[Firmware, PtyCompass, CompassLink]]:
+    """A simulated compass on a pty and a link to it (frames to ``col``), streaming at the
+    20 Hz the link asked for: ``(firmware, pty compass, link)``."""
+    fw = make_firmware(seed=seed)
     with (
         PtyCompass(fw, sim_path) as sim,
         make_link(sim_path, col, rate_hz=20, stale_after=1.0) as link,
     ):
         assert link.wait_state(LinkState.STREAMING, 5.0)
         assert wait_until(lambda: link.params is not None and fw.rate_hz == 20, 5.0)
+        yield fw, sim, link
+
+
+def test_pty_compass_streams_and_survives_garbage(sim_path: Path) -> None:
+    col = Collector()
+    with streaming_at_20hz(sim_path, 6, col) as (fw, sim, link):
         assert link.version == fw.version
         n0 = len(col.seqs())
         for _ in range(5):
@@ -243,14 +254,8 @@ def test_pty_compass_streams_and_survives_garbage(sim_path: Path) -> None:
 
 @pytest.mark.parametrize("power_cycle", [False, True])
 def test_pty_compass_unplug_replug(sim_path: Path, power_cycle: bool) -> None:
-    fw = make_firmware(seed=7)
     col = Collector()
-    with (
-        PtyCompass(fw, sim_path) as sim,
-        make_link(sim_path, col, rate_hz=20, stale_after=1.0) as link,
-    ):
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: link.params is not None and fw.rate_hz == 20, 5.0)
+    with streaming_at_20hz(sim_path, 7, col) as (fw, sim, link):
         sim.unplug(1.0, power_cycle=power_cycle)
         assert link.wait_state(LinkState.ABSENT, 5.0)
         assert sim.wait_plugged(5.0) is not None

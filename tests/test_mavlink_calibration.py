@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import load_calibration
+from helpers import heading_errors, load_calibration, random_attitudes
 from test_mavlink_rig import (
     ALT,
     LAT,
@@ -30,9 +30,6 @@ from test_mavlink_rig import (
 )
 
 from bridge.calibration.model import Calibration
-from bridge.core.attitude import tilt_compensated_heading
-from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
-from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field
 from bridge.mavlink.commands import ONBOARD_REPORTS, REPORT_PERIOD_S
 from bridge.protocol.gmr import ParamsFrame
@@ -68,42 +65,19 @@ def lead_in(motion: Motion, seconds: float = LEAD_S) -> Motion:
     return Sequence([AttitudeList([(0.0, 0.0, 0.0)], seconds, 0.0), motion])
 
 
-def heading_errors(fw: Firmware, cal: Calibration, R: np.ndarray, seed: int) -> np.ndarray:
-    """Heading error (deg) of ``cal`` on fresh physics samples of the unit at attitudes R."""
-    s = fw.sensor.sample(R, np.random.default_rng(seed))
-    ok = ~s.saturated
-    truth = np.degrees(np.arctan2(R[ok, 1, 0], R[ok, 0, 0])) - FIELD.declination_deg
-    mag = cal.mag.apply(mag_counts_to_gauss(s.mag_counts[ok]))
-    acc = cal.accel.apply(acc_counts_to_g(s.acc_counts[ok]))
-    _, _, h = tilt_compensated_heading(mag, acc)
-    return np.asarray((h - truth + 180.0) % 360.0 - 180.0)
-
-
-def attitudes(rng: np.random.Generator, n: int, max_tilt_deg: float) -> np.ndarray:
-    out = np.empty((n, 3, 3))
-    cos_lo = math.cos(math.radians(max_tilt_deg))
-    for i in range(n):
-        yaw, az = rng.uniform(0.0, 2.0 * math.pi, 2)
-        tilt = math.acos(rng.uniform(cos_lo, 1.0))
-        out[i] = axis_angle_to_dcm((math.cos(az), math.sin(az), 0.0), tilt) @ euler_to_dcm(
-            0, 0, yaw
-        )
-    return out
-
-
 def assert_heading_within_targets(fw: Firmware, cal: Calibration) -> None:
     """The engine's accuracy target: RMS and max error within 1.3x of what the true
     parameters of the unit reach, up to 60 deg of tilt; and far better than none."""
     truth = fw.sensor.errors.true_calibration()
     rng = np.random.default_rng(11)
     for tilt in (0.0, 30.0, 60.0):
-        R = attitudes(rng, 800, tilt)
-        err = heading_errors(fw, cal, R, seed=int(tilt) + 3)
-        floor = heading_errors(fw, truth, R, seed=int(tilt) + 3)
+        R = random_attitudes(rng, 800, tilt)
+        err = heading_errors(fw, cal, R, seed=int(tilt) + 3, field=FIELD)
+        floor = heading_errors(fw, truth, R, seed=int(tilt) + 3, field=FIELD)
         rms, frms = float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(floor**2)))
         assert rms <= 1.3 * frms, (tilt, rms, frms)
         assert float(np.max(np.abs(err))) <= 1.3 * float(np.max(np.abs(floor))), tilt
-    err0 = heading_errors(fw, Calibration(), attitudes(rng, 300, 30.0), seed=99)
+    err0 = heading_errors(fw, Calibration(), random_attitudes(rng, 300, 30.0), seed=99, field=FIELD)
     assert float(np.sqrt(np.mean(err0**2))) > 5.0
 
 

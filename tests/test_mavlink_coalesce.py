@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_endpoints import KEY, Inbox, parse_all, ping, recv_udp
+from test_mavlink_endpoints import KEY, Inbox, paced_udp_endpoint, parse_all, ping, recv_udp
 from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 from test_mavlink_telemetry import make_sample
 
@@ -296,18 +296,9 @@ def test_when_the_socket_would_block_the_rest_waits_for_the_endpoint_thread(
 
 
 def test_the_burst_window_counts_the_packets_of_a_group(monkeypatch: pytest.MonkeyPatch) -> None:
-    now = [500.0]
-    monkeypatch.setattr(E, "_monotonic", lambda: now[0])
     burst = E._DIRECT_BURST
-    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    gcs.bind(("127.0.0.1", 0))
-    gcs.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-    ep: Any = open_endpoint(
-        f"udpout:127.0.0.1:{gcs.getsockname()[1]}", system_id=1, component_id=1,
-        on_message=Inbox(), queue_packets=1000,
-    )  # fmt: skip
-    try:
-        ep._open()  # not started: the test plays the endpoint thread's part (_flush)
+    # not started: the test plays the endpoint thread's part (_flush)
+    with paced_udp_endpoint(monkeypatch) as (now, ep, gcs):
         (link,) = ep.links
         link.send(ping(0))  # one direct packet counts against the window ...
         link.send_many([ping(i) for i in range(1, burst + 4)])  # ... so 15 more go, 4 wait
@@ -330,9 +321,6 @@ def test_the_burst_window_counts_the_packets_of_a_group(monkeypatch: pytest.Monk
         assert not link.queue
         (d,) = recv_udp(gcs, 1)
         assert [m.get_seq() for m in parse_all(d)] == [n, n + 1, n + 2]
-    finally:
-        ep.close(1.0)
-        gcs.close()
 
 
 def test_a_stream_endpoint_gets_a_group_in_order() -> None:

@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from mavlink_clients import signed_mav
 from test_mavlink_endpoints import Inbox, endpoints, heartbeat_bytes, ping, recv_udp  # noqa: F401
 from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 
@@ -28,15 +29,6 @@ from bridge.mavlink.signing import Signing
 pytestmark = pytest.mark.integration
 
 KEY = bytes(range(32))
-
-
-def signed_mav(key: bytes = KEY, sysid: int = 255, link_id: int = 0) -> Any:
-    mav = M.MAVLink(None, sysid, 190)
-    mav.signing.secret_key = key
-    mav.signing.sign_outgoing = True
-    mav.signing.link_id = link_id
-    mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
-    return mav
 
 
 def hb(mav: Any) -> bytes:
@@ -91,9 +83,9 @@ def test_with_signing_only_a_valid_fresh_signature_makes_a_peer(
     ep, port = _udpin(endpoints, signing=Signing(KEY))
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
-        mav = signed_mav()
+        mav = signed_mav(KEY, 255)
         first = hb(mav)
-        wrong = signed_mav(key=bytes(32), sysid=7)
+        wrong = signed_mav(bytes(32), 7)
         strangers = [heartbeat_bytes(sysid=9)] * 100 + [hb(wrong) for _ in range(100)]
         spray(port, strangers)  # unsigned, and signed with another key
         assert wait_until(lambda: ep.counters().strangers_dropped == 200)

@@ -354,25 +354,38 @@ def test_signed_endpoint_output_verifies_in_pymavlink(endpoints: Callable[..., E
         parse_all(data, bytes(32))
 
 
-@pytest.mark.integration
-def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
+@contextlib.contextmanager
+def paced_udp_endpoint(
     monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """At most _DIRECT_BURST packets per _DIRECT_WINDOW_S go out from the sender's thread;
-    the rest wait for the endpoint's thread, and nothing overtakes them."""
+) -> Iterator[tuple[list[float], Any, socket.socket]]:
+    """A ``udpout`` endpoint to a UDP peer (1 MiB receive buffer) on a manual clock:
+    ``(now, endpoint, peer)``, the clock ``now[0]`` starting at 500 s. Not started: the
+    test plays the endpoint thread's part (``_flush``) itself."""
     now = [500.0]
     monkeypatch.setattr(E, "_monotonic", lambda: now[0])
-    burst = E._DIRECT_BURST
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", 0))
     peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-    # Not started: the test plays the endpoint thread's part (_flush) itself.
     ep: Any = open_endpoint(
         f"udpout:127.0.0.1:{peer.getsockname()[1]}", system_id=1, component_id=1,
         on_message=Inbox(), queue_packets=1000,
     )  # fmt: skip
     try:
         ep._open()
+        yield now, ep, peer
+    finally:
+        ep.close(1.0)
+        peer.close()
+
+
+@pytest.mark.integration
+def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """At most _DIRECT_BURST packets per _DIRECT_WINDOW_S go out from the sender's thread;
+    the rest wait for the endpoint's thread, and nothing overtakes them."""
+    burst = E._DIRECT_BURST
+    with paced_udp_endpoint(monkeypatch) as (now, ep, peer):
         (link,) = ep.links
         direct = [ep.send_now(link, ping(i)) for i in range(burst)]
         assert direct == [True] * burst
@@ -396,9 +409,6 @@ def test_udp_direct_sends_are_bounded_per_window_and_the_rest_queue_in_order(
         c = ep.counters()
         assert c.packets_sent == n
         assert c.bytes_sent == sum(len(m.get_msgbuf()) for m in got)
-    finally:
-        ep.close(1.0)
-        peer.close()
 
 
 # ------------------------------------------------------ what pymavlink's own links would do

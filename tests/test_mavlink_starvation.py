@@ -22,11 +22,18 @@ import textwrap
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
+from mavlink_clients import signed_mav
 from pymavlink.dialects.v20 import ardupilotmega as apm
-from service_harness import DaemonProcess, free_port, free_udp_port, toml_config, wait_for
+from service_harness import (
+    DaemonProcess,
+    free_port,
+    free_udp_port,
+    receive_datagrams,
+    toml_config,
+    wait_for,
+)
 
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
@@ -65,15 +72,6 @@ FLOOD = textwrap.dedent(
 )
 
 
-def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
-    mav = apm.MAVLink(None, sysid, 190)
-    mav.signing.secret_key = key
-    mav.signing.sign_outgoing = True
-    mav.signing.link_id = link_id
-    mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
-    return mav
-
-
 class SignedGcs:
     """A ground station on ``udpin``: signed HEARTBEATs at 1 Hz, ATTITUDE by bridge time."""
 
@@ -82,7 +80,7 @@ class SignedGcs:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.1)
-        self.mav = signed(255, KEY)
+        self.mav = signed_mav(KEY, 255)
         self.parser = apm.MAVLink(None)
         self.lock = threading.Lock()
         self.att_boot_ms: list[int] = []
@@ -103,17 +101,13 @@ class SignedGcs:
             self._stop.wait(1.0)
 
     def _recv(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            for m in self.parser.parse_buffer(data) or []:
-                if m.get_type() == "ATTITUDE":
-                    with self.lock:
-                        self.att_boot_ms.append(int(m.time_boot_ms))
+        receive_datagrams(self.sock, self._stop, self._keep)
+
+    def _keep(self, data: bytes) -> None:
+        for m in self.parser.parse_buffer(data) or []:
+            if m.get_type() == "ATTITUDE":
+                with self.lock:
+                    self.att_boot_ms.append(int(m.time_boot_ms))
 
     def attitudes(self) -> list[int]:
         with self.lock:
@@ -155,7 +149,8 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
             stranger = apm.MAVLink(None, 66, 1)
             samples = [
                 bytes(stranger.heartbeat_encode(6, 8, 0, 0, 0).pack(stranger)),
-                bytes(signed(77, bytes(32)).heartbeat_encode(6, 8, 0, 0, 0).pack(signed(77, bytes(32)))),
+                bytes(signed_mav(bytes(32), 77).heartbeat_encode(6, 8, 0, 0, 0)
+                      .pack(signed_mav(bytes(32), 77))),
                 *gcs.sent[:3],
             ]  # fmt: skip
             flood = subprocess.Popen(
@@ -176,9 +171,9 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
             with socket.create_connection(("127.0.0.1", tcp), timeout=10.0) as c:
                 c.sendall(
                     bytes(
-                        signed(250, KEY, 3)
+                        signed_mav(KEY, 250, 3)
                         .heartbeat_encode(6, 8, 0, 0, 0)
-                        .pack(signed(250, KEY, 3))
+                        .pack(signed_mav(KEY, 250, 3))
                     )
                 )
                 c.settimeout(10.0)

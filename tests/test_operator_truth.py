@@ -185,16 +185,26 @@ def _until(args: list[str], want: int) -> subprocess.CompletedProcess[str]:
         time.sleep(0.2)
 
 
-@pytest.mark.integration
-def test_status_and_monitor_flag_an_uncalibrated_bridge(tmp_path: Path) -> None:
+def _status_and_monitor(
+    tmp_path: Path, want: int, *extra: str
+) -> tuple[str, subprocess.CompletedProcess[str], subprocess.CompletedProcess[str], str]:
+    """A simulated bridge (``run --simulate`` with ``extra``) asked by ``status`` and by
+    ``monitor --once`` until each exits ``want``: (where they asked, status, monitor, the
+    bridge's log)."""
     zport = free_port()
     where = f"tcp/127.0.0.1:{zport}"
-    proc = _start_sim(tmp_path, zport, "--set", "sim.calibrated=false")
+    proc = _start_sim(tmp_path, zport, *extra)
     try:
-        res = _until(["status", "--connect", where, "--timeout", "3"], 3)
-        mon = _until(["monitor", "--connect", where, "--once", "--duration", "3"], 3)
+        res = _until(["status", "--connect", where, "--timeout", "3"], want)
+        mon = _until(["monitor", "--connect", where, "--once", "--duration", "3"], want)
     finally:
         err = _stop(proc)
+    return where, res, mon, err
+
+
+@pytest.mark.integration
+def test_status_and_monitor_flag_an_uncalibrated_bridge(tmp_path: Path) -> None:
+    where, res, mon, err = _status_and_monitor(tmp_path, 3, "--set", "sim.calibrated=false")
     assert res.returncode == 3, res.stdout + res.stderr
     assert res.stdout.startswith(f"asked fleet/**/status via {where}: 1 bridge answered\n")
     assert re.search(r"^fleet/\S+/compass: UNCALIBRATED: no calibration in use", res.stdout, re.M)
@@ -209,14 +219,8 @@ def test_status_and_monitor_flag_an_uncalibrated_bridge(tmp_path: Path) -> None:
 
 @pytest.mark.integration
 def test_status_passes_a_calibrated_bridge_and_says_where_it_asked(tmp_path: Path) -> None:
-    zport = free_port()
-    where = f"tcp/127.0.0.1:{zport}"
-    proc = _start_sim(tmp_path, zport)  # calibrated with the unit's true errors
-    try:
-        res = _until(["status", "--connect", where, "--timeout", "3"], 0)
-        mon = _until(["monitor", "--connect", where, "--once", "--duration", "3"], 0)
-    finally:
-        err = _stop(proc)
+    # calibrated with the unit's true errors
+    _, res, mon, err = _status_and_monitor(tmp_path, 0)
     assert res.returncode == 0, res.stdout + res.stderr
     assert re.search(r"^fleet/\S+/compass: OK$", res.stdout, re.M), res.stdout
     assert mon.returncode == 0 and " UNCAL " not in mon.stdout, mon.stdout

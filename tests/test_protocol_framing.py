@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import functools
-import operator
 import random
 
 import codec_props as props
 import pytest
-from codec_props import feed_in_chunks
+from codec_props import feed_in_chunks, line, only, stream_with_noise, xor_cs
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
@@ -24,25 +22,6 @@ from bridge.protocol.framing import (
 )
 
 FAST = examples(150)
-
-
-def xor_cs(body: bytes) -> int:
-    """Independent checksum: fold XOR over the body."""
-    return functools.reduce(operator.xor, body, 0)
-
-
-def line(body: str, *, cs: int | None = None, term: bytes = b"\r\n", case: str = "upper") -> bytes:
-    """Build a line by hand (not with render_line) so the tests check the codec, not itself."""
-    value = xor_cs(body.encode()) if cs is None else cs
-    text = f"{value:02X}" if case == "upper" else f"{value:02x}"
-    return b"$" + body.encode() + b"*" + text.encode() + term
-
-
-def only(counters: DropCounters, **expected: int) -> None:
-    """Assert the counters hold exactly ``expected`` and zero elsewhere."""
-    want = {r.value: 0 for r in DropReason} | expected
-    assert counters.snapshot() == want
-    assert counters.total == sum(expected.values())
 
 
 # --------------------------------------------------------------------------- checksum / render
@@ -290,17 +269,7 @@ def test_noise_yields_exactly_the_uncorrupted_lines(
 ) -> None:
     """Junk between lines (no "$") loses nothing; junk inside a line (control/non-ASCII
     bytes) kills exactly that line. So the output is exactly predictable."""
-    stream = b""
-    expected: list[str] = []
-    for body, between, inside in items:
-        raw = render_line(body)
-        if inside is None:
-            expected.append(body)
-        else:
-            pos, junk = inside
-            at = 1 + pos % (len(raw) - 1)  # after "$", before the final LF
-            raw = raw[:at] + junk + raw[at:]
-        stream += between + raw
+    stream, expected = stream_with_noise(items, render_line)
     sp = LineSplitter()
     assert sp.feed(stream) == expected
     assert sp.counters.total >= (1 if len(expected) < len(items) else 0)

@@ -2,18 +2,14 @@
 
 from __future__ import annotations
 
-import functools
-import operator
-
 import codec_props as props
 import numpy as np
 import pytest
-from codec_props import feed_in_chunks, stream_with_noise
+from codec_props import assert_chunking_changes_nothing, line, only, stream_with_noise, xor_cs
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bridge.protocol.framing import DropReason
 from bridge.protocol.gmr import (
     RATES_HZ,
     AckFrame,
@@ -31,20 +27,6 @@ from bridge.protocol.gmr import (
 )
 
 FAST = examples(150)
-
-
-def xor_cs(body: bytes) -> int:
-    return functools.reduce(operator.xor, body, 0)
-
-
-def line(body: str) -> bytes:
-    """A line with a checksum computed here, independently of the codec."""
-    return b"$" + body.encode() + b"*" + f"{xor_cs(body.encode()):02X}".encode() + b"\r\n"
-
-
-def only(dec: GmrDecoder, **expected: int) -> None:
-    want = {r.value: 0 for r in DropReason} | expected
-    assert dec.counters.dropped.snapshot() == want
 
 
 # --------------------------------------------------------------------------- datasheet examples
@@ -74,7 +56,7 @@ def test_datasheet_attitude_example_decodes() -> None:
     assert Flags.CAL not in f.flags
     assert f == EXAMPLE_ATTITUDE
     assert dec.counters.frames == 1
-    only(dec)
+    only(dec.counters.dropped)
 
 
 def test_datasheet_version_example_decodes() -> None:
@@ -176,7 +158,7 @@ def test_accepted_edge_values(body: str, check: object) -> None:
     out = dec.feed(line(body))
     assert len(out) == 1, dec.last_error
     assert callable(check) and check(out[0])
-    only(dec)
+    only(dec.counters.dropped)
 
 
 # --------------------------------------------------------------------------- every drop reason
@@ -259,7 +241,7 @@ HOST_CASES: list[tuple[str, str]] = [
 def test_host_drop_reasons_counted_once_then_next_frame(body: str, reason: str) -> None:
     dec = GmrDecoder("host")
     assert dec.feed(line(body) + GOOD) == [EXAMPLE_VERSION]
-    only(dec, **{reason: 1})
+    only(dec.counters.dropped, **{reason: 1})
     assert dec.last_error is not None and dec.last_error.reason == reason
     assert dec.counters.frames == 1
 
@@ -276,7 +258,7 @@ DEVICE_CASES: list[tuple[str, str]] = [
 def test_device_drop_reasons(body: str, reason: str) -> None:
     dec = GmrDecoder("device")
     assert dec.feed(line(body) + line("PGMRQ,VER")) == [CommandFrame.ver()]
-    only(dec, **{reason: 1})
+    only(dec.counters.dropped, **{reason: 1})
 
 
 def test_framing_drops_land_in_the_same_counters() -> None:
@@ -284,7 +266,7 @@ def test_framing_drops_land_in_the_same_counters() -> None:
     bad_cs = DATASHEET_PGMRA[:-2].encode() + b"51\r\n"
     data = b"\xff\xfejunk" + bad_cs + b"$PGMRA,1,2" + GOOD + b"$" + b"9" * 200 + b"\r\n" + GOOD
     assert dec.feed(data) == [EXAMPLE_VERSION, EXAMPLE_VERSION]
-    only(dec, noise=1, checksum=1, no_checksum=1, too_long=1)
+    only(dec.counters.dropped, noise=1, checksum=1, no_checksum=1, too_long=1)
     assert dec.counters.bytes_in == len(data)
 
 
@@ -294,7 +276,7 @@ def test_device_receives_malformed_commands_so_it_can_answer_err() -> None:
     commands = [c for c in out if isinstance(c, CommandFrame)]
     assert len(commands) == len(out) == 3
     assert [c.error() for c in commands] == [AckReason.UNKNOWN, AckReason.ARGS, AckReason.ARGS]
-    only(dec)
+    only(dec.counters.dropped)
 
 
 def test_bad_direction_rejected() -> None:
@@ -485,7 +467,7 @@ command_frames = st.one_of(
 def test_round_trip_host_frames(frame: GmrFrame) -> None:
     dec = GmrDecoder("host")
     assert dec.feed(encode(frame)) == [frame]
-    only(dec)
+    only(dec.counters.dropped)
 
 
 @FAST
@@ -493,7 +475,7 @@ def test_round_trip_host_frames(frame: GmrFrame) -> None:
 def test_round_trip_command_frames(frame: CommandFrame) -> None:
     dec = GmrDecoder("device")
     assert dec.feed(encode(frame)) == [frame]
-    only(dec)
+    only(dec.counters.dropped)
 
 
 @FAST
@@ -503,28 +485,12 @@ def test_any_chunking_gives_the_same_frames(
 ) -> None:
     # Noise here may hold "$" and corrupt frames: only whole-vs-chunked equality is asserted.
     stream = b"".join(encode(f) + noise for f, noise in items)
-    whole = GmrDecoder()
-    expected = whole.feed(stream)
     cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=10)))
-    chunked = GmrDecoder()
-    got = feed_in_chunks(chunked, stream, cuts)
-    assert got == expected
-    assert chunked.counters.dropped.snapshot() == whole.counters.dropped.snapshot()
-
-
-between_noise = props.between_noise(30)
-inside_noise = props.inside_noise(4)
+    assert_chunking_changes_nothing(GmrDecoder, stream, cuts)
 
 
 @FAST
-@given(
-    st.lists(
-        st.tuples(
-            host_frames, between_noise, st.none() | st.tuples(st.integers(0, 200), inside_noise)
-        ),
-        max_size=6,
-    )
-)
+@given(props.noisy_frames(host_frames))
 def test_noise_yields_exactly_the_frames_it_did_not_touch(
     items: list[tuple[GmrFrame, bytes, tuple[int, bytes] | None]],
 ) -> None:

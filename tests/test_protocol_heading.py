@@ -2,17 +2,13 @@
 
 from __future__ import annotations
 
-import functools
-import operator
-
 import codec_props as props
 import pytest
-from codec_props import feed_in_chunks, stream_with_noise
+from codec_props import assert_chunking_changes_nothing, line, only, stream_with_noise, xor_cs
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bridge.protocol.framing import DropReason
 from bridge.protocol.heading import (
     HPR_STATUS,
     HeadingDecoder,
@@ -22,20 +18,6 @@ from bridge.protocol.heading import (
 )
 
 FAST = examples(150)
-
-
-def xor_cs(body: bytes) -> int:
-    return functools.reduce(operator.xor, body, 0)
-
-
-def line(body: str) -> bytes:
-    """A line with a checksum computed here, independently of the codec."""
-    return b"$" + body.encode() + b"*" + f"{xor_cs(body.encode()):02X}".encode() + b"\r\n"
-
-
-def only(dec: HeadingDecoder, **expected: int) -> None:
-    want = {r.value: 0 for r in DropReason} | expected
-    assert dec.counters.dropped.snapshot() == want
 
 
 # --------------------------------------------------------------------------- public examples
@@ -59,7 +41,7 @@ def test_public_example_checksums(example: str) -> None:
 def test_hmr3000_examples_decode_with_status_visible() -> None:
     dec = HeadingDecoder("nmea")
     out = dec.feed(b"".join(e.encode() + b"\r\n" for e in HMR3000_EXAMPLES))
-    only(dec)
+    only(dec.counters.dropped)
     assert [(f.heading_deg, f.pitch_deg, f.roll_deg, f.status) for f in out] == [
         (59.6, -0.2, -3.0, ("N", "N", "N")),
         (72.9, -1.6, -29.6, ("N", "N", "O")),
@@ -88,7 +70,7 @@ def test_os5000_optional_fields() -> None:
         + line("C10.5")
         + line("C10.5T-3.5")
     )
-    only(dec)
+    only(dec.counters.dropped)
     assert out == [
         HeadingFrame.os5000(212.4, 2.5, -14.0, 28.4),
         HeadingFrame.os5000(10.5),
@@ -213,7 +195,7 @@ NMEA_CASES: list[tuple[str, str]] = [
 def test_nmea_drop_reasons(body: str, reason: str) -> None:
     dec = HeadingDecoder("nmea")
     assert dec.feed(line(body) + NMEA_GOOD) == [HeadingFrame.hdt(1.0)]
-    only(dec, **{reason: 1})
+    only(dec.counters.dropped, **{reason: 1})
     assert dec.last_error is not None and dec.last_error.reason == reason
 
 
@@ -243,14 +225,14 @@ OS_CASES: list[tuple[str, str]] = [
 def test_os5000_drop_reasons(body: str, reason: str) -> None:
     dec = HeadingDecoder("os5000")
     assert dec.feed(line(body) + OS_GOOD) == [HeadingFrame.os5000(1.0, 2.0, 3.0, 4.0)]
-    only(dec, **{reason: 1})
+    only(dec.counters.dropped, **{reason: 1})
 
 
 def test_framing_drops_counted_by_heading_decoder() -> None:
     dec = HeadingDecoder()
     data = b"\x00junk" + b"$HEHDT,1.0,T*00\r\n" + b"$HEHDT,1.0,T\r\n" + NMEA_GOOD
     assert dec.feed(data) == [HeadingFrame.hdt(1.0)]
-    only(dec, noise=1, checksum=1, no_checksum=1)
+    only(dec.counters.dropped, noise=1, checksum=1, no_checksum=1)
     assert dec.counters.frames == 1 and dec.counters.bytes_in == len(data)
 
 
@@ -322,7 +304,7 @@ os5000_frames = st.builds(
 def test_round_trip_nmea(frame: HeadingFrame) -> None:
     dec = HeadingDecoder("nmea")
     assert dec.feed(encode(frame)) == [frame]
-    only(dec)
+    only(dec.counters.dropped)
 
 
 @FAST
@@ -330,7 +312,7 @@ def test_round_trip_nmea(frame: HeadingFrame) -> None:
 def test_round_trip_os5000(frame: HeadingFrame) -> None:
     dec = HeadingDecoder("os5000")
     assert dec.feed(encode(frame)) == [frame]
-    only(dec)
+    only(dec.counters.dropped)
 
 
 def _stream_case(protocol: HeadingProtocol) -> st.SearchStrategy[list[tuple[HeadingFrame, bytes]]]:
@@ -343,28 +325,12 @@ def _stream_case(protocol: HeadingProtocol) -> st.SearchStrategy[list[tuple[Head
 def test_any_chunking_gives_the_same_frames(protocol: HeadingProtocol, data: st.DataObject) -> None:
     items = data.draw(_stream_case(protocol))
     stream = b"".join(encode(f) + noise for f, noise in items)
-    whole = HeadingDecoder(protocol)
-    expected = whole.feed(stream)
     cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=10)))
-    chunked = HeadingDecoder(protocol)
-    got = feed_in_chunks(chunked, stream, cuts)
-    assert got == expected
-    assert chunked.counters.dropped.snapshot() == whole.counters.dropped.snapshot()
-
-
-between_noise = props.between_noise(30)
-inside_noise = props.inside_noise(4)
+    assert_chunking_changes_nothing(lambda: HeadingDecoder(protocol), stream, cuts)
 
 
 @FAST
-@given(
-    st.lists(
-        st.tuples(
-            nmea_frames, between_noise, st.none() | st.tuples(st.integers(0, 200), inside_noise)
-        ),
-        max_size=6,
-    )
-)
+@given(props.noisy_frames(nmea_frames))
 def test_noise_yields_exactly_the_frames_it_did_not_touch(
     items: list[tuple[HeadingFrame, bytes, tuple[int, bytes] | None]],
 ) -> None:

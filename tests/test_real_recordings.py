@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import io
-import logging
 import math
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -114,14 +113,7 @@ def spread_rel(m: FloatArray) -> float:
 # ---------------------------------------------------------------------------
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 @pytest.fixture(scope="module")

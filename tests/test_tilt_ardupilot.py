@@ -21,14 +21,10 @@ ideal and SITL's rover at rest is exactly level (the accuracy figures are
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import math
 import os
-import random
 import signal
-import socket
 import subprocess
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -36,7 +32,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from autopilots import AUTOPILOTS
+from autopilots import ARDUPILOT_INSTANCES, AUTOPILOTS, ardupilot_ports, claim_instance
 from test_mavlink_rig import Rig, connect_gcs, rig_factory, wait_until
 
 from bridge.core.geometry import euler_to_dcm
@@ -84,7 +80,8 @@ def ardupilot(workdir: Path, companion_port: int) -> Iterator[subprocess.Popen[b
     workdir.mkdir(parents=True, exist_ok=True)
     extra = workdir / "extra.parm"
     extra.write_text("".join(f"{k} {v:g}\n" for k, v in PARAMS.items()))
-    fd, n = claim_instance()
+    claim = claim_instance("ardupilot", ARDUPILOT_INSTANCES, ardupilot_ports)
+    n = claim.n
     console = open(workdir / "ardupilot.console", "wb")  # noqa: SIM115 - closed below
     proc = subprocess.Popen(
         [
@@ -123,39 +120,7 @@ def ardupilot(workdir: Path, companion_port: int) -> Iterator[subprocess.Popen[b
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(5.0)
         console.close()
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
-
-
-def claim_instance() -> tuple[int, int]:
-    """A SITL instance number whose lock is ours and whose fixed ports are free."""
-    deadline = time.monotonic() + 30.0
-    while time.monotonic() < deadline:
-        for n in random.sample(range(10, 40), 30):
-            path = Path(tempfile.gettempdir()) / f"compass-bridge-ardupilot-{n}.lock"
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                os.close(fd)
-                continue
-            if all(port_free(5501 + 10 * n + k, socket.SOCK_DGRAM) for k in range(3)) and all(
-                port_free(5760 + 10 * n + k, socket.SOCK_STREAM) for k in range(3)
-            ):
-                return fd, n
-            fcntl.flock(fd, fcntl.LOCK_UN)
-            os.close(fd)
-        time.sleep(0.2)
-    pytest.fail("no free ArduPilot SITL instance in 30 s")
-
-
-def port_free(port: int, kind: int) -> bool:
-    with socket.socket(socket.AF_INET, kind) as s:
-        try:
-            s.bind(("0.0.0.0", port))
-        except OSError:
-            return False
-    return True
+        claim.release()
 
 
 def test_the_companion_takes_ardupilots_attitude_while_the_accelerometer_lies(

@@ -3,14 +3,12 @@ status documents, MAVLink (TILT_SRC beside ATTITUDE, the feed's yaw sigma) and `
 
 from __future__ import annotations
 
-import io
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_zenoh_output import Bridge, free_port, wait_until
+from zenoh_rig import Bridge, free_port, status_of, wait_until
 
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.calibration.model import Calibration
@@ -22,9 +20,8 @@ from bridge.core.vectors import Vec3
 from bridge.link.serial_link import LinkCounters, LinkState
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.sim.physics import SensorModel, UnitErrors
-from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
+from bridge.tools.status import BridgeAnswers, format_human, summarise
 from bridge.zenoh import schema
-from bridge.zenoh.monitor import MonitorOptions
 
 FIELD_NED_G = (0.21, 0.02, 0.43)
 TIMES = schema.SampleTimes(t_monotonic=12.5, t_unix=1_700_000_000.25)
@@ -152,17 +149,13 @@ def test_status_of_a_running_bridge_shows_its_tilt_source(tmp_path: Path) -> Non
     port = free_port()
     with Bridge(tmp_path, "boat9", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
         wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
-        opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
-        out = io.StringIO()
-        run_status(opts, out, as_json=True, timeout=5.0)
-        human = io.StringIO()
-        run_status(opts, human, timeout=5.0)
-    (rec,) = json.loads(out.getvalue())["bridges"]
+        _, doc, human = status_of(port)
+    (rec,) = doc["bridges"]
     # a unit turning on the spot, standalone: the accelerometer's tilt, no autopilot
     assert rec["tilt"]["source"] == "accelerometer"
     assert rec["tilt"]["autopilot_heard"] is False
     assert rec["tilt"]["frames"]["accelerometer"] > 0
-    assert "tilt         accelerometer" in human.getvalue()
+    assert "tilt         accelerometer" in human
 
 
 def test_a_host_sample_carries_its_solution_field_by_field() -> None:

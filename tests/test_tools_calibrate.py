@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import logging
-import struct
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import load_calibration
+from helpers import load_calibration, png_size
 
 from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG
 from bridge.calibration.fits.coverage import N_SECTIONS
@@ -43,14 +40,7 @@ def make_recording(path: Path, motion: Motion, seconds: float, seed: int = 5) ->
     return path
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 @pytest.fixture(scope="module")
@@ -59,14 +49,6 @@ def tumble(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # so the field visits every section more than twice -- which the tests check, as they
     # check the fit's accuracy on it; a longer recording would only repeat the same sweeps.
     return make_recording(tmp_path_factory.mktemp("rec") / "tumble.rec", Tumble(5), 120.0)
-
-
-def png_size(path: Path) -> tuple[int, int]:
-    data = path.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
-    assert data[12:16] == b"IHDR"
-    w, h = struct.unpack(">II", data[16:24])
-    return w, h
 
 
 def test_offline_fit_is_saved_where_the_daemon_loads_it_and_plotted(

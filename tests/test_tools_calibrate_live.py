@@ -9,16 +9,14 @@ stored file, COMPASS_* parameters, RAW_IMU rate) is checked afterwards.
 
 from __future__ import annotations
 
-import logging
 import re
-import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from helpers import load_calibration
+from helpers import load_calibration, png_size
 from test_mavlink_rig import ALT, LAT, LON, M, Rig, free_port, rig_factory
 
 from bridge.calibration.model import AffineCalibration
@@ -45,27 +43,12 @@ def rigs() -> Iterator[Callable[..., Rig]]:
     yield from rig_factory()
 
 
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 def tumbling_rig(rigs: Callable[..., Rig], tmp_path: Path, **kw: Any) -> Rig:
     motion = Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
     return rigs(tmp_path, fast=True, motion=motion, **kw)
-
-
-def png_size(path: Path) -> tuple[int, int]:
-    data = path.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
-    assert data[12:16] == b"IHDR"
-    w, h = struct.unpack(">II", data[16:24])
-    return w, h
 
 
 def calibrate_live(rig: Rig, *extra: str, url: str = "") -> int:

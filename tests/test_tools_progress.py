@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import io
-import logging
 import re
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,15 +16,7 @@ from bridge.tools import progress
 from bridge.tools.progress import REDRAW_S, Progress, eta_seconds, format_duration, render_bar
 from bridge.tools.recording import format_bytes
 
-
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Iterator[None]:
-    # main() sets up logging on the (captured) stderr of one test; undo it afterwards.
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
 def test_bar_shows_fraction_and_eta_at_the_average_rate() -> None:

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import io
-import json
 from pathlib import Path
 
 import pytest
-from test_zenoh_output import Bridge, free_port, wait_until
+from zenoh_rig import Bridge, free_port, status_of, wait_until
 
 from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
 from bridge.zenoh.monitor import MonitorOptions
@@ -18,12 +17,7 @@ def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path
     port = free_port()
     with Bridge(tmp_path, "boat7", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
         wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
-        opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
-        out = io.StringIO()
-        code = run_status(opts, out, as_json=True, timeout=5.0)
-        doc = json.loads(out.getvalue())
-        human = io.StringIO()
-        run_status(opts, human, timeout=5.0)
+        code, doc, text = status_of(port)
     (rec,) = doc["bridges"]
     assert rec["bridge"] == b.prefix
     assert rec["link"]["state"] == "streaming"
@@ -38,7 +32,6 @@ def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path
     assert rec["verdict"] == "UNCALIBRATED" and code == 3
     assert doc["asked"] == f"fleet/**/status via tcp/127.0.0.1:{port}"
     assert rec["drift"]["mode"] == "detect" and rec["drift"]["detected"] is False
-    text = human.getvalue()
     assert text.startswith(f"asked fleet/**/status via tcp/127.0.0.1:{port}: 1 bridge answered\n")
     assert f"{b.prefix}: UNCALIBRATED" in text and "streaming on" in text and "frames/s" in text
 

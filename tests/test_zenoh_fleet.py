@@ -20,14 +20,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from test_zenoh_output import (
-    Bridge,
-    Received,
-    contiguous,
-    free_port,
-    peer,
-    wait_until,
-)
+from zenoh_rig import Bridge, Received, contiguous, free_port, peer, wait_until
 
 from bridge.zenoh import schema
 from bridge.zenoh.monitor import FleetView, MonitorOptions, document_keys, run_monitor

@@ -23,16 +23,7 @@ from typing import Any
 
 import pytest
 import zenoh
-from test_zenoh_output import (
-    NO_SCOUTING,
-    Bridge,
-    Received,
-    _command,
-    _query,
-    free_port,
-    peer,
-    wait_until,
-)
+from zenoh_rig import NO_SCOUTING, Bridge, Received, _command, _query, free_port, peer, wait_until
 
 from bridge.tools.status import run_status
 from bridge.zenoh import schema

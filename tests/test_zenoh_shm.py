@@ -20,7 +20,7 @@ import threading
 
 import pytest
 import zenoh
-from test_zenoh_output import NO_SCOUTING, free_port, wait_until
+from zenoh_rig import NO_SCOUTING, free_port, wait_until
 
 pytestmark = pytest.mark.integration  # real zenoh sessions and a child process
 
