@@ -66,7 +66,10 @@ class UsageError(Exception):
 # ---------------------------------------------------------------------------
 
 
-def _logging_options(parser: argparse.ArgumentParser, *, suppress: bool) -> None:
+def logging_options(parser: argparse.ArgumentParser, *, suppress: bool = False) -> None:
+    """``-v`` / ``--log-level`` on ``parser`` (``python -m benchmarks`` has them too).
+
+    :func:`setup_logging_from` turns them into the log level."""
     # The same options are accepted before and after the subcommand; SUPPRESS on
     # the subparsers keeps a value given before the subcommand from being reset.
     default: Any = argparse.SUPPRESS if suppress else None
@@ -105,11 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="GMR compass bridge: calibrated, tilt-compensated heading to MAVLink and Zenoh.",
     )
     parser.add_argument("--version", action="version", version=f"compass-bridge {__version__}")
-    _logging_options(parser, suppress=False)
+    logging_options(parser, suppress=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     common = argparse.ArgumentParser(add_help=False)
-    _logging_options(common, suppress=True)
+    logging_options(common, suppress=True)
 
     run = sub.add_parser("run", parents=[common], help="run the daemon")
     _config_options(run)
@@ -275,7 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _setup_logging(args: argparse.Namespace, stream: Any = None) -> None:
+def setup_logging_from(args: argparse.Namespace, stream: Any = None) -> None:
+    """Logging as :func:`logging_options` asked (``stream``: stderr by default)."""
     level = args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
     # One line per record, rate-limited repeats; under systemd (stderr is the journal)
     # with <N> priority prefixes and no timestamps: the journal stamps time and unit itself.
@@ -359,7 +363,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from bridge.console import TerminalGate
 
         gate = TerminalGate(sys.stderr)
-        _setup_logging(args, gate)
+        setup_logging_from(args, gate)
     stop = threading.Event()
     with stop_on_signals(stop):
         return run_daemon(cfg, stop, console=console, reload_config=reload_config, gate=gate)
@@ -576,7 +580,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(words)
     except SystemExit as e:  # argparse: --help/--version (0) or usage error (2)
         return _exit_code(e)
-    _setup_logging(args)
+    setup_logging_from(args)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         code = func(args)
