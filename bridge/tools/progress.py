@@ -23,8 +23,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from types import TracebackType
 from typing import TextIO
+
+from bridge.types import ClosedOnExit
 
 SPINNER = "|/-\\"
 #: ANSI: cursor up N lines; erase to the end of the line.
@@ -69,7 +70,7 @@ def render_spinner(label: str, tick: int, elapsed: float, *, note: str = "") -> 
     return f"{line}  {note}" if note else line
 
 
-class Progress:
+class Progress(ClosedOnExit):
     """A live progress line: a bar when ``total`` is known, else a spinner.
 
     Use as a context manager; call :meth:`update` as often as you like (redraws
@@ -177,14 +178,3 @@ class Progress:
                 self._stream.flush()
             self._width = 0
             self._lines = 0
-
-    def __enter__(self) -> Progress:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
