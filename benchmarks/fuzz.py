@@ -53,7 +53,7 @@ from typing import Any
 
 from benchmarks import fuzz_hostile
 from benchmarks.figures import Figure, report
-from benchmarks.procstat import process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import datagrams, process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
 
@@ -398,13 +398,7 @@ class MavlinkPeer:
     def _receive(self) -> None:
         parser = self.mav.MAVLink(None)
         parser.robust_parsing = True
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             try:
                 msgs = parser.parse_buffer(data) or []
             except self.mav.MAVError:

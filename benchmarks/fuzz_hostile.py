@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.figures import Figure
-from benchmarks.procstat import process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import datagrams, free_port, process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +55,11 @@ _KEY = bytes.fromhex("c0" * 32)
 _ATT_HZ = 10.0  #: BRG_SR_ATT's default
 _SIGNING_EPOCH = 1420070400
 
-#: The flood, in a process of its own (so it does not steal this process's time).
-_FLOOD = textwrap.dedent(
+#: The flood, in a process of its own (so it does not steal this process's time):
+#: ``python -c FLOOD PORT RATE SECONDS SAMPLE_HEX ...`` sends RATE datagrams a second to
+#: 127.0.0.1:PORT, each from a port of its own -- random junk, MAVLink 2 junk, and the
+#: SAMPLES -- and prints the rate it kept (tests/test_mavlink_starvation.py floods with it).
+FLOOD = textwrap.dedent(
     """
     import random, socket, sys, time
     port, rate, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
@@ -77,13 +80,8 @@ _FLOOD = textwrap.dedent(
 )
 
 
-def _free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
+def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
+    """A pymavlink ``MAVLink`` of ``sysid`` that signs what it packs with ``key``."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
     mav = apm.MAVLink(None, sysid, 190)
@@ -145,7 +143,7 @@ class _Gcs:
         self.sock.settimeout(0.1)
         self.addr = ("127.0.0.1", port)
         self.listen = listen
-        self.mav = _signed(255, key) if key is not None else apm.MAVLink(None, 255, 190)
+        self.mav = signed(255, key) if key is not None else apm.MAVLink(None, 255, 190)
         self.parser = apm.MAVLink(None)
         self.lock = threading.Lock()
         self.seen: list[Any] = []
@@ -166,13 +164,7 @@ class _Gcs:
             self._stop.wait(1.0)
 
     def _recv(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             with contextlib.suppress(Exception):
                 msgs = self.parser.parse_buffer(data) or []
                 with self.lock:
@@ -215,7 +207,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
     """Junk from many ports and a TCP crowd against a signed ground station (module docstring)."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
-    udp, tcp = _free_port(), _free_port(socket.SOCK_STREAM)
+    udp, tcp = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     key_file = tmp / "crowd.key"
     key_file.write_text(_KEY.hex() + "\n")
     mav = (
@@ -230,9 +222,9 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
             if not wait_until(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
                 raise RuntimeError(f"no ATTITUDE at the signed ground station (log: {errlog})")
             stranger = apm.MAVLink(None, 66, 1)
-            samples = [_hb(stranger), _hb(_signed(77, bytes(32))), *gcs.sent[:3]]
+            samples = [_hb(stranger), _hb(signed(77, bytes(32))), *gcs.sent[:3]]
             flood = subprocess.Popen(
-                [sys.executable, "-c", _FLOOD, str(udp), str(junk_rate), str(seconds + 4),
+                [sys.executable, "-c", FLOOD, str(udp), str(junk_rate), str(seconds + 4),
                  *(s.hex() for s in samples)],
                 stdout=subprocess.PIPE, text=True,
             )  # fmt: skip
@@ -250,7 +242,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
                 contextlib.suppress(OSError),
                 socket.create_connection(("127.0.0.1", tcp), timeout=15.0) as c,
             ):
-                c.sendall(_hb(_signed(250, _KEY, 3)))
+                c.sendall(_hb(signed(250, _KEY, 3)))
                 c.settimeout(15.0)
                 if c.recv(4096):
                     served = time.monotonic() - t0
@@ -289,7 +281,7 @@ HUGE_QUERY_WAIT_S = 0.5
 
 def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
     """Oversized and malformed Zenoh command arguments (module docstring)."""
-    zport = _free_port(socket.SOCK_STREAM)
+    zport = free_port(socket.SOCK_STREAM)
     prefix = f"bench/fuzz{zport}"
     config = "[mavlink]\nendpoints = []\n" + _zenoh_config(zport, prefix, remote=True)
     with _daemon(tmp, "zenoh", config) as (proc, _fw, errlog):
@@ -377,7 +369,7 @@ def _watch_zenoh(session: Any, prefix: str) -> tuple[list[str], list[str], Any]:
 
 def silent_device(tmp: Path, seconds: float) -> list[Figure]:
     """A compass that answers and streams nothing (module docstring)."""
-    zport, gport = _free_port(socket.SOCK_STREAM), _free_port()
+    zport, gport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
     prefix = f"bench/silent{zport}"
     config = f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{gport}"]\n' + _zenoh_config(zport, prefix)
 
@@ -412,7 +404,7 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
 
 def late_device(tmp: Path, seconds: float) -> list[Figure]:
     """A compass that answers late (module docstring)."""
-    zport = _free_port(socket.SOCK_STREAM)
+    zport = free_port(socket.SOCK_STREAM)
     prefix = f"bench/late{zport}"
     config = "[mavlink]\nendpoints = []\n[calibration]\nonboard = true\n" + _zenoh_config(
         zport, prefix, remote=True
@@ -486,7 +478,7 @@ def params_storm(tmp: Path, set_rate: int, seconds: float) -> list[Figure]:
     """A PARAM_SET storm; params.json writes counted by its inode (module docstring)."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
-    udp = _free_port()
+    udp = free_port(socket.SOCK_DGRAM)
     config = f'[mavlink]\nendpoints = ["udpin:127.0.0.1:{udp}"]\n[zenoh]\nenabled = false\n'
     doc = tmp / "params-state" / "params.json"
     inodes: list[int] = []

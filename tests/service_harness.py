@@ -28,6 +28,8 @@ from pathlib import Path
 import waiting
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
+from benchmarks.procstat import datagrams
+
 DEADLINE_S = 20.0
 
 
@@ -65,13 +67,7 @@ class FakeServiceManager:
         return "@" + self.name
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             now = time.monotonic()
             fields = dict(
                 line.split("=", 1) for line in data.decode("utf-8").split("\n") if "=" in line

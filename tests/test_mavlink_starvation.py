@@ -18,16 +18,16 @@ import contextlib
 import socket
 import subprocess
 import sys
-import textwrap
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
 from service_harness import DaemonProcess, free_port, free_udp_port, toml_config, wait_for
 
+from benchmarks.fuzz_hostile import FLOOD, signed
+from benchmarks.procstat import datagrams
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
@@ -38,40 +38,6 @@ ATT_HZ = 10.0  #: BRG_SR_ATT's default
 WINDOW_MS = 8000
 JUNK_PER_S = 1000
 IDLE_TCP = 50
-
-#: The flood, run in a process of its own: it must not steal this process's time.
-FLOOD = textwrap.dedent(
-    """
-    import os, random, socket, sys, time
-    port, rate, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
-    samples = [bytes.fromhex(h) for h in sys.argv[4:]]
-    rng = random.Random(7)
-    sent, t0 = 0, time.monotonic()
-    while time.monotonic() - t0 < seconds:
-        for _ in range(rate // 20):
-            k = rng.random()
-            if k < 0.5:
-                d = rng.randbytes(rng.randint(1, 200))
-            elif k < 0.6:
-                d = b"\\xfd" + rng.randbytes(rng.randint(10, 100))
-            else:
-                d = rng.choice(samples)
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port of its own
-                s.sendto(d, ("127.0.0.1", port))
-            sent += 1
-        time.sleep(max(0.0, t0 + sent / rate - time.monotonic()))
-    print(sent / (time.monotonic() - t0))
-    """
-)
-
-
-def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
-    mav = apm.MAVLink(None, sysid, 190)
-    mav.signing.secret_key = key
-    mav.signing.sign_outgoing = True
-    mav.signing.link_id = link_id
-    mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
-    return mav
 
 
 class SignedGcs:
@@ -103,13 +69,7 @@ class SignedGcs:
             self._stop.wait(1.0)
 
     def _recv(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             for m in self.parser.parse_buffer(data) or []:
                 if m.get_type() == "ATTITUDE":
                     with self.lock:
