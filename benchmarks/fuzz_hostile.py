@@ -96,6 +96,35 @@ def _hb(mav: Any) -> bytes:
     return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
 
 
+def start_flood(
+    port: int, rate: int, seconds: float, captured: list[bytes]
+) -> subprocess.Popen[str]:
+    """:data:`FLOOD` at ``port`` in a child process (its stdout piped: the rate it kept).
+
+    The samples are what an attacker has: a stranger's HEARTBEAT, one signed with
+    another key, and ``captured`` -- a ground station's own packets, to replay."""
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    samples = [_hb(apm.MAVLink(None, 66, 1)), _hb(signed(77, bytes(32))), *captured]
+    return subprocess.Popen(
+        [sys.executable, "-c", FLOOD, str(port), str(rate), str(seconds),
+         *(s.hex() for s in samples)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
+def idle_clients(port: int, n: int) -> list[socket.socket]:
+    """``n`` TCP clients connecting to ``port`` that will never send nor read."""
+    idle: list[socket.socket] = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            s.connect(("127.0.0.1", port))
+        idle.append(s)
+    return idle
+
+
 @contextlib.contextmanager
 def _daemon(
     tmp: Path, name: str, config: str, *, fw_setup: Callable[[Any], None] | None = None
@@ -181,7 +210,9 @@ class _Gcs:
         self.sock.close()
 
 
-def _zenoh_session(port: int) -> Any:
+@contextlib.contextmanager
+def _zenoh_session(port: int) -> Iterator[Any]:
+    """A Zenoh peer connected to the daemon's endpoint on 127.0.0.1:``port``, closed after."""
     import zenoh
 
     c = zenoh.Config()
@@ -189,7 +220,11 @@ def _zenoh_session(port: int) -> Any:
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("listen/endpoints", "[]")
     c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    return zenoh.open(c)
+    session = zenoh.open(c)
+    try:
+        yield session
+    finally:
+        session.close()
 
 
 def _zenoh_config(port: int, prefix: str, remote: bool = False) -> str:
@@ -205,7 +240,6 @@ def _zenoh_config(port: int, prefix: str, remote: bool = False) -> str:
 
 def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Figure]:
     """Junk from many ports and a TCP crowd against a signed ground station (module docstring)."""
-    from pymavlink.dialects.v20 import ardupilotmega as apm
 
     udp, tcp = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     key_file = tmp / "crowd.key"
@@ -221,19 +255,8 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
         try:
             if not wait_until(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
                 raise RuntimeError(f"no ATTITUDE at the signed ground station (log: {errlog})")
-            stranger = apm.MAVLink(None, 66, 1)
-            samples = [_hb(stranger), _hb(signed(77, bytes(32))), *gcs.sent[:3]]
-            flood = subprocess.Popen(
-                [sys.executable, "-c", FLOOD, str(udp), str(junk_rate), str(seconds + 4),
-                 *(s.hex() for s in samples)],
-                stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
-            for _ in range(tcp_crowd):
-                s = socket.socket()
-                s.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    s.connect(("127.0.0.1", tcp))
-                idle.append(s)
+            flood = start_flood(udp, junk_rate, seconds + 4, gcs.sent[:3])
+            idle += idle_clients(tcp, tcp_crowd)
             time.sleep(2.0)
             start = max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE"))
             t0 = time.monotonic()
@@ -285,9 +308,7 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
     prefix = f"bench/fuzz{zport}"
     config = "[mavlink]\nendpoints = []\n" + _zenoh_config(zport, prefix, remote=True)
     with _daemon(tmp, "zenoh", config) as (proc, _fw, errlog):
-        session = None
-        try:
-            session = _zenoh_session(zport)
+        with _zenoh_session(zport) as session:
             key = f"{prefix}/cmd/calibration/start"
             if not wait_until(
                 lambda: bool(list(session.get(f"{prefix}/status", timeout=0.5))), 30.0
@@ -331,9 +352,6 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
             del giant
             time.sleep(1.0)
             rss1 = process_rss_mb(proc.pid)[0]
-        finally:
-            if session is not None:
-                session.close()
         tracebacks = _tracebacks(errlog)
     return [
         Figure("zenoh_not_bad_arguments", wrong, "answers", 0.0, detail={
@@ -378,15 +396,10 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
 
     gcs = _Gcs(gport, None, listen=True)
     with _daemon(tmp, "silent", config, fw_setup=mute) as (_proc, _fw, errlog):
-        session = None
-        try:
-            session = _zenoh_session(zport)
+        with _zenoh_session(zport) as session:
             states, events, _subs = _watch_zenoh(session, prefix)
             wait_until(lambda: len(states) >= 2, 30.0)
             time.sleep(seconds)
-        finally:
-            if session is not None:
-                session.close()
         tracebacks = _tracebacks(errlog)
     beats = gcs.of("HEARTBEAT")
     gcs.close()
@@ -415,9 +428,7 @@ def late_device(tmp: Path, seconds: float) -> list[Figure]:
 
     counters: dict[str, Any] = {}
     with _daemon(tmp, "late", config, fw_setup=slow) as (_proc, fw, errlog):
-        session = None
-        try:
-            session = _zenoh_session(zport)
+        with _zenoh_session(zport) as session:
             states, _events, _subs = _watch_zenoh(session, prefix)
             wait_until(lambda: len(states) >= 2, 30.0)
             time.sleep(seconds)
@@ -429,9 +440,6 @@ def late_device(tmp: Path, seconds: float) -> list[Figure]:
                 if r.ok is not None:
                     counters = json.loads(r.ok.payload.to_bytes())["link"]["counters"]
             left_calibrating = int(fw.calibrating)
-        finally:
-            if session is not None:
-                session.close()
         tracebacks = _tracebacks(errlog)
     return [
         Figure("late_device_resets", counters.get("device_resets", math.nan), "", 0.0, detail={

@@ -14,10 +14,8 @@ is what the bridge sent, not how promptly this loaded test process read it.
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -26,7 +24,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
 from service_harness import DaemonProcess, free_port, free_udp_port, toml_config, wait_for
 
-from benchmarks.fuzz_hostile import FLOOD, signed
+from benchmarks.fuzz_hostile import idle_clients, signed, start_flood
 from benchmarks.procstat import datagrams
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
@@ -112,23 +110,8 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
         try:
             wait_for(lambda: len(gcs.attitudes()) >= 20, "ATTITUDE at the signed GCS")
             # What an attacker has: junk, its own packets, and copies of the GCS's.
-            stranger = apm.MAVLink(None, 66, 1)
-            samples = [
-                bytes(stranger.heartbeat_encode(6, 8, 0, 0, 0).pack(stranger)),
-                bytes(signed(77, bytes(32)).heartbeat_encode(6, 8, 0, 0, 0).pack(signed(77, bytes(32)))),
-                *gcs.sent[:3],
-            ]  # fmt: skip
-            flood = subprocess.Popen(
-                [sys.executable, "-c", FLOOD, str(udp), str(JUNK_PER_S), "14",
-                 *(s.hex() for s in samples)],
-                stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
-            for _ in range(IDLE_TCP):
-                s = socket.socket()
-                s.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    s.connect(("127.0.0.1", tcp))
-                idle.append(s)
+            flood = start_flood(udp, JUNK_PER_S, 14, gcs.sent[:3])
+            idle += idle_clients(tcp, IDLE_TCP)
             time.sleep(2.0)  # the flood is on, the crowd connected
             start_ms = max(gcs.attitudes())
             # A newcomer on tcpin, meanwhile, is served within 5 s.
