@@ -4,8 +4,10 @@ progress callback the in-process measurements share."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -94,3 +96,34 @@ def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
         if json_to:
             Path(json_to).write_text(json.dumps(doc, indent=2) + "\n")
     return 0 if ok else 1
+
+
+def result_options(p: argparse.ArgumentParser, progress: str) -> None:
+    """``--json PATH`` and ``--progress`` of a benchmark that prints a result dict with its
+    ``targets`` (``progress``: what the bar shows, for the help); see :func:`finish`."""
+    p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
+    p.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help=f"{progress} on stderr (default: when stderr is a terminal)",
+    )
+
+
+def finish(
+    text: str,
+    result: dict[str, Any],
+    json_to: Path | None,
+    default: Callable[[Any], Any] | None = None,
+) -> int:
+    """Print ``text`` (the result's report), write ``result`` as JSON to ``json_to`` when
+    given (``default`` for what json cannot write itself). Returns the exit code: 2 when
+    the JSON could not be written (said on stderr), else 0 when every target passed."""
+    print(text)
+    if json_to is not None:
+        try:
+            json_to.write_text(json.dumps(result, indent=2, default=default) + "\n")
+        except OSError as exc:
+            print(f"cannot write {json_to}: {exc}", file=sys.stderr)
+            return 2
+    return 0 if all(t["pass"] for t in result["targets"]) else 1
