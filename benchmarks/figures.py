@@ -81,6 +81,13 @@ def format_figures(figures: list[Figure]) -> str:
     return "\n".join(lines)
 
 
+def report_options(ap: argparse.ArgumentParser, *, progress: bool = True) -> None:
+    """``--json FILE`` (``json_to`` of :func:`report`) and, with ``progress``, ``--progress``."""
+    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
+    if progress:
+        ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+
+
 def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
     """Print the figures (a table, or JSON with ``json_to="-"``), maybe write them as JSON.
 

@@ -52,7 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import fuzz_hostile
-from benchmarks.figures import Figure, report
+from benchmarks.figures import Figure, report, report_options
 from benchmarks.procstat import datagrams, process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
@@ -657,8 +657,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--max-growth-mb", type=float, default=16.0, help="RSS growth still counted as none"
     )
-    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
-    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+    report_options(ap)
     fuzz_hostile.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.chunks < 1 or args.messages < 1:
