@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bridge.tools.progress import progress_option
+
 #: A measurement's progress: (fraction done, what it is doing).
 Step = Callable[[float, str], None]
 
@@ -109,12 +111,7 @@ def result_options(p: argparse.ArgumentParser, progress: str) -> None:
     """``--json PATH`` and ``--progress`` of a benchmark that prints a result dict with its
     ``targets`` (``progress``: what the bar shows, for the help); see :func:`finish`."""
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
-    p.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help=f"{progress} on stderr (default: when stderr is a terminal)",
-    )
+    progress_option(p, progress)
 
 
 def finish(

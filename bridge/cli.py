@@ -44,6 +44,7 @@ from typing import Any, NoReturn
 from bridge import __version__
 from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config
 from bridge.tools import argtypes
+from bridge.tools.progress import progress_option
 
 log = logging.getLogger("bridge.cli")
 
@@ -203,12 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )
-    rec.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="live line on stderr (default: when stderr is a terminal)",
-    )
+    progress_option(rec, "live line")
     rec.set_defaults(func=cmd_record)
 
     _tools_parsers(sub, common)
@@ -460,12 +456,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     yn = cal.add_mutually_exclusive_group()
     yn.add_argument("--yes", action="store_true", help="accept without asking")
     yn.add_argument("--no", action="store_true", help="show the result, never accept")
-    cal.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="live bar (and coverage map) on stderr (default: when stderr is a terminal)",
-    )
+    progress_option(cal, "live bar (and coverage map)")
     cal.set_defaults(func=cmd_calibrate)
 
     st = sub.add_parser(

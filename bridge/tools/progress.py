@@ -18,6 +18,7 @@ keeps turning by itself (``tick=True``: a small daemon thread redraws it).
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 import threading
@@ -68,6 +69,17 @@ def render_spinner(label: str, tick: int, elapsed: float, *, note: str = "") -> 
     """``label |  0:12  note`` for work of unknown length."""
     line = f"{label} {SPINNER[tick % len(SPINNER)]} {format_duration(elapsed)}"
     return f"{line}  {note}" if note else line
+
+
+def progress_option(parser: argparse.ArgumentParser, shows: str) -> None:
+    """``--progress`` / ``--no-progress``: :class:`Progress`'s ``enabled`` (absent: None,
+    on when stderr is a terminal); ``shows`` says what it draws, for the help."""
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help=f"{shows} on stderr (default: when stderr is a terminal)",
+    )
 
 
 class Progress(ClosedOnExit):
