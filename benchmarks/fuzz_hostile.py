@@ -125,6 +125,14 @@ def idle_clients(port: int, n: int) -> list[socket.socket]:
     return idle
 
 
+def end_attack(flood: subprocess.Popen[str] | None, idle: list[socket.socket]) -> None:
+    """Stop what :func:`start_flood` and :func:`idle_clients` started (either may be missing)."""
+    if flood is not None and flood.poll() is None:
+        flood.kill()
+    for s in idle:
+        s.close()
+
+
 @contextlib.contextmanager
 def _daemon(
     tmp: Path, name: str, config: str, *, fw_setup: Callable[[Any], None] | None = None
@@ -279,10 +287,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
             out, _ = flood.communicate(timeout=seconds + 30.0)
             junk_sent = float(out.strip() or "nan")
         finally:
-            if flood is not None and flood.poll() is None:
-                flood.kill()
-            for s in idle:
-                s.close()
+            end_attack(flood, idle)
             gcs.close()
         tracebacks = _tracebacks(errlog)
         alive = proc.poll() is None

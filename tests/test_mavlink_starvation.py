@@ -24,7 +24,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
 from service_harness import DaemonProcess, free_port, free_udp_port, toml_config, wait_for
 
-from benchmarks.fuzz_hostile import idle_clients, signed, start_flood
+from benchmarks.fuzz_hostile import end_attack, idle_clients, signed, start_flood
 from benchmarks.procstat import datagrams
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
@@ -137,9 +137,6 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
             assert not d.exited and "Traceback" not in d.log()
             assert d.stop() == 0
         finally:
-            if flood is not None and flood.poll() is None:
-                flood.kill()
-            for s in idle:
-                s.close()
+            end_attack(flood, idle)
             gcs.close()
             d.kill()
