@@ -19,7 +19,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from bridge.cli import LOG_LEVELS
+from bridge.cli import logging_options, setup_logging_from
 
 #: The benchmarks, ``benchmarks.<name>``, each with its own command line (``main``).
 BENCHMARKS = {
@@ -40,16 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m benchmarks",
         description="Benchmarks that print figures (run from a checkout of compass-bridge).",
     )
-    p.add_argument(
-        "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
-    )
-    p.add_argument(
-        "--log-level",
-        type=str.upper,
-        choices=LOG_LEVELS,
-        default=None,
-        help="log level (default WARNING; overrides -v)",
-    )
+    logging_options(p)
     sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
     # Each benchmark parses its own options (and its own --help): everything after its
     # name is passed through unparsed (see main()).
@@ -71,11 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args, rest = build_parser().parse_known_args(words)
     except SystemExit as e:  # --help, or a usage error (2)
         return _exit_code(e)
-    from bridge.logsetup import setup_logging
-
-    setup_logging(
-        args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG"), sys.stderr
-    )
+    setup_logging_from(args)
     bench_main = importlib.import_module(f"benchmarks.{args.bench}").main
     try:
         return int(bench_main(rest) or 0)

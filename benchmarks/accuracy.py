@@ -42,19 +42,17 @@ MAVLink ArduPilot flow at those shake levels.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from benchmarks.e2e import E2eConfig, check_e2e_targets, format_e2e, run_e2e
+from benchmarks.figures import finish, result_options
 from benchmarks.handheld import (
     HandheldConfig,
     check_handheld_targets,
@@ -499,13 +497,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="also run the daemon on the simulated compass through the MAVLink ArduPilot flow "
         "at each --shake level (real time: about a minute per level and unit)",
     )
-    p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
-    p.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="progress bar with ETA on stderr (default: when stderr is a terminal)",
-    )
+    result_options(p, "progress bar with ETA")
     args = p.parse_args(list(argv) if argv is not None else None)
     cfg = BenchConfig(
         units=args.units,
@@ -530,14 +522,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 lambda note: bar.update(note=note),
             )
             result["targets"] += check_e2e_targets(result["e2e"])
-    print(format_report(result))
-    if args.json is not None:
-        try:
-            args.json.write_text(json.dumps(result, indent=2, default=_json_default) + "\n")
-        except OSError as exc:
-            print(f"cannot write {args.json}: {exc}", file=sys.stderr)
-            return 2
-    return 0 if all(t["pass"] for t in result["targets"]) else 1
+    return finish(format_report(result), result, args.json, _json_default)
 
 
 if __name__ == "__main__":  # pragma: no cover

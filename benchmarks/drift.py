@@ -28,19 +28,17 @@ once) exactly as in the daemon; its learned steps are applied to the engine.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from benchmarks.figures import finish, result_options
 from benchmarks.scoring import HeldScore, positive_int, score_held, target
 from bridge.app.calibration.drift import DriftMonitor
 from bridge.app.pipeline import Pipeline
@@ -554,13 +552,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--fa-minutes", type=float, default=d.fa_minutes, help="driving per false-alarm unit"
     )
     p.add_argument("--fa-units", type=int, default=d.fa_units, help="units for false alarms")
-    p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
-    p.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="progress bar on stderr (default: when stderr is a terminal)",
-    )
+    result_options(p, "progress bar")
     args = p.parse_args(list(argv) if argv is not None else None)
     cfg = DriftBenchConfig(
         units=args.units,
@@ -576,14 +568,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     with Progress("drift", 1.0, enabled=args.progress, tick=True) as bar:
         result = run(cfg, lambda frac, note: bar.update(frac, note=note))
-    print(format_report(result))
-    if args.json is not None:
-        try:
-            args.json.write_text(json.dumps(result, indent=2) + "\n")
-        except OSError as exc:
-            print(f"cannot write {args.json}: {exc}", file=sys.stderr)
-            return 2
-    return 0 if all(t["pass"] for t in result["targets"]) else 1
+    return finish(format_report(result), result, args.json)
 
 
 if __name__ == "__main__":  # pragma: no cover

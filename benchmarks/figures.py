@@ -4,13 +4,17 @@ progress callback the in-process measurements share."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from bridge.tools.progress import progress_option
 
 #: A measurement's progress: (fraction done, what it is doing).
 Step = Callable[[float, str], None]
@@ -79,6 +83,13 @@ def format_figures(figures: list[Figure]) -> str:
     return "\n".join(lines)
 
 
+def report_options(ap: argparse.ArgumentParser, *, progress: bool = True) -> None:
+    """``--json FILE`` (``json_to`` of :func:`report`) and, with ``progress``, ``--progress``."""
+    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
+    if progress:
+        ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+
+
 def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
     """Print the figures (a table, or JSON with ``json_to="-"``), maybe write them as JSON.
 
@@ -94,3 +105,29 @@ def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
         if json_to:
             Path(json_to).write_text(json.dumps(doc, indent=2) + "\n")
     return 0 if ok else 1
+
+
+def result_options(p: argparse.ArgumentParser, progress: str) -> None:
+    """``--json PATH`` and ``--progress`` of a benchmark that prints a result dict with its
+    ``targets`` (``progress``: what the bar shows, for the help); see :func:`finish`."""
+    p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
+    progress_option(p, progress)
+
+
+def finish(
+    text: str,
+    result: dict[str, Any],
+    json_to: Path | None,
+    default: Callable[[Any], Any] | None = None,
+) -> int:
+    """Print ``text`` (the result's report), write ``result`` as JSON to ``json_to`` when
+    given (``default`` for what json cannot write itself). Returns the exit code: 2 when
+    the JSON could not be written (said on stderr), else 0 when every target passed."""
+    print(text)
+    if json_to is not None:
+        try:
+            json_to.write_text(json.dumps(result, indent=2, default=default) + "\n")
+        except OSError as exc:
+            print(f"cannot write {json_to}: {exc}", file=sys.stderr)
+            return 2
+    return 0 if all(t["pass"] for t in result["targets"]) else 1

@@ -52,8 +52,8 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import fuzz_hostile
-from benchmarks.figures import Figure, report
-from benchmarks.procstat import process_rss_mb, stop_child, wait_until
+from benchmarks.figures import Figure, report, report_options
+from benchmarks.procstat import datagrams, process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
 
@@ -398,13 +398,7 @@ class MavlinkPeer:
     def _receive(self) -> None:
         parser = self.mav.MAVLink(None)
         parser.robust_parsing = True
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             try:
                 msgs = parser.parse_buffer(data) or []
             except self.mav.MAVError:
@@ -663,8 +657,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--max-growth-mb", type=float, default=16.0, help="RSS growth still counted as none"
     )
-    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
-    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+    report_options(ap)
     fuzz_hostile.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.chunks < 1 or args.messages < 1:

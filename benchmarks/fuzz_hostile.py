@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.figures import Figure
-from benchmarks.procstat import process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import datagrams, free_port, process_rss_mb, stop_child, wait_until
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +55,11 @@ _KEY = bytes.fromhex("c0" * 32)
 _ATT_HZ = 10.0  #: BRG_SR_ATT's default
 _SIGNING_EPOCH = 1420070400
 
-#: The flood, in a process of its own (so it does not steal this process's time).
-_FLOOD = textwrap.dedent(
+#: The flood, in a process of its own (so it does not steal this process's time):
+#: ``python -c FLOOD PORT RATE SECONDS SAMPLE_HEX ...`` sends RATE datagrams a second to
+#: 127.0.0.1:PORT, each from a port of its own -- random junk, MAVLink 2 junk, and the
+#: SAMPLES -- and prints the rate it kept (tests/test_mavlink_starvation.py floods with it).
+FLOOD = textwrap.dedent(
     """
     import random, socket, sys, time
     port, rate, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
@@ -77,13 +80,8 @@ _FLOOD = textwrap.dedent(
 )
 
 
-def _free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
+def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
+    """A pymavlink ``MAVLink`` of ``sysid`` that signs what it packs with ``key``."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
     mav = apm.MAVLink(None, sysid, 190)
@@ -96,6 +94,43 @@ def _signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
 
 def _hb(mav: Any) -> bytes:
     return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+
+
+def start_flood(
+    port: int, rate: int, seconds: float, captured: list[bytes]
+) -> subprocess.Popen[str]:
+    """:data:`FLOOD` at ``port`` in a child process (its stdout piped: the rate it kept).
+
+    The samples are what an attacker has: a stranger's HEARTBEAT, one signed with
+    another key, and ``captured`` -- a ground station's own packets, to replay."""
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    samples = [_hb(apm.MAVLink(None, 66, 1)), _hb(signed(77, bytes(32))), *captured]
+    return subprocess.Popen(
+        [sys.executable, "-c", FLOOD, str(port), str(rate), str(seconds),
+         *(s.hex() for s in samples)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
+def idle_clients(port: int, n: int) -> list[socket.socket]:
+    """``n`` TCP clients connecting to ``port`` that will never send nor read."""
+    idle: list[socket.socket] = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            s.connect(("127.0.0.1", port))
+        idle.append(s)
+    return idle
+
+
+def end_attack(flood: subprocess.Popen[str] | None, idle: list[socket.socket]) -> None:
+    """Stop what :func:`start_flood` and :func:`idle_clients` started (either may be missing)."""
+    if flood is not None and flood.poll() is None:
+        flood.kill()
+    for s in idle:
+        s.close()
 
 
 @contextlib.contextmanager
@@ -145,7 +180,7 @@ class _Gcs:
         self.sock.settimeout(0.1)
         self.addr = ("127.0.0.1", port)
         self.listen = listen
-        self.mav = _signed(255, key) if key is not None else apm.MAVLink(None, 255, 190)
+        self.mav = signed(255, key) if key is not None else apm.MAVLink(None, 255, 190)
         self.parser = apm.MAVLink(None)
         self.lock = threading.Lock()
         self.seen: list[Any] = []
@@ -166,13 +201,7 @@ class _Gcs:
             self._stop.wait(1.0)
 
     def _recv(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             with contextlib.suppress(Exception):
                 msgs = self.parser.parse_buffer(data) or []
                 with self.lock:
@@ -189,7 +218,9 @@ class _Gcs:
         self.sock.close()
 
 
-def _zenoh_session(port: int) -> Any:
+@contextlib.contextmanager
+def _zenoh_session(port: int) -> Iterator[Any]:
+    """A Zenoh peer connected to the daemon's endpoint on 127.0.0.1:``port``, closed after."""
     import zenoh
 
     c = zenoh.Config()
@@ -197,7 +228,11 @@ def _zenoh_session(port: int) -> Any:
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("listen/endpoints", "[]")
     c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    return zenoh.open(c)
+    session = zenoh.open(c)
+    try:
+        yield session
+    finally:
+        session.close()
 
 
 def _zenoh_config(port: int, prefix: str, remote: bool = False) -> str:
@@ -213,9 +248,8 @@ def _zenoh_config(port: int, prefix: str, remote: bool = False) -> str:
 
 def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Figure]:
     """Junk from many ports and a TCP crowd against a signed ground station (module docstring)."""
-    from pymavlink.dialects.v20 import ardupilotmega as apm
 
-    udp, tcp = _free_port(), _free_port(socket.SOCK_STREAM)
+    udp, tcp = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     key_file = tmp / "crowd.key"
     key_file.write_text(_KEY.hex() + "\n")
     mav = (
@@ -229,19 +263,8 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
         try:
             if not wait_until(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
                 raise RuntimeError(f"no ATTITUDE at the signed ground station (log: {errlog})")
-            stranger = apm.MAVLink(None, 66, 1)
-            samples = [_hb(stranger), _hb(_signed(77, bytes(32))), *gcs.sent[:3]]
-            flood = subprocess.Popen(
-                [sys.executable, "-c", _FLOOD, str(udp), str(junk_rate), str(seconds + 4),
-                 *(s.hex() for s in samples)],
-                stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
-            for _ in range(tcp_crowd):
-                s = socket.socket()
-                s.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    s.connect(("127.0.0.1", tcp))
-                idle.append(s)
+            flood = start_flood(udp, junk_rate, seconds + 4, gcs.sent[:3])
+            idle += idle_clients(tcp, tcp_crowd)
             time.sleep(2.0)
             start = max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE"))
             t0 = time.monotonic()
@@ -250,7 +273,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
                 contextlib.suppress(OSError),
                 socket.create_connection(("127.0.0.1", tcp), timeout=15.0) as c,
             ):
-                c.sendall(_hb(_signed(250, _KEY, 3)))
+                c.sendall(_hb(signed(250, _KEY, 3)))
                 c.settimeout(15.0)
                 if c.recv(4096):
                     served = time.monotonic() - t0
@@ -264,10 +287,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
             out, _ = flood.communicate(timeout=seconds + 30.0)
             junk_sent = float(out.strip() or "nan")
         finally:
-            if flood is not None and flood.poll() is None:
-                flood.kill()
-            for s in idle:
-                s.close()
+            end_attack(flood, idle)
             gcs.close()
         tracebacks = _tracebacks(errlog)
         alive = proc.poll() is None
@@ -289,13 +309,11 @@ HUGE_QUERY_WAIT_S = 0.5
 
 def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
     """Oversized and malformed Zenoh command arguments (module docstring)."""
-    zport = _free_port(socket.SOCK_STREAM)
+    zport = free_port(socket.SOCK_STREAM)
     prefix = f"bench/fuzz{zport}"
     config = "[mavlink]\nendpoints = []\n" + _zenoh_config(zport, prefix, remote=True)
     with _daemon(tmp, "zenoh", config) as (proc, _fw, errlog):
-        session = None
-        try:
-            session = _zenoh_session(zport)
+        with _zenoh_session(zport) as session:
             key = f"{prefix}/cmd/calibration/start"
             if not wait_until(
                 lambda: bool(list(session.get(f"{prefix}/status", timeout=0.5))), 30.0
@@ -339,9 +357,6 @@ def oversized_zenoh(tmp: Path, queries: int) -> list[Figure]:
             del giant
             time.sleep(1.0)
             rss1 = process_rss_mb(proc.pid)[0]
-        finally:
-            if session is not None:
-                session.close()
         tracebacks = _tracebacks(errlog)
     return [
         Figure("zenoh_not_bad_arguments", wrong, "answers", 0.0, detail={
@@ -377,7 +392,7 @@ def _watch_zenoh(session: Any, prefix: str) -> tuple[list[str], list[str], Any]:
 
 def silent_device(tmp: Path, seconds: float) -> list[Figure]:
     """A compass that answers and streams nothing (module docstring)."""
-    zport, gport = _free_port(socket.SOCK_STREAM), _free_port()
+    zport, gport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
     prefix = f"bench/silent{zport}"
     config = f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{gport}"]\n' + _zenoh_config(zport, prefix)
 
@@ -386,15 +401,10 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
 
     gcs = _Gcs(gport, None, listen=True)
     with _daemon(tmp, "silent", config, fw_setup=mute) as (_proc, _fw, errlog):
-        session = None
-        try:
-            session = _zenoh_session(zport)
+        with _zenoh_session(zport) as session:
             states, events, _subs = _watch_zenoh(session, prefix)
             wait_until(lambda: len(states) >= 2, 30.0)
             time.sleep(seconds)
-        finally:
-            if session is not None:
-                session.close()
         tracebacks = _tracebacks(errlog)
     beats = gcs.of("HEARTBEAT")
     gcs.close()
@@ -412,7 +422,7 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
 
 def late_device(tmp: Path, seconds: float) -> list[Figure]:
     """A compass that answers late (module docstring)."""
-    zport = _free_port(socket.SOCK_STREAM)
+    zport = free_port(socket.SOCK_STREAM)
     prefix = f"bench/late{zport}"
     config = "[mavlink]\nendpoints = []\n[calibration]\nonboard = true\n" + _zenoh_config(
         zport, prefix, remote=True
@@ -423,9 +433,7 @@ def late_device(tmp: Path, seconds: float) -> list[Figure]:
 
     counters: dict[str, Any] = {}
     with _daemon(tmp, "late", config, fw_setup=slow) as (_proc, fw, errlog):
-        session = None
-        try:
-            session = _zenoh_session(zport)
+        with _zenoh_session(zport) as session:
             states, _events, _subs = _watch_zenoh(session, prefix)
             wait_until(lambda: len(states) >= 2, 30.0)
             time.sleep(seconds)
@@ -437,9 +445,6 @@ def late_device(tmp: Path, seconds: float) -> list[Figure]:
                 if r.ok is not None:
                     counters = json.loads(r.ok.payload.to_bytes())["link"]["counters"]
             left_calibrating = int(fw.calibrating)
-        finally:
-            if session is not None:
-                session.close()
         tracebacks = _tracebacks(errlog)
     return [
         Figure("late_device_resets", counters.get("device_resets", math.nan), "", 0.0, detail={
@@ -486,7 +491,7 @@ def params_storm(tmp: Path, set_rate: int, seconds: float) -> list[Figure]:
     """A PARAM_SET storm; params.json writes counted by its inode (module docstring)."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
-    udp = _free_port()
+    udp = free_port(socket.SOCK_DGRAM)
     config = f'[mavlink]\nendpoints = ["udpin:127.0.0.1:{udp}"]\n[zenoh]\nenabled = false\n'
     doc = tmp / "params-state" / "params.json"
     inodes: list[int] = []

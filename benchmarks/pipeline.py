@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import throughput
-from benchmarks.figures import Figure, Step, no_step, process_cpu, report
+from benchmarks.figures import Figure, Step, no_step, process_cpu, report, report_options
 from benchmarks.procstat import (
     AttitudeTap,
     free_port,
@@ -439,8 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-samples", type=int, default=10000, help="samples of the fit")
     ap.add_argument("--cold-frames", type=int, default=300, help="frames of the cold figure")
     ap.add_argument("--skip-live", action="store_true", help="no daemon child process")
-    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
-    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+    report_options(ap)
     args = ap.parse_args(argv)
     if (
         args.frames < 1

@@ -1,6 +1,7 @@
 """What the live benchmarks read of a child process from outside (one copy for pipeline,
-versus and the fuzzers): its CPU (per thread too), its memory, its ATTITUDE datagrams; and
-the one bounded wait they poll it with (:func:`wait_until`)."""
+versus and the fuzzers): its CPU (per thread too), its memory, its ATTITUDE datagrams, the
+datagrams a receiving thread reads (:func:`datagrams`); and the one bounded wait they poll
+it with (:func:`wait_until`)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import struct
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -69,6 +70,20 @@ def free_port(kind: int) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def datagrams(sock: socket.socket, stop: threading.Event) -> Iterator[bytes]:
+    """The datagrams arriving on ``sock`` until ``stop`` is set or the socket is closed: the
+    loop of a receiving thread. ``sock`` has a timeout, so that ``stop`` is looked at while
+    nothing arrives (the integration tests' receivers read through it too)."""
+    while not stop.is_set():
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+        yield data
 
 
 def stop_child(proc: subprocess.Popen[bytes]) -> bytes:

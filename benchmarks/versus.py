@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from benchmarks.figures import Figure, report
+from benchmarks.figures import Figure, report, report_options
 from benchmarks.pipeline import (
     _expected_yaws,
     _percentile,
@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_false",
         help="nobody subscribes to the bridge's Zenoh documents (zenoh then sends nothing)",
     )
-    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
+    report_options(ap, progress=False)
     args = ap.parse_args(argv)
     if args.rounds < 1 or args.duration <= 0:
         ap.error("--rounds >= 1, --duration > 0")

@@ -44,6 +44,7 @@ from typing import Any, NoReturn
 from bridge import __version__
 from bridge.config import SIM_MOTIONS, Config, ConfigError, load_config
 from bridge.tools import argtypes
+from bridge.tools.progress import progress_option
 
 log = logging.getLogger("bridge.cli")
 
@@ -66,7 +67,10 @@ class UsageError(Exception):
 # ---------------------------------------------------------------------------
 
 
-def _logging_options(parser: argparse.ArgumentParser, *, suppress: bool) -> None:
+def logging_options(parser: argparse.ArgumentParser, *, suppress: bool = False) -> None:
+    """``-v`` / ``--log-level`` on ``parser`` (``python -m benchmarks`` has them too).
+
+    :func:`setup_logging_from` turns them into the log level."""
     # The same options are accepted before and after the subcommand; SUPPRESS on
     # the subparsers keeps a value given before the subcommand from being reset.
     default: Any = argparse.SUPPRESS if suppress else None
@@ -105,11 +109,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="GMR compass bridge: calibrated, tilt-compensated heading to MAVLink and Zenoh.",
     )
     parser.add_argument("--version", action="version", version=f"compass-bridge {__version__}")
-    _logging_options(parser, suppress=False)
+    logging_options(parser, suppress=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     common = argparse.ArgumentParser(add_help=False)
-    _logging_options(common, suppress=True)
+    logging_options(common, suppress=True)
 
     run = sub.add_parser("run", parents=[common], help="run the daemon")
     _config_options(run)
@@ -200,12 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )
-    rec.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="live line on stderr (default: when stderr is a terminal)",
-    )
+    progress_option(rec, "live line")
     rec.set_defaults(func=cmd_record)
 
     _tools_parsers(sub, common)
@@ -275,7 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _setup_logging(args: argparse.Namespace, stream: Any = None) -> None:
+def setup_logging_from(args: argparse.Namespace, stream: Any = None) -> None:
+    """Logging as :func:`logging_options` asked (``stream``: stderr by default)."""
     level = args.log_level or {0: "WARNING", 1: "INFO"}.get(args.verbose, "DEBUG")
     # One line per record, rate-limited repeats; under systemd (stderr is the journal)
     # with <N> priority prefixes and no timestamps: the journal stamps time and unit itself.
@@ -359,7 +359,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from bridge.console import TerminalGate
 
         gate = TerminalGate(sys.stderr)
-        _setup_logging(args, gate)
+        setup_logging_from(args, gate)
     stop = threading.Event()
     with stop_on_signals(stop):
         return run_daemon(cfg, stop, console=console, reload_config=reload_config, gate=gate)
@@ -456,12 +456,7 @@ def _tools_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     yn = cal.add_mutually_exclusive_group()
     yn.add_argument("--yes", action="store_true", help="accept without asking")
     yn.add_argument("--no", action="store_true", help="show the result, never accept")
-    cal.add_argument(
-        "--progress",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="live bar (and coverage map) on stderr (default: when stderr is a terminal)",
-    )
+    progress_option(cal, "live bar (and coverage map)")
     cal.set_defaults(func=cmd_calibrate)
 
     st = sub.add_parser(
@@ -576,7 +571,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(words)
     except SystemExit as e:  # argparse: --help/--version (0) or usage error (2)
         return _exit_code(e)
-    _setup_logging(args)
+    setup_logging_from(args)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         code = func(args)

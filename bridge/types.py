@@ -8,7 +8,7 @@ the command line answers ``--version`` and usage errors without loading numpy.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Literal, TypeAlias
+from typing import TYPE_CHECKING, Literal, Self, TypeAlias
 
 if TYPE_CHECKING:
     import numpy as np
@@ -34,3 +34,20 @@ HEADING_REFERENCES: tuple[HeadingReference, ...] = ("magnetic", "true")
 #: What the drift monitor does with the calibration in use (``[calibration] learn``; the
 #: parameter BRG_CAL_LEARN is the index): nothing, detect drift and warn, also learn offsets.
 LEARN_MODES: tuple[str, ...] = ("off", "detect", "learn")
+
+
+class ClosedOnExit:
+    """A ``with`` block closes the object on the way out: ``__enter__`` hands the object
+    itself, ``__exit__`` calls its :meth:`close` (which the class defines)."""
+
+    __slots__ = ()
+
+    def close(self) -> None:
+        """Release what the object holds (idempotent in the classes that use this)."""
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from pymavlink.dialects.v20 import ardupilotmega as apm
 
+from benchmarks.fuzz_hostile import signed
 from bridge.app.paramspec import REAL32, SPECS, ParamSpec
 
 DEADLINE_S = 20.0
@@ -175,10 +175,6 @@ class MavProxy:
 
 def signed_mav(key: bytes, sysid: int, link_id: int = 0) -> Any:
     """A pymavlink sender as system ``sysid`` (component 190) that signs everything it
-    packs with ``key`` on ``link_id``, its timestamp taken from the wall clock now."""
-    mav = apm.MAVLink(None, sysid, 190)
-    mav.signing.secret_key = key
-    mav.signing.sign_outgoing = True
-    mav.signing.link_id = link_id
-    mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
-    return mav
+    packs with ``key`` on ``link_id``, its timestamp taken from the wall clock now (the
+    hostile benchmark's signer, :func:`benchmarks.fuzz_hostile.signed`)."""
+    return signed(sysid, key, link_id)

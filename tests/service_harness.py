@@ -30,6 +30,8 @@ from pathlib import Path
 import waiting
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
+from benchmarks.procstat import datagrams
+
 DEADLINE_S = 20.0
 
 
@@ -51,14 +53,9 @@ def receive_datagrams(
     sock: socket.socket, stop: threading.Event, handle: Callable[[bytes], None]
 ) -> None:
     """A receiving thread's loop: every datagram on ``sock`` (which has a short timeout, so
-    ``stop`` is seen) to ``handle``, until ``stop`` is set or the socket is closed."""
-    while not stop.is_set():
-        try:
-            data = sock.recv(65536)
-        except TimeoutError:
-            continue
-        except OSError:
-            return
+    ``stop`` is seen) to ``handle``, until ``stop`` is set or the socket is closed (the
+    loop itself is the benchmarks' :func:`benchmarks.procstat.datagrams`)."""
+    for data in datagrams(sock, stop):
         handle(data)
 
 

@@ -14,11 +14,8 @@ is what the bridge sent, not how promptly this loaded test process read it.
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import subprocess
-import sys
-import textwrap
 import threading
 import time
 from pathlib import Path
@@ -35,6 +32,7 @@ from service_harness import (
     wait_for,
 )
 
+from benchmarks.fuzz_hostile import end_attack, idle_clients, start_flood
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
@@ -45,31 +43,6 @@ ATT_HZ = 10.0  #: BRG_SR_ATT's default
 WINDOW_MS = 8000
 JUNK_PER_S = 1000
 IDLE_TCP = 50
-
-#: The flood, run in a process of its own: it must not steal this process's time.
-FLOOD = textwrap.dedent(
-    """
-    import os, random, socket, sys, time
-    port, rate, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
-    samples = [bytes.fromhex(h) for h in sys.argv[4:]]
-    rng = random.Random(7)
-    sent, t0 = 0, time.monotonic()
-    while time.monotonic() - t0 < seconds:
-        for _ in range(rate // 20):
-            k = rng.random()
-            if k < 0.5:
-                d = rng.randbytes(rng.randint(1, 200))
-            elif k < 0.6:
-                d = b"\\xfd" + rng.randbytes(rng.randint(10, 100))
-            else:
-                d = rng.choice(samples)
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port of its own
-                s.sendto(d, ("127.0.0.1", port))
-            sent += 1
-        time.sleep(max(0.0, t0 + sent / rate - time.monotonic()))
-    print(sent / (time.monotonic() - t0))
-    """
-)
 
 
 class SignedGcs:
@@ -146,24 +119,8 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
         try:
             wait_for(lambda: len(gcs.attitudes()) >= 20, "ATTITUDE at the signed GCS")
             # What an attacker has: junk, its own packets, and copies of the GCS's.
-            stranger = apm.MAVLink(None, 66, 1)
-            samples = [
-                bytes(stranger.heartbeat_encode(6, 8, 0, 0, 0).pack(stranger)),
-                bytes(signed_mav(bytes(32), 77).heartbeat_encode(6, 8, 0, 0, 0)
-                      .pack(signed_mav(bytes(32), 77))),
-                *gcs.sent[:3],
-            ]  # fmt: skip
-            flood = subprocess.Popen(
-                [sys.executable, "-c", FLOOD, str(udp), str(JUNK_PER_S), "14",
-                 *(s.hex() for s in samples)],
-                stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
-            for _ in range(IDLE_TCP):
-                s = socket.socket()
-                s.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    s.connect(("127.0.0.1", tcp))
-                idle.append(s)
+            flood = start_flood(udp, JUNK_PER_S, 14, gcs.sent[:3])
+            idle += idle_clients(tcp, IDLE_TCP)
             time.sleep(2.0)  # the flood is on, the crowd connected
             start_ms = max(gcs.attitudes())
             # A newcomer on tcpin, meanwhile, is served within 5 s.
@@ -189,9 +146,6 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
             assert not d.exited and "Traceback" not in d.log()
             assert d.stop() == 0
         finally:
-            if flood is not None and flood.poll() is None:
-                flood.kill()
-            for s in idle:
-                s.close()
+            end_attack(flood, idle)
             gcs.close()
             d.kill()

@@ -46,8 +46,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
-from types import TracebackType
 from typing import BinaryIO
+
+from bridge.types import ClosedOnExit
 
 MAGIC = b"CBREC\r\n\x1a"
 VERSION = 1
@@ -107,7 +108,7 @@ def _encode_header(port: str, baud: int, start_wall: float) -> bytes:
     return head + _CRC.pack(zlib.crc32(head))
 
 
-class RecordingWriter:
+class RecordingWriter(ClosedOnExit):
     """Appends records to a new recording file.
 
     The writer does not read any clock: the caller passes each chunk's time
@@ -160,19 +161,8 @@ class RecordingWriter:
                 self._f.close()
                 self._f = None
 
-    def __enter__(self) -> RecordingWriter:
-        return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-
-class RecordingReader:
+class RecordingReader(ClosedOnExit):
     """Reads a recording lazily (a multi-hour file is never loaded whole).
 
     Opening checks the header and raises :class:`RecordingFormatError` when the
@@ -260,14 +250,3 @@ class RecordingReader:
         if self._f is not None:
             self._f.close()
             self._f = None
-
-    def __enter__(self) -> RecordingReader:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()

@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.core.geometry import euler_to_dcm, euler_to_dcm_batch
+from bridge.core.sensor import STANDARD_GRAVITY
 from bridge.sim.motion import MotionBase
 from bridge.types import FloatArray
 
@@ -47,7 +48,6 @@ class Drive(MotionBase):
     """
 
     _CHUNK = 64  # segments drawn at a time
-    _G0 = 9.80665
 
     def __init__(
         self,
@@ -154,7 +154,7 @@ class Drive(MotionBase):
         v, dv = self.speed(t)
         c, s = math.cos(yaw), math.sin(yaw)
         lat = v * rate
-        return np.array([dv * c - lat * s, dv * s + lat * c, 0.0]) / self._G0
+        return np.array([dv * c - lat * s, dv * s + lat * c, 0.0]) / STANDARD_GRAVITY
 
     # -- whole streams at once (the same formulas on arrays, for the benchmarks) ------
 
@@ -189,7 +189,7 @@ class Drive(MotionBase):
         lat = v * rate
         out = np.zeros((len(ts), 3))
         out[:, 0], out[:, 1] = dv * c - lat * s, dv * s + lat * c
-        return out / self._G0
+        return out / STANDARD_GRAVITY
 
 
 #: Kinds of :class:`ManoeuvreDrive` stretch, in the order :attr:`ManoeuvreDrive.KINDS` numbers them.
@@ -228,7 +228,6 @@ class ManoeuvreDrive(MotionBase):
     """
 
     KINDS = MANOEUVRES
-    _G0 = 9.80665
 
     def __init__(
         self,
@@ -281,7 +280,7 @@ class ManoeuvreDrive(MotionBase):
         events = ("turn", "stop", "waves")
         while at < duration_s:
             what = events[int(rng.integers(len(events)))]
-            a_peak = float(rng.uniform(*accel_g)) * self._G0
+            a_peak = float(rng.uniform(*accel_g)) * STANDARD_GRAVITY
             if what == "turn":
                 dyaw = math.radians(float(rng.uniform(*turn_deg))) * float(rng.choice([-1.0, 1.0]))
                 rate = a_peak / v0  # the peak yaw rate giving that centripetal acceleration
@@ -342,7 +341,7 @@ class ManoeuvreDrive(MotionBase):
         vel = speed[:, None] * np.stack(
             [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), -np.sin(pitch)], axis=1
         )
-        acc = np.gradient(vel, dt, axis=0) / self._G0
+        acc = np.gradient(vel, dt, axis=0) / STANDARD_GRAVITY
         vib = np.random.default_rng([seed, 0x71B]).normal(0.0, vibration_g, size=(n, 3))
         moving = (speed > 0.05)[:, None]
         self._t = t

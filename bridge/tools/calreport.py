@@ -99,16 +99,33 @@ def _succeeded(report: dict[str, Any]) -> bool:
     return report.get("cal_status") == "MAG_CAL_SUCCESS"
 
 
+def _status_line(report: dict[str, Any]) -> str:
+    return f"status        {report.get('cal_status', '?')}" + (
+        f"  (method {report['method']})" if report.get("method") else ""
+    )
+
+
+def _share_lines(report: dict[str, Any], source: str) -> list[str]:
+    """The part of the heading error ``source`` accounts for (the hand-held fits report
+    it), with the tilt and the motion behind it; none where the report has no share."""
+    cal_err = report.get("heading_error_deg")
+    if not (isinstance(cal_err, int | float) and math.isfinite(cal_err)):
+        return []
+    motion = report.get("motion_g")
+    return [
+        f"  of which   ~{_fmt(cal_err, '.3f')} deg from {source}"
+        f" (tilt ~{_fmt(report.get('tilt_error_deg'), '.3f')} deg)"
+        + (f"; linear acceleration {motion:.3f} g RMS" if isinstance(motion, float) else "")
+    ]
+
+
 def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
     """The calibration report for a person (``report`` is a MAG_CAL_REPORT-shaped dict).
 
     A failed fit shows no parameters (they belong to nothing): its status, its
     cause when the report carries one, and the figures that condemned it.
     """
-    out = [
-        f"status        {report.get('cal_status', '?')}"
-        + (f"  (method {report['method']})" if report.get("method") else ""),
-    ]
+    out = [_status_line(report)]
     if report.get("reason") and not _succeeded(report):
         out.append(f"cause         {report['reason']}")
     out.append(
@@ -127,14 +144,7 @@ def report_lines(report: dict[str, Any], heading_error_deg: float) -> list[str]:
     else:
         out.append("field spread  not reported over this path (see the fitness)")
     out.append(f"heading error ~{_fmt(heading_error_deg)} deg RMS (estimated from the fitness)")
-    cal_err = report.get("heading_error_deg")
-    if isinstance(cal_err, int | float) and math.isfinite(cal_err):
-        motion = report.get("motion_g")
-        out.append(
-            f"  of which   ~{_fmt(cal_err, '.3f')} deg from the calibration itself"
-            f" (tilt ~{_fmt(report.get('tilt_error_deg'), '.3f')} deg)"
-            + (f"; linear acceleration {motion:.3f} g RMS" if isinstance(motion, float) else "")
-        )
+    out += _share_lines(report, "the calibration itself")
     return out
 
 
@@ -144,10 +154,7 @@ def offline_lines(report: dict[str, Any]) -> list[str]:
     ok = _succeeded(report)
     kept, frames = report.get("n_samples") or 0, report.get("n_frames") or 0
     over = f"the {kept} samples the fit kept" + (f" (of {frames} frames)" if frames else "")
-    out = [
-        f"status        {report.get('cal_status', '?')}"
-        + (f"  (method {report['method']})" if report.get("method") else "")
-    ]
+    out = [_status_line(report)]
     if not ok:
         out.append(f"cause         {report.get('reason') or report.get('failure') or '?'}")
     out.append(f"fitness       {_fmt(report.get('fitness'))} mG RMS over {over}")
@@ -163,14 +170,7 @@ def offline_lines(report: dict[str, Any]) -> list[str]:
                 else ""
             )
         )
-    cal_err = report.get("heading_error_deg")
-    if isinstance(cal_err, int | float) and math.isfinite(cal_err):
-        motion = report.get("motion_g")
-        out.append(
-            f"  of which   ~{_fmt(cal_err, '.3f')} deg from the accelerometer and alignment"
-            f" (tilt ~{_fmt(report.get('tilt_error_deg'), '.3f')} deg)"
-            + (f"; linear acceleration {motion:.3f} g RMS" if isinstance(motion, float) else "")
-        )
+    out += _share_lines(report, "the accelerometer and alignment")
     if not ok:
         out.append("parameters    none: the fit failed")
         return out

@@ -18,13 +18,15 @@ keeps turning by itself (``tick=True``: a small daemon thread redraws it).
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 import threading
 import time
 from collections.abc import Callable
-from types import TracebackType
 from typing import TextIO
+
+from bridge.types import ClosedOnExit
 
 SPINNER = "|/-\\"
 #: ANSI: cursor up N lines; erase to the end of the line.
@@ -69,7 +71,18 @@ def render_spinner(label: str, tick: int, elapsed: float, *, note: str = "") -> 
     return f"{line}  {note}" if note else line
 
 
-class Progress:
+def progress_option(parser: argparse.ArgumentParser, shows: str) -> None:
+    """``--progress`` / ``--no-progress``: :class:`Progress`'s ``enabled`` (absent: None,
+    on when stderr is a terminal); ``shows`` says what it draws, for the help."""
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help=f"{shows} on stderr (default: when stderr is a terminal)",
+    )
+
+
+class Progress(ClosedOnExit):
     """A live progress line: a bar when ``total`` is known, else a spinner.
 
     Use as a context manager; call :meth:`update` as often as you like (redraws
@@ -177,14 +190,3 @@ class Progress:
                 self._stream.flush()
             self._width = 0
             self._lines = 0
-
-    def __enter__(self) -> Progress:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()

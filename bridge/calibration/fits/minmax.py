@@ -22,11 +22,10 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.fits.scalar import failed_result, field_spread_nT
+from bridge.calibration.fits.scalar import failed_result, field_report
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
-    CalibrationReport,
     CalibrationResult,
 )
 from bridge.core.sensor import MAG_COUNTS_PER_GAUSS, ZERO_COUNTS
@@ -99,21 +98,15 @@ def fit_minmax(mag_G: npt.ArrayLike, *, acc_g: npt.ArrayLike | None = None) -> C
     gains = np.array([1.0, span[0] / span[1], span[0] / span[2]])
     cal = AffineCalibration.from_arrays(offset, np.diag(gains))
     after = cal.apply(x)
-    norms = np.linalg.norm(after, axis=1)
-    radius = float(np.mean(norms))
-    b_hp, b_rms = field_spread_nT(x)
-    a_hp, a_rms = field_spread_nT(after)
+    radius = float(np.mean(np.linalg.norm(after, axis=1)))
     used = int(np.count_nonzero(xy_rows | z_rows))
-    report = CalibrationReport(
-        method="minmax",
+    report = field_report(
+        "minmax",
+        x,
+        after,
+        radius,
         n_samples=used,
         n_rejected=dropped + (x.shape[0] - used),
-        fitness_mG=float(np.sqrt(np.mean((norms - radius) ** 2))) * 1000.0,
-        radius_G=radius,
-        field_spread_before_nT=b_hp,
-        field_spread_after_nT=a_hp,
-        field_rms_before_nT=b_rms,
-        field_rms_after_nT=a_rms,
         notes=(
             "device MAGCAL equivalent: off counts "
             + ", ".join(f"{ZERO_COUNTS + MAG_COUNTS_PER_GAUSS * o:.1f}" for o in offset)

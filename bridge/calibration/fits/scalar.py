@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -101,6 +102,36 @@ def failed_result(
             n_rejected=n_rejected,
             notes=(reason,),
         ),
+    )
+
+
+def field_report(
+    method: str,
+    x: FloatArray,
+    after: FloatArray,
+    radius: float,
+    *,
+    n_samples: int,
+    n_rejected: int,
+    **more: Any,
+) -> CalibrationReport:
+    """The report of a field fit that maps the samples ``x`` (gauss) to ``after`` on a sphere
+    of ``radius``: its fitness (RMS of |after| - radius, mG) and the field's spread before
+    and after (nT); ``more``: the report's other fields."""
+    norms = np.linalg.norm(after, axis=1)
+    b_hp, b_rms = field_spread_nT(x)
+    a_hp, a_rms = field_spread_nT(after)
+    return CalibrationReport(
+        method=method,
+        n_samples=n_samples,
+        n_rejected=n_rejected,
+        fitness_mG=float(np.sqrt(np.mean((norms - radius) ** 2))) * 1000.0,
+        radius_G=radius,
+        field_spread_before_nT=b_hp,
+        field_spread_after_nT=a_hp,
+        field_rms_before_nT=b_rms,
+        field_rms_after_nT=a_rms,
+        **more,
     )
 
 
@@ -308,9 +339,9 @@ def _magnitude_report(
     method: str, x: FloatArray, fit: _ScalarFit, n_rejected: int, *, gravity: bool
 ) -> CalibrationReport:
     after = fit.cal.apply(x)
-    norms = np.linalg.norm(after, axis=1)
-    fitness = float(np.sqrt(np.mean((norms - fit.radius) ** 2)))
     if gravity:
+        norms = np.linalg.norm(after, axis=1)
+        fitness = float(np.sqrt(np.mean((norms - fit.radius) ** 2)))
         b_hp, b_rms = gravity_spread_mg(x)
         a_hp, a_rms = gravity_spread_mg(after)
         return CalibrationReport(
@@ -325,18 +356,13 @@ def _magnitude_report(
             iterations=fit.iterations,
             notes=(f"|g| residual RMS {fitness * 1000.0:.2f} mg",),
         )
-    b_hp, b_rms = field_spread_nT(x)
-    a_hp, a_rms = field_spread_nT(after)
-    return CalibrationReport(
-        method=method,
+    return field_report(
+        method,
+        x,
+        after,
+        fit.radius,
         n_samples=int(x.shape[0]),
         n_rejected=n_rejected,
-        fitness_mG=fitness * 1000.0,
-        radius_G=fit.radius,
-        field_spread_before_nT=b_hp,
-        field_spread_after_nT=a_hp,
-        field_rms_before_nT=b_rms,
-        field_rms_after_nT=a_rms,
         iterations=fit.iterations,
     )
 

@@ -26,11 +26,10 @@ from dataclasses import replace
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.fits.scalar import failed_result, field_spread_nT, gravity_spread_mg
+from bridge.calibration.fits.scalar import failed_result, field_report, gravity_spread_mg
 from bridge.calibration.model import (
     AffineCalibration,
     Calibration,
-    CalibrationReport,
     CalibrationResult,
 )
 from bridge.core.geometry import GRAVITY_NED, euler_to_dcm_batch
@@ -145,9 +144,6 @@ def fit_twelve_position(
     after = mag_cal.apply(x)
     radius = float(np.linalg.norm(B))
     vec_rms = float(np.sqrt(np.mean(np.sum((after - target) ** 2, axis=1))))
-    norms = np.linalg.norm(after, axis=1)
-    b_hp, b_rms = field_spread_nT(x)
-    a_hp, a_rms = field_spread_nT(after)
     notes = [f"vector residual RMS {vec_rms * 1000.0:.3f} mG; design condition {cond:.1f}"]
 
     acc_cal = AffineCalibration()
@@ -163,16 +159,13 @@ def fit_twelve_position(
             g_stats = (*gravity_spread_mg(acc), *gravity_spread_mg(g_after))
             g_vec = float(np.sqrt(np.mean(np.sum((g_after - g_target) ** 2, axis=1))))
             notes.append(f"accelerometer vector residual RMS {g_vec * 1000.0:.2f} mg")
-    report = CalibrationReport(
-        method="twelve_position",
+    report = field_report(
+        "twelve_position",
+        x,
+        after,
+        radius,
         n_samples=int(x.shape[0]),
         n_rejected=dropped,
-        fitness_mG=float(np.sqrt(np.mean((norms - radius) ** 2))) * 1000.0,
-        radius_G=radius,
-        field_spread_before_nT=b_hp,
-        field_spread_after_nT=a_hp,
-        field_rms_before_nT=b_rms,
-        field_rms_after_nT=a_rms,
         gravity_spread_before_mg=g_stats[0],
         gravity_rms_before_mg=g_stats[1],
         gravity_spread_after_mg=g_stats[2],
