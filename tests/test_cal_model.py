@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
 from bridge.core.geometry import euler_to_dcm
 from bridge.protocol.gmr import ParamsFrame
-from tests.helpers import examples
 
 
 def test_apply_batch_and_scalar_agree() -> None:

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from harness import ManualClock
 from test_mavlink_endpoints import KEY, Inbox, parse_all, ping, recv_udp
 from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 from test_mavlink_telemetry import make_sample
@@ -41,7 +42,6 @@ from bridge.mavlink.endpoints import MAX_DATAGRAM_BYTES, open_endpoint
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.signing import Signing
-from tests.harness import ManualClock
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from harness import ManualClock
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
@@ -35,7 +36,6 @@ from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-from tests.harness import ManualClock
 
 SAMPLE_IDS = S.SAMPLE_STREAMS
 REAL32, INT8 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from harness import ManualClock
 from test_mavlink_rig import M
 
 from bridge.app.params import ParamChange
@@ -26,7 +27,6 @@ from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.dispatch import FINAL_ACK_TIMEOUT_S
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-from tests.harness import ManualClock
 
 T0 = 100.0
 
