@@ -897,7 +897,7 @@ def test_a_shaking_hand_reaches_the_accelerometer_frames() -> None:
     h.run(10.0)
     frames = [(t, f) for t, f in h.frames() if t > 1.0]
     acc = np.array([[f.ax, f.ay, f.az] for _, f in frames], dtype=float)
-    t = np.array([t for t, _ in frames]) - h.fw.motion_epoch  # type: ignore[operator]
+    t = np.array([t for t, _ in frames]) - h.fw.motion_epoch
     want = 2458.0 + 491.5 * (np.array([0.0, 0.0, 1.0]) - hand.shake_g(t))
     # a frame is sampled at its tick, up to one polling step before it is read
     slew = hand.peak_bound_g * 2.0 * math.pi * 2.5  # g/s, no faster than the top tone
