@@ -512,7 +512,7 @@ def test_a_replay_as_fast_as_it_decodes_is_not_held_for_due_times(
         for i, line in enumerate(lines):
             w.write(i * 0.01, line)
     out = Collect()
-    out.due_at = math.inf  # type: ignore[misc]  # an output that sends on its own clock
+    out.due_at = math.inf  # an output that sends on its own clock
     cfg = config(tmp_path, f"replay:{rec}", "device.replay_realtime=false")
     running(build_daemon(cfg, [out]))
     samples = out.wait_for(len(lines))

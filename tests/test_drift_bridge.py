@@ -66,8 +66,10 @@ class Drive:
 
     def __call__(self, d: Daemon, seconds: float, changed: bool = True) -> None:
         ts, s = self.unit.frames(self.t, self.t + seconds, self.changed if changed else None)
-        for t, m, a in zip(ts, s.mag_counts.tolist(), s.acc_counts.tolist(), strict=True):
-            f = AttitudeFrame(self.seq % 65536, 0.0, 0.0, 0.0, *m, *a, Flags(0))
+        for t, (mx, my, mz), (ax, ay, az) in zip(
+            ts, s.mag_counts.tolist(), s.acc_counts.tolist(), strict=True
+        ):
+            f = AttitudeFrame(self.seq % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, Flags(0))
             d.bridge.pipeline.on_frame(Received(f, float(t)))
             self.seq += 1
         self.t += seconds

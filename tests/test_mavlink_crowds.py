@@ -78,7 +78,11 @@ def test_junk_from_many_ports_makes_no_peer(endpoints: Callable[..., Endpoint]) 
     datagrams = junk(random.Random(1), 600)
     for i in range(0, 600, 50):  # paced: the kernel's buffer is not what is tested here
         spray(port, datagrams[i : i + 50])
-        assert wait_until(lambda i=i: ep.counters().strangers_dropped == i + 50)
+
+        def sprayed_dropped(n: int = i + 50) -> bool:
+            return ep.counters().strangers_dropped == n
+
+        assert wait_until(sprayed_dropped)
     assert ep.links == [] and ep.counters().packets_received == 0
     # A real HEARTBEAT does make one.
     spray(port, [heartbeat_bytes()])

@@ -522,7 +522,12 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
         assert ctl.start_mag().ok
         for i, c in enumerate(counts.astype(int)):
             clock[0] = 1000.0 + float(src.t_s[i] - src.t_s[0])
-            ctl.feed(AttitudeFrame(int(src.seq[i]) % 65536, 0.0, 0.0, 0.0, *map(int, c), Flags(0)))
+            mx, my, mz, ax, ay, az = (int(v) for v in c)
+            ctl.feed(
+                AttitudeFrame(
+                    int(src.seq[i]) % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, Flags(0)
+                )
+            )
             snap = ctl.snapshot()
             if not snap.running:
                 break
