@@ -106,7 +106,9 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     assert [e.kind for e in log] == ["calibration.drift"]
     doc = status_doc(d)
     schema.validate(doc, schema.STATUS)
-    drift = doc["calibration"]["drift"]  # type: ignore[index]
+    calibration = doc["calibration"]
+    assert isinstance(calibration, dict)
+    drift = calibration["drift"]
     assert drift["state"] == "drift" and drift["mode"] == "detect"
     assert abs(drift["change_mG"] - 1000.0 * np.linalg.norm(good.mag.matrix_array @ CHANGE_G)) < 3
     assert schema.drift_detected(doc)

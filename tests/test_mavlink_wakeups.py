@@ -75,7 +75,8 @@ def first_round(o: MavlinkOutput) -> None:
 
 def command(cmd: int, *params: float) -> C.Command:
     p = (*params, *(0.0,) * (7 - len(params)))
-    return C.Command(cmd, p, 1, 1, 255, 190)  # type: ignore[arg-type]
+    assert len(p) == 7  # COMMAND_LONG's param1..7
+    return C.Command(cmd, p, 1, 1, 255, 190)
 
 
 def test_at_rest_it_sleeps_until_the_next_heartbeat(out: MavlinkOutput) -> None:
@@ -120,7 +121,7 @@ def test_a_command_in_progress_times_out_on_its_deadline(out: MavlinkOutput) -> 
     deadline = T0 + FINAL_ACK_TIMEOUT_S
     assert out.dispatcher.pending.due_at == deadline
     assert out.next_look(T0) <= deadline
-    out.clock.t = deadline  # type: ignore[attr-defined]
+    ManualClock.of(out.clock).t = deadline
     out.dispatcher.pending.expire(deadline)  # on it, not a look later
     assert link.messages[-1].result == M.MAV_RESULT_FAILED
     assert out.dispatcher.pending.due_at == math.inf
