@@ -89,7 +89,9 @@ def collect(rec: Tumbled, capacity: int = 300) -> tuple[int, FloatArray, FloatAr
     mag, acc = rec.mag, rec.acc
     end = len(rec.t)
     for i in range(len(rec.t)):
-        col.offer(tuple(map(float, mag[i])), tuple(map(float, acc[i])), bool(rec.saturated[i]))  # type: ignore[arg-type]
+        m, a = mag[i], acc[i]
+        mag_G = (float(m[0]), float(m[1]), float(m[2]))
+        col.offer(mag_G, (float(a[0]), float(a[1]), float(a[2])), bool(rec.saturated[i]))
         if col.full:
             if col.step == 2:
                 end = i + 1

@@ -47,9 +47,7 @@ class HangingTransport:
 
 def main() -> int:
     real = runner.make_transport
-    runner.make_transport = lambda cfg, simulator=None: HangingTransport(  # type: ignore[assignment]
-        real(cfg, simulator)
-    )
+    runner.make_transport = lambda cfg, simulator=None: HangingTransport(real(cfg, simulator))
     signal.signal(signal.SIGUSR2, lambda *_: HangingTransport.armed.set())
     return cli.main(sys.argv[1:])
 

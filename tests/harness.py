@@ -24,7 +24,7 @@ import heapq
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from bridge.device import (
     CommandError,
@@ -54,6 +54,10 @@ from bridge.protocol.link import (
     Write,
 )
 
+if TYPE_CHECKING:  # bridge_on imports them when it runs: the link tests need none of it
+    from bridge.app.bridge import Bridge
+    from bridge.config import Config
+
 log = logging.getLogger("harness")
 
 #: Where every manual clock starts (any origin works; not 0, so "time 0" bugs show).
@@ -68,6 +72,12 @@ class ManualClock:
 
     def __call__(self) -> float:
         return self.t
+
+    @classmethod
+    def of(cls, clock: object) -> ManualClock:
+        """``clock`` (e.g. an output's): the manual clock the test built it on."""
+        assert isinstance(clock, cls), clock
+        return clock
 
     def advance(self, dt: float) -> None:
         """Move ``dt`` seconds on."""
@@ -556,7 +566,7 @@ class HarnessPort:
         self.h._settle()
 
 
-def bridge_on(harness: LinkHarness, cfg: Any, **kw: Any) -> Any:
+def bridge_on(harness: LinkHarness, cfg: Config, **kw: Any) -> Bridge:
     """The application (:class:`bridge.app.bridge.Bridge`) built from ``cfg`` with the
     harness as its compass (:class:`HarnessPort`) and the harness's clock: every frame goes
     through its pipeline as the link hands it on. ``kw`` goes to Bridge (``calibration``,

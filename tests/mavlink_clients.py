@@ -25,7 +25,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -124,7 +124,7 @@ class MavProxy:
         return {key: line for key, (_, line) in self._expect_all(tests, timeout).items()}
 
     def _expect_all(
-        self, tests: dict[str, Callable[[str], object]], timeout: float
+        self, tests: Mapping[str, Callable[[str], object]], timeout: float
     ) -> dict[str, tuple[float, str]]:
         """For each named test, the first line not consumed yet that it matches (a line
         answers one test); then every line up to the last of them counts as consumed."""

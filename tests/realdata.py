@@ -20,6 +20,7 @@ import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -150,7 +151,15 @@ def sap6_hc() -> RealData:
     return RealData("sap6_HC", mag, grav, seq, seq * 0.1, True)
 
 
-def sap6_published() -> dict[str, object]:
+class Published(TypedDict):
+    """A calibration as its instrument published it."""
+
+    centre_G: FloatArray
+    field_G: float
+    dip_deg: float
+
+
+def sap6_published() -> Published:
     """The instrument's own calibration (its .cfg): centre in uT in its mapped axes, field, dip."""
     cfg = json.loads((DATA / "sap6_HC.cfg").read_text())
     return {

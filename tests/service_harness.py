@@ -31,6 +31,7 @@ import waiting
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from benchmarks.procstat import datagrams
+from bridge.mavlink.dialect import Message as Packet
 
 DEADLINE_S = 20.0
 
@@ -276,7 +277,7 @@ class GroundStation:
         self.port = int(self.sock.getsockname()[1])
         self.mav = apm.MAVLink(None)
         self.lock = threading.Lock()
-        self.seen: list[tuple[float, str, object]] = []
+        self.seen: list[tuple[float, str, Packet]] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -299,7 +300,7 @@ class GroundStation:
         with self.lock:
             return {k for _, k, _ in self.seen}
 
-    def last(self, kind: str) -> object | None:
+    def last(self, kind: str) -> Packet | None:
         with self.lock:
             found = [m for _, k, m in self.seen if k == kind]
         return found[-1] if found else None

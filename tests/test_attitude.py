@@ -250,7 +250,7 @@ def test_update_position_takes_the_wmm_declination() -> None:
 
 def test_bad_heading_reference_is_refused() -> None:
     with pytest.raises(ValueError):
-        AttitudeEngine(heading_reference="grid")  # type: ignore[arg-type]
+        AttitudeEngine(heading_reference="grid")  # type: ignore[arg-type]  # not a reference: refused at run time
 
 
 # -- calibration and mounting in the chain ----------------------------------------------------

@@ -29,11 +29,18 @@ from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_
 H_G = horizontal_field_G(FIELD.total_G, FIELD.inclination_deg)
 
 
-def _series_fit(rec: Tumbled, n: int | None = None, **kw: object) -> CalibrationResult:
+def _series_fit(
+    rec: Tumbled, n: int | None = None, accel_calibration: AffineCalibration | None = None
+) -> CalibrationResult:
     """The best method on the first ``n`` frames as a series (what a live calibration fits)."""
     n = len(rec.t) if n is None else n
     data = CalibrationData(
-        rec.mag[:n], rec.acc[:n], rec.saturated[:n], reference=FIELD, t_s=rec.t[:n], **kw
+        rec.mag[:n],
+        rec.acc[:n],
+        rec.saturated[:n],
+        reference=FIELD,
+        t_s=rec.t[:n],
+        accel_calibration=accel_calibration,
     )
     return calibrate(BEST, data)
 
@@ -134,7 +141,9 @@ def test_roll_and_pitch_are_never_made_worse() -> None:
     assert "accelerometer: given" in res.report.notes
     # a unit whose accelerometer needs no calibration keeps the nominal transfer:
     # fitting it from a tumble would only add the fit's noise
-    perfect = UnitErrors(mag_noise_G=0.0005, acc_noise_g=0.001, hard_iron_G=[0.05, -0.03, 0.08])
+    perfect = UnitErrors(
+        mag_noise_G=0.0005, acc_noise_g=0.001, hard_iron_G=np.array([0.05, -0.03, 0.08])
+    )
     rec2 = tumble(8, 0.05, seconds=70.0, errors=perfect)
     res2 = _series_fit(rec2)
     assert res2.calibration.accel == AffineCalibration()

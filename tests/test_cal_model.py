@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
 from bridge.core.geometry import euler_to_dcm
 from bridge.protocol.gmr import ParamsFrame
-from tests.helpers import examples
 
 
 def test_apply_batch_and_scalar_agree() -> None:
@@ -132,5 +132,5 @@ def test_corrects_iron_is_numpys_allclose_rule(
 
     r = euler_to_dcm(roll, pitch, yaw) @ np.diag([scale, 1.0, 1.0])
     r[0, 1] += skew
-    mag = AffineCalibration((offset, 0.0, 0.0), tuple(tuple(float(v) for v in row) for row in r))
+    mag = AffineCalibration.from_arrays((offset, 0.0, 0.0), r)
     assert corrects_iron(mag) is _numpy_corrects_iron(mag)

@@ -72,11 +72,10 @@ _tumble = functools.cache(tumble)
 
 
 def _frame(seq: int, rec: Tumbled, i: int) -> AttitudeFrame:
-    m, a = rec.mag_counts[i], rec.acc_counts[i]
+    mx, my, mz = (int(v) for v in rec.mag_counts[i])
+    ax, ay, az = (int(v) for v in rec.acc_counts[i])
     flags = Flags.SAT if rec.saturated[i] else Flags(0)
-    return AttitudeFrame(
-        seq % 65536, 0.0, 0.0, 0.0, int(m[0]), int(m[1]), int(m[2]), *map(int, a), flags
-    )
+    return AttitudeFrame(seq % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, flags)
 
 
 def calibrate_live(
@@ -208,7 +207,7 @@ def test_a_fit_above_compass_cal_fit_fails_as_ardupilot_fails_it() -> None:
 def test_motion_judge_warns_over_its_limit_at_most_once_per_interval() -> None:
     judge = MotionJudge(limit_g=0.09, interval_s=5.0)
     shaken = tumble(2, 0.2, seconds=30.0)
-    got = [judge.feed(float(t), tuple(a)) for t, a in zip(shaken.t, shaken.acc, strict=True)]  # type: ignore[arg-type]
+    got = [judge.feed(float(t), tuple(a)) for t, a in zip(shaken.t, shaken.acc, strict=True)]
     times = [float(shaken.t[i]) for i, w in enumerate(got) if w is not None]
     assert len(times) >= 5 and np.all(np.diff(times) >= 5.0)
     assert times[0] <= 4.0  # within a few seconds of the shaking
@@ -219,7 +218,7 @@ def test_motion_judge_warns_over_its_limit_at_most_once_per_interval() -> None:
     steady = tumble(2, 0.05, seconds=60.0)
     assert all(
         calm.feed(float(t), tuple(a)) is None for t, a in zip(steady.t, steady.acc, strict=True)
-    )  # type: ignore[arg-type]
+    )
     assert 0.02 < calm.peak_g < 0.09
     assert MotionJudge().feed(0.0, (0.0, 0.0, 1.0)) is None  # nothing to judge yet
     with pytest.raises(ValueError):

@@ -106,7 +106,7 @@ def test_fixed_yaw_refuses_implausible_values(
         (30.0, -89.9, LON, "implausible"),  # Antarctica, for a unit set up at Zurich
         (30.0, LAT, 10**400, "bad position"),
     ]:
-        out = rig.ctl.fixed_yaw(yaw, latitude_deg=lat, longitude_deg=lon)  # type: ignore[arg-type]
+        out = rig.ctl.fixed_yaw(yaw, latitude_deg=lat, longitude_deg=lon)
         assert out.result is Result.FAILED and why in out.message, (yaw, lat, out)
         assert len(out.message) < 300
     assert rig.daemon.bridge.engine.calibration == before  # nothing applied

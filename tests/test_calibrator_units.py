@@ -589,7 +589,7 @@ def test_bad_commands_get_clear_answers_and_junk_is_ignored() -> None:
         assert ctl.start_mag(delay_s=-1.0).result is Result.FAILED
         out = ctl.start_mag(onboard=True)
         assert out.result is Result.FAILED and "no device link" in out.message
-        assert ctl.fixed_yaw("north").result is Result.FAILED  # type: ignore[arg-type]
+        assert ctl.fixed_yaw("north").result is Result.FAILED  # type: ignore[arg-type]  # a name, not degrees
         bad = ctl.fixed_yaw(10.0, latitude_deg=95.0, longitude_deg=0.0)
         assert bad.result is Result.FAILED and "bad position" in bad.message
         assert "no position" in ctl.fixed_yaw(10.0).message

@@ -196,7 +196,12 @@ def check_reads_for_every_component_are_answered_and_commands_keep_their_rule(se
 
 def _mavsdk_params(port: int) -> set[str]:
     log: list[str] = []
-    mavsdk.log_subscribe(lambda _level, msg, _file, _line: log.append(msg) or True)
+
+    def on_log(_level: Any, message: str, _file: Any, _line: int) -> bool:
+        log.append(message)
+        return True  # handled: not printed by MAVSDK as well
+
+    mavsdk.log_subscribe(on_log)
     m = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     try:
         m.add_any_connection(f"udpin://127.0.0.1:{port}")

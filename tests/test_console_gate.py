@@ -18,6 +18,7 @@ from bridge.events import Event
 from bridge.mavlink.commands import CalibrationRelay
 from bridge.storage import StateStore
 from bridge.tools.calhelp import PlainProgress, is_progress_text, no_bridge_hint
+from bridge.types import HeadingReference
 
 DEADLINE_S = 10.0
 
@@ -26,7 +27,9 @@ def _status() -> DaemonStatus:
     return DaemonStatus("sim", LinkState.STREAMING, LinkCounters(attitude_frames=9), 9, 0, "x")
 
 
-def _sample(hdg: float, ref: str = "magnetic", device: float | None = 321.2) -> CompassSample:
+def _sample(
+    hdg: float, ref: HeadingReference = "magnetic", device: float | None = 321.2
+) -> CompassSample:
     return CompassSample(
         0.0,
         "host",
@@ -38,7 +41,7 @@ def _sample(hdg: float, ref: str = "magnetic", device: float | None = 321.2) -> 
         0.1,
         0.1,
         seq=8,
-        device_heading_deg=device,  # type: ignore[arg-type]
+        device_heading_deg=device,
     )
 
 

@@ -28,6 +28,7 @@ from harness import LinePlayer, LinkHarness, bridge_on
 from helpers import load_calibration
 from waiting import wait_until
 
+from bridge.app.bridge import Bridge
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
 from bridge.calibration.model import Calibration
 from bridge.config import Config, load_config
@@ -165,7 +166,7 @@ def running() -> Iterator[Callable[[Daemon], Daemon]]:
 
 def in_memory(
     cfg: Config, lines: Sequence[bytes], period: float = 0.02, **bridge: object
-) -> tuple[LinkHarness, LinePlayer, Collect, object]:
+) -> tuple[LinkHarness, LinePlayer, Collect, Bridge]:
     """The application on the harness: ``lines`` played round and round into its link."""
     dev = LinePlayer(list(lines), period)
     protocol = cfg.device.protocol
@@ -229,7 +230,7 @@ def test_host_heading_follows_the_attitude_in_memory(tmp_path: Path) -> None:
     h, dev, out, app = in_memory(config(tmp_path, "/dev/ttyUSB0"), lines)
     samples = run_samples(h, out, 2 * len(yaws))
     assert h.state is LinkState.STREAMING
-    assert app.calibration_source == "none (identity)"  # type: ignore[attr-defined]
+    assert app.calibration_source == "none (identity)"
     for s in samples:
         assert s.source == "host" and s.heading_reference == "magnetic"
         assert s.seq is not None and s.device_heading_deg is not None
@@ -254,7 +255,7 @@ def test_stored_calibration_is_applied(tmp_path: Path) -> None:
     # ... with the true calibration stored in the state directory it is gone.
     StateStore(tmp_path / "state").save("calibration", unit.true_calibration().to_dict())
     h, _, cal, app = in_memory(config(tmp_path, "/dev/ttyUSB0"), lines)
-    assert app.calibration_source == "stored"  # type: ignore[attr-defined]
+    assert app.calibration_source == "stored"
     assert _max_error(run_samples(h, cal, 8), yaws) < 0.5
 
 
@@ -295,7 +296,7 @@ def test_noise_on_the_line_is_counted_and_dropped(tmp_path: Path) -> None:
     dev.inject(nmea("PGMRA,5,999.0,0.0,0.0,1,2,3,4,5,6,06"))  # heading out of range
     assert h.run_until(lambda: h.counters.bad_lines_total >= 2, 1.0)
     run_samples(h, out, len(out.samples) + 4)  # and it keeps going
-    assert app.pipeline.errors == 0  # type: ignore[attr-defined]
+    assert app.pipeline.errors == 0
     assert all(
         abs(float(angle_diff_deg(s.heading_deg, yaws[s.seq or 0]))) < 0.5 for s in out.samples
     )
@@ -307,16 +308,16 @@ def test_a_silent_compass_is_lost_and_restored_on_the_bus(tmp_path: Path) -> Non
         config(tmp_path, "/dev/ttyUSB0"), gmr_lines(UnitErrors.ideal(), [0.0])
     )
     kinds: list[str] = []
-    app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    app.events.subscribe(lambda e: kinds.append(e.kind))
     # Whoever follows the state (Zenoh's status) hears every change, evented or not.
     states: list[LinkState] = []
-    app.services.link_states.add(states.append)  # type: ignore[attr-defined]
+    app.services.link_states.add(states.append)
     run_samples(h, out, 3)
     dev.silent = True  # the compass stops
     assert h.run_until(lambda: h.state is LinkState.STALE, 5.0)
     dev.silent = False
     assert h.run_until(lambda: h.state is LinkState.STREAMING, 5.0)
-    assert app.status().state is LinkState.STREAMING  # type: ignore[attr-defined]
+    assert app.status().state is LinkState.STREAMING
     assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
     assert states == [LinkState.STREAMING, LinkState.STALE, LinkState.STREAMING]
 
@@ -327,18 +328,18 @@ def test_an_unplugged_adapter_is_counted_and_the_stream_comes_back(tmp_path: Pat
         config(tmp_path, "/dev/ttyUSB0"), gmr_lines(UnitErrors.ideal(), [0.0, 90.0])
     )
     kinds: list[str] = []
-    app.events.subscribe(lambda e: kinds.append(e.kind))  # type: ignore[attr-defined]
+    app.events.subscribe(lambda e: kinds.append(e.kind))
     states: list[LinkState] = []
-    app.services.link_states.add(states.append)  # type: ignore[attr-defined]
+    app.services.link_states.add(states.append)
     run_samples(h, out, 3)
     h.unplug()
     h.at(2.5, h.replug)
-    assert app.status().state is LinkState.ABSENT  # type: ignore[attr-defined]
+    assert app.status().state is LinkState.ABSENT
     n = len(out.samples)
     h.run_for(2.0)
     assert len(out.samples) == n  # nothing while it is away
     run_samples(h, out, n + 5)
-    status = app.status()  # type: ignore[attr-defined]
+    status = app.status()
     assert status.state is LinkState.STREAMING and status.counters.reconnects == 1
     assert status.counters.open_failures >= 3
     assert any("lost" in k for k in kinds) and any("restored" in k for k in kinds), kinds
@@ -512,7 +513,7 @@ def test_a_replay_as_fast_as_it_decodes_is_not_held_for_due_times(
         for i, line in enumerate(lines):
             w.write(i * 0.01, line)
     out = Collect()
-    out.due_at = math.inf  # type: ignore[misc]  # an output that sends on its own clock
+    out.due_at = math.inf  # an output that sends on its own clock
     cfg = config(tmp_path, f"replay:{rec}", "device.replay_realtime=false")
     running(build_daemon(cfg, [out]))
     samples = out.wait_for(len(lines))

@@ -232,7 +232,7 @@ def test_learning_steps_are_bounded_spaced_and_end() -> None:
         if v.step_G is not None:
             assert 1000.0 * np.linalg.norm(v.step_G) <= s.learn_step_mG + 1e-9
             steps.append(t)
-            applied = tuple(np.add(applied, v.step_G))  # type: ignore[assignment]
+            applied = tuple(np.add(applied, v.step_G))
         if v.learned:
             break
         t += 5.0

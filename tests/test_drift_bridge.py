@@ -66,8 +66,10 @@ class Drive:
 
     def __call__(self, d: Daemon, seconds: float, changed: bool = True) -> None:
         ts, s = self.unit.frames(self.t, self.t + seconds, self.changed if changed else None)
-        for t, m, a in zip(ts, s.mag_counts.tolist(), s.acc_counts.tolist(), strict=True):
-            f = AttitudeFrame(self.seq % 65536, 0.0, 0.0, 0.0, *m, *a, Flags(0))
+        for t, (mx, my, mz), (ax, ay, az) in zip(
+            ts, s.mag_counts.tolist(), s.acc_counts.tolist(), strict=True
+        ):
+            f = AttitudeFrame(self.seq % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, Flags(0))
             d.bridge.pipeline.on_frame(Received(f, float(t)))
             self.seq += 1
         self.t += seconds
@@ -104,7 +106,9 @@ def test_drift_is_shown_learned_stored_kept_across_a_restart_and_undone(tmp_path
     assert [e.kind for e in log] == ["calibration.drift"]
     doc = status_doc(d)
     schema.validate(doc, schema.STATUS)
-    drift = doc["calibration"]["drift"]  # type: ignore[index]
+    calibration = doc["calibration"]
+    assert isinstance(calibration, dict)
+    drift = calibration["drift"]
     assert drift["state"] == "drift" and drift["mode"] == "detect"
     assert abs(drift["change_mG"] - 1000.0 * np.linalg.norm(good.mag.matrix_array @ CHANGE_G)) < 3
     assert schema.drift_detected(doc)

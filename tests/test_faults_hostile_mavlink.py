@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +21,7 @@ from bridge.app.paramspec import ParamTable
 from bridge.config import config_from_mapping
 from bridge.daemon import build_daemon
 from bridge.mavlink.dispatch import MAX_INTERVAL_US
+from bridge.mavlink.endpoints import Link
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.paramproto import ListLimiter
 
@@ -120,16 +121,18 @@ def test_many_peers_together_get_a_bounded_number_of_lists() -> None:
 # ------------------------------------------------------------------ handlers on random messages
 
 
-class _Link:
-    """A link that keeps what it is given (the handlers' answers)."""
+class _Link(Link):
+    """A link that keeps what it is given (the handlers' answers): a peer without an
+    endpoint (nothing here frames, queues or writes)."""
 
     def __init__(self) -> None:
+        self.name = "kept"
         self.sent: list[Any] = []
 
     def send(self, packet: Any) -> None:
         self.sent.append(packet)
 
-    def send_many(self, packets: Any) -> None:
+    def send_many(self, packets: Sequence[Any]) -> None:
         self.sent.extend(packets)
 
 

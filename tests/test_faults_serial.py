@@ -41,9 +41,9 @@ def _pings_continue(manager: FakeServiceManager, d: DaemonProcess, n: int = 3) -
     )
 
 
-def _start(tmp: Path, manager: FakeServiceManager, port: Path, **cfg: object) -> DaemonProcess:
+def _start(tmp: Path, manager: FakeServiceManager, port: Path, **cfg: Any) -> DaemonProcess:
     path = tmp / "bridge.toml"
-    path.write_text(toml_config(str(port), tmp / "state", **cfg))  # type: ignore[arg-type]
+    path.write_text(toml_config(str(port), tmp / "state", **cfg))
     return DaemonProcess(path, manager, tmp / "daemon.log", watchdog_usec=WATCHDOG_USEC)
 
 

@@ -115,7 +115,7 @@ def test_a_compass_that_answers_but_streams_nothing_is_not_ok_anywhere(
             statuses = [status_text(m) for m in manager.messages if "STATUS" in m]
             assert not any(s.startswith("streaming") for s in statuses), statuses
             hb = gcs.last("HEARTBEAT")
-            assert hb is not None and hb.system_status == CRITICAL  # type: ignore[attr-defined]
+            assert hb is not None and hb.system_status == CRITICAL
             # READY=1 only as the service manager's timeout one (the daemon must not be
             # killed for a silent compass: READY_TIMEOUT_S), and then saying why not --
             # never as a streaming compass's READY (a slow machine reaches the timeout here)

@@ -21,6 +21,7 @@ import pytest
 from harness import PARAMS, Collector
 from test_link_pty import Peer, make_link, wait_until
 
+from bridge.device import Received
 from bridge.link.serial_link import BURST_LEAD_S, MAX_BURST_S, CompassLink, LinkState
 from bridge.link.transport import SerialTransport
 from bridge.protocol.gmr import AttitudeFrame
@@ -52,6 +53,12 @@ def reads(col: Collector, since: int = 0) -> list[tuple[float, int]]:
     of one read share its time."""
     sizes = Counter(i.t for i in col.items[since:] if isinstance(i.frame, AttitudeFrame))
     return sorted(sizes.items())
+
+
+def seq(item: Received) -> int:
+    """The ``seq`` of an item the test picked as an attitude frame."""
+    assert isinstance(item.frame, AttitudeFrame), item
+    return item.frame.seq
 
 
 def test_frames_wait_for_the_due_time_and_the_one_after_it_is_read_as_it_comes(
@@ -124,7 +131,7 @@ def test_a_late_wake_up_sends_the_newest_held_frame_not_the_oldest(peer: Peer) -
         held = [i for i in items[:first] if due.at - 1e-3 <= i.t < due.at]
         assert len(held) >= 2  # (holds are MAX_BURST_S at most: not all 0.3 s of them)
         assert items[first - 1] is held[-1]
-        assert items[first].frame.seq == held[-1].frame.seq + 1
+        assert seq(items[first]) == seq(held[-1]) + 1
         assert items[first].t >= due.at + 1.5 / RATE_HZ  # it came with them
         seqs = col.seqs()
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # none lost
@@ -191,12 +198,12 @@ def test_a_hold_with_no_frame_waiting_does_not_hide_the_due_frame(peer: Peer) ->
         # before that due time, as read as it came it would too. The compass's rhythm: its
         # frame counter against the earliest read (a read only ever comes late).
         # (The link's own rhythm spans the last second, not this window: a margin.)
-        sent = [i.frame.seq for i in items]
+        sent = [seq(i) for i in items]
         k = [0, *itertools.accumulate((b - a) % 65536 for a, b in itertools.pairwise(sent))]
         start = min(i.t - n * period for i, n in zip(items, k, strict=True))
         behind = {id(i): i.t - (start + n * period) for i, n in zip(items, k, strict=True)}
         assert all(behind[id(a)] > 0.25 * period for a, _b in late), [
-            (a.frame.seq, round(behind[id(a)], 4)) for a, _b in late
+            (seq(a), round(behind[id(a)], 4)) for a, _b in late
         ]
         assert len(late) <= 0.1 * len(items)  # every other frame at or after its due time
         assert [n for _, n in reads(col, mark)].count(1) >= 0.9 * len(items)

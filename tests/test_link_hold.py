@@ -26,6 +26,7 @@ from bridge.link.serial_link import (
     held_count,
     hold_end,
 )
+from bridge.protocol.gmr import AttitudeFrame, Flags
 
 RATE_HZ = 100
 PERIOD = 1.0 / RATE_HZ
@@ -99,7 +100,8 @@ def test_no_due_time_holds_as_long_as_allowed() -> None:
 
 def test_a_late_read_after_a_hold_passes_no_held_frame_for_due() -> None:
     due = 100.0
-    read = [Received(object(), due + 0.003) for _ in range(9)]  # type: ignore[arg-type]
+    frame = AttitudeFrame(1, 87.3, -1.2, 0.4, 3101, 2470, 3311, 2470, 2452, 2950, Flags(6))
+    read = [Received(frame, due + 0.003) for _ in range(9)]
     # No rhythm: the newest may have come after the due time; it is the freshest there
     # is and stays due by its read. The rest: just before.
     kept = _held(read, due, None)
@@ -242,7 +244,7 @@ def test_a_set_racing_the_waiters_put_back_leaves_the_flag_raised() -> None:
         def locked(self) -> bool:
             return real.locked()
 
-    w._lock = Racing()  # type: ignore[assignment]
+    w._lock = Racing()  # type: ignore[assignment]  # the racing stand-in, on purpose
     w.set()
     assert w.wait(0.0) is True
     assert w.is_set()

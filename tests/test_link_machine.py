@@ -9,6 +9,7 @@ answers, heading-only compasses, and the simulated firmware's handshake, rate an
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import pytest
 from harness import (
@@ -36,10 +37,10 @@ from bridge.protocol.link import LinkMachine
 from bridge.sim.firmware import make_firmware
 
 
-def scripted(**kw: object) -> tuple[LinkHarness, ScriptedCompass]:
+def scripted(**kw: Any) -> tuple[LinkHarness, ScriptedCompass]:
     kw.setdefault("stale_after", 0.5)
     dev = ScriptedCompass()
-    return LinkHarness(dev, **kw), dev  # type: ignore[arg-type]
+    return LinkHarness(dev, **kw), dev
 
 
 def handshake_done(dev: ScriptedCompass) -> bool:
@@ -567,7 +568,7 @@ def test_set_rate_is_asked_by_the_next_handshake() -> None:
 
 def test_machine_settings_are_checked() -> None:
     with pytest.raises(ValueError):
-        LinkMachine(protocol="nmea2000")  # type: ignore[arg-type]
+        LinkMachine(protocol="nmea2000")  # type: ignore[arg-type]  # not a protocol: refused
     with pytest.raises(ValueError):
         LinkMachine(stale_after=0)
     with pytest.raises(ValueError):

@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from harness import PARAMS, VERSION, Collector, ScriptedCompass, default_reply
@@ -47,7 +48,7 @@ class Peer:
         self.path = path
         self.dev = ScriptedCompass()
         self.handlers = self.dev.handlers
-        self.sim = PtyCompass(self.dev, path).start()  # type: ignore[arg-type]
+        self.sim = PtyCompass(self.dev, path).start()  # type: ignore[arg-type]  # the scripted compass as firmware: only receive/poll/next_event_at are called (no unplug, no garbage here)
 
     def received(self, key: str | None = None) -> list[CommandFrame]:
         with self.sim._lock:  # the serve thread owns the device
@@ -73,14 +74,14 @@ def peer(tmp_path: Path) -> Iterator[Peer]:
     p.close()
 
 
-def make_link(path: Path, col: Collector | None = None, **kw: object) -> CompassLink:
+def make_link(path: Path, col: Collector | None = None, **kw: Any) -> CompassLink:
     kw.setdefault("stale_after", 0.5)
     col = col or Collector()
     return CompassLink(
         SerialTransport(str(path), 115200),
         on_frame=col.on_frame,
         on_state=col.on_state,
-        **kw,  # type: ignore[arg-type]
+        **kw,
     )
 
 

@@ -28,7 +28,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_endpoints import KEY, Inbox, paced_udp_endpoint, parse_all, ping, recv_udp
+from harness import ManualClock
+from test_mavlink_endpoints import (
+    KEY,
+    Inbox,
+    local_address,
+    paced_udp_endpoint,
+    parse_all,
+    ping,
+    recv_udp,
+)
 from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 from test_mavlink_telemetry import make_sample
 
@@ -41,7 +50,6 @@ from bridge.mavlink.endpoints import MAX_DATAGRAM_BYTES, open_endpoint
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.mavlink.signing import Signing
-from tests.harness import ManualClock
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
 
@@ -173,7 +181,7 @@ def test_streams_due_on_one_sample_arrive_in_two_datagrams_the_attitude_first(
     assert after.bytes_sent - before.bytes_sent == len(first) + len(second)
     assert out.counters.publish_errors == 0
     # A frame with only ATTITUDE due (50 Hz: 20 ms later) still sends it alone.
-    out.clock.t += 0.02  # type: ignore[attr-defined]
+    ManualClock.of(out.clock).t += 0.02
     out.publish(make_sample(t=100.02))
     (alone,) = parse_all(gcs.datagram_with("ATTITUDE"))
     assert alone.get_type() == "ATTITUDE" and alone.get_seq() == (msgs[-1].get_seq() + 1) % 256
@@ -210,7 +218,7 @@ def test_a_stream_that_fails_to_encode_does_not_hold_back_the_others(
     # Broken among the rest: those before it still leave, in the second datagram.
     out._sample_encoders[T.VFR_HUD] = out._stream_encoders[T.VFR_HUD]
     out._sample_encoders[T.RAW_IMU] = broken  # the fifth
-    out.clock.t += 1.0  # type: ignore[attr-defined]  # every stream due again (TILT_SRC too)
+    ManualClock.of(out.clock).t += 1.0  # every stream due again (TILT_SRC too)
     out.publish(make_sample(t=101.0))
     head = parse_all(gcs.datagram_with("ATTITUDE"))
     assert [m.get_type() for m in head] == ATTITUDE_DATAGRAM
@@ -330,7 +338,7 @@ def test_a_stream_endpoint_gets_a_group_in_order() -> None:
     ).start()
     client: socket.socket | None = None
     try:
-        assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+        assert wait_until(lambda: local_address(ep) is not None)
         client = socket.create_connection(("127.0.0.1", port), timeout=DEADLINE_S)
         assert wait_until(lambda: bool(ep.links))
         ep.broadcast_many([ping(i) for i in range(5)])  # queued, written by the thread

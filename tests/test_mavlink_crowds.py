@@ -19,7 +19,14 @@ from typing import Any
 
 import pytest
 from mavlink_clients import signed_mav
-from test_mavlink_endpoints import Inbox, endpoints, heartbeat_bytes, ping, recv_udp  # noqa: F401
+from test_mavlink_endpoints import (  # noqa: F401
+    Inbox,
+    endpoints,
+    heartbeat_bytes,
+    local_address,
+    ping,
+    recv_udp,
+)
 from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
 
 from bridge.mavlink.endpoints import Endpoint
@@ -61,7 +68,7 @@ def junk(rng: random.Random, n: int) -> list[bytes]:
 def _udpin(endpoints: Callable[..., Endpoint], **kw: Any) -> tuple[Endpoint, int]:  # noqa: F811
     port = free_port()
     ep = endpoints(f"udpin:127.0.0.1:{port}", **kw)
-    assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+    assert wait_until(lambda: local_address(ep) is not None)
     return ep, port
 
 
@@ -70,7 +77,11 @@ def test_junk_from_many_ports_makes_no_peer(endpoints: Callable[..., Endpoint]) 
     datagrams = junk(random.Random(1), 600)
     for i in range(0, 600, 50):  # paced: the kernel's buffer is not what is tested here
         spray(port, datagrams[i : i + 50])
-        assert wait_until(lambda i=i: ep.counters().strangers_dropped == i + 50)
+
+        def sprayed_dropped(n: int = i + 50) -> bool:
+            return ep.counters().strangers_dropped == n
+
+        assert wait_until(sprayed_dropped)
     assert ep.links == [] and ep.counters().packets_received == 0
     # A real HEARTBEAT does make one.
     spray(port, [heartbeat_bytes()])
@@ -147,7 +158,7 @@ def test_udpin_does_not_share_its_port(endpoints: Callable[..., Endpoint]) -> No
     # A second bridge's udpin on it fails to open, says so, and keeps retrying.
     second = endpoints(f"udpin:127.0.0.1:{port}")
     assert wait_until(lambda: second.counters().errors >= 1)
-    assert second.local_address is None  # type: ignore[attr-defined]
+    assert local_address(second) is None
     spray(port, [heartbeat_bytes()])
     assert wait_until(lambda: len(first.links) == 1)
     assert second.links == []
@@ -188,7 +199,7 @@ def served_within(port: int, seconds: float, heartbeat: bool = True) -> float:
 def test_idle_tcp_clients_do_not_lock_a_newcomer_out(endpoints: Callable[..., Endpoint]) -> None:  # noqa: F811
     port = free_port(socket.SOCK_STREAM)
     ep = endpoints(f"tcpin:127.0.0.1:{port}")
-    assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+    assert wait_until(lambda: local_address(ep) is not None)
     idle: list[socket.socket] = []
     with pinging(ep):
         try:
@@ -228,7 +239,7 @@ def test_idle_tcp_clients_do_not_lock_a_newcomer_out(endpoints: Callable[..., En
 def test_a_tcp_client_that_stops_reading_makes_room(endpoints: Callable[..., Endpoint]) -> None:  # noqa: F811
     port = free_port(socket.SOCK_STREAM)
     ep = endpoints(f"tcpin:127.0.0.1:{port}", queue_packets=8)
-    assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+    assert wait_until(lambda: local_address(ep) is not None)
     clients: list[socket.socket] = []
     try:
         for _ in range(E.MAX_TCP_CLIENTS):

@@ -130,10 +130,16 @@ def test_an_outcome_from_another_thread_during_the_work_neither_blocks_nor_reord
     from bridge.events import Event
     from bridge.mavlink.commands import Command
     from bridge.mavlink.dispatch import PendingAcks
+    from bridge.mavlink.endpoints import Link
 
     sent: list[Any] = []
 
-    class Link:
+    class Sent(Link):
+        """A peer without an endpoint: the acks are only sent to it."""
+
+        def __init__(self) -> None:
+            self.name = "sent"
+
         def send(self, packet: Any) -> None:
             sent.append(packet)
 
@@ -147,5 +153,5 @@ def test_an_outcome_from_another_thread_during_the_work_neither_blocks_nor_reord
         assert not t.is_alive(), "the event thread blocked on the dispatcher"
         return True
 
-    assert acks.long_work(cmd, Link(), work, ("calibration.done",), ("calibration.failed",))  # type: ignore[arg-type]
+    assert acks.long_work(cmd, Sent(), work, ("calibration.done",), ("calibration.failed",))
     assert [p.result for p in sent] == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_ACCEPTED]

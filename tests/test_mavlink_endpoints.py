@@ -15,7 +15,14 @@ import pytest
 from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, wait_until
 
 from bridge.mavlink.dialect import Message, message
-from bridge.mavlink.endpoints import Endpoint, Link, open_endpoint
+from bridge.mavlink.endpoints import (
+    Endpoint,
+    Link,
+    SerialEndpoint,
+    TcpServerEndpoint,
+    UdpEndpoint,
+    open_endpoint,
+)
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.signing import Signing
 
@@ -66,6 +73,12 @@ def endpoints() -> Iterator[Callable[..., Endpoint]]:
         ep.close(2.0)
 
 
+def local_address(ep: Endpoint) -> Any:
+    """The address a UDP endpoint or a TCP server bound (None until it has)."""
+    assert isinstance(ep, UdpEndpoint | TcpServerEndpoint), ep
+    return ep.local_address
+
+
 def parse_all(data: bytes, key: bytes | None = None) -> list[Any]:
     mav = M.MAVLink(None)
     if key:
@@ -99,7 +112,7 @@ def test_udpout_sends_and_hears_replies(endpoints: Callable[..., Endpoint]) -> N
         assert [m.get_seq() for m in msgs] == [0, 1, 2, 3, 4]
         # the GCS answers to where the packets came from
         src = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        peer.sendto(heartbeat_bytes(), ("127.0.0.1", ep.local_address[1]))  # type: ignore[attr-defined]
+        peer.sendto(heartbeat_bytes(), ("127.0.0.1", local_address(ep)[1]))
         assert wait_until(lambda: bool(inbox.of("HEARTBEAT")))
         msg, link = inbox.of("HEARTBEAT")[0]
         assert msg.get_srcSystem() == 255 and link is ep.links[0]
@@ -127,12 +140,12 @@ def test_an_idle_udp_endpoint_thread_sleeps_until_it_has_something_to_do(
     try:
         out = endpoints(f"udpout:127.0.0.1:{peer.getsockname()[1]}")
         listen = endpoints(f"udpin:127.0.0.1:{free_port()}")
-        assert wait_until(lambda: bool(out.links) and listen.local_address is not None)  # type: ignore[attr-defined]
-        threads = [ep._thread for ep in (out, listen)]
-        assert all(t is not None for t in threads)
-        before = [_wakeups(t) for t in threads]  # type: ignore[arg-type]
+        assert wait_until(lambda: bool(out.links) and local_address(listen) is not None)
+        threads = [t for ep in (out, listen) if (t := ep._thread) is not None]
+        assert len(threads) == 2  # both running
+        before = [_wakeups(t) for t in threads]
         time.sleep(1.6)  # three of the old timeouts
-        assert [_wakeups(t) for t in threads] == before  # type: ignore[arg-type]
+        assert [_wakeups(t) for t in threads] == before
         out.broadcast(ping(1))  # a packet still goes out at once (from this thread)
         assert [parse_all(d)[0].time_boot_ms for d in recv_udp(peer, 1)] == [1]
     finally:
@@ -148,7 +161,7 @@ def test_udpin_learns_peers_and_answers_each_on_its_own(
     ep = endpoints(f"udpin:127.0.0.1:{port}", inbox)
     a, b = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
     try:
-        assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+        assert wait_until(lambda: local_address(ep) is not None)
         ep.broadcast(ping(0))  # nobody yet: counted, not an error
         assert wait_until(lambda: ep.counters().packets_unsent == 1)
         for s, sysid in ((a, 10), (b, 11)):
@@ -225,7 +238,7 @@ def test_tcpin_serves_several_clients_each_with_its_own_sequence(
     port = free_port(socket.SOCK_STREAM)
     inbox = Inbox()
     ep = endpoints(f"tcpin:127.0.0.1:{port}", inbox)
-    assert wait_until(lambda: ep.local_address is not None)  # type: ignore[attr-defined]
+    assert wait_until(lambda: local_address(ep) is not None)
     c1 = socket.create_connection(("127.0.0.1", port), timeout=DEADLINE_S)
     try:
         assert wait_until(lambda: len(ep.links) == 1)
@@ -265,7 +278,7 @@ def test_a_stuck_tcp_client_costs_only_its_own_queue(endpoints: Callable[..., En
     udp_peer.bind(("127.0.0.1", 0))
     udp_peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
     live_ep = endpoints(f"udpout:127.0.0.1:{udp_peer.getsockname()[1]}", queue_packets=100_000)
-    assert wait_until(lambda: stuck_ep.local_address is not None)  # type: ignore[attr-defined]
+    assert wait_until(lambda: local_address(stuck_ep) is not None)
     stuck = socket.create_connection(("127.0.0.1", tport), timeout=DEADLINE_S)
     stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # and it never reads
     try:
@@ -308,7 +321,7 @@ def test_serial_endpoint_over_a_pty(endpoints: Callable[..., Endpoint]) -> None:
     try:
         ep = endpoints(f"{os.ttyname(slave)},115200", inbox)
         assert wait_until(lambda: bool(ep.links))
-        assert ep.baud == 115200  # type: ignore[attr-defined]
+        assert isinstance(ep, SerialEndpoint) and ep.baud == 115200
         for i in range(3):
             ep.broadcast(ping(i))
         mav = M.MAVLink(None)
@@ -455,7 +468,7 @@ def test_pymavlink_udpin_sends_every_packet_to_every_address_it_ever_heard(
     ours = endpoints(f"udpin:127.0.0.1:{port}")
     peers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
     try:
-        assert wait_until(lambda: ours.local_address is not None)  # type: ignore[attr-defined]
+        assert wait_until(lambda: local_address(ours) is not None)
         for s in peers:
             s.sendto(heartbeat_bytes(), ("127.0.0.1", port))
         # the first MAX_UDP_PEERS send HEARTBEATs: none is dropped for the newcomers

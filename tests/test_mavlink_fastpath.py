@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from harness import ManualClock
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
@@ -35,7 +36,6 @@ from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-from tests.harness import ManualClock
 
 SAMPLE_IDS = S.SAMPLE_STREAMS
 REAL32, INT8 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8
@@ -108,11 +108,11 @@ def test_a_change_made_while_due_samples_runs_is_not_lost() -> None:
         sched.set_override(S.VFR_HUD, 5.0)  # any change, "meanwhile"
         return hz
 
-    sched.rate = rate_then_change  # type: ignore[method-assign]
+    sched.rate = rate_then_change  # type: ignore[method-assign]  # instrumented on purpose
     sched.set_base(S.ATTITUDE, 1.0)  # a new plan is built on the next call
     sched.due_samples(10.5)
     assert sched.sample_due_at == float("-inf")  # ask again next time, not in a second
-    sched.rate = real_rate  # type: ignore[method-assign]
+    sched.rate = real_rate  # type: ignore[method-assign]  # and restored
     sched.due_samples(10.6)
     assert sched.sample_due_at == pytest.approx(11.0 - pacing.early_s(1.0))
 
@@ -269,7 +269,7 @@ def test_half_the_frames_do_no_mavlink_work(bench: Callable[..., Bench]) -> None
         calls += 1
         return due_samples(now)
 
-    b.out.schedule.due_samples = counting  # type: ignore[method-assign]
+    b.out.schedule.due_samples = counting  # type: ignore[method-assign]  # instrumented on purpose
     sent = [b.frame() for _ in range(200)]
     assert sum(S.ATTITUDE in s for s in sent) == 100  # 50 Hz of 100 Hz frames, exactly
     assert calls == 100  # the other 100 frames stopped at the comparison

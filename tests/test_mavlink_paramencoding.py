@@ -38,7 +38,7 @@ import pytest
 from bridge.app.paramspec import REAL32, SPECS, ParamSpec
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module
-from bridge.mavlink.paramproto import FLAVOURS, ParamEncoding
+from bridge.mavlink.paramproto import FLAVOURS, Flavour, ParamEncoding
 
 APM = int(M.MAV_AUTOPILOT_ARDUPILOTMEGA)
 PX4 = int(M.MAV_AUTOPILOT_PX4)
@@ -195,7 +195,7 @@ CLIENTS: dict[str, tuple[Reader, Writer]] = {
 # ------------------------------------------------------------------------- the bridge's side
 
 
-def standalone(flavour: str) -> tuple[Vehicle, ParamEncoding]:
+def standalone(flavour: Flavour) -> tuple[Vehicle, ParamEncoding]:
     """A standalone bridge of ``flavour``: its own HEARTBEAT is the vehicle's."""
     hb = T.heartbeat(T.Identity(1, 1, "standalone", flavour), 0)
     return Vehicle(hb.type, hb.autopilot, hb.autopilot), ParamEncoding(flavour)
@@ -237,7 +237,9 @@ def assert_round_trip(v: Vehicle, enc: ParamEncoding, client: str) -> None:
 
 @pytest.mark.parametrize("client", sorted(CLIENTS))
 @pytest.mark.parametrize("flavour", FLAVOURS)
-def test_every_parameter_reads_and_sets_right_in_every_client(flavour: str, client: str) -> None:
+def test_every_parameter_reads_and_sets_right_in_every_client(
+    flavour: Flavour, client: str
+) -> None:
     v, enc = standalone(flavour)
     assert_round_trip(v, enc, client)
 
@@ -248,7 +250,7 @@ def test_every_parameter_reads_and_sets_right_in_every_client(flavour: str, clie
 )
 @pytest.mark.parametrize("flavour", FLAVOURS)
 def test_companion_parameters_read_right_beside_either_autopilot(
-    flavour: str, autopilot: tuple[str, str, int], client: str
+    flavour: Flavour, autopilot: tuple[str, str, int], client: str
 ) -> None:
     """Beside an autopilot the system's HEARTBEAT is the autopilot's; ours says INVALID."""
     ours = T.heartbeat(T.Identity(1, 200, "companion", flavour), 0)

@@ -16,14 +16,17 @@ from bridge.core.sensor import STANDARD_GRAVITY, g_to_acc_counts, gauss_to_mag_c
 from bridge.link.serial_link import LinkState
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
+from bridge.mavlink.dialect import Message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module
 
 B_NED = np.array([0.21, 0.0, 0.42])  # gauss: north and down (dip 63 deg), as in Zurich
 DECL = 3.0  # deg east
 
 
-def decode(p: Any) -> Any:
-    """The message as a ground station decodes it from the bytes pymavlink frames."""
+def decode(p: Message | None) -> Any:
+    """The message as a ground station decodes it from the bytes pymavlink frames; ``None``
+    (a builder such as ``T.scaled_imu`` that built nothing) fails the test."""
+    assert p is not None, "no message built"
     (msg,) = M.MAVLink(None).parse_buffer(p.pack(M.MAVLink(None, 1, 1)))
     return msg
 
@@ -83,19 +86,19 @@ def test_heading_only_sample_gives_attitude_but_no_imu() -> None:
 
 def test_imu_messages_units_and_signs() -> None:
     s = make_sample(yaw_deg=0.0)
-    si = decode(T.scaled_imu(s, 77))  # type: ignore[arg-type]
+    si = decode(T.scaled_imu(s, 77))
     # a level unit at rest: specific force straight up = -1 g on z (MAVLink IMU convention)
     assert (si.xacc, si.yacc) == (0, 0) and si.zacc == -1000
     assert si.xmag == 210 and si.ymag == 0 and si.zmag == 420  # mgauss, facing north
-    hr = decode(T.highres_imu(s, 5_000_000))  # type: ignore[arg-type]
+    hr = decode(T.highres_imu(s, 5_000_000))
     assert hr.time_usec == 5_000_000
     assert hr.zacc == pytest.approx(-STANDARD_GRAVITY, abs=1e-5)
     assert hr.xmag == pytest.approx(0.21, abs=1e-6) and hr.zmag == pytest.approx(0.42, abs=1e-6)
     assert hr.fields_updated == 0b111 | 0b111 << 6  # accelerometer and magnetometer only
-    raw = decode(T.raw_imu(s, 99))  # type: ignore[arg-type]
+    raw = decode(T.raw_imu(s, 99))
     assert (raw.xmag, raw.ymag, raw.zmag, raw.xacc, raw.yacc, raw.zacc) == s.raw_counts
     # a field too strong for int16 mgauss is clipped, not wrapped
-    big = decode(T.scaled_imu(make_sample(yaw_deg=0.0, field_scale=200.0), 0))  # type: ignore[arg-type]
+    big = decode(T.scaled_imu(make_sample(yaw_deg=0.0, field_scale=200.0), 0))
     assert big.xmag == 32767
 
 

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from harness import ManualClock
 from test_mavlink_rig import M
 
 from bridge.app.params import ParamChange
@@ -25,20 +26,22 @@ from bridge.events import Event, Severity
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.dispatch import FINAL_ACK_TIMEOUT_S
+from bridge.mavlink.endpoints import Link
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
-from tests.harness import ManualClock
 
 T0 = 100.0
 
 
-class Sent:
-    """A link that keeps what it is sent."""
+class Sent(Link):
+    """A link that keeps what it is sent: a peer without an endpoint (the handlers only
+    send to it; nothing here frames, queues or writes)."""
 
     def __init__(self) -> None:
+        self.name = "sent"
         self.messages: list[Message] = []
 
-    def send(self, m: Message) -> None:
-        self.messages.append(m)
+    def send(self, packet: Message) -> None:
+        self.messages.append(packet)
 
 
 @pytest.fixture
@@ -72,7 +75,8 @@ def first_round(o: MavlinkOutput) -> None:
 
 def command(cmd: int, *params: float) -> C.Command:
     p = (*params, *(0.0,) * (7 - len(params)))
-    return C.Command(cmd, p, 1, 1, 255, 190)  # type: ignore[arg-type]
+    assert len(p) == 7  # COMMAND_LONG's param1..7
+    return C.Command(cmd, p, 1, 1, 255, 190)
 
 
 def test_at_rest_it_sleeps_until_the_next_heartbeat(out: MavlinkOutput) -> None:
@@ -117,7 +121,7 @@ def test_a_command_in_progress_times_out_on_its_deadline(out: MavlinkOutput) -> 
     deadline = T0 + FINAL_ACK_TIMEOUT_S
     assert out.dispatcher.pending.due_at == deadline
     assert out.next_look(T0) <= deadline
-    out.clock.t = deadline  # type: ignore[attr-defined]
+    ManualClock.of(out.clock).t = deadline
     out.dispatcher.pending.expire(deadline)  # on it, not a look later
     assert link.messages[-1].result == M.MAV_RESULT_FAILED
     assert out.dispatcher.pending.due_at == math.inf

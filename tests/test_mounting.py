@@ -106,7 +106,7 @@ def test_parse_rotation_accepts_numbers_and_names_and_refuses_the_rest() -> None
     assert parse_rotation("ROTATION_YAW_90") is Rotation.ROTATION_YAW_90
     for bad in (44, 99, 103, -1, "ROLL_181", True, 8.0):
         with pytest.raises(ValueError):
-            parse_rotation(bad)  # type: ignore[arg-type]
+            parse_rotation(bad)  # type: ignore[arg-type]  # wrong values and types, on purpose
 
 
 def test_custom_rotations_use_their_angles() -> None:
@@ -147,7 +147,7 @@ def test_trim_undoes_a_sensor_pitched_up_on_its_bracket() -> None:
 
 def test_mounting_validates_inputs() -> None:
     with pytest.raises(ValueError):
-        Mounting(44)  # type: ignore[arg-type]
+        Mounting(44)  # type: ignore[arg-type]  # not a rotation: refused
     with pytest.raises(ValueError):
         Mounting(trim_roll_deg=math.inf)
-    assert Mounting(8).orientation is Rotation.ROTATION_ROLL_180  # type: ignore[arg-type]
+    assert Mounting(8).orientation is Rotation.ROTATION_ROLL_180  # type: ignore[arg-type]  # a plain number is taken

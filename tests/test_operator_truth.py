@@ -60,6 +60,7 @@ class TruthOffsets:
     """An output that keeps how far each sample's heading is from the simulated truth."""
 
     name = "truth"
+    due_at = -math.inf  # every sample, as it comes (the Output protocol's; the link reads it)
 
     def __init__(self, fw: Firmware) -> None:
         self.fw = fw

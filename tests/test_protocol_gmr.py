@@ -281,7 +281,7 @@ def test_device_receives_malformed_commands_so_it_can_answer_err() -> None:
 
 def test_bad_direction_rejected() -> None:
     with pytest.raises(ValueError):
-        GmrDecoder("sideways")  # type: ignore[arg-type]
+        GmrDecoder("sideways")  # type: ignore[arg-type]  # not a direction: refused
 
 
 # --------------------------------------------------------------------------- frame validation
@@ -293,7 +293,7 @@ def test_constructors_refuse_what_the_decoder_would_drop() -> None:
     with pytest.raises(ValueError):
         AttitudeFrame(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, Flags(0x20))
     with pytest.raises(ValueError):
-        AttitudeFrame(0, 0, 0, 0, 3101.5, 0, 0, 0, 0, 0, Flags(0))  # type: ignore[arg-type]
+        AttitudeFrame(0, 0, 0, 0, 3101.5, 0, 0, 0, 0, 0, Flags(0))  # type: ignore[arg-type]  # a fractional count: refused
     with pytest.raises(ValueError):
         AttitudeFrame(0, float("nan"), 0, 0, 0, 0, 0, 0, 0, 0, Flags(0))
     with pytest.raises(ValueError):
@@ -315,7 +315,7 @@ def test_constructors_refuse_what_the_decoder_would_drop() -> None:
 def test_numpy_numbers_are_normalised() -> None:
     c = np.array([1, 2, 3, 4, 5, 6])
     f = AttitudeFrame(
-        np.int64(5),  # type: ignore[arg-type]
+        np.int64(5),  # type: ignore[arg-type]  # numpy numbers, on purpose
         np.float64(10.0),
         0,
         0,
@@ -507,8 +507,8 @@ def test_noise_yields_exactly_the_frames_it_did_not_touch(
 
 @FAST
 @given(st.binary(max_size=400), st.sampled_from(["host", "device"]))
-def test_random_bytes_never_raise(blob: bytes, direction: str) -> None:
-    dec = GmrDecoder(direction)  # type: ignore[arg-type]
+def test_random_bytes_never_raise(blob: bytes, direction: Direction) -> None:
+    dec = GmrDecoder(direction)
     out = dec.feed(blob)
     assert dec.counters.frames == len(out)
     assert dec.counters.bytes_in == len(blob)

@@ -238,9 +238,9 @@ def test_framing_drops_counted_by_heading_decoder() -> None:
 
 def test_bad_constructor_arguments() -> None:
     with pytest.raises(ValueError):
-        HeadingDecoder("gmr")  # type: ignore[arg-type]
+        HeadingDecoder("gmr")  # type: ignore[arg-type]  # not a heading protocol: refused
     with pytest.raises(ValueError):
-        HeadingDecoder("nmea", reference="grid")  # type: ignore[arg-type]
+        HeadingDecoder("nmea", reference="grid")  # type: ignore[arg-type]  # not a reference: refused
     with pytest.raises(ValueError):
         HeadingFrame(10.0, "true", pitch_deg=1.0, talker="HE", sentence="HDT")
     with pytest.raises(ValueError):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -86,9 +87,9 @@ def test_monitor_ignores_dip_while_accelerating() -> None:
         {"clear_after": 1.5},
     ],
 )
-def test_limits_validate(kwargs: dict[str, float]) -> None:
+def test_limits_validate(kwargs: dict[str, Any]) -> None:
     with pytest.raises(ValueError):
-        QualityLimits(**kwargs)  # type: ignore[arg-type]
+        QualityLimits(**kwargs)
 
 
 # -- through the engine ------------------------------------------------------------------------

@@ -132,6 +132,13 @@ def _frames(line: str) -> int:
     return int(m.group(1))
 
 
+def _off_deg(text: str) -> float:
+    """How far off the simulated truth the (first) live line of ``text`` says it is."""
+    m = re.search(r"off +([+-]\d+\.\d)", text)
+    assert m is not None, text
+    return float(m.group(1))
+
+
 def _match_live(readme_line: str, env: dict[str, str], *args: str) -> list[str]:
     """The real live line of the same frame count as the README's (the sample's moment),
     on a terminal; returns what the run drew. Ten redraws a second sample ten frames a
@@ -155,7 +162,7 @@ def test_the_first_screen_is_the_simulators_real_output(tmp_path: Path) -> None:
     real = _match_live(live, _fresh_env(tmp_path / "home"))
     assert real[0] == intro
     assert real[1] == state  # "~/.local/state/compass-bridge/sim, holding nothing yet"
-    off = float(re.search(r"off +([+-]\d+\.\d)", live).group(1))  # type: ignore[union-attr]
+    off = _off_deg(live)
     assert abs(off) < 0.5  # calibrated with its true errors
 
     # before anyone calibrates it: tens of degrees off the truth
@@ -163,7 +170,7 @@ def test_the_first_screen_is_the_simulators_real_output(tmp_path: Path) -> None:
         uncalibrated.strip(), _fresh_env(tmp_path / "home2"), "--set", "sim.calibrated=false"
     )
     assert real[0].startswith("Simulated compass (seed 1), UNCALIBRATED")
-    off = float(re.search(r"off +([+-]\d+\.\d)", uncalibrated).group(1))  # type: ignore[union-attr]
+    off = _off_deg(uncalibrated)
     assert abs(off) > 20.0
     assert "here 50 degrees off" in section and abs(off) == pytest.approx(50, abs=1)
 

@@ -488,16 +488,16 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
     from bridge.app.calibration import CalibrationController
     from bridge.calibration.sessions.state import CalibratorSettings
     from bridge.core.attitude import AttitudeEngine
-    from bridge.events import EventBus
+    from bridge.events import Event, EventBus
     from bridge.protocol.gmr import AttitudeFrame, Flags
 
     counts = np.rint(np.column_stack([src.mag_G * 2560.0, src.acc_g * 491.5]) + 2458.0)
     clock = [1000.0]
-    final: list[object] = []
+    final: list[Event] = []
     ended = threading.Event()
 
-    def on_event(e: object) -> None:
-        if getattr(e, "kind", "") in ("calibration.done", "calibration.failed"):
+    def on_event(e: Event) -> None:
+        if e.kind in ("calibration.done", "calibration.failed"):
             final.append(e)
             ended.set()
 
@@ -514,7 +514,12 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
         assert ctl.start_mag().ok
         for i, c in enumerate(counts.astype(int)):
             clock[0] = 1000.0 + float(src.t_s[i] - src.t_s[0])
-            ctl.feed(AttitudeFrame(int(src.seq[i]) % 65536, 0.0, 0.0, 0.0, *map(int, c), Flags(0)))
+            mx, my, mz, ax, ay, az = (int(v) for v in c)
+            ctl.feed(
+                AttitudeFrame(
+                    int(src.seq[i]) % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, Flags(0)
+                )
+            )
             snap = ctl.snapshot()
             if not snap.running:
                 break
@@ -525,8 +530,7 @@ def _live_session(src: RealData) -> tuple[str, dict[str, object], str]:
         done = ctl.snapshot()
         assert not done.running and ended.wait(10.0) and len(final) == 1
         ev = final[0]
-        data = ev.data  # type: ignore[attr-defined]
-        return done.phase.value, data, ev.text  # type: ignore[attr-defined]
+        return done.phase.value, ev.data, ev.text
     finally:
         ctl.close()
 

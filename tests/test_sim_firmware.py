@@ -322,7 +322,7 @@ def test_a_shaking_hand_reaches_the_accelerometer_frames() -> None:
     h.run(10.0)
     frames = [(t, f) for t, f in h.frames() if t > 1.0]
     acc = np.array([[f.ax, f.ay, f.az] for _, f in frames], dtype=float)
-    t = np.array([t for t, _ in frames]) - h.fw.motion_epoch  # type: ignore[operator]
+    t = np.array([t for t, _ in frames]) - h.fw.motion_epoch
     want = 2458.0 + 491.5 * (np.array([0.0, 0.0, 1.0]) - hand.shake_g(t))
     # a frame is sampled at its tick, up to one polling step before it is read
     slew = hand.peak_bound_g * 2.0 * math.pi * 2.5  # g/s, no faster than the top tone
@@ -333,19 +333,21 @@ def test_a_shaking_hand_reaches_the_accelerometer_frames() -> None:
 def test_the_simulated_port_shakes_as_configured(tmp_path: Path) -> None:
     from bridge.config import config_from_mapping
     from bridge.daemon import make_transport
+    from bridge.link.transport import SimTransport
     from bridge.sim.pty import make_motion
 
     raw = {"device": {"port": "sim"}, "sim": {"motion": "tumble", "seed": 3, "shake_g": 0.05}}
     transport = make_transport(config_from_mapping(raw, env={}, hostname="t"))
-    motion = transport.firmware.motion  # type: ignore[attr-defined]
+    assert isinstance(transport, SimTransport) and isinstance(transport.firmware, Firmware)
+    motion = transport.firmware.motion
     assert isinstance(motion, HandShake) and motion.rms_g == 0.05
     assert isinstance(motion.base, Tumble)
-    np.testing.assert_array_equal(
-        motion.shake_g([1.0, 2.0]),
-        make_motion("tumble", 3, 0.05).shake_g([1.0, 2.0]),  # type: ignore[attr-defined]
-    )
+    made = make_motion("tumble", 3, 0.05)
+    assert isinstance(made, HandShake)
+    np.testing.assert_array_equal(motion.shake_g([1.0, 2.0]), made.shake_g([1.0, 2.0]))
     steady = make_transport(config_from_mapping({"device": {"port": "sim"}}, env={}, hostname="t"))
-    assert not isinstance(steady.firmware.motion, HandShake)  # type: ignore[attr-defined]
+    assert isinstance(steady, SimTransport) and isinstance(steady.firmware, Firmware)
+    assert not isinstance(steady.firmware.motion, HandShake)
     with pytest.raises(ValueError, match="motion must be one of"):
         make_motion("spin", 1)
 

@@ -357,9 +357,9 @@ def test_with_shake_and_bad_shakes() -> None:
     s = Sequence([AttitudeList([(0.0, 0.0, 0.0)], dwell_s=2.0), shaken])
     assert np.abs(linear_acc_of(s, 1.0)).max() == 0.0
     assert np.abs(np.array([linear_acc_of(s, 2.0 + k / 20) for k in range(40)])).max() > 0.05
-    for kw in ({"rms_g": -0.1}, {"rms_g": math.nan}):
+    for rms_g in (-0.1, math.nan):
         with pytest.raises(ValueError, match="rms_g"):
-            HandShake(still, **kw)
+            HandShake(still, rms_g=rms_g)
     with pytest.raises(ValueError, match="band_hz"):
         HandShake(still, 0.05, band_hz=(2.5, 0.4))
     with pytest.raises(ValueError, match="tones"):

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -48,12 +49,14 @@ def test_missing_gives_none_without_problems(tmp_path: Path) -> None:
         lambda b: b"\x00\xff" * 20,  # binary junk
     ],
 )
-def test_corrupt_current_falls_back_to_previous(tmp_path: Path, damage: object) -> None:
+def test_corrupt_current_falls_back_to_previous(
+    tmp_path: Path, damage: Callable[[bytes], bytes]
+) -> None:
     store = StateStore(tmp_path)
     store.save("calibration", {"gen": 1})
     store.save("calibration", {"gen": 2})
     path = tmp_path / "calibration.json"
-    path.write_bytes(damage(path.read_bytes()))  # type: ignore[operator]
+    path.write_bytes(damage(path.read_bytes()))
     res = store.load("calibration")
     assert res.source == "previous" and res.payload == {"gen": 1}
     assert res.problems and "calibration.json" in res.problems[0]

@@ -317,7 +317,7 @@ def test_observed_transport_beats_and_swaps() -> None:
     clock, lv = ManualClock(), Liveness()
     lv.watch("reader", 2.0, clock.t)
     inner = _FakePort()
-    wt = ObservedTransport(inner, lambda: lv.beat("reader", clock.t))  # type: ignore[arg-type]
+    wt = ObservedTransport(inner, lambda: lv.beat("reader", clock.t))
     assert wt.baud == 115200 and wt.name == "/dev/fake"
     clock.t += 1.5
     assert wt.read(10, 0.05) == b"x"

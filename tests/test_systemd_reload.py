@@ -20,6 +20,7 @@ from bridge.daemon import Daemon, Service, build_outputs, plan_reload
 from bridge.link.serial_link import LinkState
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
+from bridge.zenoh.output import ZenohOutput
 
 DEADLINE_S = 15.0
 
@@ -107,7 +108,8 @@ def test_each_section_restarts_only_its_part(running: Running) -> None:
     running.reload()
     assert svc.daemon is daemon and svc.daemon.link is link
     new_zenoh = running.output("zenoh")
-    assert new_zenoh is not zenoh and new_zenoh.settings.key_prefix == "test/b"  # type: ignore[attr-defined]
+    assert new_zenoh is not zenoh and isinstance(new_zenoh, ZenohOutput)
+    assert new_zenoh.settings.key_prefix == "test/b"
     assert svc.daemon.transport.inner is inner
     samples = daemon.bridge.pipeline.samples
     _wait(lambda: daemon.bridge.pipeline.samples > samples + 5, "samples after the output swap")

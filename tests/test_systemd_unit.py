@@ -74,7 +74,9 @@ def test_unit_passes_verify_and_security_score() -> None:
     r = _check(UNIT)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "verify: clean" in r.stdout
-    score = float(re.search(r"security exposure ([0-9.]+)", r.stdout).group(1))  # type: ignore[union-attr]
+    exposure = re.search(r"security exposure ([0-9.]+)", r.stdout)
+    assert exposure is not None, r.stdout
+    score = float(exposure.group(1))
     assert score <= 2.0
 
 

@@ -4,6 +4,7 @@ estimate that holds the tilt through a manoeuvre (bridge.core.aligned, bridge.co
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ from bridge.core.aligned import (
     MountingResidual,
 )
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, euler_to_quaternion
-from bridge.core.tilt import TiltFilter
+from bridge.core.tilt import TiltEstimate, TiltFilter
 from bridge.core.vectors import (
     angle_deg,
     down_from_euler,
@@ -27,6 +28,7 @@ from bridge.core.vectors import (
 )
 from bridge.core.wmm import earth_field
 from bridge.sim.physics import DEFAULT_LOCATION
+from bridge.types import FloatArray, Vec3
 
 FIELD = earth_field(*DEFAULT_LOCATION)
 
@@ -124,7 +126,8 @@ def test_mounting_residual_learns_how_the_boards_sit() -> None:
     res = MountingResidual()
     assert res.rotation_deg() == 0.0 and res.scatter_deg is None
     for _ in range(3000):
-        R = euler_to_dcm(*rng.uniform(-0.25, 0.25, 2), rng.uniform(0.0, 6.28))
+        roll, pitch = rng.uniform(-0.25, 0.25, 2)
+        R = euler_to_dcm(roll, pitch, rng.uniform(0.0, 6.28))
         gc = R.T @ np.array([0.0, 0.0, 1.0])
         noisy = gc + rng.normal(0.0, 0.005, 3)
         res.add(vec(noisy / np.linalg.norm(noisy)), vec(M @ gc))
@@ -173,7 +176,8 @@ def test_mounting_residual_is_the_converged_q_method_answer(
     res = MountingResidual(prior_weight=prior, memory=500.0)
     pairs = []
     for i in range(1, 801):
-        R = euler_to_dcm(*rng.uniform(-tilt, tilt, 2), rng.uniform(0.0, 6.28))
+        roll, pitch = rng.uniform(-tilt, tilt, 2)
+        R = euler_to_dcm(roll, pitch, rng.uniform(0.0, 6.28))
         ap = R.T @ np.array([0.0, 0.0, 1.0])
         noisy = M.T @ ap + rng.normal(0.0, 0.003, 3)
         a = noisy / np.linalg.norm(noisy)
@@ -199,9 +203,20 @@ def test_mounting_residual_keeps_its_answer_where_the_data_cannot_tell() -> None
 # -- the estimate -------------------------------------------------------------------------
 
 
+# The vehicle's attitude (body to NED) and its linear acceleration (NED, g) against time.
+RotationOf = Callable[[float], FloatArray]
+AccelerationOf = Callable[[float], Vec3]
+
+
 def run(
-    f: TiltFilter, R_of, lin_of, t0: float, t1: float, rate: float = 10.0, external_of=None
-) -> list[tuple[float, object]]:
+    f: TiltFilter,
+    R_of: RotationOf,
+    lin_of: AccelerationOf,
+    t0: float,
+    t1: float,
+    rate: float = 10.0,
+    external_of: Callable[[float], Vec3] | None = None,
+) -> list[tuple[float, TiltEstimate]]:
     out = []
     for t in np.arange(t0, t1, 1.0 / rate):
         mag, acc = frame(R_of(t), lin_of(t))
@@ -210,7 +225,7 @@ def run(
     return out
 
 
-def level(yaw_deg: float = 30.0, roll: float = 5.0, pitch: float = -3.0):
+def level(yaw_deg: float = 30.0, roll: float = 5.0, pitch: float = -3.0) -> RotationOf:
     R = euler_to_dcm(math.radians(roll), math.radians(pitch), math.radians(yaw_deg))
     return lambda t: R
 
@@ -219,7 +234,7 @@ def still(t: float) -> tuple[float, float, float]:
     return (0.0, 0.0, 0.0)
 
 
-def braking(start: float, g: float, heading_deg: float):
+def braking(start: float, g: float, heading_deg: float) -> AccelerationOf:
     """A raised-cosine deceleration of peak ``g`` over 8 s, along the track."""
 
     def lin(t: float) -> tuple[float, float, float]:
@@ -233,7 +248,7 @@ def braking(start: float, g: float, heading_deg: float):
     return lin
 
 
-def tilt_error(est, R: np.ndarray) -> float:
+def tilt_error(est: TiltEstimate, R: np.ndarray) -> float:
     return angle_deg(est.down, vec(R.T @ np.array([0.0, 0.0, 1.0])))
 
 

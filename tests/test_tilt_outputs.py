@@ -15,7 +15,7 @@ from bridge.calibration.model import Calibration
 from bridge.console import format_line
 from bridge.core.attitude import AttitudeEngine, FieldReference
 from bridge.core.geometry import euler_to_dcm
-from bridge.core.tilt import TiltEstimate
+from bridge.core.tilt import TiltEstimate, TiltSource
 from bridge.core.vectors import Vec3
 from bridge.link.serial_link import LinkCounters, LinkState
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
@@ -30,9 +30,9 @@ TIMES = schema.SampleTimes(t_monotonic=12.5, t_unix=1_700_000_000.25)
 class FixedTilt:
     """A tilt policy that always answers the same estimate (its down: level)."""
 
-    def __init__(self, source: str, heading_sigma_deg: float, manoeuvre: bool) -> None:
+    def __init__(self, source: TiltSource, heading_sigma_deg: float, manoeuvre: bool) -> None:
         accel = (0.0, math.sin(math.radians(8.0)), math.cos(math.radians(8.0)))
-        self.est = TiltEstimate((0.0, 0.0, 1.0), source, 1.0, heading_sigma_deg, accel, manoeuvre)  # type: ignore[arg-type]
+        self.est = TiltEstimate((0.0, 0.0, 1.0), source, 1.0, heading_sigma_deg, accel, manoeuvre)
 
     def tilt(self, mag: Vec3, accel: Vec3, t: float, *, field_ok: bool) -> TiltEstimate:
         return self.est
@@ -59,13 +59,13 @@ def test_the_solution_uses_the_policys_down_and_says_so() -> None:
     raw = sample(None, 0.25)
     held = sample(FixedTilt("magnetometer", 3.2, True), 0.25)
     assert raw.tilt_source == "accelerometer" and raw.heading_sigma_deg is None
-    assert abs(raw.roll_deg) > 10.0  # the accelerometer's roll under 0.25 g
+    assert raw.roll_deg is not None and abs(raw.roll_deg) > 10.0  # the accelerometer's, 0.25 g
     assert held.tilt_source == "magnetometer" and held.heading_sigma_deg == 3.2
     assert held.roll_deg == pytest.approx(0.0, abs=1e-9)
     # the heading with the right (level) tilt: the field's own bearing
     want = (100.0 - math.degrees(math.atan2(0.02, 0.21))) % 360.0
     assert held.heading_magnetic_deg == pytest.approx(want, abs=0.2)
-    assert abs(raw.heading_magnetic_deg - want) > 3.0
+    assert raw.heading_magnetic_deg is not None and abs(raw.heading_magnetic_deg - want) > 3.0
 
 
 def test_console_line_names_the_tilt_source() -> None:
@@ -86,7 +86,12 @@ def test_heading_document_carries_the_tilt_source() -> None:
 
 
 def test_mavlink_says_the_tilt_source_beside_attitude_and_in_the_feed_sigma() -> None:
-    for source, value in (("accelerometer", 0), ("autopilot", 1), ("magnetometer", 2)):
+    wire: tuple[tuple[TiltSource, int], ...] = (
+        ("accelerometer", 0),
+        ("autopilot", 1),
+        ("magnetometer", 2),
+    )
+    for source, value in wire:
         m = T.tilt_source(sample(FixedTilt(source, 1.0, False)), 1234)
         assert (m.get_type(), m.name, m.value, m.time_boot_ms) == (
             "NAMED_VALUE_INT",

@@ -100,7 +100,7 @@ def test_the_pipeline_puts_each_sample_before_publish_returns(tmp_path: Path) ->
             after = b.output.counters.published.get("heading", 0)
             calls.append((after - before, threading.current_thread().name))
 
-        b.output.publish = watched  # type: ignore[method-assign]
+        b.output.publish = watched  # type: ignore[method-assign]  # instrumented on purpose
         wait_until(lambda: len(calls) >= 10, what="ten samples")
         # Heading goes out for every frame here (cap 0): each call put exactly one.
         assert [n for n, _ in calls[:10]] == [1] * 10
@@ -191,7 +191,11 @@ def test_a_link_state_change_without_an_event_is_published_at_once() -> None:
             for new in (LinkState.STREAMING, LinkState.ABSENT, LinkState.OPENING):
                 state[0] = new
                 follow[0](new)
-                wait_until(lambda v=new.value: states()[-1:] == [v], what=f"a {new.value} status")  # type: ignore[misc]
+
+                def told_last(v: str = new.value) -> bool:
+                    return states()[-1:] == [v]
+
+                wait_until(told_last, what=f"a {new.value} status")
             # (The first status, "opening", may still have been on its way when n was read.)
             told = ["streaming", "absent", "opening"]
             assert states()[n:] in (told, ["opening", *told])

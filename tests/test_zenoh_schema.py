@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -163,9 +165,11 @@ def test_status_and_event_documents() -> None:
         (lambda d: d["flags"].pop("disturbed"), "flags.disturbed"),
     ],
 )
-def test_validation_refuses_bad_heading_documents(mutate: object, message: str) -> None:
+def test_validation_refuses_bad_heading_documents(
+    mutate: Callable[[dict[str, Any]], object], message: str
+) -> None:
     doc = schema.heading_doc(host_sample(0, 0, 10), TIMES)
-    mutate(doc)  # type: ignore[operator]
+    mutate(doc)
     with pytest.raises(schema.SchemaError, match=message):
         schema.validate(json.loads(schema.dumps(doc)))
 
@@ -238,7 +242,7 @@ def test_dumps_writes_what_json_dumps_writes(doc: object) -> None:
     """The encoder made once (CPython's C encoder, see schema._make_encode) is json.dumps
     (non-finite numbers aside: test_non_finite_numbers_become_null)."""
     expected = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    assert schema.dumps(doc) == expected  # type: ignore[arg-type]
+    assert schema.dumps(doc) == expected  # type: ignore[arg-type]  # any JSON value, not only documents
 
 
 def test_dumps_refuses_what_json_cannot_carry() -> None:
@@ -263,8 +267,8 @@ def test_rate_meter_follows_the_counter() -> None:
 # ---------------------------------------------------------------------------
 
 
-def _items(settings: ZenohSettings, **kw: object) -> dict[str, object]:
-    return {k: json.loads(v) for k, v in config_items(settings, **kw)}  # type: ignore[arg-type]
+def _items(settings: ZenohSettings, **kw: Any) -> dict[str, Any]:
+    return {k: json.loads(v) for k, v in config_items(settings, **kw)}
 
 
 def test_defaults_listen_on_loopback_without_multicast_and_rejoin_fast() -> None:
@@ -312,12 +316,12 @@ def test_a_config_file_passes_through_and_keeps_what_it_sets(tmp_path: Path) -> 
     )
     cfg = build_config(ZenohSettings(config_file=str(f)))
 
-    def get(key: str) -> object:
+    def get(key: str) -> Any:  # a JSON value
         return json.loads(cfg.get_json(key))
 
     assert get("listen/endpoints") == ["tcp/127.0.0.1:17447"]
-    assert get("connect/retry")["period_init_ms"] == 5000  # type: ignore[index]
-    assert get("access_control")["enabled"] is True  # type: ignore[index]
+    assert get("connect/retry")["period_init_ms"] == 5000
+    assert get("access_control")["enabled"] is True
     assert get("scouting/multicast/enabled") is False  # our key still applies
     assert get("transport/shared_memory/enabled") is False  # the file names no SHM
     assert not uses_default_listener(ZenohSettings(config_file=str(f)), cfg)
@@ -420,11 +424,11 @@ def test_mirror_uses_the_mavlink_server_layout() -> None:
 
 
 def test_mirror_decodes_the_bridges_own_encoded_packets() -> None:
-    from bridge.mavlink.dialect import mavlink, message
+    from bridge.mavlink.dialect import Message, mavlink, message
 
-    def payload(msg: object) -> bytes:
-        msg.pack(mavlink.MAVLink(None, 1, 1))  # type: ignore[attr-defined]
-        return bytes(msg.get_payload())  # type: ignore[attr-defined]
+    def payload(msg: Message) -> bytes:
+        msg.pack(mavlink.MAVLink(None, 1, 1))
+        return bytes(msg.get_payload())
 
     q = [0.5, 0.5, -0.5, 0.5]
     p = message(

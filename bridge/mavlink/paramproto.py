@@ -60,7 +60,7 @@ from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated mo
 from bridge.mavlink.telemetry import param_value
 
 Flavour = Literal["generic", "px4", "ardupilot"]
-FLAVOURS: tuple[str, ...] = ("generic", "px4", "ardupilot")
+FLAVOURS: tuple[Flavour, ...] = ("generic", "px4", "ardupilot")
 
 _INT_TYPES = frozenset(
     {
