@@ -87,7 +87,7 @@ def report_options(ap: argparse.ArgumentParser, *, progress: bool = True) -> Non
     """``--json FILE`` (``json_to`` of :func:`report`) and, with ``progress``, ``--progress``."""
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
     if progress:
-        ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None)
+        progress_option(ap, "live bar")
 
 
 def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
