@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from harness import ManualClock
 
 from bridge.logsetup import (
     RateLimiter,
@@ -19,14 +20,6 @@ from bridge.logsetup import (
     stream_is_journal,
     syslog_priority,
 )
-
-
-class ManualClock:
-    def __init__(self) -> None:
-        self.t = 50.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def _logger(handler: logging.Handler, name: str = "bridge.test") -> logging.Logger:
@@ -84,7 +77,7 @@ def test_not_journal_has_timestamps_and_no_prefix() -> None:
 
 
 def test_repeats_are_rate_limited_and_summarised() -> None:
-    out, clock = io.StringIO(), ManualClock()
+    out, clock = io.StringIO(), ManualClock(50.0)
     lg = _logger(ServiceLogHandler(out, journal=True, burst=3, interval_s=10.0, clock=clock))
     for i in range(50):
         lg.warning("port lost: %d", i)  # one call site
@@ -112,7 +105,7 @@ def test_the_rate_limit_is_per_event_kind() -> None:
     another kind (it did: "5685 similar messages suppressed (first: calibration.accepted)")."""
     from bridge.events import Event, EventBus, Severity
 
-    out, clock = io.StringIO(), ManualClock()
+    out, clock = io.StringIO(), ManualClock(50.0)
     handler = ServiceLogHandler(out, journal=True, burst=3, interval_s=10.0, clock=clock)
     bus_log = logging.getLogger("bridge.events")
     saved = bus_log.handlers[:], bus_log.propagate, bus_log.level
@@ -142,7 +135,7 @@ def test_the_rate_limit_is_per_event_kind() -> None:
 
 
 def test_suppressed_counts_are_flushed_at_close() -> None:
-    out, clock = io.StringIO(), ManualClock()
+    out, clock = io.StringIO(), ManualClock(50.0)
     handler = ServiceLogHandler(out, journal=False, burst=1, interval_s=60.0, clock=clock)
     lg = _logger(handler)
     for _ in range(4):

@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from harness import ManualClock
 
 from bridge.link.observed import ObservedTransport
 from bridge.systemd.notify import (
@@ -173,14 +174,6 @@ def test_liveness_reports_only_parts_silent_too_long() -> None:
         lv.watch("x", 0.0, now=0.0)
 
 
-class ManualClock:
-    def __init__(self) -> None:
-        self.t = 1000.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
 def _service(
     mgr_addr: str, clock: ManualClock, lv: Liveness, streaming: list[bool], **kw: float
 ) -> ServiceNotifier:
@@ -199,7 +192,7 @@ def test_ready_when_streaming_then_status_and_pings(
     abstract_manager: tuple[FakeManager, str],
 ) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(), Liveness(), [False]
+    clock, lv, streaming = ManualClock(1000.0), Liveness(), [False]
     lv.watch("main", 3.0, clock.t)
     svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=0.3).start()
     try:
@@ -220,7 +213,7 @@ def test_ready_when_streaming_then_status_and_pings(
 @pytest.mark.integration
 def test_ready_after_bounded_wait_says_why(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(), Liveness(), [False]
+    clock, lv, streaming = ManualClock(1000.0), Liveness(), [False]
     svc = _service(notify_address(addr) or "", clock, lv, streaming, ready_timeout_s=10.0).start()
     try:
         mgr.pump(0.3)
@@ -239,7 +232,7 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
 ) -> None:
     """A wedged main loop (no beats) stops WATCHDOG=1; its return resumes them."""
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(), Liveness(), [True]
+    clock, lv, streaming = ManualClock(1000.0), Liveness(), [True]
     lv.watch("main loop", 4.0, clock.t)
     svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=0.3).start()
     try:
@@ -272,7 +265,7 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
 @pytest.mark.integration
 def test_stopping_suppresses_later_status(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(), Liveness(), [True]
+    clock, lv, streaming = ManualClock(1000.0), Liveness(), [True]
     svc = _service(notify_address(addr) or "", clock, lv, streaming).start()
     try:
         mgr.wait_for(lambda m: "READY" in m)
@@ -314,7 +307,7 @@ class _FakePort:
 
 @pytest.mark.integration
 def test_observed_transport_beats_and_swaps() -> None:
-    clock, lv = ManualClock(), Liveness()
+    clock, lv = ManualClock(1000.0), Liveness()
     lv.watch("reader", 2.0, clock.t)
     inner = _FakePort()
     wt = ObservedTransport(inner, lambda: lv.beat("reader", clock.t))
