@@ -333,7 +333,7 @@ def measure_cost(field: EarthField, seconds: float = 60.0, repeats: int = 5) -> 
             # deferred: the blocks wait on the queue, as they do for the daemon's worker
             mon = DriftMonitor(EngineSettings(engine, field=field), events,
                                apply=lambda *a: "", calibrating=lambda: False, deferred=True)  # fmt: skip
-            pipe = Pipeline(engine, events, feed=lambda f: None, calibrating=lambda: False,
+            pipe = Pipeline(engine, events, feed=lambda f, t: None, calibrating=lambda: False,
                             observe=mon.observe if hooked else None)  # fmt: skip
             t0 = time.perf_counter()
             for f, t in zip(frames, times, strict=True):

@@ -310,7 +310,8 @@ def build_bridge(
     the parts are bound methods and the functions above, never a lambda to a part
     built later. ``calibrator_settings`` tune the calibration controller; ``clock``
     (a test's simulated clock) times the controller and the drift monitor's
-    samples, which otherwise keep their frame's arrival time.
+    samples; without it the controller's frames keep the instant they were sampled
+    (the pipeline's frame clock) and the drift monitor's their arrival.
     """
     calibrations = CalibrationStore(documents)
     stored = calibrations.load()
@@ -352,14 +353,18 @@ def build_bridge(
         mode=options.learn,
         on_mode=functools.partial(learning_lowered, params),
     )
+    feed: Callable[[object, float], None] = calibrator.feed
     observe: Callable[[AttitudeSolution, float, bool], None] = drift.observe
-    if clock is not None:  # a simulated clock: the drift monitor keeps the drive's time
+    if clock is not None:  # a simulated clock: the controller and the drift monitor keep it
+
+        def feed(frame: object, t: float) -> None:
+            calibrator.feed(frame)
 
         def observe(a: AttitudeSolution, t: float, saturated: bool) -> None:
             drift.observe(a, clock(), saturated)
 
     pipeline = Pipeline(
-        engine, events, feed=calibrator.feed, calibrating=calibrator.calibrating, observe=observe
+        engine, events, feed=feed, calibrating=calibrator.calibrating, observe=observe
     )
     return Bridge(
         events=events,

@@ -53,8 +53,9 @@ DISTURBANCE_EVENT_MIN_S = 5.0
 class Pipeline:
     """Frames in, samples out to every output (see the module docstring).
 
-    ``feed`` is the calibrator's per-frame hook and ``calibrating`` tells
-    whether a calibration runs (disturbance events are muted meanwhile);
+    ``feed`` is the calibrator's per-frame hook (each frame with its instant: an attitude
+    frame's sampling instant from :attr:`frame_clock`, another frame's arrival) and
+    ``calibrating`` tells whether a calibration runs (disturbance events are muted meanwhile);
     ``observe`` sees every host solution with its time and saturation (the
     drift monitor's hook: one comparison per frame).
     """
@@ -64,7 +65,7 @@ class Pipeline:
         engine: AttitudeEngine,
         events: EventBus,
         *,
-        feed: Callable[[object], None],
+        feed: Callable[[object, float], None],
         calibrating: Callable[[], bool],
         observe: Callable[[AttitudeSolution, float, bool], None] | None = None,
     ) -> None:
@@ -131,15 +132,17 @@ class Pipeline:
 
     def process(self, frame: object, t: float) -> CompassSample | None:
         """One received frame to a sample (None for frames that carry no heading)."""
-        self._feed(frame)  # never raises; cheap when no calibration runs
         if isinstance(frame, AttitudeFrame):
-            return self._from_gmr(frame, t)
+            # Sampled at tf; t is when the reader got it (frames read in one burst share it).
+            tf = self.frame_clock.at(frame.seq, t)
+            self._feed(frame, tf)  # never raises; cheap when no calibration runs
+            return self._from_gmr(frame, t, tf)
+        self._feed(frame, t)
         if isinstance(frame, HeadingFrame):
             return self._from_heading(frame, t)
         return None  # $PGMRV/P/K/C: handled by the link
 
-    def _from_gmr(self, f: AttitudeFrame, t: float) -> CompassSample:
-        tf = self.frame_clock.at(f.seq, t)  # sampled; t is when the reader got it
+    def _from_gmr(self, f: AttitudeFrame, t: float, tf: float) -> CompassSample:
         a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az, tf)
         if a.disturbed is not self._disturbed:
             self._disturbance_changed(a.disturbed, a, t)

@@ -255,8 +255,9 @@ def build_daemon(
     (tests' collectors); those built on its services are added with
     ``daemon.bridge.pipeline.set_outputs``. ``calibrator_settings`` tune the
     calibration controller; ``clock`` (a test's simulated clock) times the
-    controller and the drift monitor's samples, which otherwise keep their
-    frame's arrival time.
+    controller and the drift monitor's samples; without it the controller's frames
+    keep the instant they were sampled (the pipeline's frame clock) and the drift
+    monitor's their arrival.
     """
     # -- the port and what the state directory holds
     if transport is None:
