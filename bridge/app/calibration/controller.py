@@ -262,6 +262,7 @@ class CalibrationController:
         ``$PGMRA`` frames feed the running session (and a short history kept for the
         fixed-yaw calibration); ``$PGMRC`` frames the device's MAGCAL progress. Anything
         else is ignored. Never blocks on fits or commands, never raises."""
+        now = self._clock() if t is None else t
         if type(frame) is AttitudeFrame:
             s = self._session
             if int(frame.flags) & _CAL or self._stray.last_cal_at > -math.inf:
@@ -272,14 +273,13 @@ class CalibrationController:
                 # fixed_yaw copies the deque (list(), one step under the GIL) before it
                 # iterates. A session that starts meanwhile begins with the next frame,
                 # as if this one had come a moment earlier.
-                self._recent.append((self._clock() if t is None else t, frame))
+                self._recent.append((now, frame))
                 if self._pending:
                     self._flush()
                 return
         elif not isinstance(frame, AttitudeFrame | CalProgressFrame):
             return
         try:
-            now = self._clock() if t is None else t
             with self._lock:
                 if isinstance(frame, AttitudeFrame):
                     self._recent.append((now, frame))
