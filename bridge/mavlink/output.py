@@ -48,7 +48,6 @@ from bridge.app.params import ParamChange
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices, SentMessage
 from bridge.calibration.sessions import CalibratorSnapshot
-from bridge.documents import StorageError
 from bridge.events import Event
 from bridge.mavlink import calmap, ftp
 from bridge.mavlink import commands as C  # noqa: N812 - short
@@ -64,6 +63,7 @@ from bridge.mavlink.pacing import PacedLink, Pacer
 from bridge.mavlink.paramproto import ParamEncoding, ParamProtocol
 from bridge.mavlink.settings import MavlinkSettings
 from bridge.mavlink.signing import Signing, Verdict
+from bridge.mavlink.signing_table import SigningTable
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +77,6 @@ _SIGNED_TYPES = frozenset(
 )
 #: Signed messages that change state: the replay table is saved before one is obeyed.
 _OBEYED_TYPES = frozenset({"COMMAND_LONG", "COMMAND_INT", "PARAM_SET"})
-#: Name of the signing replay table in the state directory (``<storage.dir>/signing.json``).
-SIGNING_DOCUMENT = "signing"
-_SIGNING_SAVE_S = 10.0  # other valid signed traffic (positions): saved at most this often
 #: Beside an autopilot the telemetry thread also looks this often (TIMESYNC requests, the
 #: streams asked of the autopilot: :mod:`~bridge.mavlink.autopilot`); standalone it sleeps
 #: until its next stream or deadline.
@@ -171,9 +168,8 @@ class MavlinkOutput:
         # slot holds the feed BRG_HDG_FEED chooses): see _apply_rates.
         self._sample_encoders: dict[int, Callable[[CompassSample], Message | None]] = {}
         self._refusal_logged: dict[str, float] = {}
-        self._signing_dirty = False  # valid signed packets since the table was last saved
-        self._signing_saved_at = -math.inf  # or last tried, when that failed
-        self._signing_save_failed = False
+        #: The signing replay table, kept in the state directory across restarts.
+        self.signing_table = SigningTable(self.signing, services.documents, clock)
         self._stream_encoders: dict[int, Callable[[CompassSample], Message | None]] = {
             S.ATTITUDE: lambda s: T.attitude(s, self.time_boot_ms(s.t)),
             S.ATTITUDE_QUATERNION: lambda s: T.attitude_quaternion(s, self.time_boot_ms(s.t)),
@@ -270,7 +266,7 @@ class MavlinkOutput:
         if self._threads:
             raise RuntimeError("mavlink output already started")
         svc = self.services
-        self._restore_signing()
+        self.signing_table.restore()
         self._apply_rates()
         for i, text in enumerate(self.settings.endpoints):
             self.endpoints.append(
@@ -331,8 +327,8 @@ class MavlinkOutput:
         self.pacer.close(max(0.05, deadline - self.clock()))
         for ep in self.endpoints:
             ep.close(max(0.05, deadline - self.clock()))
-        if self._signing_dirty:
-            self._save_signing()
+        if self.signing_table.dirty:
+            self.signing_table.save()
 
     # ------------------------------------------------------------------ sending
 
@@ -477,7 +473,7 @@ class MavlinkOutput:
             self.relay.keepalive_due,
             self.autopilot.due_at,
             self.dispatcher.pending.due_at,
-            self._signing_save_due,
+            self.signing_table.save_due,
         )
         return min(due_at, now + _COMPANION_LOOK_S) if self.companion else due_at
 
@@ -510,8 +506,8 @@ class MavlinkOutput:
             self.dispatcher.pending.expire(now)
             if self.companion:
                 self.autopilot.tick(now)
-            if now >= self._signing_save_due:
-                self._save_signing()
+            if now >= self.signing_table.save_due:
+                self.signing_table.save()
 
     def report_answered(self) -> None:
         """DO_ACCEPT_MAG_CAL or DO_CANCEL_MAG_CAL for our compass: stop repeating the report."""
@@ -617,13 +613,12 @@ class MavlinkOutput:
         if kind in _SIGNED_TYPES and self.signing is not None:
             if self._refuse_unsigned(msg):
                 return
-            if not self._signing_dirty:
-                self._signing_dirty = True
+            if self.signing_table.mark():
                 self._wake.set()  # the telemetry thread plans the table's next save
             if kind in _OBEYED_TYPES:
                 # Write-ahead: the packet's timestamp is on disk before it changes anything,
                 # so a copy replayed after a restart is still refused.
-                self._save_signing()
+                self.signing_table.save()
         if kind in ("COMMAND_LONG", "COMMAND_INT"):
             self.dispatcher.handle(C.command_from_message(msg), link)
         elif kind in ("GLOBAL_POSITION_INT", "GPS_RAW_INT"):
@@ -642,45 +637,6 @@ class MavlinkOutput:
             answer = ftp.reply(msg, int(msg.target_network))
             if answer is not None:
                 link.send(answer)
-
-    # ------------------------------------------------------------------ the signing table
-
-    def _restore_signing(self) -> None:
-        docs = self.services.documents
-        if self.signing is None or docs is None:
-            return
-        loaded = docs.load(SIGNING_DOCUMENT)
-        for p in loaded.problems:
-            log.warning("mavlink: stored signing state: %s", p)
-        n = self.signing.restore(loaded.payload)
-        if n:
-            log.info("mavlink: %d signed streams restored: replays stay refused", n)
-
-    @property
-    def _signing_save_due(self) -> float:
-        """When the telemetry thread saves the replay table next (+inf: nothing new)."""
-        return self._signing_saved_at + _SIGNING_SAVE_S if self._signing_dirty else math.inf
-
-    def _save_signing(self) -> None:
-        docs = self.services.documents
-        if self.signing is None or docs is None:
-            self._signing_dirty = False  # nowhere to keep it: nothing to come back for
-            return
-        try:
-            docs.save(SIGNING_DOCUMENT, self.signing.snapshot())
-        except StorageError as e:
-            if not self._signing_save_failed:
-                log.error(
-                    "mavlink: signing replay table not saved (%s): a packet captured now "
-                    "could be replayed after a restart",
-                    e,
-                )
-            self._signing_save_failed = True
-            self._signing_saved_at = self.clock()  # tried: again a period later, not at once
-            return
-        self._signing_dirty = False
-        self._signing_save_failed = False
-        self._signing_saved_at = self.clock()
 
     def _param_set(self, msg: Any) -> None:
         name, reason, echo = self.params.set(msg, source=_OWN_SET)
