@@ -53,7 +53,14 @@ from typing import Any
 
 from benchmarks import fuzz_hostile
 from benchmarks.figures import Figure, report, report_options
-from benchmarks.procstat import datagrams, process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import (
+    datagrams,
+    free_port,
+    process_rss_mb,
+    stop_child,
+    udp_socket,
+    wait_until,
+)
 
 log = logging.getLogger(__name__)
 
@@ -373,9 +380,7 @@ class MavlinkPeer:
 
         self.mav = mav
         self.addr = ("127.0.0.1", daemon_port)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        self.sock = udp_socket(0.1)
         self.link = mav.MAVLink(None, srcSystem=255, srcComponent=190)
         self.attitudes: list[tuple[float, float, float]] = []
         self.params: dict[str, float] = {}
@@ -517,10 +522,7 @@ def run(
     with tempfile.TemporaryDirectory(prefix="cb-fuzz-") as tmp_name:
         tmp = Path(tmp_name)
         pty = PtyCompass()
-        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        probe.bind(("127.0.0.1", 0))
-        udp_port = probe.getsockname()[1]
-        probe.close()
+        udp_port = free_port(socket.SOCK_DGRAM)
         errlog = tmp / "daemon.log"
         serial = SerialFuzz(rng)
         stop_frames = threading.Event()

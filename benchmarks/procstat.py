@@ -65,18 +65,34 @@ def thread_stats(pid: int) -> dict[int, tuple[str, int, int, int]]:
     return out
 
 
-def free_port(kind: int) -> int:
-    """A port of ``kind`` (``socket.SOCK_STREAM``/``SOCK_DGRAM``) free on 127.0.0.1 just now."""
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port of ``kind`` (``socket.SOCK_STREAM``, the default, or ``SOCK_DGRAM``) free on
+    127.0.0.1 just now (the tests' rigs take theirs here too)."""
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def datagrams(sock: socket.socket, stop: threading.Event) -> Iterator[bytes]:
-    """The datagrams arriving on ``sock`` until ``stop`` is set or the socket is closed: the
-    loop of a receiving thread. ``sock`` has a timeout, so that ``stop`` is looked at while
-    nothing arrives (the integration tests' receivers read through it too)."""
-    while not stop.is_set():
+def udp_socket(timeout_s: float | None = None) -> socket.socket:
+    """A UDP socket bound to a port of 127.0.0.1 the kernel picks, its reads given up after
+    ``timeout_s`` (so that a receiving loop -- :func:`datagrams` -- looks at its stop and
+    deadline while nothing arrives; ``None``: reads block)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(timeout_s)
+    return sock
+
+
+def datagrams(
+    sock: socket.socket, stop: threading.Event | None = None, within_s: float = math.inf
+) -> Iterator[bytes]:
+    """The datagrams arriving on ``sock`` until ``stop`` is set, ``within_s`` seconds have
+    passed since the first read, or the socket is closed: the loop of a receiving thread
+    (``stop``), or of a test that listens for a bounded time (``within_s``). ``sock`` has a
+    timeout, so that both are looked at while nothing arrives (the integration tests'
+    receivers and listeners read through it too)."""
+    end = time.monotonic() + within_s
+    while not (stop is not None and stop.is_set()) and time.monotonic() < end:
         try:
             data = sock.recv(65536)
         except TimeoutError:
@@ -142,9 +158,7 @@ class AttitudeTap:
     """
 
     def __init__(self, name: str) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
+        self.sock = udp_socket(0.2)
         try:
             self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             self.kernel_stamps = True

@@ -45,6 +45,8 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect module
 from pymavlink import mavutil
 
+from benchmarks.procstat import free_port
+
 mavutil.set_dialect("ardupilotmega")
 M: Any = mavutil.mavlink
 
@@ -157,9 +159,7 @@ def claim_instance(
 
 def free_udp_port() -> int:
     """A UDP port on 127.0.0.1 that nobody uses right now (the kernel's choice)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_port(socket.SOCK_DGRAM)
 
 
 # ------------------------------------------------------------------------------ the observer

@@ -30,8 +30,9 @@ from pathlib import Path
 import waiting
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
-from benchmarks.procstat import datagrams
+from benchmarks.procstat import datagrams, free_port, udp_socket
 from bridge.mavlink.dialect import Message as Packet
+from bridge.types import ClosedOnExit
 
 DEADLINE_S = 20.0
 
@@ -124,13 +125,6 @@ class FakeServiceManager:
         self._stop.set()
         self._thread.join(2.0)
         self.sock.close()
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A port on 127.0.0.1 free right now (TCP by default)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def free_udp_port() -> int:
@@ -267,13 +261,11 @@ class DaemonProcess:
             raise
 
 
-class GroundStation:
+class GroundStation(ClosedOnExit):
     """A UDP listener that decodes what the bridge sends (pymavlink, MAVLink 2)."""
 
     def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        self.sock = udp_socket(0.1)
         self.port = int(self.sock.getsockname()[1])
         self.mav = apm.MAVLink(None)
         self.lock = threading.Lock()
@@ -309,9 +301,3 @@ class GroundStation:
         self._stop.set()
         self._thread.join(2.0)
         self.sock.close()
-
-    def __enter__(self) -> GroundStation:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -25,10 +25,10 @@ from test_mavlink_endpoints import (  # noqa: F401
     heartbeat_bytes,
     local_address,
     ping,
-    recv_udp,
 )
-from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, recv_udp, wait_until
 
+from benchmarks.fuzz_hostile import idle_clients
 from bridge.mavlink.endpoints import Endpoint
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.signing import Signing
@@ -216,12 +216,7 @@ def test_idle_tcp_clients_do_not_lock_a_newcomer_out(endpoints: Callable[..., En
 
             th = threading.Thread(target=beat, daemon=True)
             th.start()
-            for _ in range(50):
-                s = socket.socket()
-                s.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    s.connect(("127.0.0.1", port))
-                idle.append(s)
+            idle += idle_clients(port, 50)
             took = served_within(port, 10.0)
             assert took < 5.0, took
             assert ep.counters().peers_evicted > 0

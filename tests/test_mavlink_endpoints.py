@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, recv_udp, wait_until
 
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.endpoints import (
@@ -84,16 +84,6 @@ def parse_all(data: bytes, key: bytes | None = None) -> list[Any]:
     if key:
         mav.signing.secret_key = key
     return [m for m in (mav.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
-
-
-def recv_udp(sock: socket.socket, n: int, timeout: float = DEADLINE_S) -> list[bytes]:
-    out: list[bytes] = []
-    sock.settimeout(0.2)
-    deadline = time.monotonic() + timeout
-    while len(out) < n and time.monotonic() < deadline:
-        with contextlib.suppress(TimeoutError):
-            out.append(sock.recv(65535))
-    return out
 
 
 @pytest.mark.integration

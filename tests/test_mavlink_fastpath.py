@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import math
 import random
-import socket
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
@@ -28,6 +27,7 @@ from hypothesis import strategies as st
 from test_mavlink_rig import DEADLINE_S, M
 from test_mavlink_telemetry import make_sample
 
+from benchmarks.procstat import udp_socket
 from bridge.app.sample import CompassSample
 from bridge.config import config_from_mapping
 from bridge.core import pacing
@@ -154,9 +154,7 @@ class Peer:
     """A ground station on a plain UDP socket; pymavlink encodes and parses."""
 
     def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        self.sock = udp_socket(0.1)
         self.port = int(self.sock.getsockname()[1])
         self.mav = M.MAVLink(None, 255, 190)
         self.parser = M.MAVLink(None)

@@ -33,6 +33,7 @@ from service_harness import (
 )
 
 from benchmarks.fuzz_hostile import end_attack, idle_clients, start_flood
+from benchmarks.procstat import udp_socket
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
@@ -50,9 +51,7 @@ class SignedGcs:
 
     def __init__(self, port: int) -> None:
         self.addr = ("127.0.0.1", port)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        self.sock = udp_socket(0.1)
         self.mav = signed_mav(KEY, 255)
         self.parser = apm.MAVLink(None)
         self.lock = threading.Lock()

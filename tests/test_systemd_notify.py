@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from harness import ManualClock
 
+from benchmarks.procstat import datagrams
 from bridge.link.observed import ObservedTransport
 from bridge.systemd.notify import (
     Liveness,
@@ -34,12 +35,7 @@ class FakeManager:
         self.messages: list[dict[str, str]] = []
 
     def pump(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
+        for data in datagrams(self.sock, within_s=seconds):
             self.messages.append(dict(line.split("=", 1) for line in data.decode().split("\n")))
 
     def wait_for(

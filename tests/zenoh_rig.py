@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import socket
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from typing import Any
 import zenoh
 from waiting import wait_for
 
+from benchmarks.procstat import free_port as free_port  # the tests' one (TCP)
 from bridge.config import load_config
 from bridge.daemon import build_daemon
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
@@ -38,12 +38,6 @@ NO_SCOUTING = (
     ("scouting/multicast/enabled", "false"),
     ("scouting/gossip/enabled", "false"),
 )
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_until(pred: Callable[[], bool], timeout: float = DEADLINE_S, what: str = "") -> float:
