@@ -37,12 +37,10 @@ from test_mavlink_endpoints import (
     parse_all,
     ping,
 )
-from test_mavlink_rig import DEADLINE_S, M, free_port, recv_udp, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, offline_daemon, recv_udp, wait_until
 from test_mavlink_telemetry import make_sample
 
 from benchmarks.procstat import datagrams, udp_socket
-from bridge.config import config_from_mapping
-from bridge.daemon import build_daemon
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.dialect import message
@@ -114,17 +112,9 @@ def output(tmp_path: Path) -> Iterator[Callable[..., tuple[MavlinkOutput, Gcs, l
 
     def make(key: bytes | None = None, **rates: float) -> tuple[MavlinkOutput, Gcs, list[Packet]]:
         gcs = Gcs()
-        cfg = config_from_mapping(
-            {
-                "device": {"port": "sim"},
-                "storage": {"dir": str(tmp_path)},
-                "zenoh": {"enabled": False},
-                "mavlink": {"endpoints": [f"udpout:127.0.0.1:{gcs.port}"], **rates},
-            },
-            env={},
-            hostname="coalesce",
+        cfg, daemon = offline_daemon(
+            tmp_path, "coalesce", endpoints=[f"udpout:127.0.0.1:{gcs.port}"], **rates
         )
-        daemon = build_daemon(cfg)  # never started: the services the output uses
         settings = replace(MavlinkSettings.from_config(cfg), signing_key=key)
         out = MavlinkOutput(settings, daemon.bridge.services, clock=ManualClock(100.0))
         sent: list[Packet] = []

@@ -215,6 +215,23 @@ def make_config(tmp_path: Path, state: str = "state", **sections: dict[str, Any]
     return config_from_mapping(raw, env={}, hostname="test")
 
 
+def offline_daemon(tmp: Path, hostname: str, **mavlink: Any) -> tuple[Config, Daemon]:
+    """A configuration (a simulated compass, zenoh off, state in ``tmp``; ``mavlink`` its
+    section, no endpoints unless given) and its daemon, never started: the services a
+    :class:`MavlinkOutput` under test uses, without the daemon's threads."""
+    cfg = config_from_mapping(
+        {
+            "device": {"port": "sim"},
+            "storage": {"dir": str(tmp)},
+            "zenoh": {"enabled": False},
+            "mavlink": {"endpoints": [], **mavlink},
+        },
+        env={},
+        hostname=hostname,
+    )
+    return cfg, build_daemon(cfg)
+
+
 @dataclass
 class Rig:
     """A running daemon with a MAVLink output on a simulated compass."""
