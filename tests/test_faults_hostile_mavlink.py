@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_mavlink_rig import DEADLINE_S, M, Rig, offline_daemon, rig_factory, wait_until
+from test_mavlink_rig import DEADLINE_S, M, Rig, offline_daemon, wait_until
 
 from bridge.app.paramspec import ParamTable
 from bridge.mavlink.dispatch import MAX_INTERVAL_US
@@ -25,11 +25,6 @@ from bridge.mavlink.paramproto import ListLimiter
 
 REAL32 = M.MAV_PARAM_TYPE_REAL32
 ACCEPTED, DENIED, FAILED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_DENIED, M.MAV_RESULT_FAILED
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 # ------------------------------------------------------------------ acknowledgements tell the truth

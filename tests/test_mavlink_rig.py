@@ -367,7 +367,7 @@ def wait_until(cond: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
 def rig_factory() -> Iterator[Callable[..., Rig]]:
     """Factory of started rigs; every one is stopped at the end.
 
-    Test modules wrap it in their own fixture (``yield from rig_factory()``).
+    The suite's ``rigs`` fixture (tests/conftest.py) is this, for every test module.
     """
     made: list[Rig] = []
 
@@ -379,12 +379,6 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
     yield make
     for r in made:
         r.stop()
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    """Started rigs, stopped at the end of the test."""
-    yield from rig_factory()
 
 
 # ------------------------------------------------------------------------------ the rig's own tests
