@@ -170,17 +170,31 @@ def test_liveness_reports_only_parts_silent_too_long() -> None:
         lv.watch("x", 0.0, now=0.0)
 
 
-def _service(
-    mgr_addr: str, clock: ManualClock, lv: Liveness, streaming: list[bool], **kw: float
-) -> ServiceNotifier:
-    return ServiceNotifier(
-        Notifier(mgr_addr),
+def _started(
+    addr: str,
+    streaming: bool,
+    *,
+    watch: tuple[str, float] | None = None,
+    clock: ManualClock | None = None,
+    **kw: float,
+) -> tuple[ServiceNotifier, ManualClock, Liveness, list[bool]]:
+    """A started notifier telling the manager at ``addr`` (its ``@name``), on a manual clock
+    (at 1000 s unless one is given): its status and readiness follow ``streaming[0]`` (the
+    list returned, ``streaming`` at first); ``watch``, a part's name and the silence allowed
+    it, is watched from the clock's start. Returns the notifier, clock, liveness, flag."""
+    clock = ManualClock(1000.0) if clock is None else clock
+    lv, flag = Liveness(), [streaming]
+    if watch is not None:
+        lv.watch(*watch, clock.t)
+    svc = ServiceNotifier(
+        Notifier(notify_address(addr) or ""),
         lv,
-        status=lambda: f"streaming={streaming[0]}",
-        streaming=lambda: streaming[0],
+        status=lambda: f"streaming={flag[0]}",
+        streaming=lambda: flag[0],
         clock=clock,
         **kw,
     )
+    return svc.start(), clock, lv, flag
 
 
 @pytest.mark.integration
@@ -188,9 +202,7 @@ def test_ready_when_streaming_then_status_and_pings(
     abstract_manager: tuple[FakeManager, str],
 ) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [False]
-    lv.watch("main", 3.0, clock.t)
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=0.3).start()
+    svc, clock, lv, streaming = _started(addr, False, watch=("main", 3.0), watchdog_s=0.3)
     try:
         mgr.wait_for(lambda m: m.get("WATCHDOG") == "1")  # pings start before READY
         mgr.pump(0.3)
@@ -209,8 +221,7 @@ def test_ready_when_streaming_then_status_and_pings(
 @pytest.mark.integration
 def test_ready_after_bounded_wait_says_why(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [False]
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, ready_timeout_s=10.0).start()
+    svc, clock, _, _ = _started(addr, False, ready_timeout_s=10.0)
     try:
         mgr.pump(0.3)
         assert not any("READY" in m for m in mgr.messages)
@@ -228,9 +239,7 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
 ) -> None:
     """A wedged main loop (no beats) stops WATCHDOG=1; its return resumes them."""
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [True]
-    lv.watch("main loop", 4.0, clock.t)
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=0.3).start()
+    svc, clock, lv, _ = _started(addr, True, watch=("main loop", 4.0), watchdog_s=0.3)
     try:
         mgr.wait_for(lambda m: m.get("WATCHDOG") == "1")
         clock.t += 5.0  # the main loop did not beat for 5 s ...
@@ -261,8 +270,7 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
 @pytest.mark.integration
 def test_stopping_suppresses_later_status(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [True]
-    svc = _service(notify_address(addr) or "", clock, lv, streaming).start()
+    svc, clock, _, streaming = _started(addr, True)
     try:
         mgr.wait_for(lambda m: "READY" in m)
         svc.stopping("stopping")
@@ -379,8 +387,8 @@ def test_after_ready_the_thread_sleeps_until_its_next_status_look_or_ping(
     (watchdog / 3, 2 s here): the thread sleeps until then instead of ticking five times a
     second. Time stands still here, so over 0.8 s of real time it wakes at most once."""
     mgr, addr = abstract_manager
-    clock, lv, streaming = CountingClock(), Liveness(), [True]
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=6.0).start()
+    clock = CountingClock()
+    svc, _, _, streaming = _started(addr, True, clock=clock, watchdog_s=6.0)
     try:
         mgr.wait_for(lambda m: "READY" in m)
         mgr.pump(0.2)
