@@ -169,8 +169,9 @@ def toml_config(
     )
 
 
-class DaemonProcess:
-    """``compass-bridge run`` in a subprocess, as systemd would start it."""
+class DaemonProcess(ClosedOnExit):
+    """``compass-bridge run`` in a subprocess, as systemd would start it; a ``with`` block
+    kills it on the way out if it still runs (:meth:`close`)."""
 
     def __init__(
         self,
@@ -250,6 +251,10 @@ class DaemonProcess:
             self.proc.kill()
             self.proc.wait(10)
         self._log.close()
+
+    def close(self) -> None:
+        """:meth:`kill`: whatever a test did, its daemon does not outlive it."""
+        self.kill()
 
     def stop(self, timeout: float = 10.0) -> int:
         if self.proc.poll() is None:
