@@ -99,6 +99,15 @@ class FakeServiceManager:
     def since(self, index: int) -> list[Message]:
         return self.messages[index:]
 
+    def pings_continue(self, proc: DaemonProcess, n: int = 3) -> None:
+        """Wait (bounded) for ``n`` more WATCHDOG=1 from now on: ``proc`` is alive."""
+        mark = len(self.messages)
+        self.wait_for(
+            lambda m: sum(x.get("WATCHDOG") == "1" for x in self.since(mark)) >= n,
+            after=mark,
+            proc=proc,
+        )
+
     def wait_for(
         self,
         pred: Callable[[Message], bool],

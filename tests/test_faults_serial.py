@@ -32,15 +32,6 @@ from bridge.sim.pty import PtyCompass
 WATCHDOG_USEC = 1_000_000
 
 
-def _pings_continue(manager: FakeServiceManager, d: DaemonProcess, n: int = 3) -> None:
-    mark = len(manager.messages)
-    manager.wait_for(
-        lambda m: sum(x.get("WATCHDOG") == "1" for x in manager.since(mark)) >= n,
-        after=mark,
-        proc=d,
-    )
-
-
 def _start(tmp: Path, manager: FakeServiceManager, port: Path, **cfg: Any) -> DaemonProcess:
     path = tmp / "bridge.toml"
     path.write_text(toml_config(str(port), tmp / "state", **cfg))
@@ -60,7 +51,7 @@ def test_usb_unplug_and_return(tmp_path: Path, manager: FakeServiceManager) -> N
             after=i,
             proc=d,
         )
-        _pings_continue(manager, d)  # a reader retrying an absent port is alive
+        manager.pings_continue(d)  # a reader retrying an absent port is alive
         assert sim.wait_plugged(10.0) is not None
         _, back = manager.wait_for(lambda m: streaming_rate(m) > 0, after=j, proc=d)
         assert re.search(r"\b1 reconnects\b", status_text(back)), status_text(back)
@@ -93,7 +84,7 @@ def test_compass_reboots_mid_stream(tmp_path: Path, manager: FakeServiceManager)
             proc=d,
         )
         assert "device reset detected" in d.log()
-        _pings_continue(manager, d)
+        manager.pings_continue(d)
         assert d.stop() == 0
 
 
@@ -112,7 +103,7 @@ def test_garbage_bursts_are_counted_not_fatal(tmp_path: Path, manager: FakeServi
         )
         # Still streaming at the device's rate, still pinging, nothing crashed.
         manager.wait_for(lambda m: streaming_rate(m) > 0, after=k + 1, proc=d)
-        _pings_continue(manager, d)
+        manager.pings_continue(d)
         assert "Traceback" not in d.log()
         assert d.stop() == 0
 
@@ -211,7 +202,7 @@ def test_wrong_baud_rate_is_reported_not_fatal(tmp_path: Path, manager: FakeServ
         assert sys_status.onboard_control_sensors_present & mag
         assert not sys_status.onboard_control_sensors_health & mag
         assert hb.system_status != apm.MAV_STATE_ACTIVE
-        _pings_continue(manager, d)
+        manager.pings_continue(d)
         assert "Traceback" not in d.log()
         assert d.stop() == 0
     finally:
