@@ -59,6 +59,8 @@ SHARED = Path(
 )
 AUTOPILOTS = SHARED / "autopilots"
 DEADLINE_S = 30.0  #: the longest any single wait on an autopilot may take
+#: How long after a change the scenarios read the bridge's new heading (in force by then).
+SETTLE_S = 0.3
 _LOCK_DIR = Path(tempfile.gettempdir())
 #: ArduPilot's home in the tests (Canberra, the SITL default), yaw in degrees true.
 ARDUPILOT_HOME = (-35.363261, 149.165230, 584.0, 120.0)
