@@ -169,8 +169,9 @@ def _tracebacks(errlog: Path) -> int:
     return errlog.read_text(errors="replace").count("Traceback (most recent call last)")
 
 
-class _Gcs:
-    """A ground station on a UDP endpoint: HEARTBEATs at 1 Hz (signed with ``key``)."""
+class Gcs:
+    """A ground station on a UDP endpoint: HEARTBEATs at 1 Hz (signed with ``key``); keeps
+    the ATTITUDE and HEARTBEAT it hears (the crowd test's ground station too)."""
 
     def __init__(self, port: int, key: bytes | None, *, listen: bool = False) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as apm
@@ -211,11 +212,21 @@ class _Gcs:
         with self.lock:
             return [m for m in self.seen if m.get_type() == kind]
 
+    def attitude_boot_ms(self) -> list[int]:
+        """The bridge's time (``time_boot_ms``) of every ATTITUDE heard, in arrival order."""
+        return [int(m.time_boot_ms) for m in self.of("ATTITUDE")]
+
     def close(self) -> None:
         self._stop.set()
         for t in self._threads:
             t.join(2.0)
         self.sock.close()
+
+
+def in_window(stamps_ms: list[int], start_ms: int, window_ms: int) -> int:
+    """How many of ``stamps_ms`` fall in ``[start_ms, start_ms + window_ms)``: a rate by the
+    sender's clock, so a busy receiver (late, bunched arrivals) does not move it."""
+    return sum(1 for t in stamps_ms if start_ms <= t < start_ms + window_ms)
 
 
 @contextlib.contextmanager
@@ -257,16 +268,16 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
         f'signing_key_file = "{key_file}"\n[zenoh]\nenabled = false\n'
     )
     with _daemon(tmp, "crowd", mav) as (proc, _fw, errlog):
-        gcs = _Gcs(udp, _KEY)
+        gcs = Gcs(udp, _KEY)
         idle: list[socket.socket] = []
         flood: subprocess.Popen[str] | None = None
         try:
-            if not wait_until(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
+            if not wait_until(lambda: len(gcs.attitude_boot_ms()) >= 20, 30.0):
                 raise RuntimeError(f"no ATTITUDE at the signed ground station (log: {errlog})")
             flood = start_flood(udp, junk_rate, seconds + 4, gcs.sent[:3])
             idle += idle_clients(tcp, tcp_crowd)
             time.sleep(2.0)
-            start = max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE"))
+            start = max(gcs.attitude_boot_ms())
             t0 = time.monotonic()
             served = math.nan
             with (
@@ -278,12 +289,8 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
                 if c.recv(4096):
                     served = time.monotonic() - t0
             window_ms = int(seconds * 1000)
-            wait_until(lambda: max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE")) >= start + window_ms,
-                  seconds + 20.0)  # fmt: skip
-            n = sum(
-                1 for m in gcs.of("ATTITUDE") if start <= int(m.time_boot_ms) < start + window_ms
-            )
-            rate = n / seconds
+            wait_until(lambda: max(gcs.attitude_boot_ms()) >= start + window_ms, seconds + 20.0)
+            rate = in_window(gcs.attitude_boot_ms(), start, window_ms) / seconds
             out, _ = flood.communicate(timeout=seconds + 30.0)
             junk_sent = float(out.strip() or "nan")
         finally:
@@ -399,7 +406,7 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
     def mute(fw: Any) -> None:
         fw.streaming = False
 
-    gcs = _Gcs(gport, None, listen=True)
+    gcs = Gcs(gport, None, listen=True)
     with _daemon(tmp, "silent", config, fw_setup=mute) as (_proc, _fw, errlog):
         with _zenoh_session(zport) as session:
             states, events, _subs = _watch_zenoh(session, prefix)
@@ -497,7 +504,7 @@ def params_storm(tmp: Path, set_rate: int, seconds: float) -> list[Figure]:
     inodes: list[int] = []
     final = math.nan
     with _daemon(tmp, "params", config) as (proc, _fw, errlog):
-        gcs = _Gcs(udp, None)
+        gcs = Gcs(udp, None)
         stop = threading.Event()
 
         def watch() -> None:  # a rename is a new inode: one per write
