@@ -46,7 +46,13 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.figures import Figure
-from benchmarks.procstat import datagrams, free_port, process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import (
+    DatagramReceiver,
+    free_port,
+    process_rss_mb,
+    stop_child,
+    wait_until,
+)
 
 log = logging.getLogger(__name__)
 
@@ -169,16 +175,17 @@ def _tracebacks(errlog: Path) -> int:
     return errlog.read_text(errors="replace").count("Traceback (most recent call last)")
 
 
-class Gcs:
+class Gcs(DatagramReceiver):
     """A ground station on a UDP endpoint: HEARTBEATs at 1 Hz (signed with ``key``); keeps
     the ATTITUDE and HEARTBEAT it hears (the crowd test's ground station too)."""
 
     def __init__(self, port: int, key: bytes | None, *, listen: bool = False) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as apm
 
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", port if listen else 0))
-        self.sock.settimeout(0.1)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", port if listen else 0))
+        sock.settimeout(0.1)
+        super().__init__(sock)
         self.addr = ("127.0.0.1", port)
         self.listen = listen
         self.mav = signed(255, key) if key is not None else apm.MAVLink(None, 255, 190)
@@ -186,12 +193,9 @@ class Gcs:
         self.lock = threading.Lock()
         self.seen: list[Any] = []
         self.sent: list[bytes] = []
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._recv, daemon=True)]
         if not listen:
             self._threads.append(threading.Thread(target=self._beat, daemon=True))
-        for t in self._threads:
-            t.start()
+        self.start()
 
     def _beat(self) -> None:
         while not self._stop.is_set():
@@ -201,12 +205,11 @@ class Gcs:
                 self.sock.sendto(pkt, self.addr)
             self._stop.wait(1.0)
 
-    def _recv(self) -> None:
-        for data in datagrams(self.sock, self._stop):
-            with contextlib.suppress(Exception):
-                msgs = self.parser.parse_buffer(data) or []
-                with self.lock:
-                    self.seen += [m for m in msgs if m.get_type() in ("ATTITUDE", "HEARTBEAT")]
+    def handle(self, data: bytes) -> None:
+        with contextlib.suppress(Exception):
+            msgs = self.parser.parse_buffer(data) or []
+            with self.lock:
+                self.seen += [m for m in msgs if m.get_type() in ("ATTITUDE", "HEARTBEAT")]
 
     def of(self, kind: str) -> list[Any]:
         with self.lock:
@@ -215,12 +218,6 @@ class Gcs:
     def attitude_boot_ms(self) -> list[int]:
         """The bridge's time (``time_boot_ms``) of every ATTITUDE heard, in arrival order."""
         return [int(m.time_boot_ms) for m in self.of("ATTITUDE")]
-
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(2.0)
-        self.sock.close()
 
 
 def in_window(stamps_ms: list[int], start_ms: int, window_ms: int) -> int:

@@ -15,6 +15,8 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from bridge.types import ClosedOnExit
+
 
 def wait_until(pred: Callable[[], object], timeout_s: float, poll_s: float = 0.05) -> bool:
     """Whether ``pred()`` held within ``timeout_s``, asked every ``poll_s`` and once more at
@@ -100,6 +102,40 @@ def datagrams(
         except OSError:
             return
         yield data
+
+
+class DatagramReceiver(ClosedOnExit):
+    """A socket and the thread that hands each datagram arriving on it to :meth:`handle`,
+    from :meth:`start` until :meth:`close` (the loop is :func:`datagrams`, so the socket
+    has a read timeout: :func:`udp_socket`). The receiving side of the benchmarks' ground
+    stations and of the tests' (tests/service_harness.py: the fake service manager too);
+    a subclass may add threads of its own that watch the same stop (``_threads``, before
+    :meth:`start`)."""
+
+    def __init__(self, sock: socket.socket, name: str | None = None) -> None:
+        self.sock = sock
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._receive, name=name, daemon=True)]
+
+    def start(self) -> None:
+        """Start the receiving thread (and any the subclass added)."""
+        for t in self._threads:
+            t.start()
+
+    def _receive(self) -> None:
+        for data in datagrams(self.sock, self._stop):
+            self.handle(data)
+
+    def handle(self, data: bytes) -> None:
+        """One datagram, on the receiving thread."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop the threads (2 s each at most) and close the socket."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(2.0)
+        self.sock.close()
 
 
 def stop_child(proc: subprocess.Popen[bytes]) -> bytes:
