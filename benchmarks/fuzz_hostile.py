@@ -98,7 +98,9 @@ def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
     return mav
 
 
-def _hb(mav: Any) -> bytes:
+def heartbeat(mav: Any) -> bytes:
+    """A ground station's HEARTBEAT (MAV_TYPE_GCS, no autopilot) as ``mav`` packs it: its
+    system and component, its sequence, its signature if it signs (:func:`signed`)."""
     return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
 
 
@@ -111,7 +113,7 @@ def start_flood(
     another key, and ``captured`` -- a ground station's own packets, to replay."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
-    samples = [_hb(apm.MAVLink(None, 66, 1)), _hb(signed(77, bytes(32))), *captured]
+    samples = [heartbeat(apm.MAVLink(None, 66, 1)), heartbeat(signed(77, bytes(32))), *captured]
     return subprocess.Popen(
         [sys.executable, "-c", FLOOD, str(port), str(rate), str(seconds),
          *(s.hex() for s in samples)],
@@ -199,7 +201,7 @@ class Gcs(DatagramReceiver):
 
     def _beat(self) -> None:
         while not self._stop.is_set():
-            pkt = _hb(self.mav)
+            pkt = heartbeat(self.mav)
             self.sent.append(pkt)
             with contextlib.suppress(OSError):
                 self.sock.sendto(pkt, self.addr)
@@ -281,7 +283,7 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
                 contextlib.suppress(OSError),
                 socket.create_connection(("127.0.0.1", tcp), timeout=15.0) as c,
             ):
-                c.sendall(_hb(signed(250, _KEY, 3)))
+                c.sendall(heartbeat(signed(250, _KEY, 3)))
                 c.settimeout(15.0)
                 if c.recv(4096):
                     served = time.monotonic() - t0

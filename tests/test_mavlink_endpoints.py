@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, recv_udp, wait_until
 
+from benchmarks.fuzz_hostile import heartbeat
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.endpoints import (
     Endpoint,
@@ -53,8 +54,7 @@ def ping(i: int) -> Message:
 
 
 def heartbeat_bytes(sysid: int = 255, compid: int = 190) -> bytes:
-    mav = M.MAVLink(None, sysid, compid)
-    return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+    return heartbeat(M.MAVLink(None, sysid, compid))
 
 
 @pytest.fixture

@@ -32,6 +32,7 @@ import waiting
 from pymavlink import mavutil
 
 from benchmarks import procstat
+from benchmarks.fuzz_hostile import heartbeat
 from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config, config_from_mapping
 from bridge.daemon import Daemon, build_daemon
@@ -391,9 +392,7 @@ def test_bytes_on_the_wire_are_mavlink2(tmp_path: Path, rigs: Callable[..., Rig]
     try:
         # Any datagram makes the udpin endpoint treat us as a peer: send a real HEARTBEAT.
         gcs_mav = M.MAVLink(None, GCS_SYSID, GCS_COMPID)
-        sock.sendto(
-            gcs_mav.heartbeat_encode(6, 8, 0, 0, 0).pack(gcs_mav), ("127.0.0.1", rig.udp_port)
-        )
+        sock.sendto(heartbeat(gcs_mav), ("127.0.0.1", rig.udp_port))
         got = recv_udp(sock, 20)
     finally:
         sock.close()

@@ -29,7 +29,14 @@ from service_harness import (
     wait_for,
 )
 
-from benchmarks.fuzz_hostile import Gcs, end_attack, idle_clients, in_window, start_flood
+from benchmarks.fuzz_hostile import (
+    Gcs,
+    end_attack,
+    heartbeat,
+    idle_clients,
+    in_window,
+    start_flood,
+)
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
@@ -75,13 +82,7 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
             # A newcomer on tcpin, meanwhile, is served within 5 s.
             t0 = time.monotonic()
             with socket.create_connection(("127.0.0.1", tcp), timeout=10.0) as c:
-                c.sendall(
-                    bytes(
-                        signed_mav(KEY, 250, 3)
-                        .heartbeat_encode(6, 8, 0, 0, 0)
-                        .pack(signed_mav(KEY, 250, 3))
-                    )
-                )
+                c.sendall(heartbeat(signed_mav(KEY, 250, 3)))
                 c.settimeout(10.0)
                 assert c.recv(4096)
             served_s = time.monotonic() - t0
