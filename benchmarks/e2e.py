@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.handheld import TARGET_SHAKE_G
-from benchmarks.procstat import wait_until
+from benchmarks.procstat import free_port, wait_until
 from benchmarks.scoring import (
     bar_targets,
     estimate_target,
@@ -60,12 +60,6 @@ class E2eConfig:
     max_tilt_deg: float = 60.0
     location: tuple[float, float, float] = DEFAULT_LOCATION
     timeout_s: float = 240.0  #: one calibration, start to report
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _config_text(state: Path, port: int, shake_g: float, cfg: E2eConfig) -> str:
@@ -105,7 +99,7 @@ def run_condition(
     with tempfile.TemporaryDirectory(prefix="cb-e2e-") as tmp:
         state = Path(tmp) / "state"
         conf = Path(tmp) / "bridge.toml"
-        port = _free_udp_port()
+        port = free_port(socket.SOCK_DGRAM)
         conf.write_text(_config_text(state, port, shake_g, cfg))
         cmd = [sys.executable, "-m", "bridge", "run", "--config", str(conf)]
         texts: list[str] = []

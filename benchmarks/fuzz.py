@@ -53,7 +53,14 @@ from typing import Any
 
 from benchmarks import fuzz_hostile
 from benchmarks.figures import Figure, report, report_options
-from benchmarks.procstat import datagrams, process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import (
+    DatagramReceiver,
+    free_port,
+    process_rss_mb,
+    stop_child,
+    udp_socket,
+    wait_until,
+)
 
 log = logging.getLogger(__name__)
 
@@ -365,25 +372,23 @@ class MavlinkFuzz:
         return header + payload + crc.crc.to_bytes(2, "little")
 
 
-class MavlinkPeer:
+class MavlinkPeer(DatagramReceiver):
     """A UDP ground station on 127.0.0.1: sends, and collects ATTITUDE and PARAM_VALUE."""
 
     def __init__(self, daemon_port: int) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as mav
 
+        super().__init__(udp_socket(0.1), "fuzz-udp")
         self.mav = mav
         self.addr = ("127.0.0.1", daemon_port)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
         self.link = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+        self.parser = mav.MAVLink(None)
+        self.parser.robust_parsing = True
         self.attitudes: list[tuple[float, float, float]] = []
         self.params: dict[str, float] = {}
         self.param_count = 0
         self.received = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._receive, name="fuzz-udp", daemon=True)
-        self._thread.start()
+        self.start()
 
     def send(self, data: bytes) -> None:
         """One datagram to the daemon (dropped silently if the socket buffer is full)."""
@@ -395,23 +400,20 @@ class MavlinkPeer:
         self.send(bytes(msg.pack(self.link)))
         self.link.seq = (self.link.seq + 1) % 256
 
-    def _receive(self) -> None:
-        parser = self.mav.MAVLink(None)
-        parser.robust_parsing = True
-        for data in datagrams(self.sock, self._stop):
-            try:
-                msgs = parser.parse_buffer(data) or []
-            except self.mav.MAVError:
-                continue
-            for m in msgs:
-                self.received += 1
-                kind = m.get_type()
-                if kind == "ATTITUDE":
-                    self.attitudes.append((float(m.roll), float(m.pitch), float(m.yaw)))
-                elif kind == "PARAM_VALUE":
-                    name = m.param_id.split("\x00", 1)[0]
-                    self.params[name] = float(m.param_value)
-                    self.param_count = int(m.param_count)
+    def handle(self, data: bytes) -> None:
+        try:
+            msgs = self.parser.parse_buffer(data) or []
+        except self.mav.MAVError:
+            return
+        for m in msgs:
+            self.received += 1
+            kind = m.get_type()
+            if kind == "ATTITUDE":
+                self.attitudes.append((float(m.roll), float(m.pitch), float(m.yaw)))
+            elif kind == "PARAM_VALUE":
+                name = m.param_id.split("\x00", 1)[0]
+                self.params[name] = float(m.param_value)
+                self.param_count = int(m.param_count)
 
     def read_params(self, timeout: float = 5.0) -> dict[str, float]:
         """Every parameter, by PARAM_REQUEST_LIST then PARAM_REQUEST_READ of what is missing."""
@@ -430,12 +432,6 @@ class MavlinkPeer:
                     self.send_msg(self.mav.MAVLink_param_request_read_message(0, 0, b"", i))
                 index += 10
         return dict(self.params)
-
-    def close(self) -> None:
-        """Stop receiving."""
-        self._stop.set()
-        self._thread.join(2.0)
-        self.sock.close()
 
 
 # ---------------------------------------------------------------------------- the run
@@ -517,10 +513,7 @@ def run(
     with tempfile.TemporaryDirectory(prefix="cb-fuzz-") as tmp_name:
         tmp = Path(tmp_name)
         pty = PtyCompass()
-        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        probe.bind(("127.0.0.1", 0))
-        udp_port = probe.getsockname()[1]
-        probe.close()
+        udp_port = free_port(socket.SOCK_DGRAM)
         errlog = tmp / "daemon.log"
         serial = SerialFuzz(rng)
         stop_frames = threading.Event()

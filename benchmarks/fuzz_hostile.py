@@ -46,7 +46,13 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.figures import Figure
-from benchmarks.procstat import datagrams, free_port, process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import (
+    DatagramReceiver,
+    free_port,
+    process_rss_mb,
+    stop_child,
+    wait_until,
+)
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +98,9 @@ def signed(sysid: int, key: bytes, link_id: int = 0) -> Any:
     return mav
 
 
-def _hb(mav: Any) -> bytes:
+def heartbeat(mav: Any) -> bytes:
+    """A ground station's HEARTBEAT (MAV_TYPE_GCS, no autopilot) as ``mav`` packs it: its
+    system and component, its sequence, its signature if it signs (:func:`signed`)."""
     return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
 
 
@@ -105,7 +113,7 @@ def start_flood(
     another key, and ``captured`` -- a ground station's own packets, to replay."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
-    samples = [_hb(apm.MAVLink(None, 66, 1)), _hb(signed(77, bytes(32))), *captured]
+    samples = [heartbeat(apm.MAVLink(None, 66, 1)), heartbeat(signed(77, bytes(32))), *captured]
     return subprocess.Popen(
         [sys.executable, "-c", FLOOD, str(port), str(rate), str(seconds),
          *(s.hex() for s in samples)],
@@ -169,15 +177,17 @@ def _tracebacks(errlog: Path) -> int:
     return errlog.read_text(errors="replace").count("Traceback (most recent call last)")
 
 
-class _Gcs:
-    """A ground station on a UDP endpoint: HEARTBEATs at 1 Hz (signed with ``key``)."""
+class Gcs(DatagramReceiver):
+    """A ground station on a UDP endpoint: HEARTBEATs at 1 Hz (signed with ``key``); keeps
+    the ATTITUDE and HEARTBEAT it hears (the crowd test's ground station too)."""
 
     def __init__(self, port: int, key: bytes | None, *, listen: bool = False) -> None:
         from pymavlink.dialects.v20 import ardupilotmega as apm
 
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", port if listen else 0))
-        self.sock.settimeout(0.1)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", port if listen else 0))
+        sock.settimeout(0.1)
+        super().__init__(sock)
         self.addr = ("127.0.0.1", port)
         self.listen = listen
         self.mav = signed(255, key) if key is not None else apm.MAVLink(None, 255, 190)
@@ -185,37 +195,37 @@ class _Gcs:
         self.lock = threading.Lock()
         self.seen: list[Any] = []
         self.sent: list[bytes] = []
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._recv, daemon=True)]
         if not listen:
             self._threads.append(threading.Thread(target=self._beat, daemon=True))
-        for t in self._threads:
-            t.start()
+        self.start()
 
     def _beat(self) -> None:
         while not self._stop.is_set():
-            pkt = _hb(self.mav)
+            pkt = heartbeat(self.mav)
             self.sent.append(pkt)
             with contextlib.suppress(OSError):
                 self.sock.sendto(pkt, self.addr)
             self._stop.wait(1.0)
 
-    def _recv(self) -> None:
-        for data in datagrams(self.sock, self._stop):
-            with contextlib.suppress(Exception):
-                msgs = self.parser.parse_buffer(data) or []
-                with self.lock:
-                    self.seen += [m for m in msgs if m.get_type() in ("ATTITUDE", "HEARTBEAT")]
+    def handle(self, data: bytes) -> None:
+        with contextlib.suppress(Exception):
+            msgs = self.parser.parse_buffer(data) or []
+            with self.lock:
+                self.seen += [m for m in msgs if m.get_type() in ("ATTITUDE", "HEARTBEAT")]
 
     def of(self, kind: str) -> list[Any]:
         with self.lock:
             return [m for m in self.seen if m.get_type() == kind]
 
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(2.0)
-        self.sock.close()
+    def attitude_boot_ms(self) -> list[int]:
+        """The bridge's time (``time_boot_ms``) of every ATTITUDE heard, in arrival order."""
+        return [int(m.time_boot_ms) for m in self.of("ATTITUDE")]
+
+
+def in_window(stamps_ms: list[int], start_ms: int, window_ms: int) -> int:
+    """How many of ``stamps_ms`` fall in ``[start_ms, start_ms + window_ms)``: a rate by the
+    sender's clock, so a busy receiver (late, bunched arrivals) does not move it."""
+    return sum(1 for t in stamps_ms if start_ms <= t < start_ms + window_ms)
 
 
 @contextlib.contextmanager
@@ -257,33 +267,29 @@ def crowd(tmp: Path, junk_rate: int, tcp_crowd: int, seconds: float) -> list[Fig
         f'signing_key_file = "{key_file}"\n[zenoh]\nenabled = false\n'
     )
     with _daemon(tmp, "crowd", mav) as (proc, _fw, errlog):
-        gcs = _Gcs(udp, _KEY)
+        gcs = Gcs(udp, _KEY)
         idle: list[socket.socket] = []
         flood: subprocess.Popen[str] | None = None
         try:
-            if not wait_until(lambda: len(gcs.of("ATTITUDE")) >= 20, 30.0):
+            if not wait_until(lambda: len(gcs.attitude_boot_ms()) >= 20, 30.0):
                 raise RuntimeError(f"no ATTITUDE at the signed ground station (log: {errlog})")
             flood = start_flood(udp, junk_rate, seconds + 4, gcs.sent[:3])
             idle += idle_clients(tcp, tcp_crowd)
             time.sleep(2.0)
-            start = max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE"))
+            start = max(gcs.attitude_boot_ms())
             t0 = time.monotonic()
             served = math.nan
             with (
                 contextlib.suppress(OSError),
                 socket.create_connection(("127.0.0.1", tcp), timeout=15.0) as c,
             ):
-                c.sendall(_hb(signed(250, _KEY, 3)))
+                c.sendall(heartbeat(signed(250, _KEY, 3)))
                 c.settimeout(15.0)
                 if c.recv(4096):
                     served = time.monotonic() - t0
             window_ms = int(seconds * 1000)
-            wait_until(lambda: max(int(m.time_boot_ms) for m in gcs.of("ATTITUDE")) >= start + window_ms,
-                  seconds + 20.0)  # fmt: skip
-            n = sum(
-                1 for m in gcs.of("ATTITUDE") if start <= int(m.time_boot_ms) < start + window_ms
-            )
-            rate = n / seconds
+            wait_until(lambda: max(gcs.attitude_boot_ms()) >= start + window_ms, seconds + 20.0)
+            rate = in_window(gcs.attitude_boot_ms(), start, window_ms) / seconds
             out, _ = flood.communicate(timeout=seconds + 30.0)
             junk_sent = float(out.strip() or "nan")
         finally:
@@ -399,7 +405,7 @@ def silent_device(tmp: Path, seconds: float) -> list[Figure]:
     def mute(fw: Any) -> None:
         fw.streaming = False
 
-    gcs = _Gcs(gport, None, listen=True)
+    gcs = Gcs(gport, None, listen=True)
     with _daemon(tmp, "silent", config, fw_setup=mute) as (_proc, _fw, errlog):
         with _zenoh_session(zport) as session:
             states, events, _subs = _watch_zenoh(session, prefix)
@@ -497,7 +503,7 @@ def params_storm(tmp: Path, set_rate: int, seconds: float) -> list[Figure]:
     inodes: list[int] = []
     final = math.nan
     with _daemon(tmp, "params", config) as (proc, _fw, errlog):
-        gcs = _Gcs(udp, None)
+        gcs = Gcs(udp, None)
         stop = threading.Event()
 
         def watch() -> None:  # a rename is a new inode: one per write

@@ -15,6 +15,8 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from bridge.types import ClosedOnExit
+
 
 def wait_until(pred: Callable[[], object], timeout_s: float, poll_s: float = 0.05) -> bool:
     """Whether ``pred()`` held within ``timeout_s``, asked every ``poll_s`` and once more at
@@ -65,18 +67,34 @@ def thread_stats(pid: int) -> dict[int, tuple[str, int, int, int]]:
     return out
 
 
-def free_port(kind: int) -> int:
-    """A port of ``kind`` (``socket.SOCK_STREAM``/``SOCK_DGRAM``) free on 127.0.0.1 just now."""
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port of ``kind`` (``socket.SOCK_STREAM``, the default, or ``SOCK_DGRAM``) free on
+    127.0.0.1 just now (the tests' rigs take theirs here too)."""
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def datagrams(sock: socket.socket, stop: threading.Event) -> Iterator[bytes]:
-    """The datagrams arriving on ``sock`` until ``stop`` is set or the socket is closed: the
-    loop of a receiving thread. ``sock`` has a timeout, so that ``stop`` is looked at while
-    nothing arrives (the integration tests' receivers read through it too)."""
-    while not stop.is_set():
+def udp_socket(timeout_s: float | None = None) -> socket.socket:
+    """A UDP socket bound to a port of 127.0.0.1 the kernel picks, its reads given up after
+    ``timeout_s`` (so that a receiving loop -- :func:`datagrams` -- looks at its stop and
+    deadline while nothing arrives; ``None``: reads block)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(timeout_s)
+    return sock
+
+
+def datagrams(
+    sock: socket.socket, stop: threading.Event | None = None, within_s: float = math.inf
+) -> Iterator[bytes]:
+    """The datagrams arriving on ``sock`` until ``stop`` is set, ``within_s`` seconds have
+    passed since the first read, or the socket is closed: the loop of a receiving thread
+    (``stop``), or of a test that listens for a bounded time (``within_s``). ``sock`` has a
+    timeout, so that both are looked at while nothing arrives (the integration tests'
+    receivers and listeners read through it too)."""
+    end = time.monotonic() + within_s
+    while not (stop is not None and stop.is_set()) and time.monotonic() < end:
         try:
             data = sock.recv(65536)
         except TimeoutError:
@@ -84,6 +102,40 @@ def datagrams(sock: socket.socket, stop: threading.Event) -> Iterator[bytes]:
         except OSError:
             return
         yield data
+
+
+class DatagramReceiver(ClosedOnExit):
+    """A socket and the thread that hands each datagram arriving on it to :meth:`handle`,
+    from :meth:`start` until :meth:`close` (the loop is :func:`datagrams`, so the socket
+    has a read timeout: :func:`udp_socket`). The receiving side of the benchmarks' ground
+    stations and of the tests' (tests/service_harness.py: the fake service manager too);
+    a subclass may add threads of its own that watch the same stop (``_threads``, before
+    :meth:`start`)."""
+
+    def __init__(self, sock: socket.socket, name: str | None = None) -> None:
+        self.sock = sock
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._receive, name=name, daemon=True)]
+
+    def start(self) -> None:
+        """Start the receiving thread (and any the subclass added)."""
+        for t in self._threads:
+            t.start()
+
+    def _receive(self) -> None:
+        for data in datagrams(self.sock, self._stop):
+            self.handle(data)
+
+    def handle(self, data: bytes) -> None:
+        """One datagram, on the receiving thread."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop the threads (2 s each at most) and close the socket."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(2.0)
+        self.sock.close()
 
 
 def stop_child(proc: subprocess.Popen[bytes]) -> bytes:
@@ -142,9 +194,7 @@ class AttitudeTap:
     """
 
     def __init__(self, name: str) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
+        self.sock = udp_socket(0.2)
         try:
             self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             self.kernel_stamps = True

@@ -45,6 +45,8 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect module
 from pymavlink import mavutil
 
+from benchmarks.procstat import free_port
+
 mavutil.set_dialect("ardupilotmega")
 M: Any = mavutil.mavlink
 
@@ -57,6 +59,8 @@ SHARED = Path(
 )
 AUTOPILOTS = SHARED / "autopilots"
 DEADLINE_S = 30.0  #: the longest any single wait on an autopilot may take
+#: How long after a change the scenarios read the bridge's new heading (in force by then).
+SETTLE_S = 0.3
 _LOCK_DIR = Path(tempfile.gettempdir())
 #: ArduPilot's home in the tests (Canberra, the SITL default), yaw in degrees true.
 ARDUPILOT_HOME = (-35.363261, 149.165230, 584.0, 120.0)
@@ -157,9 +161,7 @@ def claim_instance(
 
 def free_udp_port() -> int:
     """A UDP port on 127.0.0.1 that nobody uses right now (the kernel's choice)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_port(socket.SOCK_DGRAM)
 
 
 # ------------------------------------------------------------------------------ the observer

@@ -29,9 +29,9 @@ import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 # Before any test module, the package under test or Hypothesis is imported by this process
 # (set after the import below, it left Hypothesis's rewritten modules uncached: rewritten
@@ -41,6 +41,9 @@ sys.dont_write_bytecode = False
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 from service_harness import FakeServiceManager  # noqa: E402
+
+if TYPE_CHECKING:
+    from test_mavlink_rig import Rig
 
 # Hypothesis's per-example deadline (200 ms) is a wall-clock bound: with both cores busy the
 # first example (lazy imports, caches) misses it and the test fails for the machine, not
@@ -153,6 +156,17 @@ def manager() -> Iterator[FakeServiceManager]:
     m = FakeServiceManager()
     yield m
     m.close()
+
+
+@pytest.fixture
+def rigs() -> Iterator[Callable[..., Rig]]:
+    """Started MAVLink rigs (tests/test_mavlink_rig.py: the daemon and its MAVLink output on
+    a simulated compass), every one stopped at the end of the test. The calibrator's modules
+    (test_calibrator.py and those importing its fixture) have rigs of their own, which
+    override this one there."""
+    from test_mavlink_rig import rig_factory
+
+    yield from rig_factory()
 
 
 @pytest.fixture

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 import os
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +69,30 @@ def heading_errors(
     acc = cal.accel.apply(acc_counts_to_g(s.acc_counts[ok]))
     _, _, h = tilt_compensated_heading(mag, acc)
     return np.asarray((h - truth + 180.0) % 360.0 - 180.0)
+
+
+def cli_env(tmp_path: Path) -> dict[str, str]:
+    """The environment a ``compass-bridge`` child runs in: this one's, its state under
+    ``tmp_path`` -- never the machine's (STATE_DIRECTORY) nor the user's (XDG_STATE_HOME,
+    ``run --simulate``'s) -- and its log on stderr, not the journal's stream."""
+    env = dict(os.environ)
+    env["STATE_DIRECTORY"] = str(tmp_path / "state")
+    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")
+    env.pop("JOURNAL_STREAM", None)
+    return env
+
+
+def run_cli(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+    """``python -m bridge ARGS`` in ``tmp_path`` (:func:`cli_env`), run to its end within
+    ``timeout`` s: its exit code, stdout and stderr."""
+    return subprocess.run(
+        [sys.executable, "-m", "bridge", *args],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=cli_env(tmp_path),
+        timeout=timeout,
+    )
 
 
 def png_size(path: Path) -> tuple[int, int]:

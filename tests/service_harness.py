@@ -5,7 +5,8 @@
   handed over as ``$NOTIFY_SOCKET``; a thread records every message with the
   monotonic time it arrived.
 * :class:`GroundStation` -- a UDP socket the bridge's MAVLink output sends to, decoding
-  what arrives; :func:`receive_datagrams` is the receiving thread's loop.
+  what arrives (both are :class:`benchmarks.procstat.DatagramReceiver`: a socket and its
+  receiving thread, written once for the benchmarks and the tests).
 * :class:`DaemonProcess` -- ``python -m bridge run --config FILE`` with
   ``$NOTIFY_SOCKET``, ``$WATCHDOG_USEC`` (and optional test hooks) set, stderr
   to a file; signals, bounded waits, exit code.
@@ -30,8 +31,9 @@ from pathlib import Path
 import waiting
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
-from benchmarks.procstat import datagrams
+from benchmarks.procstat import DatagramReceiver, free_port, udp_socket
 from bridge.mavlink.dialect import Message as Packet
+from bridge.types import ClosedOnExit
 
 DEADLINE_S = 20.0
 
@@ -50,39 +52,25 @@ class Message:
         return self.fields.get(key, default)
 
 
-def receive_datagrams(
-    sock: socket.socket, stop: threading.Event, handle: Callable[[bytes], None]
-) -> None:
-    """A receiving thread's loop: every datagram on ``sock`` (which has a short timeout, so
-    ``stop`` is seen) to ``handle``, until ``stop`` is set or the socket is closed (the
-    loop itself is the benchmarks' :func:`benchmarks.procstat.datagrams`)."""
-    for data in datagrams(sock, stop):
-        handle(data)
-
-
-class FakeServiceManager:
+class FakeServiceManager(DatagramReceiver):
     """A notify socket and the messages a service sent to it."""
 
     def __init__(self) -> None:
         self.name = f"compass-bridge-test-{os.getpid()}-{id(self):x}"
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind("\0" + self.name)
-        self.sock.settimeout(0.05)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        sock.bind("\0" + self.name)
+        sock.settimeout(0.05)
+        super().__init__(sock, "fake-systemd")
         self._lock = threading.Lock()
         self._messages: list[Message] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="fake-systemd", daemon=True)
-        self._thread.start()
+        self.start()
 
     @property
     def notify_socket(self) -> str:
         """The ``$NOTIFY_SOCKET`` value (abstract: ``@name``)."""
         return "@" + self.name
 
-    def _run(self) -> None:
-        receive_datagrams(self.sock, self._stop, self._keep)
-
-    def _keep(self, data: bytes) -> None:
+    def handle(self, data: bytes) -> None:
         now = time.monotonic()
         fields = dict(
             line.split("=", 1) for line in data.decode("utf-8").split("\n") if "=" in line
@@ -97,6 +85,15 @@ class FakeServiceManager:
 
     def since(self, index: int) -> list[Message]:
         return self.messages[index:]
+
+    def pings_continue(self, proc: DaemonProcess, n: int = 3) -> None:
+        """Wait (bounded) for ``n`` more WATCHDOG=1 from now on: ``proc`` is alive."""
+        mark = len(self.messages)
+        self.wait_for(
+            lambda m: sum(x.get("WATCHDOG") == "1" for x in self.since(mark)) >= n,
+            after=mark,
+            proc=proc,
+        )
 
     def wait_for(
         self,
@@ -119,18 +116,6 @@ class FakeServiceManager:
                 tail = [m.fields for m in msgs[after:]][-10:]
                 raise AssertionError(f"no matching sd_notify message in {timeout} s; last: {tail}")
             time.sleep(0.05)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        self.sock.close()
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A port on 127.0.0.1 free right now (TCP by default)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def free_udp_port() -> int:
@@ -175,8 +160,9 @@ def toml_config(
     )
 
 
-class DaemonProcess:
-    """``compass-bridge run`` in a subprocess, as systemd would start it."""
+class DaemonProcess(ClosedOnExit):
+    """``compass-bridge run`` in a subprocess, as systemd would start it; a ``with`` block
+    kills it on the way out if it still runs (:meth:`close`)."""
 
     def __init__(
         self,
@@ -257,6 +243,10 @@ class DaemonProcess:
             self.proc.wait(10)
         self._log.close()
 
+    def close(self) -> None:
+        """:meth:`kill`: whatever a test did, its daemon does not outlive it."""
+        self.kill()
+
     def stop(self, timeout: float = 10.0) -> int:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
@@ -267,25 +257,18 @@ class DaemonProcess:
             raise
 
 
-class GroundStation:
+class GroundStation(DatagramReceiver):
     """A UDP listener that decodes what the bridge sends (pymavlink, MAVLink 2)."""
 
     def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        super().__init__(udp_socket(0.1))
         self.port = int(self.sock.getsockname()[1])
         self.mav = apm.MAVLink(None)
         self.lock = threading.Lock()
         self.seen: list[tuple[float, str, Packet]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        self.start()
 
-    def _run(self) -> None:
-        receive_datagrams(self.sock, self._stop, self._keep)
-
-    def _keep(self, data: bytes) -> None:
+    def handle(self, data: bytes) -> None:
         now = time.monotonic()
         for msg in self.mav.parse_buffer(data) or []:
             with self.lock:
@@ -304,14 +287,3 @@ class GroundStation:
         with self.lock:
             found = [m for _, k, m in self.seen if k == kind]
         return found[-1] if found else None
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        self.sock.close()
-
-    def __enter__(self) -> GroundStation:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

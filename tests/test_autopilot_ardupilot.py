@@ -40,6 +40,7 @@ import pytest
 from autopilots import (
     ARDUPILOT_FEED_PARAMS,
     ARDUPILOT_HOME,
+    SETTLE_S,
     Autopilot,
     M,
     check_all,
@@ -76,9 +77,6 @@ SILENT_COMPANION = {
 }
 BRIDGE = (1, 200)
 RESTART_SIGMA_DEG = 8.0
-
-#: How long after a change the test reads the bridge's new heading (it is in force by then).
-SETTLE_S = 0.3
 
 
 @dataclass

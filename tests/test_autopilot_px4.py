@@ -30,7 +30,7 @@ from typing import Any
 import companion_bridge as companion
 import numpy as np
 import pytest
-from autopilots import Autopilot, M, check_all, start_px4, ulog
+from autopilots import SETTLE_S, Autopilot, M, check_all, start_px4, ulog
 from companion_bridge import Bridge, start_bridge
 
 from bridge.app.calibration.store import LEARNED_SOURCE
@@ -47,9 +47,6 @@ TOPICS = (
     "estimator_aid_src_ev_yaw",
     "timesync_status",
 )
-
-#: How long after a change the test reads the bridge's new heading (it is in force by then).
-SETTLE_S = 0.3
 
 
 @dataclass

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import serial
+from helpers import cli_env, run_cli
 
 import bridge
 from bridge.cli import SHUTDOWN_TIMEOUT_S, main
@@ -28,14 +29,6 @@ STOP_BOUND_S = SHUTDOWN_TIMEOUT_S  # a clean stop must beat the forced exit
 pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process
 
 
-def _env(tmp_path: Path) -> dict[str, str]:
-    env = dict(os.environ)
-    env["STATE_DIRECTORY"] = str(tmp_path / "state")  # never read the machine's state
-    env["XDG_STATE_HOME"] = str(tmp_path / "xdg")  # nor the user's (run --simulate's)
-    env.pop("JOURNAL_STREAM", None)
-    return env
-
-
 def spawn(tmp_path: Path, *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "bridge", *args],
@@ -43,7 +36,7 @@ def spawn(tmp_path: Path, *args: str) -> subprocess.Popen[str]:
         stderr=subprocess.PIPE,
         text=True,
         cwd=tmp_path,
-        env=_env(tmp_path),
+        env=cli_env(tmp_path),
     )
 
 
@@ -82,17 +75,6 @@ def stop(proc: subprocess.Popen[str], sig: signal.Signals) -> tuple[int, float, 
         proc.communicate()
         pytest.fail(f"no exit within {STOP_BOUND_S + 5} s of {sig.name}")
     return proc.returncode, time.monotonic() - t0, err
-
-
-def run(tmp_path: Path, *args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "bridge", *args],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=_env(tmp_path),
-        timeout=timeout,
-    )
 
 
 # --- run --simulate --------------------------------------------------------------------
@@ -171,7 +153,7 @@ def test_run_simulate_keeps_its_calibration_apart_from_the_service(tmp_path: Pat
 def test_run_with_a_bad_config_exits_2_naming_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[device]\nport = "sim"\nbaud = 1234\n')
-    res = run(tmp_path, "run", "--config", str(bad))
+    res = run_cli(tmp_path, "run", "--config", str(bad))
     assert res.returncode == 2
     assert res.stderr.strip() == (
         "config error: device.baud: must be one of 4800, 9600, 19200, 38400, 57600, 115200, "
@@ -257,7 +239,7 @@ def test_simulate_serves_a_pty_and_record_taps_it(tmp_path: Path) -> None:
                 got += port.read(256)
         assert b"$PGMRA," in got
         out = tmp_path / "tap.cbrec"
-        rec = run(tmp_path, "record", "--port", str(link), "--out", str(out), "--duration", "1")
+        rec = run_cli(tmp_path, "record", "--port", str(link), "--out", str(out), "--duration", "1")
         assert rec.returncode == 0, rec.stderr
     finally:
         code, took, err = stop(sim, signal.SIGTERM)

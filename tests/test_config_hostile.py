@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from helpers import run_cli
 
 from bridge.config import ConfigError, load_config, to_toml
 
@@ -231,15 +231,7 @@ def test_effective_toml_escapes_what_toml_needs(tmp_path: Path) -> None:
 
 
 def _cli(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "STATE_DIRECTORY": str(tmp_path / "state")}
-    return subprocess.run(
-        [sys.executable, "-m", "bridge", *args],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-        timeout=60,
-    )
+    return run_cli(tmp_path, *args, timeout=60)
 
 
 @pytest.mark.integration
@@ -301,10 +293,5 @@ def test_a_heading_feed_is_not_refused_for_ids_the_autopilot_may_not_have(
     cfg = tmp_path / "feed.toml"
     for extra in ("", "system_id = 2", 'role = "companion"', "component_id = 42"):
         cfg.write_text(f'[mavlink]\nheading_feed = "{feed}"\n{extra}\n')
-        r = subprocess.run(
-            [sys.executable, "-m", "bridge", "config", "--config", str(cfg)],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        r = _cli(tmp_path, "config", "--config", str(cfg))
         assert r.returncode == 0, r.stderr

@@ -15,11 +15,9 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_mavlink_rig import DEADLINE_S, M, Rig, rig_factory, wait_until
+from test_mavlink_rig import DEADLINE_S, M, Rig, offline_daemon, wait_until
 
 from bridge.app.paramspec import ParamTable
-from bridge.config import config_from_mapping
-from bridge.daemon import build_daemon
 from bridge.mavlink.dispatch import MAX_INTERVAL_US
 from bridge.mavlink.endpoints import Link
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
@@ -27,11 +25,6 @@ from bridge.mavlink.paramproto import ListLimiter
 
 REAL32 = M.MAV_PARAM_TYPE_REAL32
 ACCEPTED, DENIED, FAILED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_DENIED, M.MAV_RESULT_FAILED
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 # ------------------------------------------------------------------ acknowledgements tell the truth
@@ -140,17 +133,7 @@ class _Link(Link):
 def offline_output(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MavlinkOutput]:
     """An output on a daemon that is never started (its services; no endpoints, no threads)."""
     tmp = tmp_path_factory.mktemp("hostile")
-    cfg = config_from_mapping(
-        {
-            "device": {"port": "sim"},
-            "storage": {"dir": str(tmp)},
-            "zenoh": {"enabled": False},
-            "mavlink": {"endpoints": []},
-        },
-        env={},
-        hostname="hostile",
-    )
-    daemon = build_daemon(cfg)
+    cfg, daemon = offline_daemon(tmp, "hostile")
     out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services)
     yield out
     daemon.bridge.stop(1.0)

@@ -32,15 +32,6 @@ from bridge.sim.pty import PtyCompass
 WATCHDOG_USEC = 1_000_000
 
 
-def _pings_continue(manager: FakeServiceManager, d: DaemonProcess, n: int = 3) -> None:
-    mark = len(manager.messages)
-    manager.wait_for(
-        lambda m: sum(x.get("WATCHDOG") == "1" for x in manager.since(mark)) >= n,
-        after=mark,
-        proc=d,
-    )
-
-
 def _start(tmp: Path, manager: FakeServiceManager, port: Path, **cfg: Any) -> DaemonProcess:
     path = tmp / "bridge.toml"
     path.write_text(toml_config(str(port), tmp / "state", **cfg))
@@ -49,77 +40,72 @@ def _start(tmp: Path, manager: FakeServiceManager, port: Path, **cfg: Any) -> Da
 
 @pytest.mark.integration
 def test_usb_unplug_and_return(tmp_path: Path, manager: FakeServiceManager) -> None:
-    with PtyCompass(make_firmware(5), tmp_path / "compass") as sim:
-        d = _start(tmp_path, manager, sim.link_path)
-        try:
-            i, _ = manager.wait_for(lambda m: streaming_rate(m) > 0, proc=d)
-            sim.unplug(2.5)  # the pty vanishes, the symlink too; a new one after 2.5 s
-            j, _ = manager.wait_for(
-                lambda m: "waiting for" in status_text(m) or "no attitude frame" in status_text(m),
-                after=i,
-                proc=d,
-            )
-            _pings_continue(manager, d)  # a reader retrying an absent port is alive
-            assert sim.wait_plugged(10.0) is not None
-            _, back = manager.wait_for(lambda m: streaming_rate(m) > 0, after=j, proc=d)
-            assert re.search(r"\b1 reconnects\b", status_text(back)), status_text(back)
-            assert not d.exited
-            assert d.stop() == 0
-        finally:
-            d.kill()
+    with (
+        PtyCompass(make_firmware(5), tmp_path / "compass") as sim,
+        _start(tmp_path, manager, sim.link_path) as d,
+    ):
+        i, _ = manager.wait_for(lambda m: streaming_rate(m) > 0, proc=d)
+        sim.unplug(2.5)  # the pty vanishes, the symlink too; a new one after 2.5 s
+        j, _ = manager.wait_for(
+            lambda m: "waiting for" in status_text(m) or "no attitude frame" in status_text(m),
+            after=i,
+            proc=d,
+        )
+        manager.pings_continue(d)  # a reader retrying an absent port is alive
+        assert sim.wait_plugged(10.0) is not None
+        _, back = manager.wait_for(lambda m: streaming_rate(m) > 0, after=j, proc=d)
+        assert re.search(r"\b1 reconnects\b", status_text(back)), status_text(back)
+        assert not d.exited
+        assert d.stop() == 0
 
 
 @pytest.mark.integration
 def test_compass_reboots_mid_stream(tmp_path: Path, manager: FakeServiceManager) -> None:
-    with PtyCompass(make_firmware(6), tmp_path / "compass") as sim:
-        d = _start(tmp_path, manager, sim.link_path, rate_hz=20)
-        try:
-            fw = sim.firmware
-            # Streaming, at the 20 Hz the handshake asked for (the device's own setting: no
-            # wall-clock rate window).
-            i, _ = manager.wait_for(lambda m: streaming_rate(m) > 0 and fw.rate_hz == 20, proc=d)
-            # A brown-out behind a self-powered adapter: the port stays, the device reboots
-            # (output stops ~300 ms, $PGMRV, seq from 0, back at its 10 Hz power-up rate).
-            with sim._lock:  # the serve thread owns the firmware; take its lock
-                sim.firmware.power_off(time.monotonic())
-            time.sleep(0.2)
-            with sim._lock:
-                sim.firmware.power_on(time.monotonic())
-            k, _ = manager.wait_for(lambda m: "1 resets" in status_text(m), after=i, proc=d)
-            # The daemon notices the reset and asks for its 20 Hz again (connect handshake).
-            manager.wait_for(
-                lambda m: (
-                    "1 resets" in status_text(m) and streaming_rate(m) > 0 and fw.rate_hz == 20
-                ),
-                after=k,
-                proc=d,
-            )
-            assert "device reset detected" in d.log()
-            _pings_continue(manager, d)
-            assert d.stop() == 0
-        finally:
-            d.kill()
+    with (
+        PtyCompass(make_firmware(6), tmp_path / "compass") as sim,
+        _start(tmp_path, manager, sim.link_path, rate_hz=20) as d,
+    ):
+        fw = sim.firmware
+        # Streaming, at the 20 Hz the handshake asked for (the device's own setting: no
+        # wall-clock rate window).
+        i, _ = manager.wait_for(lambda m: streaming_rate(m) > 0 and fw.rate_hz == 20, proc=d)
+        # A brown-out behind a self-powered adapter: the port stays, the device reboots
+        # (output stops ~300 ms, $PGMRV, seq from 0, back at its 10 Hz power-up rate).
+        with sim._lock:  # the serve thread owns the firmware; take its lock
+            sim.firmware.power_off(time.monotonic())
+        time.sleep(0.2)
+        with sim._lock:
+            sim.firmware.power_on(time.monotonic())
+        k, _ = manager.wait_for(lambda m: "1 resets" in status_text(m), after=i, proc=d)
+        # The daemon notices the reset and asks for its 20 Hz again (connect handshake).
+        manager.wait_for(
+            lambda m: "1 resets" in status_text(m) and streaming_rate(m) > 0 and fw.rate_hz == 20,
+            after=k,
+            proc=d,
+        )
+        assert "device reset detected" in d.log()
+        manager.pings_continue(d)
+        assert d.stop() == 0
 
 
 @pytest.mark.integration
 def test_garbage_bursts_are_counted_not_fatal(tmp_path: Path, manager: FakeServiceManager) -> None:
-    with PtyCompass(make_firmware(8), tmp_path / "compass") as sim:
-        d = _start(tmp_path, manager, sim.link_path)
-        try:
-            i, _ = manager.wait_for(lambda m: streaming_rate(m) > 0, proc=d)
-            for _ in range(8):
-                sim.garbage(3000)  # line noise in the middle of the frames
-                time.sleep(0.1)
-            k, _ = manager.wait_for(
-                lambda m: re.search(r"\b\d+ bad\b", status_text(m)) is not None, after=i, proc=d
-            )
-            # Still streaming at the device's rate, still pinging, nothing crashed.
-            manager.wait_for(lambda m: streaming_rate(m) > 0, after=k + 1, proc=d)
-            _pings_continue(manager, d)
-            assert "Traceback" not in d.log()
-            assert d.stop() == 0
-        finally:
-            d.kill()
+    with (
+        PtyCompass(make_firmware(8), tmp_path / "compass") as sim,
+        _start(tmp_path, manager, sim.link_path) as d,
+    ):
+        i, _ = manager.wait_for(lambda m: streaming_rate(m) > 0, proc=d)
+        for _ in range(8):
+            sim.garbage(3000)  # line noise in the middle of the frames
+            time.sleep(0.1)
+        k, _ = manager.wait_for(
+            lambda m: re.search(r"\b\d+ bad\b", status_text(m)) is not None, after=i, proc=d
+        )
+        # Still streaming at the device's rate, still pinging, nothing crashed.
+        manager.wait_for(lambda m: streaming_rate(m) > 0, after=k + 1, proc=d)
+        manager.pings_continue(d)
+        assert "Traceback" not in d.log()
+        assert d.stop() == 0
 
 
 def uart_as_read_at(data: bytes, tx_baud: int, rx_baud: int) -> bytes:
@@ -216,7 +202,7 @@ def test_wrong_baud_rate_is_reported_not_fatal(tmp_path: Path, manager: FakeServ
         assert sys_status.onboard_control_sensors_present & mag
         assert not sys_status.onboard_control_sensors_health & mag
         assert hb.system_status != apm.MAV_STATE_ACTIVE
-        _pings_continue(manager, d)
+        manager.pings_continue(d)
         assert "Traceback" not in d.log()
         assert d.stop() == 0
     finally:
@@ -227,12 +213,9 @@ def test_wrong_baud_rate_is_reported_not_fatal(tmp_path: Path, manager: FakeServ
 
 @pytest.mark.integration
 def test_sigterm_while_port_absent_is_quick(tmp_path: Path, manager: FakeServiceManager) -> None:
-    d = _start(tmp_path, manager, tmp_path / "never-there")
-    try:
+    with _start(tmp_path, manager, tmp_path / "never-there") as d:
         manager.wait_for(lambda m: m.get("WATCHDOG") == "1", proc=d)
         t0 = time.monotonic()
         d.signal(signal.SIGTERM)
         assert d.wait(10.0) == 0
         assert time.monotonic() - t0 < 5.0
-    finally:
-        d.kill()

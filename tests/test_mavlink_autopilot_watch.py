@@ -13,12 +13,12 @@ The real autopilots: test_autopilot_ardupilot.py, test_autopilot_px4.py.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_rig import M, Rig, rig_factory
+from test_mavlink_rig import M, Rig
 
 from bridge.app.settings import EngineSettings
 from bridge.core.attitude import AttitudeEngine
@@ -26,11 +26,6 @@ from bridge.core.mounting import Mounting, Rotation
 from bridge.core.wmm import earth_field
 from bridge.events import ChangeRefusedError, EventBus
 from bridge.mavlink import autopilot as AP  # noqa: N812 - short
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 def _heartbeat(mav: Any, armed: bool = False) -> Any:

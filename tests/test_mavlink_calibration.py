@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,6 @@ from test_mavlink_rig import (
     Gcs,
     M,
     Rig,
-    rig_factory,
     wait_until,
 )
 
@@ -45,11 +44,6 @@ from bridge.sim.motion import (
 )
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 FIELD = earth_field(LAT, LON, ALT)

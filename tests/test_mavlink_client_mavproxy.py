@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from mavlink_clients import MavProxy, new_value, writable
 from test_mavlink_calibration import FIELD, lead_in
-from test_mavlink_rig import Rig, rig_factory, wait_until
+from test_mavlink_rig import Rig, wait_until
 
 from bridge.app.paramspec import REAL32
 from bridge.sim.motion import Tumble
@@ -32,11 +32,6 @@ WARNINGS = ("fence", "breach", "fail", "error", "unhealthy", "timed out", "trace
 #: How soon after "Detected vehicle" the parameter list must be complete: MAVProxy checks
 #: once a second (FTP first, then the list); an unanswered FTP request would take ~12 s.
 DOWNLOAD_S = 4.0
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 @pytest.fixture

@@ -32,7 +32,7 @@ from test_mavlink_calibration import (
     assert_heading_within_targets,
     lead_in,
 )
-from test_mavlink_rig import DEADLINE_S, Rig, rig_factory, wait_until
+from test_mavlink_rig import DEADLINE_S, Rig, wait_until
 
 from bridge.app.paramspec import REAL32
 from bridge.calibration.model import Calibration
@@ -68,11 +68,6 @@ class Run:
         assert self.done.wait(CAL_DEADLINE_S), f"no result; progress {self.progress[-3:]}"
         assert self.result is not None
         return self.result
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 @pytest.fixture

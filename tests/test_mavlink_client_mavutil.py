@@ -17,17 +17,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_rig import DEADLINE_S, GCS_COMPID, GCS_SYSID, M, Rig, mavutil, rig_factory
+from test_mavlink_rig import DEADLINE_S, GCS_COMPID, GCS_SYSID, M, Rig, mavutil
 
 from bridge.mavlink.paramproto import FLAVOURS
 from bridge.sim.motion import Still
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 @pytest.fixture

@@ -36,13 +36,11 @@ from test_mavlink_endpoints import (
     paced_udp_endpoint,
     parse_all,
     ping,
-    recv_udp,
 )
-from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, offline_daemon, recv_udp, wait_until
 from test_mavlink_telemetry import make_sample
 
-from bridge.config import config_from_mapping
-from bridge.daemon import build_daemon
+from benchmarks.procstat import datagrams, udp_socket
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
 from bridge.mavlink.dialect import message
@@ -97,19 +95,14 @@ class Gcs:
     """A ground station on a plain UDP socket: keeps raw datagrams."""
 
     def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        self.sock = udp_socket(0.1)
         self.port = int(self.sock.getsockname()[1])
 
     def datagram_with(self, mtype: str, key: bytes | None = None) -> bytes:
         """The next datagram holding a ``mtype`` message (others, e.g. HEARTBEAT, skipped)."""
-        deadline = time.monotonic() + DEADLINE_S
-        while time.monotonic() < deadline:
-            with contextlib.suppress(TimeoutError):
-                data = self.sock.recv(65535)
-                if any(m.get_type() == mtype for m in parse_all(data, key)):
-                    return data
+        for data in datagrams(self.sock, within_s=DEADLINE_S):
+            if any(m.get_type() == mtype for m in parse_all(data, key)):
+                return data
         raise AssertionError(f"no datagram with {mtype} within {DEADLINE_S} s")
 
 
@@ -119,17 +112,9 @@ def output(tmp_path: Path) -> Iterator[Callable[..., tuple[MavlinkOutput, Gcs, l
 
     def make(key: bytes | None = None, **rates: float) -> tuple[MavlinkOutput, Gcs, list[Packet]]:
         gcs = Gcs()
-        cfg = config_from_mapping(
-            {
-                "device": {"port": "sim"},
-                "storage": {"dir": str(tmp_path)},
-                "zenoh": {"enabled": False},
-                "mavlink": {"endpoints": [f"udpout:127.0.0.1:{gcs.port}"], **rates},
-            },
-            env={},
-            hostname="coalesce",
+        cfg, daemon = offline_daemon(
+            tmp_path, "coalesce", endpoints=[f"udpout:127.0.0.1:{gcs.port}"], **rates
         )
-        daemon = build_daemon(cfg)  # never started: the services the output uses
         settings = replace(MavlinkSettings.from_config(cfg), signing_key=key)
         out = MavlinkOutput(settings, daemon.bridge.services, clock=ManualClock(100.0))
         sent: list[Packet] = []

@@ -19,12 +19,12 @@ that automatic accept would stop the autopilot's compass-0 calibration halfway.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_rig import DEADLINE_S, Gcs, M, Rig, connect_gcs, rig_factory
+from test_mavlink_rig import DEADLINE_S, Gcs, M, Rig, connect_gcs
 
 from bridge.mavlink.output import COMPANION_COMPASS_ID
 from bridge.sim.motion import Still
@@ -40,11 +40,6 @@ NOT_STARTED, RUNNING, SUCCESS = (
     M.MAG_CAL_RUNNING_STEP_ONE,
     M.MAG_CAL_SUCCESS,
 )
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 def source(m: Any) -> tuple[int, int]:

@@ -25,10 +25,10 @@ from test_mavlink_endpoints import (  # noqa: F401
     heartbeat_bytes,
     local_address,
     ping,
-    recv_udp,
 )
-from test_mavlink_rig import DEADLINE_S, M, free_port, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, recv_udp, wait_until
 
+from benchmarks.fuzz_hostile import heartbeat, idle_clients
 from bridge.mavlink.endpoints import Endpoint
 from bridge.mavlink.endpoints import base as E  # noqa: N812 - short
 from bridge.mavlink.signing import Signing
@@ -36,10 +36,6 @@ from bridge.mavlink.signing import Signing
 pytestmark = pytest.mark.integration
 
 KEY = bytes(range(32))
-
-
-def hb(mav: Any) -> bytes:
-    return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
 
 
 def spray(port: int, datagrams: list[bytes]) -> None:
@@ -95,9 +91,9 @@ def test_with_signing_only_a_valid_fresh_signature_makes_a_peer(
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         mav = signed_mav(KEY, 255)
-        first = hb(mav)
+        first = heartbeat(mav)
         wrong = signed_mav(bytes(32), 7)
-        strangers = [heartbeat_bytes(sysid=9)] * 100 + [hb(wrong) for _ in range(100)]
+        strangers = [heartbeat_bytes(sysid=9)] * 100 + [heartbeat(wrong) for _ in range(100)]
         spray(port, strangers)  # unsigned, and signed with another key
         assert wait_until(lambda: ep.counters().strangers_dropped == 200)
         assert ep.links == []
@@ -216,12 +212,7 @@ def test_idle_tcp_clients_do_not_lock_a_newcomer_out(endpoints: Callable[..., En
 
             th = threading.Thread(target=beat, daemon=True)
             th.start()
-            for _ in range(50):
-                s = socket.socket()
-                s.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    s.connect(("127.0.0.1", port))
-                idle.append(s)
+            idle += idle_clients(port, 50)
             took = served_within(port, 10.0)
             assert took < 5.0, took
             assert ep.counters().peers_evicted > 0

@@ -11,23 +11,18 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_rig import M, Rig, rig_factory, wait_until
+from test_mavlink_rig import M, Rig, wait_until
 
 from bridge.mavlink.dispatch import _mask, flag_param, given, int_param
 from bridge.sim.motion import Still
 
 NAN = math.nan
 ACCEPTED = M.MAV_RESULT_ACCEPTED
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 @pytest.mark.parametrize(

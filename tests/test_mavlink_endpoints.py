@@ -12,8 +12,9 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, wait_until
+from test_mavlink_rig import DEADLINE_S, M, free_port, mavutil, recv_udp, wait_until
 
+from benchmarks.fuzz_hostile import heartbeat
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.endpoints import (
     Endpoint,
@@ -53,8 +54,7 @@ def ping(i: int) -> Message:
 
 
 def heartbeat_bytes(sysid: int = 255, compid: int = 190) -> bytes:
-    mav = M.MAVLink(None, sysid, compid)
-    return bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+    return heartbeat(M.MAVLink(None, sysid, compid))
 
 
 @pytest.fixture
@@ -84,16 +84,6 @@ def parse_all(data: bytes, key: bytes | None = None) -> list[Any]:
     if key:
         mav.signing.secret_key = key
     return [m for m in (mav.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
-
-
-def recv_udp(sock: socket.socket, n: int, timeout: float = DEADLINE_S) -> list[bytes]:
-    out: list[bytes] = []
-    sock.settimeout(0.2)
-    deadline = time.monotonic() + timeout
-    while len(out) < n and time.monotonic() < deadline:
-        with contextlib.suppress(TimeoutError):
-            out.append(sock.recv(65535))
-    return out
 
 
 @pytest.mark.integration

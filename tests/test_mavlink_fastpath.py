@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import math
 import random
-import socket
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
@@ -25,13 +24,12 @@ from harness import ManualClock
 from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
-from test_mavlink_rig import DEADLINE_S, M
+from test_mavlink_rig import DEADLINE_S, M, offline_daemon
 from test_mavlink_telemetry import make_sample
 
+from benchmarks.procstat import udp_socket
 from bridge.app.sample import CompassSample
-from bridge.config import config_from_mapping
 from bridge.core import pacing
-from bridge.daemon import build_daemon
 from bridge.mavlink import schedule as S  # noqa: N812 - short
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.mavlink.dialect import Message as Packet
@@ -154,9 +152,7 @@ class Peer:
     """A ground station on a plain UDP socket; pymavlink encodes and parses."""
 
     def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
+        self.sock = udp_socket(0.1)
         self.port = int(self.sock.getsockname()[1])
         self.mav = M.MAVLink(None, 255, 190)
         self.parser = M.MAVLink(None)
@@ -212,17 +208,9 @@ def bench(tmp_path: Path) -> Iterator[Callable[..., Bench]]:
 
     def make(**mavlink: Any) -> Bench:
         peer = Peer()
-        cfg = config_from_mapping(
-            {
-                "device": {"port": "sim"},
-                "storage": {"dir": str(tmp_path)},
-                "zenoh": {"enabled": False},
-                "mavlink": {"endpoints": [f"udpout:127.0.0.1:{peer.port}"], **mavlink},
-            },
-            env={},
-            hostname="fastpath",
+        cfg, daemon = offline_daemon(
+            tmp_path, "fastpath", endpoints=[f"udpout:127.0.0.1:{peer.port}"], **mavlink
         )
-        daemon = build_daemon(cfg)  # never started: the services the output uses
         clock = ManualClock(100.0)
         out = MavlinkOutput(MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=clock)
         sent: list[Packet] = []

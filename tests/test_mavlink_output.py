@@ -11,7 +11,7 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,6 @@ from test_mavlink_rig import (
     Rig,
     connect_gcs,
     free_port,
-    rig_factory,
     start_rig,
     wait_until,
 )
@@ -40,11 +39,6 @@ from bridge.core.wmm import earth_field
 from bridge.sim.motion import Still
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 REAL32, INT8, INT32 = M.MAV_PARAM_TYPE_REAL32, M.MAV_PARAM_TYPE_INT8, M.MAV_PARAM_TYPE_INT32

@@ -31,6 +31,8 @@ os.environ.setdefault("MAVLINK20", "1")  # before mavutil picks its dialect modu
 import waiting
 from pymavlink import mavutil
 
+from benchmarks import procstat
+from benchmarks.fuzz_hostile import heartbeat
 from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config, config_from_mapping
 from bridge.daemon import Daemon, build_daemon
@@ -54,13 +56,14 @@ GCS_SYSID, GCS_COMPID = 255, 190
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    """A port nobody listens on right now (127.0.0.1)."""
-    s = socket.socket(socket.AF_INET, kind)
-    try:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-    finally:
-        s.close()
+    """A port nobody listens on right now (127.0.0.1; UDP unless ``kind`` says otherwise)."""
+    return procstat.free_port(kind)
+
+
+def recv_udp(sock: socket.socket, n: int, timeout: float = DEADLINE_S) -> list[bytes]:
+    """The first ``n`` datagrams arriving on ``sock`` within ``timeout`` s (fewer if not)."""
+    sock.settimeout(0.2)
+    return list(itertools.islice(procstat.datagrams(sock, within_s=timeout), n))
 
 
 class FastClock:
@@ -213,6 +216,23 @@ def make_config(tmp_path: Path, state: str = "state", **sections: dict[str, Any]
     return config_from_mapping(raw, env={}, hostname="test")
 
 
+def offline_daemon(tmp: Path, hostname: str, **mavlink: Any) -> tuple[Config, Daemon]:
+    """A configuration (a simulated compass, zenoh off, state in ``tmp``; ``mavlink`` its
+    section, no endpoints unless given) and its daemon, never started: the services a
+    :class:`MavlinkOutput` under test uses, without the daemon's threads."""
+    cfg = config_from_mapping(
+        {
+            "device": {"port": "sim"},
+            "storage": {"dir": str(tmp)},
+            "zenoh": {"enabled": False},
+            "mavlink": {"endpoints": [], **mavlink},
+        },
+        env={},
+        hostname=hostname,
+    )
+    return cfg, build_daemon(cfg)
+
+
 @dataclass
 class Rig:
     """A running daemon with a MAVLink output on a simulated compass."""
@@ -348,7 +368,7 @@ def wait_until(cond: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
 def rig_factory() -> Iterator[Callable[..., Rig]]:
     """Factory of started rigs; every one is stopped at the end.
 
-    Test modules wrap it in their own fixture (``yield from rig_factory()``).
+    The suite's ``rigs`` fixture (tests/conftest.py) is this, for every test module.
     """
     made: list[Rig] = []
 
@@ -362,12 +382,6 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
         r.stop()
 
 
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    """Started rigs, stopped at the end of the test."""
-    yield from rig_factory()
-
-
 # ------------------------------------------------------------------------------ the rig's own tests
 
 
@@ -375,20 +389,11 @@ def test_bytes_on_the_wire_are_mavlink2(tmp_path: Path, rigs: Callable[..., Rig]
     """A raw UDP socket (no pymavlink in between) sees 0xFD packets from our ids."""
     rig = rigs(tmp_path)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.settimeout(1.0)
     try:
         # Any datagram makes the udpin endpoint treat us as a peer: send a real HEARTBEAT.
         gcs_mav = M.MAVLink(None, GCS_SYSID, GCS_COMPID)
-        sock.sendto(
-            gcs_mav.heartbeat_encode(6, 8, 0, 0, 0).pack(gcs_mav), ("127.0.0.1", rig.udp_port)
-        )
-        got: list[bytes] = []
-        deadline = time.monotonic() + DEADLINE_S
-        while len(got) < 20 and time.monotonic() < deadline:
-            try:
-                got.append(sock.recv(65535))
-            except TimeoutError:
-                continue
+        sock.sendto(heartbeat(gcs_mav), ("127.0.0.1", rig.udp_port))
+        got = recv_udp(sock, 20)
     finally:
         sock.close()
     assert len(got) >= 20

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,6 @@ from test_mavlink_rig import (
     M,
     Rig,
     connect_gcs,
-    rig_factory,
 )
 
 from bridge.mavlink.signing import (
@@ -25,12 +24,6 @@ from bridge.mavlink.signing import (
     Verdict,
     unix_to_ticks,
 )
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
-
 
 KEY = bytes.fromhex("a3" * 16 + "5c" * 16)
 WRONG_KEY = bytes(32)

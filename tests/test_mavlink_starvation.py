@@ -16,23 +16,27 @@ from __future__ import annotations
 
 import socket
 import subprocess
-import threading
 import time
 from pathlib import Path
 
 import pytest
 from mavlink_clients import signed_mav
-from pymavlink.dialects.v20 import ardupilotmega as apm
 from service_harness import (
     DaemonProcess,
     free_port,
     free_udp_port,
-    receive_datagrams,
     toml_config,
     wait_for,
 )
 
-from benchmarks.fuzz_hostile import end_attack, idle_clients, start_flood
+from benchmarks.fuzz_hostile import (
+    Gcs,
+    end_attack,
+    heartbeat,
+    idle_clients,
+    in_window,
+    start_flood,
+)
 from bridge.sim.firmware import make_firmware
 from bridge.sim.pty import PtyCompass
 
@@ -45,56 +49,8 @@ JUNK_PER_S = 1000
 IDLE_TCP = 50
 
 
-class SignedGcs:
-    """A ground station on ``udpin``: signed HEARTBEATs at 1 Hz, ATTITUDE by bridge time."""
-
-    def __init__(self, port: int) -> None:
-        self.addr = ("127.0.0.1", port)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
-        self.mav = signed_mav(KEY, 255)
-        self.parser = apm.MAVLink(None)
-        self.lock = threading.Lock()
-        self.att_boot_ms: list[int] = []
-        self.sent: list[bytes] = []  # what an attacker could capture and replay
-        self._stop = threading.Event()
-        self._threads = [
-            threading.Thread(target=self._beat, daemon=True),
-            threading.Thread(target=self._recv, daemon=True),
-        ]
-        for t in self._threads:
-            t.start()
-
-    def _beat(self) -> None:
-        while not self._stop.is_set():
-            pkt = bytes(self.mav.heartbeat_encode(6, 8, 0, 0, 0).pack(self.mav))
-            self.sent.append(pkt)
-            self.sock.sendto(pkt, self.addr)
-            self._stop.wait(1.0)
-
-    def _recv(self) -> None:
-        receive_datagrams(self.sock, self._stop, self._keep)
-
-    def _keep(self, data: bytes) -> None:
-        for m in self.parser.parse_buffer(data) or []:
-            if m.get_type() == "ATTITUDE":
-                with self.lock:
-                    self.att_boot_ms.append(int(m.time_boot_ms))
-
-    def attitudes(self) -> list[int]:
-        with self.lock:
-            return list(self.att_boot_ms)
-
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(2.0)
-        self.sock.close()
-
-
 def rate_in_window(stamps: list[int], start_ms: int) -> float:
-    return sum(1 for t in stamps if start_ms <= t < start_ms + WINDOW_MS) / (WINDOW_MS / 1000)
+    return in_window(stamps, start_ms, WINDOW_MS) / (WINDOW_MS / 1000)
 
 
 def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude(
@@ -113,31 +69,27 @@ def test_junk_from_1000_ports_and_50_idle_tcp_clients_leave_the_gcs_its_attitude
         )
         cfg.write_text(text.replace("[mavlink]\n", f'[mavlink]\nsigning_key_file = "{key_file}"\n'))
         d = DaemonProcess(cfg, None, tmp_path / "daemon.log", watchdog_usec=None)
-        gcs = SignedGcs(udp)
+        gcs = Gcs(udp, KEY)
         idle: list[socket.socket] = []
         flood: subprocess.Popen[str] | None = None
         try:
-            wait_for(lambda: len(gcs.attitudes()) >= 20, "ATTITUDE at the signed GCS")
+            wait_for(lambda: len(gcs.attitude_boot_ms()) >= 20, "ATTITUDE at the signed GCS")
             # What an attacker has: junk, its own packets, and copies of the GCS's.
             flood = start_flood(udp, JUNK_PER_S, 14, gcs.sent[:3])
             idle += idle_clients(tcp, IDLE_TCP)
             time.sleep(2.0)  # the flood is on, the crowd connected
-            start_ms = max(gcs.attitudes())
+            start_ms = max(gcs.attitude_boot_ms())
             # A newcomer on tcpin, meanwhile, is served within 5 s.
             t0 = time.monotonic()
             with socket.create_connection(("127.0.0.1", tcp), timeout=10.0) as c:
-                c.sendall(
-                    bytes(
-                        signed_mav(KEY, 250, 3)
-                        .heartbeat_encode(6, 8, 0, 0, 0)
-                        .pack(signed_mav(KEY, 250, 3))
-                    )
-                )
+                c.sendall(heartbeat(signed_mav(KEY, 250, 3)))
                 c.settimeout(10.0)
                 assert c.recv(4096)
             served_s = time.monotonic() - t0
-            wait_for(lambda: max(gcs.attitudes()) >= start_ms + WINDOW_MS, "the window", 30.0)
-            rate = rate_in_window(gcs.attitudes(), start_ms)
+            wait_for(
+                lambda: max(gcs.attitude_boot_ms()) >= start_ms + WINDOW_MS, "the window", 30.0
+            )
+            rate = rate_in_window(gcs.attitude_boot_ms(), start_ms)
             out, _ = flood.communicate(timeout=30.0)
             junk_rate = float(out.strip())
             assert junk_rate >= 0.9 * JUNK_PER_S, junk_rate  # the flood did run

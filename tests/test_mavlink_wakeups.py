@@ -16,12 +16,10 @@ from pathlib import Path
 
 import pytest
 from harness import ManualClock
-from test_mavlink_rig import M
+from test_mavlink_rig import M, offline_daemon
 
 from bridge.app.params import ParamChange
-from bridge.config import config_from_mapping
 from bridge.core.pacing import early_s
-from bridge.daemon import build_daemon
 from bridge.events import Event, Severity
 from bridge.mavlink import commands as C  # noqa: N812 - short
 from bridge.mavlink.dialect import Message
@@ -46,17 +44,7 @@ class Sent(Link):
 
 @pytest.fixture
 def out(tmp_path: Path) -> Iterator[MavlinkOutput]:
-    cfg = config_from_mapping(
-        {
-            "device": {"port": "sim"},
-            "storage": {"dir": str(tmp_path)},
-            "zenoh": {"enabled": False},
-            "mavlink": {"endpoints": []},
-        },
-        env={},
-        hostname="wakeups",
-    )
-    daemon = build_daemon(cfg)  # never started: the services the output reads
+    cfg, daemon = offline_daemon(tmp_path, "wakeups")
     o = MavlinkOutput(
         MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=ManualClock(T0)
     )

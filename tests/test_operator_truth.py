@@ -21,12 +21,12 @@ import subprocess
 import sys
 import time
 import tomllib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from test_mavlink_calibration import FIELD
-from test_mavlink_rig import M, Rig, free_port, rig_factory, wait_until
+from test_mavlink_rig import M, Rig, free_port, wait_until
 
 from bridge.app.sample import CompassSample
 from bridge.sim.firmware import Firmware
@@ -49,11 +49,6 @@ def cli(
         env=env,
         stdin=subprocess.DEVNULL,
     )
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 class TruthOffsets:

@@ -8,10 +8,10 @@ import re
 import shlex
 import stat
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_cli
 from service_harness import DaemonProcess, FakeServiceManager, free_port, free_udp_port
 
 REPO = Path(__file__).resolve().parents[1]
@@ -32,13 +32,7 @@ def _code(section: str, lang: str) -> str:
 
 
 def _config(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "bridge", "config", *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=dict(os.environ, STATE_DIRECTORY=str(tmp_path / "state")),
-    )
+    return run_cli(tmp_path, "config", *args, timeout=60)
 
 
 @pytest.mark.integration

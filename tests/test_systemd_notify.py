@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import threading
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 from harness import ManualClock
 
+from benchmarks.procstat import datagrams
 from bridge.link.observed import ObservedTransport
 from bridge.systemd.notify import (
     Liveness,
@@ -20,11 +22,12 @@ from bridge.systemd.notify import (
     notify_address,
     watchdog_interval_s,
 )
+from bridge.types import ClosedOnExit
 
 DEADLINE_S = 5.0
 
 
-class FakeManager:
+class FakeManager(ClosedOnExit):
     """The service manager's end: a bound AF_UNIX datagram socket that collects messages."""
 
     def __init__(self, address: str) -> None:
@@ -34,12 +37,7 @@ class FakeManager:
         self.messages: list[dict[str, str]] = []
 
     def pump(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            try:
-                data = self.sock.recv(65536)
-            except TimeoutError:
-                continue
+        for data in datagrams(self.sock, within_s=seconds):
             self.messages.append(dict(line.split("=", 1) for line in data.decode().split("\n")))
 
     def wait_for(
@@ -62,9 +60,8 @@ class FakeManager:
 @pytest.fixture
 def abstract_manager() -> Iterator[tuple[FakeManager, str]]:
     name = f"compass-bridge-test-{os.getpid()}-{threading.get_ident()}"
-    mgr = FakeManager("\0" + name)
-    yield mgr, "@" + name
-    mgr.close()
+    with FakeManager("\0" + name) as mgr:
+        yield mgr, "@" + name
 
 
 def test_address_forms() -> None:
@@ -77,8 +74,7 @@ def test_address_forms() -> None:
 
 @pytest.mark.integration
 def test_path_socket_messages(tmp_path: Path) -> None:
-    mgr = FakeManager(str(tmp_path / "notify"))
-    try:
+    with FakeManager(str(tmp_path / "notify")) as mgr:
         n = Notifier.from_env({"NOTIFY_SOCKET": str(tmp_path / "notify")})
         assert n.enabled
         assert n.ready("up and\nrunning")
@@ -88,8 +84,6 @@ def test_path_socket_messages(tmp_path: Path) -> None:
         assert mgr.messages[0] == {"READY": "1", "STATUS": "up and running"}
         assert mgr.messages[1] == {"WATCHDOG": "1"}
         assert mgr.messages[2] == {"STOPPING": "1"}
-    finally:
-        mgr.close()
 
 
 @pytest.mark.integration
@@ -123,27 +117,21 @@ def test_missing_manager_is_counted_not_raised(tmp_path: Path) -> None:
 
 @pytest.mark.integration
 def test_full_manager_queue_never_blocks(tmp_path: Path) -> None:
-    mgr = FakeManager(str(tmp_path / "notify"))  # bound, but never read
-    try:
+    with FakeManager(str(tmp_path / "notify")):  # bound, but never read
         n = Notifier(str(tmp_path / "notify"))
         t0 = time.monotonic()
         results = [n.status("x" * 300) for _ in range(5000)]
         assert time.monotonic() - t0 < DEADLINE_S  # a blocking send would hang here
         assert not all(results) and n.errors > 0  # the queue filled up: counted, not waited on
-    finally:
-        mgr.close()
 
 
 @pytest.mark.integration
 def test_status_is_one_line_and_bounded(tmp_path: Path) -> None:
-    mgr = FakeManager(str(tmp_path / "notify"))
-    try:
+    with FakeManager(str(tmp_path / "notify")) as mgr:
         Notifier(str(tmp_path / "notify")).status("a\nb\r\nc " + "z" * 1000)
         msg = mgr.wait_for(lambda m: "STATUS" in m)
         assert msg["STATUS"].startswith("a b c z")
         assert len(msg) == 1 and len(msg["STATUS"]) <= 400
-    finally:
-        mgr.close()
 
 
 def test_watchdog_interval_parsing() -> None:
@@ -174,17 +162,37 @@ def test_liveness_reports_only_parts_silent_too_long() -> None:
         lv.watch("x", 0.0, now=0.0)
 
 
-def _service(
-    mgr_addr: str, clock: ManualClock, lv: Liveness, streaming: list[bool], **kw: float
-) -> ServiceNotifier:
-    return ServiceNotifier(
-        Notifier(mgr_addr),
+@contextlib.contextmanager
+def _started(
+    addr: str,
+    streaming: bool,
+    *,
+    watch: tuple[str, float] | None = None,
+    clock: ManualClock | None = None,
+    **kw: float,
+) -> Iterator[tuple[ServiceNotifier, ManualClock, Liveness, list[bool]]]:
+    """A notifier telling the manager at ``addr`` (its ``@name``), on a manual clock (at
+    1000 s unless one is given), started for the ``with`` block and closed after: its
+    status and readiness follow ``streaming[0]`` (the list given, ``streaming`` at first);
+    ``watch``, a part's name and the silence allowed it, is watched from the clock's start.
+    Gives the notifier, clock, liveness, flag."""
+    clock = ManualClock(1000.0) if clock is None else clock
+    lv, flag = Liveness(), [streaming]
+    if watch is not None:
+        lv.watch(*watch, clock.t)
+    svc = ServiceNotifier(
+        Notifier(notify_address(addr) or ""),
         lv,
-        status=lambda: f"streaming={streaming[0]}",
-        streaming=lambda: streaming[0],
+        status=lambda: f"streaming={flag[0]}",
+        streaming=lambda: flag[0],
         clock=clock,
         **kw,
     )
+    svc.start()
+    try:
+        yield svc, clock, lv, flag
+    finally:
+        svc.close()
 
 
 @pytest.mark.integration
@@ -192,10 +200,7 @@ def test_ready_when_streaming_then_status_and_pings(
     abstract_manager: tuple[FakeManager, str],
 ) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [False]
-    lv.watch("main", 3.0, clock.t)
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=0.3).start()
-    try:
+    with _started(addr, False, watch=("main", 3.0), watchdog_s=0.3) as (_, clock, lv, streaming):
         mgr.wait_for(lambda m: m.get("WATCHDOG") == "1")  # pings start before READY
         mgr.pump(0.3)
         assert not any("READY" in m for m in mgr.messages)
@@ -206,24 +211,18 @@ def test_ready_when_streaming_then_status_and_pings(
         clock.t += 1.5  # past the status interval: the change is reported
         lv.beat("main", clock.t)
         mgr.wait_for(lambda m: m.get("STATUS") == "streaming=False")
-    finally:
-        svc.close()
 
 
 @pytest.mark.integration
 def test_ready_after_bounded_wait_says_why(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [False]
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, ready_timeout_s=10.0).start()
-    try:
+    with _started(addr, False, ready_timeout_s=10.0) as (_, clock, _, _):
         mgr.pump(0.3)
         assert not any("READY" in m for m in mgr.messages)
         clock.t += 10.0
         msg = mgr.wait_for(lambda m: "READY" in m)
         assert "without a streaming compass" in msg["STATUS"]
         assert "streaming=False" in msg["STATUS"]
-    finally:
-        svc.close()
 
 
 @pytest.mark.integration
@@ -232,10 +231,7 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
 ) -> None:
     """A wedged main loop (no beats) stops WATCHDOG=1; its return resumes them."""
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [True]
-    lv.watch("main loop", 4.0, clock.t)
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=0.3).start()
-    try:
+    with _started(addr, True, watch=("main loop", 4.0), watchdog_s=0.3) as (svc, clock, lv, _):
         mgr.wait_for(lambda m: m.get("WATCHDOG") == "1")
         clock.t += 5.0  # the main loop did not beat for 5 s ...
 
@@ -258,16 +254,12 @@ def test_pings_stop_while_a_part_is_silent_and_resume(
         run_clock_until(lambda: svc.pings > pings_before)
         mgr.pump(0.2)
         assert any(m.get("WATCHDOG") == "1" for m in mgr.messages[n_back:])
-    finally:
-        svc.close()
 
 
 @pytest.mark.integration
 def test_stopping_suppresses_later_status(abstract_manager: tuple[FakeManager, str]) -> None:
     mgr, addr = abstract_manager
-    clock, lv, streaming = ManualClock(1000.0), Liveness(), [True]
-    svc = _service(notify_address(addr) or "", clock, lv, streaming).start()
-    try:
+    with _started(addr, True) as (svc, clock, _, streaming):
         mgr.wait_for(lambda m: "READY" in m)
         svc.stopping("stopping")
         mgr.wait_for(lambda m: "STOPPING" in m)
@@ -275,8 +267,6 @@ def test_stopping_suppresses_later_status(abstract_manager: tuple[FakeManager, s
         clock.t += 5.0
         mgr.pump(0.5)
         assert not any(m.get("STATUS") == "streaming=False" for m in mgr.messages)
-    finally:
-        svc.close()
 
 
 class _FakePort:
@@ -383,9 +373,8 @@ def test_after_ready_the_thread_sleeps_until_its_next_status_look_or_ping(
     (watchdog / 3, 2 s here): the thread sleeps until then instead of ticking five times a
     second. Time stands still here, so over 0.8 s of real time it wakes at most once."""
     mgr, addr = abstract_manager
-    clock, lv, streaming = CountingClock(), Liveness(), [True]
-    svc = _service(notify_address(addr) or "", clock, lv, streaming, watchdog_s=6.0).start()
-    try:
+    clock = CountingClock()
+    with _started(addr, True, clock=clock, watchdog_s=6.0) as (svc, _, _, streaming):
         mgr.wait_for(lambda m: "READY" in m)
         mgr.pump(0.2)
         before = clock.readings
@@ -396,5 +385,3 @@ def test_after_ready_the_thread_sleeps_until_its_next_status_look_or_ping(
         mgr.wait_for(lambda m: m.get("STATUS") == "streaming=False")
         clock.t += 1.0  # ... and the ping (2 s after the last)
         mgr.wait_for(lambda m: m.get("WATCHDOG") == "1" and svc.pings >= 2)
-    finally:
-        svc.close()

@@ -47,8 +47,7 @@ def test_ready_status_watchdog_reload_and_stop(
 ) -> None:
     cfg = tmp_path / "bridge.toml"
     cfg.write_text(toml_config(str(compass.link_path), tmp_path / "state"))
-    d = DaemonProcess(cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC)
-    try:
+    with DaemonProcess(cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC) as d:
         # READY once the compass streams, with a STATUS that says so.
         i, ready = manager.wait_for(lambda m: "READY" in m, proc=d)
         assert (ready.get("STATUS") or "").startswith(f"streaming {compass.link_path}")
@@ -103,8 +102,6 @@ def test_ready_status_watchdog_reload_and_stop(
         assert code == 0
         assert took < 5.0
         assert any("STOPPING" in m for m in manager.since(before))
-    finally:
-        d.kill()
 
 
 def test_hung_reader_stops_the_pings_and_sigterm_still_stops(
@@ -112,10 +109,9 @@ def test_hung_reader_stops_the_pings_and_sigterm_still_stops(
 ) -> None:
     cfg = tmp_path / "bridge.toml"
     cfg.write_text(toml_config(str(compass.link_path), tmp_path / "state"))
-    d = DaemonProcess(
+    with DaemonProcess(
         cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC, hanging_reader=True
-    )
-    try:
+    ) as d:
         i, _ = manager.wait_for(lambda m: "READY" in m, proc=d)
         manager.wait_for(lambda m: m.get("WATCHDOG") == "1", after=i, proc=d)
         d.signal(signal.SIGUSR2)  # the stand-in's serial reader blocks in its next read
@@ -141,8 +137,6 @@ def test_hung_reader_stops_the_pings_and_sigterm_still_stops(
         code = d.wait(10.0)
         assert code == 0 and time.monotonic() - t0 < 5.0
         assert any("STOPPING" in m for m in manager.since(before))
-    finally:
-        d.kill()
 
 
 def test_ready_after_bounded_wait_without_a_compass(
@@ -151,8 +145,7 @@ def test_ready_after_bounded_wait_without_a_compass(
     """No device at the port: READY=1 comes anyway (bounded), STATUS says it is waiting."""
     cfg = tmp_path / "bridge.toml"
     cfg.write_text(toml_config(str(tmp_path / "no-such-port"), tmp_path / "state"))
-    d = DaemonProcess(cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC)
-    try:
+    with DaemonProcess(cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC) as d:
         _, ready = manager.wait_for(lambda m: "READY" in m, timeout=25.0, proc=d)
         status = ready.get("STATUS") or ""
         assert "without a streaming compass" in status
@@ -161,5 +154,3 @@ def test_ready_after_bounded_wait_without_a_compass(
         mark = len(manager.messages)
         manager.wait_for(lambda m: len(_watchdogs(manager.since(mark))) >= 3, after=mark)
         assert d.stop() == 0
-    finally:
-        d.kill()

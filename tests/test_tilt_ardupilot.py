@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import pytest
 from autopilots import ARDUPILOT_INSTANCES, AUTOPILOTS, ardupilot_ports, claim_instance
-from test_mavlink_rig import Rig, connect_gcs, rig_factory, wait_until
+from test_mavlink_rig import Rig, connect_gcs, wait_until
 
 from bridge.core.geometry import euler_to_dcm
 from bridge.core.wmm import earth_field
@@ -64,11 +64,6 @@ class PushedSideways(MotionBase):
     def linear_acc_ned_g(self, t: float) -> np.ndarray:
         s = min(1.0, max(0.0, t / 2.0))
         return np.asarray(PUSH_G * s * s * (3.0 - 2.0 * s) * self._right, dtype=np.float64)
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 @contextlib.contextmanager

@@ -19,13 +19,13 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from test_mavlink_rig import M, Rig, connect_gcs, mavutil, rig_factory
+from test_mavlink_rig import M, Rig, connect_gcs, mavutil
 
 from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine
@@ -40,11 +40,6 @@ LEAD_S = 8.0  #: standing first: the bridge learns how the boards sit and the lo
 END_S = LEAD_S + 32.0  #: collect until the motion's clock reads this
 LATENCY_S = 0.04
 DECLINATION = earth_field(*DEFAULT_LOCATION).declination_deg
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 class StandingFirst(MotionBase):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from zenoh_rig import Bridge, free_port, status_of, wait_until
+from zenoh_rig import status_of_a_streaming_bridge
 
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.calibration.model import Calibration
@@ -151,10 +151,7 @@ def test_status_summary_and_its_tilt_line() -> None:
 
 @pytest.mark.integration
 def test_status_of_a_running_bridge_shows_its_tilt_source(tmp_path: Path) -> None:
-    port = free_port()
-    with Bridge(tmp_path, "boat9", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
-        wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
-        _, doc, human = status_of(port)
+    _, _, _, doc, human = status_of_a_streaming_bridge(tmp_path, "boat9")
     (rec,) = doc["bridges"]
     # a unit turning on the spot, standalone: the accelerometer's tilt, no autopilot
     assert rec["tilt"]["source"] == "accelerometer"

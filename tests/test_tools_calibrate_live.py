@@ -10,14 +10,14 @@ stored file, COMPASS_* parameters, RAW_IMU rate) is checked afterwards.
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from helpers import load_calibration, png_size
-from test_mavlink_rig import ALT, LAT, LON, M, Rig, free_port, rig_factory
+from test_mavlink_rig import ALT, LAT, LON, M, Rig, free_port
 
 from bridge.calibration.model import AffineCalibration
 from bridge.cli import main
@@ -36,11 +36,6 @@ FIELD = earth_field(LAT, LON, ALT)
 LOCATION = f"{LAT},{LON},{ALT}"
 SPREAD_RE = re.compile(r"field spread  ±(\d+\.\d) mG before  ->  ±(\d+\.\d) mG after")
 HEADING_RE = re.compile(r"heading error ~(\d+\.\d+) deg RMS")
-
-
-@pytest.fixture
-def rigs() -> Iterator[Callable[..., Rig]]:
-    yield from rig_factory()
 
 
 pytestmark = pytest.mark.usefixtures("restore_logging")  # main() runs in-process

@@ -6,7 +6,7 @@ import io
 from pathlib import Path
 
 import pytest
-from zenoh_rig import Bridge, free_port, status_of, wait_until
+from zenoh_rig import free_port, status_of_a_streaming_bridge
 
 from bridge.tools.status import BridgeAnswers, format_human, run_status, summarise
 from bridge.zenoh.monitor import MonitorOptions
@@ -14,10 +14,7 @@ from bridge.zenoh.monitor import MonitorOptions
 
 @pytest.mark.integration
 def test_status_reports_a_streaming_bridge_for_scripts_and_people(tmp_path: Path) -> None:
-    port = free_port()
-    with Bridge(tmp_path, "boat7", listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
-        wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
-        code, doc, text = status_of(port)
+    b, port, code, doc, text = status_of_a_streaming_bridge(tmp_path, "boat7")
     (rec,) = doc["bridges"]
     assert rec["bridge"] == b.prefix
     assert rec["link"]["state"] == "streaming"

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import socket
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from typing import Any
 import zenoh
 from waiting import wait_for
 
+from benchmarks.procstat import free_port as free_port  # the tests' one (TCP)
 from bridge.config import load_config
 from bridge.daemon import build_daemon
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
@@ -38,12 +38,6 @@ NO_SCOUTING = (
     ("scouting/multicast/enabled", "false"),
     ("scouting/gossip/enabled", "false"),
 )
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_until(pred: Callable[[], bool], timeout: float = DEADLINE_S, what: str = "") -> float:
@@ -210,15 +204,21 @@ def _command(session: zenoh.Session, key: str, args: dict[str, Any] | None = Non
     return out
 
 
-def status_of(port: int) -> tuple[int, dict[str, Any], str]:
-    """``compass-bridge status`` asking the bridges on ``tcp/127.0.0.1:port``: its exit
-    code and ``--json`` document, then its text for people."""
+def status_of_a_streaming_bridge(
+    tmp: Path, name: str
+) -> tuple[Bridge, int, int, dict[str, Any], str]:
+    """``compass-bridge status`` asking a bridge ``name`` (20 Hz, listening on
+    ``tcp/127.0.0.1:port``) once 40 frames went through it: the bridge (stopped since),
+    the port, the exit code and ``--json`` document, then the text for people."""
     from bridge.tools.status import run_status
     from bridge.zenoh.monitor import MonitorOptions
 
-    opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
-    out = io.StringIO()
-    code = run_status(opts, out, as_json=True, timeout=5.0)
-    human = io.StringIO()
-    run_status(opts, human, timeout=5.0)
-    return code, json.loads(out.getvalue()), human.getvalue()
+    port = free_port()
+    with Bridge(tmp, name, listen=[f"tcp/127.0.0.1:{port}"], rate_hz=20) as b:
+        wait_until(lambda: b.daemon.bridge.pipeline.samples >= 40, 15.0, "frames flowing")
+        opts = MonitorOptions(keyexpr="fleet/**/status", connect=(f"tcp/127.0.0.1:{port}",))
+        out = io.StringIO()
+        code = run_status(opts, out, as_json=True, timeout=5.0)
+        human = io.StringIO()
+        run_status(opts, human, timeout=5.0)
+    return b, port, code, json.loads(out.getvalue()), human.getvalue()
