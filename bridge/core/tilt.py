@@ -65,6 +65,9 @@ _SPIN_MIN_WHITE = (0.2 * _DEG) ** 2
 #: The accelerometer's down turning at 1 g is a turn by hand only from this far (degrees):
 #: an acceleration that turned it so far would lengthen it by 1.5 %.
 _HAND_MIN_DEG = 10.0
+#: After a restart the accelerometer is followed as it is this long (s): the turn rates that
+#: tell a hand from a vehicle need half a second of frames.
+_FRESH_S = 0.5
 
 
 # -- the estimate ---------------------------------------------------------------------
@@ -147,6 +150,7 @@ class TiltFilter:
         self._steady_lp: Vec3 | None = None  # ... and its down then
         self.still_s = 0.0
         self._spinning_until = -math.inf  # turned by hand (faster than a vehicle) until
+        self._fresh_until = -math.inf  # restarted: the accelerometer as it is until
         # (t, low-passed down, field, the accelerometer's down, at 1 g)
         self._recent: deque[tuple[float, Vec3, Vec3, Vec3, bool]] = deque()
         self.spin_dps = 0.0  #: the field's turn rate about any axis over the last second
@@ -257,6 +261,7 @@ class TiltFilter:
         t_last = self._t
         if self._d is None or t_last is None:
             self._d, t_last = ahat, t
+            self._fresh_until = t + _FRESH_S
         else:  # frames read in one burst share their arrival: half the mean interval apart
             gap = t - t_last
             gap = gap if gap < 1.0 else 1.0  # max(0, min(1, gap)) as comparisons: every frame
@@ -389,8 +394,10 @@ class TiltFilter:
             # (A turn by hand is a spin far more often than a tilt alone: no need to look
             # at the tilt then.)
             if self.spin_dps > st.spin_dps or (
-                # A down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
-                math.degrees(
+                # Just restarted: nothing yet tells a hand from a vehicle (as a hand's, then);
+                # or a down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
+                t < self._fresh_until
+                or math.degrees(
                     math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), lx * dx + ly * dy + lz * dz)
                 )
                 > st.max_accel_deg
