@@ -137,12 +137,13 @@ class Pipeline:
 
     def process(self, frame: object, t: float) -> CompassSample | None:
         """One received frame to a sample (None for frames that carry no heading)."""
+        # When the reader got it, on the compass's clock (frames read in one burst share it).
+        arrival = t if self._clock is None else self._clock()
         if isinstance(frame, AttitudeFrame):
-            # Sampled at tf; t is when the reader got it (frames read in one burst share it).
-            tf = self.frame_clock.at(frame.seq, t if self._clock is None else self._clock())
+            tf = self.frame_clock.at(frame.seq, arrival)  # when it was sampled
             self._feed(frame, tf)  # never raises; cheap when no calibration runs
             return self._from_gmr(frame, t, tf)
-        self._feed(frame, t)
+        self._feed(frame, arrival)
         if isinstance(frame, HeadingFrame):
             return self._from_heading(frame, t)
         return None  # $PGMRV/P/K/C: handled by the link
