@@ -8,9 +8,10 @@ and both UDP and TCP carry a conversation.
   with an inbox, so a test can wait for one message without losing the others,
   and every wait has a deadline.
 * :func:`start_rig` builds a :class:`Rig`: configuration from a mapping, the
-  simulated compass in process (``fast``: on a clock ``SPEED`` times real time,
-  with the calibration controller rebuilt on that clock, as the calibrator's
-  own tests do), the daemon with a :class:`MavlinkOutput`, started.
+  simulated compass in process (``fast``: on a :class:`FastClock`, ``SPEED`` times
+  real time but never far ahead of the compass's reader, with the calibration
+  controller and the pipeline's frame clock on it, as the calibrator's own tests
+  do), the daemon with a :class:`MavlinkOutput`, started.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from bridge.daemon import Daemon, build_daemon
 from bridge.link.serial_link import LinkState
 from bridge.link.transport import SimTransport
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
+from bridge.protocol.gmr import AttitudeFrame
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import Motion, YawTurns
 from bridge.sim.physics import DEFAULT_LOCATION
@@ -51,6 +53,8 @@ M: Any = mavutil.mavlink
 
 DEADLINE_S = 20.0  #: real seconds any single wait may take before the test fails
 SPEED = 20.0  #: fast rigs: simulated seconds per real second
+#: fast rigs: the most simulated time the compass runs ahead of its reader (a host's stall)
+LEAD_S = 0.5
 LAT, LON, ALT = DEFAULT_LOCATION
 GCS_SYSID, GCS_COMPID = 255, 190
 
@@ -67,16 +71,42 @@ def recv_udp(sock: socket.socket, n: int, timeout: float = DEADLINE_S) -> list[b
 
 
 class FastClock:
-    """Monotonic time running ``speed`` times faster than real time (and its sleep)."""
+    """Monotonic time running ``speed`` times faster than real time (and its sleep), that
+    never runs more than ``lead_s`` ahead of the compass's reader.
 
-    def __init__(self, speed: float) -> None:
+    A host that stalls delays the frames it reads, not the compass's sampling. Sped up,
+    a stall of the test machine is ``speed`` times longer to the simulated world: at 20x
+    a 100 ms stall is 2 s in which the reader reads nothing, the firmware drops every
+    frame older than that (a suspended host, ``MAX_BACKLOG_S``), and a six-face dwell
+    of 6 s can pass unread -- no real host stalls that long. So the world waits for
+    its reader: the transport's :meth:`sleep` is where the reader has caught up, and
+    from there the clock runs on at most ``lead_s``; a longer stall stops it. The
+    frames sampled meanwhile come in one burst of at most ``lead_s``, as after a real
+    stall of a host, and their ``seq`` tells the daemon when they were sampled.
+    """
+
+    def __init__(self, speed: float, lead_s: float = LEAD_S) -> None:
         self.speed = speed
+        self.lead_s = lead_s
         self._t0 = time.monotonic()
+        self._stopped = 0.0  #: simulated seconds the clock stood still, waiting for the reader
+        self._caught_up = self._t0  #: when the reader last waited for the compass
+        self._lock = threading.Lock()
 
     def __call__(self) -> float:
-        return self._t0 + (time.monotonic() - self._t0) * self.speed
+        with self._lock:
+            t = self._t0 + (time.monotonic() - self._t0) * self.speed - self._stopped
+            limit = self._caught_up + self.lead_s
+            if t > limit:
+                self._stopped += t - limit
+                t = limit
+            return t
 
     def sleep(self, seconds: float) -> None:
+        """The reader waits for the compass's next event: it is up to date now."""
+        now = self()
+        with self._lock:
+            self._caught_up = max(self._caught_up, now)
         time.sleep(max(0.0, seconds) / self.speed)
 
 
@@ -335,7 +365,8 @@ def start_rig(
     else:
         transport = SimTransport(fw)
     if fast:
-        # The calibration controller on the simulator's clock (as test_calibrator).
+        # The calibration controller and the frames' instants on the simulator's clock (as
+        # test_calibrator): the link's clock is real time, the compass's frames are not.
         daemon = build_daemon(
             cfg,
             transport=transport,
@@ -435,6 +466,41 @@ def test_udp_and_tcp_peers_both_get_a_conversation(
     udp.flush()
     tcp.command(M.MAV_CMD_GET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE)
     udp.nothing("COMMAND_ACK", None, 0.5)
+
+
+def test_a_stalled_reader_delays_the_fast_rigs_frames_but_loses_none_nor_their_instants(
+    tmp_path: Path, rigs: Callable[..., Rig]
+) -> None:
+    """A host that stalls delays the frames, not the compass's sampling. The reader held
+    off the port for 0.3 s, 6 simulated seconds at 20x (the firmware drops frames over 2 s
+    behind): the rig's clock waits for it, no frame is lost, and every frame reaches the
+    calibrator at the instant the firmware sampled it, on the compass's own 10 Hz. (On
+    wall time x 20 the stall lost 40 frames and the rest came stamped as they arrived.)"""
+    rig = rigs(tmp_path, fast=True)
+    pipeline = rig.daemon.bridge.pipeline
+    fed: list[tuple[int, float]] = []
+    feed = pipeline._feed
+
+    def record(frame: object, t: float) -> None:
+        if isinstance(frame, AttitudeFrame):
+            fed.append((frame.seq, t))
+        feed(frame, t)
+
+    pipeline._feed = record
+    assert wait_until(lambda: len(fed) >= 60)  # 6 simulated seconds: the rate is learnt
+    first = len(fed) - 10
+    transport = rig.daemon.transport.inner
+    assert isinstance(transport, SimTransport)
+    with transport._cond:  # the reader cannot read meanwhile
+        time.sleep(0.3)
+    assert wait_until(lambda: len(fed) >= first + 60)
+    pipeline._feed = feed
+    seqs = [seq for seq, _t in fed[first:]]
+    assert all((b - a) % 65536 == 1 for a, b in itertools.pairwise(seqs)), seqs
+    sampled = {e.frame.seq: e.t for e in list(rig.fw.truth)}
+    late = [t - sampled[seq] for seq, t in fed[first:]]
+    assert max(map(abs, late)) < 0.05, late  # half a frame's period
+    assert pipeline.frame_clock.rate_hz == 10.0
 
 
 def test_threads_of_a_stopped_rig_are_gone(tmp_path: Path) -> None:

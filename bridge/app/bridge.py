@@ -309,9 +309,10 @@ def build_bridge(
     calibration), ``calibration_source`` says where it came from. The hooks between
     the parts are bound methods and the functions above, never a lambda to a part
     built later. ``calibrator_settings`` tune the calibration controller; ``clock``
-    (a test's simulated clock) times the controller and the drift monitor's
-    samples; without it the controller's frames keep the instant they were sampled
-    (the pipeline's frame clock) and the drift monitor's their arrival.
+    (a test's simulated clock) times the controller, the drift monitor's samples
+    and the pipeline's frame clock (a frame's sampling instant on the simulated
+    compass's clock, not the link's); either way the controller's frames keep the
+    instant they were sampled and the drift monitor's their arrival.
     """
     calibrations = CalibrationStore(documents)
     stored = calibrations.load()
@@ -353,18 +354,19 @@ def build_bridge(
         mode=options.learn,
         on_mode=functools.partial(learning_lowered, params),
     )
-    feed: Callable[[object, float], None] = calibrator.feed
     observe: Callable[[AttitudeSolution, float, bool], None] = drift.observe
-    if clock is not None:  # a simulated clock: the controller and the drift monitor keep it
-
-        def feed(frame: object, t: float) -> None:
-            calibrator.feed(frame)
+    if clock is not None:  # a simulated clock: the drift monitor's arrivals on it too
 
         def observe(a: AttitudeSolution, t: float, saturated: bool) -> None:
             drift.observe(a, clock(), saturated)
 
     pipeline = Pipeline(
-        engine, events, feed=feed, calibrating=calibrator.calibrating, observe=observe
+        engine,
+        events,
+        feed=calibrator.feed,
+        calibrating=calibrator.calibrating,
+        observe=observe,
+        clock=clock,
     )
     return Bridge(
         events=events,

@@ -57,7 +57,10 @@ class Pipeline:
     frame's sampling instant from :attr:`frame_clock`, another frame's arrival) and
     ``calibrating`` tells whether a calibration runs (disturbance events are muted meanwhile);
     ``observe`` sees every host solution with its time and saturation (the
-    drift monitor's hook: one comparison per frame).
+    drift monitor's hook: one comparison per frame). ``clock``: the clock the compass's
+    frames are timed on when it is not the link's (a simulation's clock running faster
+    than the link's real time): the frame clock takes a frame's arrival on it, so the
+    sampling instants the engine and the calibrator get are the simulated compass's.
     """
 
     def __init__(
@@ -68,8 +71,10 @@ class Pipeline:
         feed: Callable[[object, float], None],
         calibrating: Callable[[], bool],
         observe: Callable[[AttitudeSolution, float, bool], None] | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         self.engine = engine
+        self._clock = clock
         self.events = events
         self._feed = feed
         self._calibrating = calibrating
@@ -132,12 +137,13 @@ class Pipeline:
 
     def process(self, frame: object, t: float) -> CompassSample | None:
         """One received frame to a sample (None for frames that carry no heading)."""
+        # When the reader got it, on the compass's clock (frames read in one burst share it).
+        arrival = t if self._clock is None else self._clock()
         if isinstance(frame, AttitudeFrame):
-            # Sampled at tf; t is when the reader got it (frames read in one burst share it).
-            tf = self.frame_clock.at(frame.seq, t)
+            tf = self.frame_clock.at(frame.seq, arrival)  # when it was sampled
             self._feed(frame, tf)  # never raises; cheap when no calibration runs
             return self._from_gmr(frame, t, tf)
-        self._feed(frame, t)
+        self._feed(frame, arrival)
         if isinstance(frame, HeadingFrame):
             return self._from_heading(frame, t)
         return None  # $PGMRV/P/K/C: handled by the link

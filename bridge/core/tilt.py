@@ -62,6 +62,12 @@ _MAX_VAR = _MAX_SIGMA**2
 #: Turned by hand: the tilt's variance is floored at this, the frame's own down's noise at that.
 _SPIN_FLOOR_VAR = (5.0 * _DEG) ** 2
 _SPIN_MIN_WHITE = (0.2 * _DEG) ** 2
+#: The accelerometer's down turning at 1 g is a turn by hand only from this far (degrees):
+#: an acceleration that turned it so far would lengthen it by 1.5 %.
+_HAND_MIN_DEG = 10.0
+#: After a restart the accelerometer is followed as it is this long (s): the turn rates that
+#: tell a hand from a vehicle need half a second of frames.
+_FRESH_S = 0.5
 
 
 # -- the estimate ---------------------------------------------------------------------
@@ -144,7 +150,9 @@ class TiltFilter:
         self._steady_lp: Vec3 | None = None  # ... and its down then
         self.still_s = 0.0
         self._spinning_until = -math.inf  # turned by hand (faster than a vehicle) until
-        self._recent: deque[tuple[float, Vec3, Vec3]] = deque()  # (t, low-passed down, field)
+        self._fresh_until = -math.inf  # restarted: the accelerometer as it is until
+        # (t, low-passed down, field, the accelerometer's down, at 1 g)
+        self._recent: deque[tuple[float, Vec3, Vec3, Vec3, bool]] = deque()
         self.spin_dps = 0.0  #: the field's turn rate about any axis over the last second
         self._white = self.settings.accel_noise_g**2  # learnt white noise (vibration)
         self._heave = 0.0  # low-passed vertical acceleration, g
@@ -253,6 +261,7 @@ class TiltFilter:
         t_last = self._t
         if self._d is None or t_last is None:
             self._d, t_last = ahat, t
+            self._fresh_until = t + _FRESH_S
         else:  # frames read in one burst share their arrival: half the mean interval apart
             gap = t - t_last
             gap = gap if gap < 1.0 else 1.0  # max(0, min(1, gap)) as comparisons: every frame
@@ -373,19 +382,22 @@ class TiltFilter:
             # The low-passed down turning fast, with the field: a tilt faster than a
             # vehicle's (swell aside) -- a hand.
             rec = self._recent
-            rec.append((t, lp, mhat))
+            one_g = abs(an - self._g0) < 0.01
+            rec.append((t, lp, mhat, ahat, one_g))
             horizon = t - 0.5
             while len(rec) > 2 and rec[1][0] <= horizon:
                 rec.popleft()
-            tr, dr, mr = rec[0]
+            tr, dr, mr, ar, one_g_then = rec[0]
             # (angle_deg(lp, d) written out)
             dx, dy, dz = d
             cx, cy, cz = ly * dz - lz * dy, lz * dx - lx * dz, lx * dy - ly * dx
             # (A turn by hand is a spin far more often than a tilt alone: no need to look
             # at the tilt then.)
             if self.spin_dps > st.spin_dps or (
-                # A down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
-                math.degrees(
+                # Just restarted: nothing yet tells a hand from a vehicle (as a hand's, then);
+                # or a down further off than any vehicle accelerates (30 deg: 0.58 g): turned.
+                t < self._fresh_until
+                or math.degrees(
                     math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), lx * dx + ly * dy + lz * dz)
                 )
                 > st.max_accel_deg
@@ -394,6 +406,17 @@ class TiltFilter:
                     and angle_deg(dr, lp) / (t - tr) > st.spin_dps
                     and turned(dr, lp, mr, mhat)
                     and heave < st.heave_g
+                )
+                or (
+                    # The accelerometer's own down turning as fast, at 1 g throughout: no
+                    # acceleration turns it 10 deg without lengthening it 1.5 %. (A turn about
+                    # an axis near the field's turns the down, hardly the field: neither the
+                    # spin nor turned() sees it.)
+                    one_g
+                    and one_g_then
+                    and t - tr >= 0.25
+                    and heave < st.heave_g
+                    and angle_deg(ar, ahat) > max(_HAND_MIN_DEG, st.spin_dps * (t - tr))
                 )
             ):
                 # Faster than a vehicle turns: a hand. Follow the accelerometer as it is.

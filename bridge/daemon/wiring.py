@@ -255,9 +255,10 @@ def build_daemon(
     (tests' collectors); those built on its services are added with
     ``daemon.bridge.pipeline.set_outputs``. ``calibrator_settings`` tune the
     calibration controller; ``clock`` (a test's simulated clock) times the
-    controller and the drift monitor's samples; without it the controller's frames
-    keep the instant they were sampled (the pipeline's frame clock) and the drift
-    monitor's their arrival.
+    controller, the drift monitor's samples and the pipeline's frame clock (the
+    frames' sampling instants on the simulated compass's clock, not the link's);
+    either way the controller's frames keep the instant they were sampled and the
+    drift monitor's their arrival.
     """
     # -- the port and what the state directory holds
     if transport is None:
