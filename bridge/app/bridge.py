@@ -310,8 +310,8 @@ def build_bridge(
     the parts are bound methods and the functions above, never a lambda to a part
     built later. ``calibrator_settings`` tune the calibration controller; ``clock``
     (a test's simulated clock) times the controller and the drift monitor's
-    samples; without it the controller's frames keep the instant they were sampled
-    (the pipeline's frame clock) and the drift monitor's their arrival.
+    samples; without it both take each frame at the instant it was sampled (the
+    pipeline's frame clock), not its arrival.
     """
     calibrations = CalibrationStore(documents)
     stored = calibrations.load()
