@@ -200,10 +200,12 @@ class DriftMonitor:
         self._mode = _checked(mode)
         self._on = mode != "off"
         # reader thread
-        # A frame a hair early still counts: half a frame at 100 Hz. The frames' instants are
-        # the compass's own (the pipeline's frame clock), one period apart to the ulp; at 0.9
-        # the ninth frame at 100 Hz sat on the gate, and rounding kept it or the tenth.
-        self._period = 0.95 * self.config.sample_period_s
+        # A frame up to 15 ms early still counts (a 10 Hz compass's jitter; a test's fast
+        # simulated clock multiplies it). The frames' instants are the compass's own (the
+        # pipeline's frame clock), one period apart to the ulp: at 0.9 the ninth frame at
+        # 100 Hz sat on the gate, and rounding kept it or the tenth. At 0.85 no device rate
+        # puts a frame within 5 ms of it (100 Hz: every ninth frame; 50, 20, 10 Hz: 0.1 s).
+        self._period = 0.85 * self.config.sample_period_s
         self._block_s = self.config.block_s
         self._due = -math.inf
         self._block: _Block | None = None
