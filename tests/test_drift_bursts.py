@@ -13,138 +13,30 @@ every ninth frame of that clock at 100 Hz: the same frames at the same instants,
 they were read.
 
 In memory: the application's pipeline, a 10 Hz output paced as the MAVLink output is, the
-link's stamping worked out by its own rules (``link_reads``), and the monitor, on one
-simulated drive whose hard iron changes and is learned back, read two ways.
+link's stamping worked out by its own rules, and the monitor, on one simulated drive whose
+hard iron changes and is learned back, read two ways (``benchmarks.reads``, whose figures,
+``python -m benchmarks reads``, add a busy host and the arrivals the monitor once took).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
-
 import numpy as np
 import pytest
-from link_reads import LinkReads, Paced, feed_as_read
 
-import bridge.app.calibration.drift as drift_module
-from benchmarks.drift import Unit
-from bridge.app.calibration.drift import DriftMonitor
-from bridge.app.pipeline import Pipeline
-from bridge.app.settings import EngineSettings
-from bridge.calibration.drift.estimator import DriftEstimate, DriftEstimator, Reference
-from bridge.calibration.model import Calibration
-from bridge.core.attitude import AttitudeEngine
-from bridge.core.wmm import earth_field
-from bridge.events import Event, EventBus
-from bridge.protocol.gmr import AttitudeFrame, Flags
-from bridge.sim.physics import DEFAULT_LOCATION
+from benchmarks.reads import LATENCY_S, T0, Watched, drive, watch
 
-FIELD = earth_field(*DEFAULT_LOCATION)
-CHANGE_G = (0.012, -0.028, 0.025)  # 40 mG, sensor axes
-RATE_HZ = 100
-T0 = 1000.0  # the monotonic clock at the first frame
-LATENCY_S = 0.0006  # a frame's last byte reaches the host this long after it was sampled
 #: The monitor is switched on this far into the drive: the frame clock has learnt the
 #: compass's rate (4 s of arrivals), as it has long before anyone watches a running bridge.
 LEAD_S = 6.0
 BEFORE_S, AFTER_S = 60.0, 110.0  # the drive before and after its hard iron changes
 
 
-@dataclass
-class Watched:
-    """What the monitor did with one read of the drive."""
-
-    rows: list[np.ndarray] = field(default_factory=list)  #: the samples its recent fit got
-    fits: list[DriftEstimate] = field(default_factory=list)  #: ... and the recent fits
-    events: list[Event] = field(default_factory=list)
-    applied: list[Calibration] = field(default_factory=list)
-    status: dict[str, Any] = field(default_factory=dict)
-    bursts: int = 0  #: the link's reads of more than one held frame
-
-    @property
-    def samples(self) -> np.ndarray:
-        return np.concatenate(self.rows)
-
-
-def drive() -> tuple[Unit, list[AttitudeFrame], list[float]]:
-    """The frames of a drive at 100 Hz (the hard iron changed after ``BEFORE_S``) and when
-    each was sampled."""
-    unit = Unit(2, float(RATE_HZ), FIELD)
-    t1, s1 = unit.frames(0.0, BEFORE_S)
-    changed = unit.model.with_hard_iron_change(CHANGE_G)
-    t2, s2 = unit.frames(BEFORE_S, BEFORE_S + AFTER_S, changed)
-    mc = np.concatenate([s1.mag_counts, s2.mag_counts]).tolist()
-    ac = np.concatenate([s1.acc_counts, s2.acc_counts]).tolist()
-    sat = np.concatenate([s1.saturated, s2.saturated]).tolist()
-    frames = [
-        AttitudeFrame(
-            i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, Flags.SAT if s else Flags(0)
-        )
-        for i, ((mx, my, mz), (ax, ay, az), s) in enumerate(zip(mc, ac, sat, strict=True))
-    ]
-    return unit, frames, (T0 + np.concatenate([t1, t2])).tolist()
-
-
-def watch(
-    mp: pytest.MonkeyPatch,
-    unit: Unit,
-    frames: list[AttitudeFrame],
-    sampled: list[float],
-    bursts: bool,
-) -> Watched:
-    """The drive through the pipeline into a learning drift monitor, read as it comes or in
-    the link's bursts."""
-    seen = Watched()
-    window_s = drift_module.DriftSettings().window_s
-
-    class Recorded(DriftEstimator):
-        """The monitor's estimators, the recent one's samples and fits recorded."""
-
-        def add(self, rows: Any) -> None:
-            if self.window_s == window_s:
-                seen.rows.append(np.array(rows, dtype=np.float64))
-            super().add(rows)
-
-        def estimate(self, reference: Reference | None = None) -> DriftEstimate | None:
-            est = super().estimate(reference)
-            if est is not None and self.window_s == window_s:
-                seen.fits.append(est)
-            return est
-
-    mp.setattr(drift_module, "DriftEstimator", Recorded)
-    engine = AttitudeEngine(unit.errors.true_calibration())
-    settings = EngineSettings(engine, field=FIELD)
-    bus = EventBus()
-    bus.subscribe(seen.events.append)
-
-    def apply(cal: Calibration, source: str, report: Any, view: Any) -> str:
-        seen.applied.append(cal)
-        settings.update_calibration(cal, source)
-        return ""
-
-    monitor = DriftMonitor(settings, bus, apply=apply, calibrating=lambda: False, mode="off")
-    pipeline = Pipeline(
-        engine, bus, feed=lambda f, t: None, calibrating=lambda: False, observe=monitor.observe
-    )
-    pipeline.set_outputs([Paced()])
-    link = LinkReads(RATE_HZ, pipeline.due_at_time) if bursts else None
-    comes = [t + LATENCY_S for t in sampled]
-    lead = round(LEAD_S * RATE_HZ)
-    feed_as_read(pipeline, frames[:lead], comes[:lead], link)
-    monitor.set_mode("learn")
-    feed_as_read(pipeline, frames[lead:], comes[lead:], link)
-    seen.status = monitor.status().to_dict()
-    seen.bursts = 0 if link is None else link.bursts
-    return seen
-
-
 @pytest.fixture(scope="module")
 def read_two_ways() -> tuple[Watched, Watched]:
     """The drive read as it comes, and in the link's bursts."""
-    unit, frames, sampled = drive()
-    with pytest.MonkeyPatch.context() as mp:
-        even = watch(mp, unit, frames, sampled, bursts=False)
-        held = watch(mp, unit, frames, sampled, bursts=True)
+    unit, frames, sampled = drive(2, BEFORE_S, AFTER_S)
+    even = watch(unit, frames, sampled, bursts=False, lead_s=LEAD_S)
+    held = watch(unit, frames, sampled, bursts=True, lead_s=LEAD_S)
     # nine frames a burst, ten bursts a second
     assert even.bursts == 0 and held.bursts >= 9.9 * (BEFORE_S + AFTER_S)
     return even, held
@@ -174,12 +66,9 @@ def test_a_drive_read_in_bursts_is_watched_as_one_read_as_it_comes(
     )
 
     # the same alarms, the same learning, the same state at the end
-    def drift_events(w: Watched) -> list[tuple[str, dict[str, Any]]]:
-        return [(e.kind, e.data) for e in w.events if e.kind.startswith("calibration.")]
-
-    kinds = [k for k, _ in drift_events(even)]
+    kinds = [k for k, _ in even.kinds("calibration.")]
     assert "calibration.drift" in kinds and "calibration.learned" in kinds, kinds
-    assert drift_events(held) == drift_events(even)
+    assert held.kinds("calibration.") == even.kinds("calibration.")
     assert held.applied == even.applied and len(even.applied) >= 2
     assert held.status == even.status
 
@@ -191,8 +80,5 @@ def test_a_drive_read_in_bursts_gets_the_same_disturbance_events(
     # told when it ends -- on the first frame after it, read either way.
     even, held = read_two_ways
 
-    def disturbance(w: Watched) -> list[tuple[str, dict[str, Any]]]:
-        return [(e.kind, e.data) for e in w.events if e.kind.startswith("disturbance.")]
-
-    assert len(disturbance(even)) >= 4  # the drive's magnets, and held-off ends among them
-    assert disturbance(held) == disturbance(even)
+    assert len(even.kinds("disturbance.")) >= 4  # the drive's magnets, held-off ends among them
+    assert held.kinds("disturbance.") == even.kinds("disturbance.")
