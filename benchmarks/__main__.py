@@ -29,6 +29,7 @@ BENCHMARKS = {
     "drift": "hard-iron drift: detection time, false alarms, heading before/after learning",
     "tilt": "heading under acceleration: accelerometer, autopilot and magnetometer tilt sources",
     "versus": "CPU and latency against a naive 40-line forwarder on the same compass, interleaved",
+    "reads": "the drift monitor on frames read as they come, in the link's bursts, on a busy host",
 }
 
 log = logging.getLogger(__name__)

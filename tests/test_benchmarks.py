@@ -30,7 +30,7 @@ def test_bench_accuracy_is_wired(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_bench_drift_is_there() -> None:
     assert build_parser().parse_args(["drift"]).bench == "drift"
-    assert set(BENCHMARKS) == {"accuracy", "pipeline", "fuzz", "drift", "tilt", "versus"}
+    assert set(BENCHMARKS) == {"accuracy", "pipeline", "fuzz", "drift", "tilt", "versus", "reads"}
 
 
 @pytest.mark.integration

@@ -18,7 +18,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,7 +34,7 @@ from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.app.tilt import TiltSources, frame_latency_s
 from bridge.calibration.model import Calibration
 from bridge.config import Config
-from bridge.core.attitude import AttitudeEngine, AttitudeSolution
+from bridge.core.attitude import AttitudeEngine
 from bridge.core.wmm import EarthField, earth_field
 from bridge.device import DevicePort, LinkState
 from bridge.documents import DocumentStore
@@ -311,8 +311,8 @@ def build_bridge(
     built later. ``calibrator_settings`` tune the calibration controller; ``clock``
     (a test's simulated clock) times the controller, the drift monitor's samples
     and the pipeline's frame clock (a frame's sampling instant on the simulated
-    compass's clock, not the link's); either way the controller's frames keep the
-    instant they were sampled and the drift monitor's their arrival.
+    compass's clock, not the link's); either way the controller's and the drift
+    monitor's frames keep the instant they were sampled, not their arrival.
     """
     calibrations = CalibrationStore(documents)
     stored = calibrations.load()
@@ -354,18 +354,12 @@ def build_bridge(
         mode=options.learn,
         on_mode=functools.partial(learning_lowered, params),
     )
-    observe: Callable[[AttitudeSolution, float, bool], None] = drift.observe
-    if clock is not None:  # a simulated clock: the drift monitor's arrivals on it too
-
-        def observe(a: AttitudeSolution, t: float, saturated: bool) -> None:
-            drift.observe(a, clock(), saturated)
-
     pipeline = Pipeline(
         engine,
         events,
         feed=calibrator.feed,
         calibrating=calibrator.calibrating,
-        observe=observe,
+        observe=drift.observe,
         clock=clock,
     )
     return Bridge(

@@ -15,7 +15,8 @@ Per frame:
   engine's tilt policy, :mod:`bridge.app.tilt`, given the frame's sampling instant
   from its ``seq``: :class:`~bridge.core.aligned.FrameClock`), plus the
   disturbance events (start / end, at most one per
-  :data:`DISTURBANCE_EVENT_MIN_S`, none while a calibration tumbles);
+  :data:`DISTURBANCE_EVENT_MIN_S` of the frames' sampling instants, none while a
+  calibration tumbles); the drift monitor's sample, at that instant too;
 * a heading-only sentence (NMEA / OceanServer): forwarded, with the
   declination from the World Magnetic Model (or the sentence's own variation);
 * anything else (``$PGMRV/P/K/C``): the link's business, no sample.
@@ -56,11 +57,12 @@ class Pipeline:
     ``feed`` is the calibrator's per-frame hook (each frame with its instant: an attitude
     frame's sampling instant from :attr:`frame_clock`, another frame's arrival) and
     ``calibrating`` tells whether a calibration runs (disturbance events are muted meanwhile);
-    ``observe`` sees every host solution with its time and saturation (the
-    drift monitor's hook: one comparison per frame). ``clock``: the clock the compass's
+    ``observe`` sees every host solution with its frame's sampling instant and saturation
+    (the drift monitor's hook: one comparison per frame). ``clock``: the clock the compass's
     frames are timed on when it is not the link's (a simulation's clock running faster
     than the link's real time): the frame clock takes a frame's arrival on it, so the
-    sampling instants the engine and the calibrator get are the simulated compass's.
+    sampling instants the engine, the calibrator and the drift monitor get are the
+    simulated compass's.
     """
 
     def __init__(
@@ -151,11 +153,16 @@ class Pipeline:
     def _from_gmr(self, f: AttitudeFrame, t: float, tf: float) -> CompassSample:
         a = self.engine.solve_counts(f.mx, f.my, f.mz, f.ax, f.ay, f.az, tf)
         if a.disturbed is not self._disturbed:
-            self._disturbance_changed(a.disturbed, a, t)
+            # (its hold-off on the compass's clock too: the same frame ends it however read)
+            self._disturbance_changed(a.disturbed, a, tf)
         # int & int: Flags' own "&" is Python code in the enum module (per frame).
         saturated = (int(f.flags) & _SAT) != 0
         if self._observe is not None:
-            self._observe(a, t, saturated)
+            # tf too: the monitor keeps a sample per 0.1 s and judges the heading rate in its
+            # samples' own time (a burst's arrivals would put nine frames in one instant)
+            self._observe(a, tf, saturated)
+        # The sample keeps the arrival: an output takes its slots by it, and the link stamps
+        # a burst's held frames so that none passes for the due one (serial_link._held).
         # (positionally: seq, device_heading_deg, saturated, raw_counts)
         return CompassSample.from_solution(
             a, t, f.seq, f.heading, saturated, (f.mx, f.my, f.mz, f.ax, f.ay, f.az)

@@ -2,10 +2,12 @@
 
 :class:`DriftMonitor` owns the running bridge's side of
 :mod:`bridge.calibration.drift.estimator`. The pipeline hands it every sample
-(:meth:`DriftMonitor.observe`, in the compass link's reader thread): one
-comparison per frame, and every ``sample_period_s`` a row appended to the
-current block -- a few microseconds. Every ``block_s`` the block goes to the
-monitor's own thread (or, when that thread is not started -- tests, benches
+(:meth:`DriftMonitor.observe`, in the compass link's reader thread) with the
+instant its frame was sampled (the pipeline's frame clock: frames the link reads
+in a burst share an arrival, not an instant): one comparison per frame, and
+every ``sample_period_s`` of those instants a row appended to the current
+block -- a few microseconds. Every ``block_s`` the block goes to the monitor's
+own thread (or, when that thread is not started -- tests, benches
 -- is processed at once), which fits the windows, judges, emits the events
 and applies learned offsets. Nothing here blocks the reader.
 
@@ -198,7 +200,12 @@ class DriftMonitor:
         self._mode = _checked(mode)
         self._on = mode != "off"
         # reader thread
-        self._period = 0.9 * self.config.sample_period_s  # a frame a hair early still counts
+        # A frame up to 15 ms early still counts (a 10 Hz compass's jitter; a test's fast
+        # simulated clock multiplies it). The frames' instants are the compass's own (the
+        # pipeline's frame clock), one period apart to the ulp: at 0.9 the ninth frame at
+        # 100 Hz sat on the gate, and rounding kept it or the tenth. At 0.85 no device rate
+        # puts a frame within 5 ms of it (100 Hz: every ninth frame; 50, 20, 10 Hz: 0.1 s).
+        self._period = 0.85 * self.config.sample_period_s
         self._block_s = self.config.block_s
         self._due = -math.inf
         self._block: _Block | None = None
@@ -264,10 +271,10 @@ class DriftMonitor:
 
     def observe(self, a: AttitudeSolution, t: float, saturated: bool = False) -> None:
         """One sample from the pipeline (the link's reader thread; a comparison per frame)."""
-        if t < self._due:
+        if t < self._due or not self._on:  # (off: not even the sample times are kept)
             return
         self._due = t + self._period
-        if not self._on or saturated or a.degraded or self._calibrating():
+        if saturated or a.degraded or self._calibrating():
             self._block = None  # a calibration's tumble (or a gap) is nothing to fit
             return
         engine = self._engine
