@@ -257,8 +257,8 @@ def build_daemon(
     calibration controller; ``clock`` (a test's simulated clock) times the
     controller, the drift monitor's samples and the pipeline's frame clock (the
     frames' sampling instants on the simulated compass's clock, not the link's);
-    either way the controller's frames keep the instant they were sampled and the
-    drift monitor's their arrival.
+    either way the controller's and the drift monitor's frames keep the instant they
+    were sampled, not their arrival.
     """
     # -- the port and what the state directory holds
     if transport is None:
