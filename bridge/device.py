@@ -67,10 +67,18 @@ class LinkCounters:
 
 
 class Received(NamedTuple):
-    """A decoded frame and the monotonic time its last byte was read (the link's output)."""
+    """A decoded frame and the monotonic time its last byte was read (the link's output).
+
+    ``t`` is the time the outputs pace it by. A frame held through a burst that was read
+    after the due time is stamped just before it, so that no held frame passes for the
+    due one (``bridge.link.serial_link._held``); ``read_at`` then keeps when it was read,
+    which the frame clock needs (an arrival stamped earlier than the frame came would put
+    the instants of the frames after it early). None: ``t`` is the read's time.
+    """
 
     frame: LinkFrame
     t: float
+    read_at: float | None = None
 
 
 class CommandError(Exception):

@@ -120,7 +120,7 @@ class Pipeline:
         """The per-frame path, run in the link's reader thread for every frame."""
         self._frame_started_at = item.t  # when the reader got it: the same monotonic clock
         try:
-            sample = self.process(item.frame, item.t)
+            sample = self.process(item.frame, item.t, item.read_at)
             if sample is not None:
                 self.samples += 1
                 for out in self.outputs:
@@ -137,10 +137,16 @@ class Pipeline:
         finally:
             self._frame_started_at = None
 
-    def process(self, frame: object, t: float) -> CompassSample | None:
-        """One received frame to a sample (None for frames that carry no heading)."""
+    def process(
+        self, frame: object, t: float, read_at: float | None = None
+    ) -> CompassSample | None:
+        """One received frame to a sample (None for frames that carry no heading): ``t`` the
+        time the outputs pace it by, ``read_at`` when it was read if that differs
+        (:class:`~bridge.device.Received`)."""
         # When the reader got it, on the compass's clock (frames read in one burst share it).
-        arrival = t if self._clock is None else self._clock()
+        arrival = t if read_at is None else read_at
+        if self._clock is not None:
+            arrival = self._clock()
         if isinstance(frame, AttitudeFrame):
             tf = self.frame_clock.at(frame.seq, arrival)  # when it was sampled
             self._feed(frame, tf)  # never raises; cheap when no calibration runs

@@ -628,4 +628,4 @@ def _held(received: list[Received], due: float, held: int | None) -> list[Receiv
         held = len(received) - 1
     if held <= 0:
         return received
-    return [Received(r.frame, before) for r in received[:held]] + received[held:]
+    return [Received(r.frame, before, r.t) for r in received[:held]] + received[held:]
