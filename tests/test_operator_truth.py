@@ -80,6 +80,7 @@ class TruthOffsets:
 
 
 @pytest.mark.integration
+@pytest.mark.slow  # ~35 s of wall time at 2x: started first
 def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
@@ -91,10 +92,16 @@ def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     # hand"; in memory, tests/test_tilt.py). The rig hid it by giving the estimate real-time
     # instants (the tumble 5-20 times faster than it is, always "a hand") except when a
     # stall bunched the frames. It now times frames on the compass's clock (docs/
-    # calibration.md, "Frame times"). 5x, not the rigs' 20x: at 5x the window fell on a
-    # slow phase of the tumble (motion time 69.7 s) in most of the runs measured.
+    # calibration.md, "Frame times"). 2x, not the rigs' 20x: a frame the loaded test
+    # machine hands the pipeline d seconds late is d * speed late on the compass's clock,
+    # and the tilt estimate on this tumble is sensitive to its frames' instants (in memory,
+    # the rig's fitted calibration and instants jittered by 0-30 ms: windows up to 0.98 deg
+    # RMS and single samples 9.5 deg off, against 0.25 and 0.8 at exact instants). At 5x,
+    # with the frame clock's anchor wandering by the loaded machine's delays times five,
+    # 2 of 4 full-suite runs on 27 Nov failed here (1.8 deg RMS); a real host at 1x keeps
+    # its instants to about a millisecond.
     rig = rigs(
-        tmp_path, fast=True, speed=5.0, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
+        tmp_path, fast=True, speed=2.0, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
     )
     offsets = TruthOffsets(rig.fw)
     rig.daemon.bridge.pipeline.set_outputs([rig.out, offsets])
