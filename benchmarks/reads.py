@@ -6,12 +6,9 @@ At 100 Hz with the outputs' streams at 10 Hz the link holds the port until short
 the frame the next output falls due on, reads the frames that waited with one read (all
 stamped with its time), then reads the due one as it comes
 (:class:`bridge.link.serial_link.CompassLink`, ``_read_loop`` and ``_hold``).
-:class:`LinkReads` takes the same decisions with the link's own rules -- when a hold ends
-(:func:`~bridge.link.serial_link.hold_end`), the compass's rhythm
-(:func:`~bridge.link.serial_link.frames_phase`), how many frames a hold holds
-(:func:`~bridge.link.serial_link.held_count`), how a late read is stamped
-(:func:`~bridge.link.serial_link._held`), the burst's lead
-(:func:`~bridge.link.serial_link.burst_estimate`) -- on a simulated clock, with the due
+:class:`LinkReads` runs the link's own decisions (:class:`~bridge.link.serial_link.BurstReads`:
+when a hold ends, the compass's rhythm, how many frames a hold holds, how a late read is
+stamped, the burst's lead) on a simulated clock, with the due
 time from a real :class:`~bridge.mavlink.schedule.StreamSchedule` fed the stamps as the
 MAVLink output feeds it (:class:`Paced`, an output on the pipeline). No port, no thread:
 the wake-ups are where the rules put them, plus a lateness the caller chooses (a busy
@@ -31,7 +28,6 @@ import argparse
 import logging
 import math
 import random
-from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -50,18 +46,7 @@ from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.wmm import earth_field
 from bridge.device import Received
 from bridge.events import Event, EventBus
-from bridge.link.serial_link import (
-    BURST_LEAD_S,
-    FIRST_BURST_S,
-    MAX_BURST_S,
-    RHYTHM_READS,
-    WARM_MARGIN_S,
-    _held,
-    burst_estimate,
-    frames_phase,
-    held_count,
-    hold_end,
-)
+from bridge.link.serial_link import BurstReads
 from bridge.mavlink.schedule import ATTITUDE, StreamSchedule
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.physics import DEFAULT_LOCATION
@@ -124,46 +109,33 @@ class LinkReads:
         self, frames: Sequence[AttitudeFrame], comes: Sequence[float]
     ) -> Iterator[list[Received]]:
         """The reads, in order (the caller puts each through the pipeline before the next)."""
-        arrived: deque[float] = deque(maxlen=RHYTHM_READS)  # reads of one frame each
-        burst_s = FIRST_BURST_S
-        held_for: float | None = None
-        held_n: int | None = None
+        bursts = BurstReads()  # the link's own rules
         now = -math.inf
         i, n = 0, len(frames)
         while i < n:
             # after a hold, what waited through it: read at once; else a blocking read,
             # which returns when the next frame has come
+            held_for = bursts.held_for
             read_at = now if held_for is not None else max(now, comes[i])
             j = i
             while j < n and comes[j] <= read_at:
                 j += 1
             if j == i:  # the hold found nothing waiting: frames as they come from now on
-                held_for = None
+                bursts.held_for = None
                 continue
             received = [Received(frames[k], read_at) for k in range(i, j)]
             i = j
             burst = held_for is not None and len(received) > 1
-            if held_for is not None:
-                if read_at >= held_for:
-                    received = _held(received, held_for, held_n)
-                    self.late_reads += 1
-                held_for = None
-            elif len(received) == 1:
-                arrived.append(read_at)
+            self.late_reads += held_for is not None and read_at >= held_for
+            received = bursts.read(received, read_at)
             self.bursts += burst
             yield received
             now = read_at + self.per_frame_s * len(received)
             if burst:
-                burst_s = burst_estimate(burst_s, now - read_at)
+                bursts.took(now - read_at)
             # the hold (CompassLink._hold)
-            due = self.due_at()
-            phase = frames_phase(arrived, self.rate_hz)
-            end = hold_end(due, phase, self.rate_hz, burst_s + WARM_MARGIN_S)
-            until = min(end, now + MAX_BURST_S)
-            if until > now:
-                rhythm = until == end != due - BURST_LEAD_S
-                held_for = due
-                held_n = held_count(due, phase, read_at, self.rate_hz) if rhythm else None
+            until = bursts.hold(self.due_at(), self.rate_hz, now, read_at, None)
+            if until is not None:
                 now = until + self.late()
 
 

@@ -194,9 +194,7 @@ class CompassLink:
         self._reader: threading.Thread | None = None
         self._said: list[StateChanged | Notice] = []  # to log (and hand to on_state) unlocked
         self._ended_seen = 0  # the machine's commands_ended when waiters were last woken
-        # The last reads of one frame each (read as they came): the frames' rhythm.
-        self._arrived: deque[float] = deque(maxlen=RHYTHM_READS)
-        self._burst_s = FIRST_BURST_S  # what a burst of held frames takes (burst_estimate)
+        self._bursts = BurstReads()  # when to hold the port, and how to stamp what waited
 
     # ------------------------------------------------------------------ public API
 
@@ -438,8 +436,7 @@ class CompassLink:
         machine = self._machine
         on_frame = self._on_frame
         clock = self._clock
-        held_for: float | None = None  # the due time the last hold was for (see _hold)
-        held_n: int | None = None  # ... and how many frames the rhythm put in it (None: unknown)
+        bursts = self._bursts
         while not self._stop.is_set():
             self._wake.clear()  # before the deadline is read: a later command sets it again
             with self._cond:
@@ -464,7 +461,7 @@ class CompassLink:
                 continue
             timeout = _READ_TIMEOUT_S if deadline is None else deadline - now
             timeout = min(max(timeout, 0.0), _READ_TIMEOUT_S)
-            if held_for is not None:
+            if bursts.held_for is not None:
                 # The frames that waited through the hold: what is there now, not the due
                 # frame coming after it (a hold with none waiting: a slow compass).
                 timeout = 0.0
@@ -482,20 +479,15 @@ class CompassLink:
                     self._act()
                 continue
             if not data:
-                held_for = None  # nothing waited: frames from now on are read as they come
+                bursts.held_for = None  # nothing waited: frames from now on read as they come
                 continue
             now = clock()
             with self._lock:
                 received = machine.receive(data, now)
                 self._act()
                 quiet = machine.quiet
-            burst = held_for is not None and len(received) > 1
-            if held_for is not None:
-                if now >= held_for:
-                    received = _held(received, held_for, held_n)
-                held_for = None
-            elif len(received) == 1:
-                self._arrived.append(now)  # read as it came: when the compass's frames come
+            burst = bursts.held_for is not None and len(received) > 1
+            received = bursts.read(received, now)
             for item in received:
                 try:
                     on_frame(item)
@@ -506,24 +498,17 @@ class CompassLink:
                     if first:
                         log.exception("compass %s: on_frame callback failed", self.name)
             if burst:  # the held frames' time through the pipeline: the next hold's lead
-                self._burst_s = burst_estimate(self._burst_s, clock() - now)
+                bursts.took(clock() - now)
             if quiet and received and self._due_at is not None:
-                held_for, held_n = self._hold(deadline, now)
+                self._hold(deadline, now)
 
-    def _hold(self, deadline: float | None, read_at: float) -> tuple[float | None, int | None]:
+    def _hold(self, deadline: float | None, read_at: float) -> None:
         """Let the port's bytes gather until shortly before the frame the next output
-        falls due on (:func:`hold_end`; or the machine's next deadline, or
-        :data:`MAX_BURST_S`): the frames meanwhile then go through the pipeline together --
-        one wake-up, warm caches -- instead of one cold wake-up each; the frames from then
-        on are read as they come, so the one the output carries is as prompt as ever, and
-        comes while the burst's code is still warm. A command (or close) ends the wait at
-        once.
-
-        Returns the due time it held the port for (None: it did not wait), and how many
-        frames the compass's rhythm put between the last read (at ``read_at``) and that
-        time (:func:`held_count`; None without a rhythm): of the read that follows, if the
-        thread wakes after the due time, those must not pass for the due one, and the
-        frames after them are the due one and later (:func:`_held`)."""
+        falls due on (:meth:`BurstReads.hold`; or the machine's next deadline): the frames
+        meanwhile then go through the pipeline together -- one wake-up, warm caches --
+        instead of one cold wake-up each; the frames from then on are read as they come,
+        so the one the output carries is as prompt as ever, and comes while the burst's
+        code is still warm. A command (or close) ends the wait at once."""
         assert self._due_at is not None
         now = self._clock()
         try:
@@ -531,19 +516,67 @@ class CompassLink:
         except Exception:  # an output's bug must not stop the reader: read as frames come
             log.exception("compass %s: due_at failed; reading every frame as it comes", self.name)
             self._due_at = None
-            return None, None
-        rate = self._machine.rate_hz
-        phase = frames_phase(self._arrived, rate)
-        end = hold_end(due, phase, rate, self._burst_s + WARM_MARGIN_S)
+            return
+        until = self._bursts.hold(due, self._machine.rate_hz, now, read_at, deadline)
+        if until is not None:
+            self._wake.wait(until - now)
+
+
+class BurstReads:
+    """When the reader holds the port, and how it stamps what waited (pure: times in,
+    times out; :class:`CompassLink`'s reader runs it on the port, ``benchmarks.reads`` on
+    a simulated clock).
+
+    After a read, :meth:`read` stamps its frames (:func:`_held` when the read came after
+    the due time it held for) and notes the compass's rhythm from the reads of one frame
+    each; :meth:`took` times a burst's way through the pipeline; :meth:`hold` says until
+    when to let the next frames gather (:func:`hold_end`), and remembers the due time it
+    held for (:attr:`held_for`: the next read takes what waited, at once) and how many
+    frames the rhythm put before it (:func:`held_count`).
+    """
+
+    __slots__ = ("arrived", "burst_s", "held_for", "held_n")
+
+    def __init__(self) -> None:
+        #: The last reads of one frame each (read as they came): the frames' rhythm.
+        self.arrived: deque[float] = deque(maxlen=RHYTHM_READS)
+        self.burst_s = FIRST_BURST_S  #: what a burst of held frames takes (burst_estimate)
+        self.held_for: float | None = None  #: the due time the last hold was for
+        self.held_n: int | None = None  #: ... and the frames the rhythm put in it (None: unknown)
+
+    def read(self, received: list[Received], now: float) -> list[Received]:
+        """The frames of a read at ``now``, stamped for the outputs (the hold is over)."""
+        held_for = self.held_for
+        if held_for is not None:
+            if now >= held_for:
+                received = _held(received, held_for, self.held_n)
+            self.held_for = None
+        elif len(received) == 1:
+            self.arrived.append(now)  # read as it came: when the compass's frames come
+        return received
+
+    def took(self, seconds: float) -> None:
+        """A burst of held frames took ``seconds`` through the pipeline: the next hold's lead."""
+        self.burst_s = burst_estimate(self.burst_s, seconds)
+
+    def hold(
+        self, due: float, rate_hz: int | None, now: float, read_at: float, deadline: float | None
+    ) -> float | None:
+        """Until when to hold the port at ``now`` for the output due at ``due`` (never past
+        :data:`MAX_BURST_S` nor the link machine's ``deadline``), the last read having come
+        at ``read_at``; None: do not wait."""
+        phase = frames_phase(self.arrived, rate_hz)
+        end = hold_end(due, phase, rate_hz, self.burst_s + WARM_MARGIN_S)
         until = min(end, now + MAX_BURST_S)
         if deadline is not None and deadline < until:
             until = deadline
-        if until > now:
-            self._wake.wait(until - now)
-            # Ended by the rhythm (after the last frame expected before the due time)?
-            rhythm = until == end != due - BURST_LEAD_S
-            return due, held_count(due, phase, read_at, rate) if rhythm else None
-        return None, None
+        if until <= now:
+            return None
+        # Ended by the rhythm (after the last frame expected before the due time)?
+        rhythm = until == end != due - BURST_LEAD_S
+        self.held_for = due
+        self.held_n = held_count(due, phase, read_at, rate_hz) if rhythm else None
+        return until
 
 
 def hold_end(
