@@ -218,7 +218,9 @@ def run_drive(
     ts = np.arange(0.0, cfg.seconds, 1.0 / cfg.rate_hz)
     frames = record(unit.model, drive, ts, seed)
     truth = magnetic_heading_deg(frames.R, field.declination_deg)
-    man = np.array([np.linalg.norm(a) for a in drive.manoeuvre_accs_ned_g(ts)])
+    # The manoeuvre's |a| of every frame in one call (not a numpy norm per frame: 4200-7500 a
+    # drive); the same numbers, 982 800 frames of 39 drives compared.
+    man = np.linalg.norm(drive.manoeuvre_accs_ned_g(ts), axis=1)
     kinds = np.array([drive.kind_at(float(t)) for t in ts])
     ap = AutopilotAttitude(
         drive,
