@@ -102,6 +102,15 @@ FACTORY = FlashPage.factory()
 _Event = tuple[float, int, Callable[[float], None], Callable[[], bool] | None]
 
 
+def _three_floats(v: tuple[int, int, int] | npt.ArrayLike) -> tuple[float, float, float]:
+    # The firmware's own frames hand over tuples of ints (every frame): taken as they are,
+    # without the round trip through a numpy array (the same floats: counts are exact).
+    if type(v) is tuple and len(v) == 3:
+        return float(v[0]), float(v[1]), float(v[2])
+    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
+    return x, y, z
+
+
 def onboard_attitude(
     m: tuple[int, int, int] | npt.ArrayLike,
     a: tuple[int, int, int] | npt.ArrayLike,
@@ -113,8 +122,8 @@ def onboard_attitude(
     roll = atan2(gy, gz), heading = atan2(-Y, X) folded into [0, 360).
     A zero g (impossible on a working unit) gives pitch 0 instead of a NaN.
     """
-    mx, my, mz = (float(v) for v in np.asarray(m, dtype=np.float64).reshape(3))
-    ax, ay, az = (float(v) for v in np.asarray(a, dtype=np.float64).reshape(3))
+    mx, my, mz = _three_floats(m)
+    ax, ay, az = _three_floats(a)
     hx = page.kx * (mx - page.xoff)
     hy = page.ky * (my - page.yoff)
     hz = page.kz * (mz - page.zoff)

@@ -233,6 +233,11 @@ class Headroom:
         )
 
 
+#: counts per unit of the six channels side by side: three magnetometer (per gauss), three
+#: accelerometer (per g)
+_COUNTS_PER_UNIT = np.array([MAG_COUNTS_PER_GAUSS] * 3 + [ACC_COUNTS_PER_G] * 3)
+
+
 class SensorModel:
     """One unit (``errors``) in a fixed Earth field ``field_ned_G`` (gauss, NED)."""
 
@@ -243,6 +248,9 @@ class SensorModel:
         self._mag_m = errors.soft_iron @ errors.mag_rotation
         self._mag_zero = ZERO_COUNTS + errors.mag_adc_zero
         self._acc_zero = ZERO_COUNTS + errors.acc_adc_zero
+        # the six channels side by side (magnetometer, then accelerometer): sample() turns
+        # them into counts in one pass of each operation rather than two
+        self._zero6 = np.concatenate((self._mag_zero, self._acc_zero))
 
     @classmethod
     def at_location(
@@ -279,7 +287,7 @@ class SensorModel:
         if Rs.ndim != 3 or Rs.shape[1:] != (3, 3):
             raise ValueError(f"R must be (3, 3) or (N, 3, 3), got {Rs.shape}")
         n = Rs.shape[0]
-        Rt = np.swapaxes(Rs, 1, 2)
+        Rt = Rs.swapaxes(1, 2)  # (the method: np.swapaxes is a wrapper around it)
         mag_body = Rt @ self.field_ned_G
         # One frame (the simulated firmware's per-frame path): the same differences
         # without broadcasting, which costs more than the arithmetic at this size.
@@ -302,18 +310,19 @@ class SensorModel:
             mag_G = mag_G + rng.normal(0.0, e.mag_noise_G, size=(n, 3))
         if e.acc_noise_g > 0.0:
             acc_g = acc_g + rng.normal(0.0, e.acc_noise_g, size=(n, 3))
-        # clip as its two comparisons, any() as the array's method: the same values, without
-        # the wrappers' dispatch (most of a one-frame call's time)
-        mag_counts = np.minimum(
-            np.maximum(np.rint(self._mag_zero + MAG_COUNTS_PER_GAUSS * mag_G), 0), ADC_MAX
-        )
-        acc_counts = np.minimum(
-            np.maximum(np.rint(self._acc_zero + ACC_COUNTS_PER_G * acc_g), 0), ADC_MAX
-        )
-        mc = mag_counts.astype(np.int64)
-        ac = acc_counts.astype(np.int64)
-        sat = ((mc == 0) | (mc == ADC_MAX)).any(axis=1) | ((ac == 0) | (ac == ADC_MAX)).any(axis=1)
-        return Sample(mc, ac, sat, mag_body, acc_body)
+        # The six channels as one (N, 6) array: each step below is then one numpy call, not
+        # two -- on the firmware's one-frame path the calls' dispatch, not the arithmetic, is
+        # the cost. Element by element the same operations (zero + gain * value, rounded,
+        # clipped as its two comparisons), so the same counts. any() as the array's method.
+        counts = np.minimum(
+            np.maximum(
+                np.rint(self._zero6 + _COUNTS_PER_UNIT * np.concatenate((mag_G, acc_g), axis=1)),
+                0,
+            ),
+            ADC_MAX,
+        ).astype(np.int64)
+        sat = ((counts == 0) | (counts == ADC_MAX)).any(axis=1)
+        return Sample(counts[:, :3], counts[:, 3:], sat, mag_body, acc_body)
 
     def headroom(self, *, accel_margin_g: float = 0.0, noise_sigmas: float = 0.0) -> Headroom:
         """Noise-free worst-case margins to the rails over *all* attitudes.
