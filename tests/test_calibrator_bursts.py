@@ -59,14 +59,18 @@ def calibrate(rec: Tumbled, arrival: Callable[[int], float]) -> dict[str, object
     ctl = CalibrationController(engine, bus, field=FIELD, clock=clock)
     ctl.run_inline()  # its fits in this thread, on the manual clock
     pipeline = Pipeline(engine, bus, feed=ctl.feed, calibrating=ctl.calibrating)
+    # The counts as Python ints and the flags as an int, as the decoder gives them (the
+    # frame's constructor then takes its fast path; the frames are the same).
+    mag, acc = rec.mag_counts.tolist(), rec.acc_counts.tolist()
+    sat = int(Flags.SAT)
+    flag = [sat if s else 0 for s in rec.saturated.tolist()]
     try:
         step_one = True
         for i in range(len(rec.t)):
             clock.t = arrival(i)
-            mx, my, mz = (int(v) for v in rec.mag_counts[i])
-            ax, ay, az = (int(v) for v in rec.acc_counts[i])
-            flags = Flags.SAT if rec.saturated[i] else Flags(0)
-            frame = AttitudeFrame(i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, flags)
+            mx, my, mz = mag[i]
+            ax, ay, az = acc[i]
+            frame = AttitudeFrame(i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, flag[i])
             pipeline.process(frame, clock.t)
             if i == LEAD_FRAMES:
                 assert ctl.start_mag().ok

@@ -71,11 +71,21 @@ class Events:
 _tumble = functools.cache(tumble)
 
 
-def _frame(seq: int, rec: Tumbled, i: int) -> AttitudeFrame:
-    mx, my, mz = (int(v) for v in rec.mag_counts[i])
-    ax, ay, az = (int(v) for v in rec.acc_counts[i])
-    flags = Flags.SAT if rec.saturated[i] else Flags(0)
-    return AttitudeFrame(seq % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, flags)
+def _frames(rec: Tumbled) -> list[AttitudeFrame]:
+    """The tumble's frames, as the decoder gives them: the counts and flags as plain ints
+    (the frame's constructor then takes its fast path; the frames are the same)."""
+    sat = int(Flags.SAT)
+    return [
+        AttitudeFrame(i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, sat if s else 0)
+        for i, ((mx, my, mz), (ax, ay, az), s) in enumerate(
+            zip(
+                rec.mag_counts.tolist(),
+                rec.acc_counts.tolist(),
+                rec.saturated.tolist(),
+                strict=True,
+            )
+        )
+    ]
 
 
 def calibrate_live(
@@ -92,9 +102,9 @@ def calibrate_live(
         ctl.fitness_limit_mG = fit_limit_mG
     assert ctl.start_mag().ok
     step_one = True
-    for i in range(len(rec.t)):
-        clock.t = 1000.0 + float(rec.t[i])
-        ctl.feed(_frame(i, rec, i))
+    for t, frame in zip(rec.t.tolist(), _frames(rec), strict=True):
+        clock.t = 1000.0 + t
+        ctl.feed(frame)
         snap = ctl.snapshot()
         if step_one and snap.completion_pct >= 33.2:
             # step one's buffer is full: the worker fits its sphere before going on

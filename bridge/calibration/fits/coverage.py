@@ -90,13 +90,20 @@ def sections(vectors: npt.ArrayLike) -> IntArray:
     ArduPilot's ``inclusive=true``).
     """
     v = np.asarray(vectors, dtype=np.float64).reshape(-1, 3)
-    out = np.full(v.shape[0], -1, dtype=np.int64)
     # (the arrays' own all/any: the same masks without np.all / np.any's dispatch, once per
     # sample a collection keeps)
     ok = np.isfinite(v).all(axis=1) & (v != 0.0).any(axis=1)
-    if not ok.any():
-        return out
-    vv = v[ok]
+    # Every vector usable (a collection's kept samples always are): no copy of the usable
+    # rows and no masked write-back -- v itself when it is laid out as that copy would be
+    # (C order), so the products below see the same matrix.
+    every = v.shape[0] > 0 and bool(ok.all()) and v.flags.c_contiguous
+    if every:
+        vv = v
+    else:
+        out = np.full(v.shape[0], -1, dtype=np.int64)
+        if not ok.any():
+            return out
+        vv = v[ok]
     # The spherical face a direction crosses is the one whose centre is nearest
     # (the face centres of a regular icosahedron are the vertices of its dual, and
     # each face is exactly their Voronoi cell): one matmul and an argmax.
@@ -106,6 +113,8 @@ def sections(vectors: npt.ArrayLike) -> IntArray:
     # Outside the middle triangle exactly one coefficient is negative; the corner
     # opposite that midpoint is the sub-triangle (AP_GeodesicGrid's test order).
     sub = np.where(m[:, 0] < 0.0, 3, np.where(m[:, 1] < 0.0, 1, np.where(m[:, 2] < 0.0, 2, 0)))
+    if every:
+        return np.asarray(4 * face + sub, dtype=np.int64)
     out[ok] = 4 * face + sub
     return out
 

@@ -42,7 +42,7 @@ made worse by noise.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -274,13 +274,18 @@ def _best(
     return best
 
 
-def _field_direction(field_ned_G: npt.ArrayLike | None, sin_dip: float) -> FloatArray:
+def _field_direction(field_ned_G: npt.ArrayLike | None, sin_dip: Callable[[], float]) -> FloatArray:
+    """The field's unit vector (NED): the given field's, else from the dip the frames show.
+
+    ``sin_dip`` is only called without a usable field: working it out takes a pass over
+    every frame (a fit, a median), which a live calibration -- it has the WMM field --
+    does not need."""
     if field_ned_G is not None:
         f = np.asarray(field_ned_G, dtype=np.float64).reshape(3)
         n = float(np.linalg.norm(f))
         if math.isfinite(n) and n > 0.0:
             return f / n
-    s = max(-1.0, min(1.0, sin_dip))
+    s = max(-1.0, min(1.0, sin_dip()))
     return np.array([math.sqrt(1.0 - s * s), 0.0, s])
 
 
@@ -325,9 +330,12 @@ def fit_handheld(
     def rotation_only(given: AffineCalibration) -> _Trial | None:
         a = given.apply(x)
         feats = (a[:, :, None] * mu[:, None, :]).reshape(-1, 9)
-        sin_dip = (
-            float(np.median(np.sum(_unit_rows(a[ok]) * mu[ok], axis=1))) if np.any(ok) else 0.0
-        )
+
+        def sin_dip() -> float:
+            if not np.any(ok):
+                return 0.0
+            return float(np.median(np.sum(_unit_rows(a[ok]) * mu[ok], axis=1)))
+
         fdir = _field_direction(field_ned_G, sin_dip)
 
         def finish(c: Candidate) -> Candidate:
@@ -340,8 +348,13 @@ def fit_handheld(
         fitted = False
     else:
         feats = _joint_features(mu, x)
-        first = _linear_joint(_gram(feats[ok])) if np.count_nonzero(ok) >= MIN_ROWS else None
-        fdir = _field_direction(field_ned_G, first[2] if first is not None else 0.0)
+
+        def sin_dip() -> float:
+            # the linear start's on every frame
+            first = _linear_joint(_gram(feats[ok])) if np.count_nonzero(ok) >= MIN_ROWS else None
+            return first[2] if first is not None else 0.0
+
+        fdir = _field_direction(field_ned_G, sin_dip)
         # Still: |g| = 1 holds to the sensor noise and adds to what the dot product says.
         # Shaken: its squares of the shake beat slowly, so it only sets the scale.
         weight = 1.0 if motion <= STILL_MOTION_G else SHAKEN_MAGNITUDE_WEIGHT

@@ -32,6 +32,13 @@ from bridge.types import BoolArray, FloatArray
 COMPASS_CAL_NUM_SAMPLES = 300  #: ArduPilot's sample buffer size
 INITIAL_RADIUS_G = 0.2  #: ArduPilot starts acceptance with a 200 mG radius
 DEFAULT_OUTLIER_K = 5.0
+#: How far below the spacing (squared) a new sample must come to the last kept one for
+#: :meth:`SampleAcceptor.offer` to call it a near-duplicate without the buffer-wide check.
+#: Python's ``dx*dx + dy*dy + dz*dz`` and numpy's row sum may add the three squares in
+#: another order: each is within 3 roundings (2**-53 each) of the exact sum of
+#: non-negative terms, so within 7e-16 of each other -- far inside this margin, and
+#: the shortcut only ever says what the full check would.
+_SURELY_NEAR = 1.0 - 1e-9
 #: Floor for the robust sigma: half an ADC count (1 count = 0.39 mG). Residuals
 #: smaller than the quantisation step carry no evidence of a bad sample.
 MIN_SIGMA_G = 2.0e-4
@@ -92,6 +99,12 @@ class SampleAcceptor:
         self._n = 0
         self._radius = INITIAL_RADIUS_G
         self._min_dist = 0.0
+        #: the spacing squared times _SURELY_NEAR (set with the spacing)
+        self._near2 = 0.0
+        #: the last sample kept, and the last one a frame came too close to (the full
+        #: check's), as Python floats (None: none since the buffer was emptied or thinned)
+        self._last: tuple[float, float, float] | None = None
+        self._close: tuple[float, float, float] | None = None
         self.counters = SampleCounters()
         self.set_radius(radius_G)
 
@@ -126,23 +139,28 @@ class SampleAcceptor:
     def set_radius(self, radius_G: float) -> None:
         """Use a new sphere radius (e.g. from a sphere fit); raises ``ValueError`` if not positive."""
         self._min_dist = acceptance_distance(radius_G, self._capacity)
+        self._near2 = self._min_dist**2 * _SURELY_NEAR
         self._radius = float(radius_G)
 
     def reset(self) -> None:
         """Empty the buffer and the counters (radius kept)."""
         self._n = 0
+        self._last = self._close = None
         self.counters = SampleCounters()
 
-    def _far_enough(self, v: FloatArray, upto: int, skip: int = -1) -> bool:
+    def _close_to(self, v: FloatArray, upto: int, skip: int = -1) -> int:
+        """The index of a kept sample (of the first ``upto``, ``skip`` left out) nearer to
+        ``v`` than the spacing; -1: none is."""
         if upto == 0:
-            return True
+            return -1
         # (The arrays' own methods: the same sums without np.sum / np.all's dispatch, which
         # cost more than the arithmetic on every frame a collection is offered.)
         d = self._buf[:upto] - v
         d2 = (d * d).sum(axis=1)  # d ** 2: numpy squares by multiplying
         if 0 <= skip < upto:
             d2[skip] = np.inf
-        return bool((d2 >= self._min_dist**2).all())
+        far = d2 >= self._min_dist**2
+        return -1 if far.all() else int(far.argmin())
 
     def offer(self, sample_G: npt.ArrayLike, *, saturated: bool = False) -> bool:
         """Offer one raw sample (3,) in gauss; returns True when it was kept.
@@ -151,7 +169,11 @@ class SampleAcceptor:
         buffer full) and leaves the buffer untouched.
         """
         v = np.asarray(sample_G, dtype=np.float64).reshape(-1)
-        if v.shape != (3,) or not np.isfinite(v).all():
+        if v.shape != (3,):
+            self.counters.non_finite += 1
+            return False
+        x, y, z = v.tolist()
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             self.counters.non_finite += 1
             return False
         if saturated:
@@ -160,11 +182,26 @@ class SampleAcceptor:
         if self._n >= self._capacity:
             self.counters.buffer_full += 1
             return False
-        if not self._far_enough(v, self._n):
+        # Most frames of a collection come close to the sample kept last, or to the one the
+        # frame before came close to (the field turns a fraction of the spacing a frame): a
+        # few float operations say so, where the buffer-wide check costs a dozen numpy
+        # calls. Only a sure "too close" is taken from them (_SURELY_NEAR); anything else
+        # goes through the full check, which has the last word.
+        for kept in (self._last, self._close):
+            if kept is not None:
+                dx, dy, dz = kept[0] - x, kept[1] - y, kept[2] - z
+                if dx * dx + dy * dy + dz * dz < self._near2:
+                    self.counters.near_duplicate += 1
+                    return False
+        close = self._close_to(v, self._n)
+        if close >= 0:
+            cx, cy, cz = self._buf[close].tolist()
+            self._close = (cx, cy, cz)
             self.counters.near_duplicate += 1
             return False
         self._buf[self._n] = v
         self._n += 1
+        self._last = (x, y, z)
         self.counters.accepted += 1
         return True
 
@@ -191,7 +228,7 @@ class SampleAcceptor:
         i = 0
         removed = 0
         while i < self._n:
-            if self._far_enough(self._buf[i], self._n, skip=i):
+            if self._close_to(self._buf[i], self._n, skip=i) < 0:
                 i += 1
                 continue
             # The last sample takes the rejected one's place (as in ArduPilot)
@@ -199,6 +236,7 @@ class SampleAcceptor:
             self._buf[i] = self._buf[self._n - 1]
             self._n -= 1
             removed += 1
+        self._last = self._close = None  # their places in the buffer moved, or they are gone
         self.counters.thinned += removed
         return removed
 

@@ -24,6 +24,7 @@ Pure: numpy only, no clock, no I/O.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -134,11 +135,21 @@ def window_means(
     return WindowMeans(np.concatenate(rows), np.concatenate(centres))
 
 
+@functools.lru_cache(maxsize=32)
+def _quadratic_basis(n: int) -> FloatArray:
+    """``[1, s, s^2]`` at ``n`` evenly spaced ``s`` in [-1, 1] (n, 3): the same for every
+    window of ``n`` rows, and building it cost more than the least squares it is for --
+    so it is built once (read-only, as it is shared)."""
+    s = np.linspace(-1.0, 1.0, n)
+    V = np.column_stack([np.ones(n), s, s * s])
+    V.flags.writeable = False
+    return V
+
+
 def _quadratic_residual_rms(block: FloatArray) -> FloatArray:
     """Per-column RMS of (n, k) rows about their least-squares quadratic in time."""
     n = block.shape[0]
-    s = np.linspace(-1.0, 1.0, n)
-    V = np.column_stack([np.ones(n), s, s * s])
+    V = _quadratic_basis(n)
     coef, *_ = np.linalg.lstsq(V, block, rcond=None)
     r = block - V @ coef
     return np.asarray(np.sqrt(np.sum(r * r, axis=0) / max(1, n - 3)), dtype=np.float64)

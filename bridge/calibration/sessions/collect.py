@@ -238,16 +238,18 @@ class MagCollector:
         """
         if self.last_mag is None or len(self._hit) >= N_SECTIONS:
             return (0.0, 0.0, 0.0)
-        cur = np.asarray(self.last_mag) - self.centre
-        n = float(np.linalg.norm(cur))
+        cur = np.array(self.last_mag) - self.centre
+        # np.linalg.norm's own formula for a vector, sqrt(x.dot(x)), without its dispatch
+        # (a status query can ask for this every frame)
+        n = math.sqrt(cur.dot(cur))
         if not n > 0.0:
             return (0.0, 0.0, 0.0)
         dirs = self._missing_dirs
         if dirs is None:  # once per change of the sections reached, not once per frame
             missing = np.array(sorted(set(range(N_SECTIONS)) - self._hit), dtype=np.int64)
             dirs = self._missing_dirs = _SECTION_DIRS[missing]
-        best = dirs[int(np.argmax(dirs @ (cur / n)))]
-        return (float(best[0]), float(best[1]), float(best[2]))
+        x, y, z = dirs[(dirs @ (cur / n)).argmax()].tolist()
+        return (x, y, z)
 
 
 def _row_set(x: FloatArray) -> set[Vec3]:

@@ -48,11 +48,8 @@ class FrameSeries:
 
     def add(self, now: float, mag_G: Vec3, acc_g: Vec3, saturated: bool) -> None:
         """One frame (raw nominal gauss / g) received at ``now``."""
-        row = self._buf[self._next]
-        row[0] = now
-        row[1:4] = mag_G
-        row[4:7] = acc_g
-        row[7] = 1.0 if saturated else 0.0
+        # one assignment of the row (four slice assignments cost four conversions)
+        self._buf[self._next] = (now, *mag_G, *acc_g, 1.0 if saturated else 0.0)
         self._next = (self._next + 1) % self._buf.shape[0]
         self._n = min(self._n + 1, self._buf.shape[0])
 
@@ -119,9 +116,10 @@ class MotionJudge:
 
     def feed(self, now: float, acc_g: Vec3, saturated: bool = False) -> MotionWarning | None:
         """One frame's raw accelerometer vector (nominal g) at ``now``."""
-        if saturated or not all(math.isfinite(v) for v in acc_g):
+        x, y, z = acc_g
+        if saturated or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             return None
-        self._rows.append((now, acc_g[0], acc_g[1], acc_g[2]))
+        self._rows.append((now, x, y, z))
         while self._rows and self._rows[0][0] < now - self.span_s:
             self._rows.popleft()
         if self._next_judge is None:
