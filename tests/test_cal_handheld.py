@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from bridge.calibration.fits.series import hann_kernel, motion_rms_g, runs, wind
 from bridge.calibration.model import AffineCalibration, CalibrationResult
 from bridge.calibration.sessions.report import fit_report
 from bridge.calibration.sessions.state import Mode
+from bridge.core.geometry import axis_angle_to_dcm
 from bridge.sim.physics import UnitErrors
 from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_G
 
@@ -202,6 +204,40 @@ def test_motion_too_violent_fails_instead_of_succeeding_worse(
         strict = judge(fitted, data, Acceptance(heading_max_deg=0.25))
         assert not strict.report.ok
         assert strict.report.reason.endswith("> 0.25: turn slower / steadier")
+
+
+@pytest.mark.parametrize(("seed", "dps", "shake"), [(5, 90.0, 2.0), (4, 45.0, 2.0)])
+def test_a_shake_that_hides_gravity_is_told_as_motion_not_as_a_wrong_orientation(
+    seed: int, dps: float, shake: float
+) -> None:
+    # 2 g of shake: the frames do not give gravity, and the mag-to-accel rotation fitted from
+    # them is tens of degrees of noise (43 and 72 deg here, the unit's own ~2): unknown, not
+    # wrong. The operator is told to turn steadier -- not to check COMPASS_ORIENT, which
+    # they would change for nothing.
+    rec = tumble(seed, shake, seconds=70.0, dps=dps)
+    data = CalibrationData(rec.mag, rec.acc, rec.saturated, reference=FIELD, t_s=rec.t)
+    rep = calibrate(BEST, data).report
+    assert not rep.ok and rep.status == "MAG_CAL_FAILED_RESIDUALS_HIGH"
+    assert rep.reason.endswith("turn slower / steadier") and rep.notes[0] == rep.reason
+    assert not any("COMPASS_ORIENT" in n for n in rep.notes)
+    assert not rep.heading_error_deg <= 10.0  # what made the rotation unknown
+
+
+@pytest.mark.parametrize(("seed", "shake", "yaw_deg"), [(5, 0.3, 45.0), (4, 0.05, 90.0)])
+def test_a_compass_mounted_turned_fails_its_orientation_under_a_hands_shake(
+    seed: int, shake: float, yaw_deg: float
+) -> None:
+    # ... while a magnetometer really turned against the accelerometer (a wrong
+    # COMPASS_ORIENT: 45 deg and more) is determined to a tenth of a degree by a hand's
+    # tumble, and told as what it is.
+    e = UnitErrors.draw(np.random.default_rng(seed))
+    turned = axis_angle_to_dcm([0.0, 0.0, 1.0], math.radians(yaw_deg)) @ e.mag_rotation
+    rec = tumble(seed, shake, seconds=70.0, dps=45.0, errors=replace(e, mag_rotation=turned))
+    data = CalibrationData(rec.mag, rec.acc, rec.saturated, reference=FIELD, t_s=rec.t)
+    rep = calibrate(BEST, data).report
+    assert rep.status == "MAG_CAL_FAILED_ORIENTATION"
+    assert "check COMPASS_ORIENT" in rep.reason and f"{yaw_deg:.0f}." in rep.reason
+    assert rep.heading_error_deg < 1.0
 
 
 def test_a_good_fit_passes_the_accuracy_judge_and_a_tighter_target_fails_it() -> None:

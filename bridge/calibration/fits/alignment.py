@@ -51,7 +51,13 @@ from bridge.calibration.fits.ellipsoid import (
 )
 from bridge.calibration.fits.handheld import fit_handheld
 from bridge.calibration.fits.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
-from bridge.calibration.fits.sanity import MagCalStatus, SanityLimits, check_mag_calibration
+from bridge.calibration.fits.sanity import (
+    MagCalStatus,
+    SanityLimits,
+    SanityResult,
+    check_mag_calibration,
+    rotation_determined,
+)
 from bridge.calibration.fits.scalar import gravity_spread_mg
 from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
@@ -311,7 +317,7 @@ def fit_ellipsoid_aligned(
 
 def motion_failure_reason(heading_error_deg: float, limit_deg: float | None = None) -> str:
     """Why a hand-held fit is not good enough, in the operator's terms (a STATUSTEXT's worth)."""
-    if not math.isfinite(heading_error_deg):
+    if not heading_error_deg < 89.0:  # (none, or the fit's "unknown": 89 deg and beyond)
         return "gravity not determined: turn slower / steadier"
     limit = f" > {limit_deg:g}" if limit_deg is not None else ""
     return f"heading error ~{heading_error_deg:.2f} deg{limit}: turn slower / steadier"
@@ -414,6 +420,13 @@ def fit_ellipsoid_aligned_series(
         check_rotation=True,
         limits=limits,
     )
+    if sanity.status is MagCalStatus.MAG_CAL_FAILED_ORIENTATION and not rotation_determined(
+        hh.heading_sigma_deg, limits
+    ):
+        # (Its only failure: the rotation is checked last.) A hand that shook gravity out of
+        # reach leaves a rotation of tens of degrees of noise: unknown, not wrong. The
+        # operator is told to turn steadier, not to change COMPASS_ORIENT.
+        sanity = SanityResult(MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH)
     notes = list(ell.report.notes)
     if sanity.status is MagCalStatus.MAG_CAL_FAILED_RESIDUALS_HIGH and fitness > fit.fitness_mG:
         # The magnetometer fits; what is off is the gravity the hand disturbed: say so first.

@@ -106,6 +106,22 @@ class SanityLimits:
     matrix_sd_max: float = 0.002  #: one-sigma uncertainty of a soft-iron element
 
 
+#: The smallest rotation a wrong COMPASS_ORIENT puts between magnetometer and accelerometer.
+WRONG_ORIENTATION_MIN_DEG = 45.0
+
+
+def rotation_determined(sigma_deg: float, limits: SanityLimits | None = None) -> bool:
+    """Whether a fitted mag-to-accel rotation known to ``sigma_deg`` (1 sigma; the heading
+    error its uncertainty gives) can tell a wrong orientation from a good one: three sigmas
+    within the gap between the limit and the smallest wrong orientation (45 - 20 deg). A
+    rotation fitted from frames a hand shook too hard to find gravity in (a sigma of tens of
+    degrees, or none) is unknown, not wrong: that is motion, not COMPASS_ORIENT."""
+    lim = limits or SanityLimits()
+    return math.isfinite(sigma_deg) and (
+        3.0 * sigma_deg <= WRONG_ORIENTATION_MIN_DEG - lim.rotation_max_deg
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class AccelLimits:
     """Bounds for :func:`check_accel_calibration` (ArduPilot's AccelCalibrator)."""
