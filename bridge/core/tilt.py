@@ -384,7 +384,13 @@ class TiltFilter:
             rec = self._recent
             one_g = abs(an - self._g0) < 0.01
             rec.append((t, lp, mhat, ahat, one_g))
-            horizon = t - 0.5
+            # The frame half a second back, within a quarter of the frame interval: at 10 Hz
+            # one frame is exactly 0.5 s back, and "<= t - 0.5" took it or the one 0.6 s
+            # back by a millisecond of the frame clock (or a rounding). A tumble's down
+            # swings back at its slow phases: 12.7 deg turned over 0.5 s, 5.2 over 0.6 s --
+            # a hand missed for two frames, the heading 5-17 deg off (tests/test_tilt.py,
+            # test_the_hands_half_second_back_is_one_frame_whatever_a_millisecond_says).
+            horizon = t - 0.5 + 0.25 * self._interval
             while len(rec) > 2 and rec[1][0] <= horizon:
                 rec.popleft()
             tr, dr, mr, ar, one_g_then = rec[0]
