@@ -20,6 +20,7 @@ from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.collect import MagCollector, sphere_step
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
+from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.motion import HandShake, Tumble
 from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
 from bridge.types import FloatArray
@@ -48,6 +49,22 @@ class Tumbled:
     @property
     def truth(self) -> Calibration:
         return self.model.errors.true_calibration()
+
+    def frames(self) -> list[AttitudeFrame]:
+        """The frames, as the decoder gives them: the counts and flags as plain ints (the
+        frame's constructor then takes its fast path; the frames are the same)."""
+        sat = int(Flags.SAT)
+        return [
+            AttitudeFrame(i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, sat if s else 0)
+            for i, ((mx, my, mz), (ax, ay, az), s) in enumerate(
+                zip(
+                    self.mag_counts.tolist(),
+                    self.acc_counts.tolist(),
+                    self.saturated.tolist(),
+                    strict=True,
+                )
+            )
+        ]
 
 
 def tumble(

@@ -27,7 +27,6 @@ from bridge.app.pipeline import Pipeline
 from bridge.calibration.sessions import Phase
 from bridge.core.attitude import AttitudeEngine
 from bridge.events import Event, EventBus
-from bridge.protocol.gmr import AttitudeFrame, Flags
 
 RATE_HZ = 100.0
 #: Frames before the calibration starts: the frame clock learns the compass's rate (4 s of
@@ -59,18 +58,10 @@ def calibrate(rec: Tumbled, arrival: Callable[[int], float]) -> dict[str, object
     ctl = CalibrationController(engine, bus, field=FIELD, clock=clock)
     ctl.run_inline()  # its fits in this thread, on the manual clock
     pipeline = Pipeline(engine, bus, feed=ctl.feed, calibrating=ctl.calibrating)
-    # The counts as Python ints and the flags as an int, as the decoder gives them (the
-    # frame's constructor then takes its fast path; the frames are the same).
-    mag, acc = rec.mag_counts.tolist(), rec.acc_counts.tolist()
-    sat = int(Flags.SAT)
-    flag = [sat if s else 0 for s in rec.saturated.tolist()]
     try:
         step_one = True
-        for i in range(len(rec.t)):
+        for i, frame in enumerate(rec.frames()):
             clock.t = arrival(i)
-            mx, my, mz = mag[i]
-            ax, ay, az = acc[i]
-            frame = AttitudeFrame(i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, flag[i])
             pipeline.process(frame, clock.t)
             if i == LEAD_FRAMES:
                 assert ctl.start_mag().ok

@@ -28,7 +28,6 @@ from bridge.core.attitude import AttitudeEngine
 from bridge.events import Event, EventBus, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink.commands import CalibrationRelay
-from bridge.protocol.gmr import AttitudeFrame, Flags
 
 WAIT_S = 30.0  #: real seconds any wait may take before the test fails
 
@@ -71,23 +70,6 @@ class Events:
 _tumble = functools.cache(tumble)
 
 
-def _frames(rec: Tumbled) -> list[AttitudeFrame]:
-    """The tumble's frames, as the decoder gives them: the counts and flags as plain ints
-    (the frame's constructor then takes its fast path; the frames are the same)."""
-    sat = int(Flags.SAT)
-    return [
-        AttitudeFrame(i % 65536, 0.0, 0.0, 0.0, mx, my, mz, ax, ay, az, sat if s else 0)
-        for i, ((mx, my, mz), (ax, ay, az), s) in enumerate(
-            zip(
-                rec.mag_counts.tolist(),
-                rec.acc_counts.tolist(),
-                rec.saturated.tolist(),
-                strict=True,
-            )
-        )
-    ]
-
-
 def calibrate_live(
     rec: Tumbled, settings: CalibratorSettings | None = None, fit_limit_mG: float | None = None
 ) -> tuple[CalibrationController, Events, Calibration]:
@@ -102,7 +84,7 @@ def calibrate_live(
         ctl.fitness_limit_mG = fit_limit_mG
     assert ctl.start_mag().ok
     step_one = True
-    for t, frame in zip(rec.t.tolist(), _frames(rec), strict=True):
+    for t, frame in zip(rec.t.tolist(), rec.frames(), strict=True):
         clock.t = 1000.0 + t
         ctl.feed(frame)
         snap = ctl.snapshot()

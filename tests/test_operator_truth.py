@@ -84,27 +84,18 @@ class TruthOffsets:
 def test_calibrate_piped_says_what_it_does_and_the_heading_comes_to_the_truth(
     tmp_path: Path, rigs: Callable[..., Rig]
 ) -> None:
-    # The heading after calibrating is judged while the unit tumbles, through tilt "auto".
-    # The samples tens of degrees off that failed this under load were the tilt estimate's:
-    # at the tumble's slow phases the hand turns the unit about an axis near the field's,
-    # and after the new calibration restarts the estimate it cannot yet tell a hand; either
-    # way it was taken for a vehicle's smoothed down and lagged (docs/tilt.md, "Turned by
-    # hand"; in memory, tests/test_tilt.py). The rig hid it by giving the estimate real-time
-    # instants (the tumble 5-20 times faster than it is, always "a hand") except when a
-    # stall bunched the frames. It now times frames on the compass's clock (docs/
-    # calibration.md, "Frame times"). 2x, not the rigs' 20x: a frame the loaded test
-    # machine hands the pipeline d seconds late is d * speed late on the compass's clock,
-    # and the tilt estimate on this tumble is sensitive to its frames' instants (in memory,
-    # the rig's fitted calibration and instants jittered by 0-30 ms: windows up to 0.98 deg
-    # RMS and single samples 9.5 deg off, against 0.25 and 0.8 at exact instants). At 5x,
-    # with the frame clock's anchor wandering by the loaded machine's delays times five,
-    # 2 of 4 full-suite runs on 27 Nov failed here (1.8 deg RMS); a real host at 1x keeps
-    # its instants to about a millisecond. That 1.8 deg, at 2x too, was two samples 5 and
-    # 17 deg off at the tumble's slow phase after the switch (seq ~697), whatever the
-    # calibration accepted: the hand's "half a second back" frame, exactly 0.5 s back at
-    # 10 Hz, was taken 0.6 s back when the frame clock's anchor moved by a millisecond
-    # (docs/tilt.md, "Turned by hand"; in memory, tests/test_tilt.py,
-    # test_the_hands_half_second_back_is_one_frame_whatever_a_millisecond_says).
+    # The heading after calibrating is judged while the unit tumbles, through tilt "auto",
+    # so this also checks the tilt estimate tells a hand at the tumble's slow phases. Three
+    # faults of it failed this now and then, each now mended and tested in memory
+    # (docs/tilt.md, "Turned by hand"; tests/test_tilt.py): a turn about an axis near the
+    # field's taken for a vehicle's; the half second after the new calibration restarts the
+    # estimate; and the hand's "half a second back" frame, exactly 0.5 s back at 10 Hz, taken
+    # 0.6 s back when the frame clock's anchor moved by a millisecond (two samples 5 and 17
+    # deg off at seq ~697: the 1.8 deg RMS of the failures under load, at 5x and at 2x,
+    # whatever the calibration accepted). The rig times frames on the compass's clock
+    # (docs/calibration.md, "Frame times"); 2x, not the rigs' 20x, because a frame the loaded
+    # machine hands the pipeline d seconds late is d * speed late on that clock, where a real
+    # host at 1x keeps its instants to about a millisecond.
     rig = rigs(
         tmp_path, fast=True, speed=2.0, motion=Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
     )
