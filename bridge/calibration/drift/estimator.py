@@ -404,13 +404,14 @@ class DriftEstimator:
         scale_f = s.field_sigma_floor_G
         xf = np.zeros((n, 5))
         xf[:, 3] = 1.0
+        hc = np.ascontiguousarray(h.T)  # (3, n): each axis of the field contiguous
         px, py, pw = self._priors(theta, ref)
         pxw = px * pw[:, None]  # the priors' rows are the same every iteration
         prior_a, prior_r = pxw.T @ px, pxw.T @ py
         for it in range(10):
-            d = h - theta[:3]
-            dn = np.linalg.norm(d, axis=1)
-            xf[:, :3] = d / np.where(dn > 0.0, dn, 1.0)[:, None]  # unit directions
+            d = hc - theta[:3, None]  # h - b, by axis
+            dn = _row_norms(d)
+            xf[:, :3] = (d / np.where(dn > 0.0, dn, 1.0)).T  # unit directions
             yf = dn + xf[:, :3] @ theta[:3]  # n . b + F = |h - b0| + n . b0
             if it > 0:
                 rf = yf - xf @ theta
@@ -432,12 +433,13 @@ class DriftEstimator:
             except np.linalg.LinAlgError:
                 return None
             new = cov @ r
-            if not np.all(np.isfinite(new)):
+            if not np.isfinite(new).all():
                 return None
-            move = float(np.linalg.norm(new[:3] - theta[:3]))
+            step = new[:3] - theta[:3]
+            move = math.sqrt(float(step.dot(step)))  # np.linalg.norm's own sum, without its checks
             if move > _MAX_MOVE_G:  # a trust region: a mixture of two offsets must not fling b
                 new = theta + (new - theta) * (_MAX_MOVE_G / move)
-            done = it > 1 and float(np.max(np.abs(new - theta))) < 1e-7
+            done = it > 1 and float(np.abs(new - theta).max()) < 1e-7
             theta = new
             if done:
                 break
@@ -465,6 +467,18 @@ class DriftEstimator:
             if ref.vertical_G is not None:
                 ys[4], sig[4] = ref.vertical_G, s.reference_sigma * ref.field_G
         return np.eye(5), np.array(ys), 1.0 / np.square(sig)
+
+
+def _row_norms(c: FloatArray) -> FloatArray:
+    """``np.linalg.norm(c.T, axis=1)``, the same bits, from the (3, n) columns ``c``.
+
+    numpy reduces each row of three left to right, ``(x*x + y*y) + z*z``; written out over
+    the columns every operation runs along n contiguous numbers instead of a reduction of
+    three per row -- a third of the time on a fit's windows (600-2400 samples), where
+    several such norms a Gauss-Newton iteration were most of the fit.
+    """
+    s = c * c
+    return np.sqrt((s[0] + s[1]) + s[2])
 
 
 def _tukey(z: FloatArray) -> FloatArray:
