@@ -139,7 +139,6 @@ class CalibrationController:
         self._clock = clock
         self._wall = wall_clock
         self._lock = threading.RLock()
-        self._changed = threading.Condition(self._lock)
         self._emit_lock = threading.RLock()
         self._pending: list[Event] = []
         self._session: Session | None = None
@@ -176,7 +175,6 @@ class CalibrationController:
             aborts = s.shutdown() if s is not None else []
             if not aborts and self._stray.calibrating(self._clock()):
                 aborts = [Device("MAGCAL", ("ABORT",), retries=0, purpose="abort")]
-            self._changed.notify_all()
         if self._link is not None:
             for d in aborts:
                 # Leaving the device in calibration mode would stop its own heading from
@@ -526,7 +524,6 @@ class CalibrationController:
             else:
                 self._jobs.put(functools.partial(self._run_job, session, a))
                 self.start()
-        self._changed.notify_all()
         return applies
 
     def _after(self, applies: list[Apply]) -> Outcome | None:
@@ -652,7 +649,6 @@ class CalibrationController:
                         {"error": error},
                     )
                 )
-            self._changed.notify_all()
         if write_device and self._link is not None and self._link.protocol == "gmr":
             self._jobs.put(functools.partial(self._write_device, cal))
             self.start()

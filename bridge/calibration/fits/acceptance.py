@@ -183,7 +183,8 @@ def evidence(data: CalibrationData) -> Evidence | None:
     d = (x - fit.offset) @ fit.matrix.T
     m_dir = _unit(np.where(np.isfinite(d), d, 0.0))
     horizontal_mG, source = _horizontal(data, field_mG, m_dir, fit.inliers)
-    covered = frozenset(int(s) for s in sections(d[usable]) if s >= 0)
+    s = sections(d[usable])
+    covered = frozenset(s[s >= 0].tolist())  # as ints, not one numpy scalar at a time
     return Evidence(
         frames=int(np.count_nonzero(usable)),
         kept=int(np.count_nonzero(fit.inliers)),

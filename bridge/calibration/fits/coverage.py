@@ -63,7 +63,8 @@ def _build_tables() -> tuple[FloatArray, FloatArray]:
 
 
 _FACES, _MID_INV = _build_tables()
-_FACE_CENTRES_T = np.ascontiguousarray(_FACES.mean(axis=1).T)  # (3, 20); all equally long
+#: the face centres' x, y and z coordinates, each (20,) (the centres are all equally long)
+_FC_X, _FC_Y, _FC_Z = np.ascontiguousarray(_FACES.mean(axis=1).T)
 
 
 def face_vertices(face: int) -> FloatArray:
@@ -106,8 +107,13 @@ def sections(vectors: npt.ArrayLike) -> IntArray:
         vv = v[ok]
     # The spherical face a direction crosses is the one whose centre is nearest
     # (the face centres of a regular icosahedron are the vertices of its dual, and
-    # each face is exactly their Voronoi cell): one matmul and an argmax.
-    face = np.argmax(vv @ _FACE_CENTRES_T, axis=1)
+    # each face is exactly their Voronoi cell): the dot products and an argmax. The
+    # products are written out rather than one matmul so that a vector's section depends
+    # on that vector alone, to the bit: BLAS rounds a row's three products differently
+    # with the batch's size (its kernels fuse multiply-adds), and a collection classifies
+    # each new sample alone (MagCollector). The two can part only on a boundary, where
+    # either section is right.
+    face = np.argmax(vv[:, 0:1] * _FC_X + vv[:, 1:2] * _FC_Y + vv[:, 2:3] * _FC_Z, axis=1)
     mi = _MID_INV[face]
     m = mi[:, :, 0] * vv[:, 0:1] + mi[:, :, 1] * vv[:, 1:2] + mi[:, :, 2] * vv[:, 2:3]
     # Outside the middle triangle exactly one coefficient is negative; the corner

@@ -55,6 +55,9 @@ _SECTION_DIRS: FloatArray = np.array(
 _SECTION_DIRS /= np.linalg.norm(_SECTION_DIRS, axis=1, keepdims=True)
 
 
+_SAT = int(Flags.SAT)
+
+
 def counts_to_nominal(
     mx: int, my: int, mz: int, ax: int, ay: int, az: int
 ) -> tuple[Vec3, Vec3, bool]:
@@ -75,7 +78,8 @@ def frame_vectors(f: AttitudeFrame) -> tuple[Vec3, Vec3, bool]:
     """An attitude frame's raw vectors in nominal gauss and g, and whether it is saturated
     (a channel at an ADC rail, or the device's SAT flag)."""
     mag, acc, sat = counts_to_nominal(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
-    return mag, acc, sat or bool(f.flags & Flags.SAT)
+    # the flag as an int: Flags's own ``&`` is the enum's Python method, run every frame
+    return mag, acc, sat or bool(int(f.flags) & _SAT)
 
 
 # ---------------------------------------------------------------------------
@@ -120,8 +124,11 @@ class MagCollector:
         self.radius_G: float | None = None
         self._mask = bytes(MASK_BYTES)
         self._hit: frozenset[int] = frozenset()
-        #: _SECTION_DIRS of the sections not in _hit (None: not worked out since it changed)
-        self._missing_dirs: FloatArray | None = None
+        #: the centre _hit and _mask were worked out from (None: not yet)
+        self._covered_from: FloatArray | None = None
+        #: _SECTION_DIRS of the sections not in _hit, as an array and as rows of floats
+        #: (None: not worked out since it changed)
+        self._missing_dirs: tuple[FloatArray, list[list[float]]] | None = None
         self.last_mag: Vec3 | None = None
         self.offered = 0
         self._sphere_centre = False
@@ -154,25 +161,39 @@ class MagCollector:
             return False
         self._acc[mag_G] = acc_g
         self._sum += mag_G
-        self._update_coverage()
+        self._update_coverage(mag_G)
         return True
 
-    def _update_coverage(self) -> None:
-        x = self.acceptor.samples
-        n = len(x)
+    def _update_coverage(self, new: Vec3 | None = None) -> None:
+        """The sections the kept samples reach from the centre; ``new`` is the sample just
+        kept (None: the buffer changed otherwise, as when it is thinned)."""
+        n = len(self.acceptor)
         if self.step == 1:
             # Before step one's fit the centre is a guess: the mean of the samples,
             # then (every 10 samples) a linear sphere fit once a few outline the sphere.
             if n >= _SPHERE_CENTRE_MIN and (n % 10 == 0 or not self._sphere_centre):
-                sph = sphere_step(x)
+                sph = sphere_step(self.acceptor.samples)
                 if sph is not None:
                     self.centre = sph[0]
                     self._sphere_centre = True
             if not self._sphere_centre:
                 self.centre = self._sum / max(n, 1)
-        s = sections(x - self.centre)
-        self._mask = completion_mask(s)
-        hit = frozenset(s[s >= 0].tolist())
+        centre = self.centre
+        if new is not None and centre is self._covered_from:
+            # The centre has not moved (all of step two, most of step one): the other
+            # samples' sections stand, as a section depends on its own vector alone
+            # (coverage.sections), and only the new sample's is worked out -- not the
+            # whole buffer's again for every sample kept.
+            k = int(sections(np.array(new) - centre)[0])
+            if k < 0 or k in self._hit:
+                return
+            hit = self._hit | {k}
+            self._mask = completion_mask(sorted(hit))
+        else:
+            s = sections(self.acceptor.samples - centre)
+            self._mask = completion_mask(s)
+            hit = frozenset(s[s >= 0].tolist())
+            self._covered_from = centre
         if hit != self._hit:
             self._hit = hit
             self._missing_dirs = None
@@ -238,17 +259,23 @@ class MagCollector:
         """
         if self.last_mag is None or len(self._hit) >= N_SECTIONS:
             return (0.0, 0.0, 0.0)
-        cur = np.array(self.last_mag) - self.centre
-        # np.linalg.norm's own formula for a vector, sqrt(x.dot(x)), without its dispatch
-        # (a status query can ask for this every frame)
-        n = math.sqrt(cur.dot(cur))
+        # In plain floats up to the one product with the missing sections' directions (a
+        # status query can ask for this every frame, and numpy's dispatch on a 3-vector
+        # cost more than its arithmetic): the field from the centre, its length (the
+        # dot product in the order numpy's sums it: the same bits) and the unit vector.
+        mx, my, mz = self.last_mag
+        cx, cy, cz = self.centre.tolist()
+        x, y, z = mx - cx, my - cy, mz - cz
+        n = math.sqrt(x * x + y * y + z * z)
         if not n > 0.0:
             return (0.0, 0.0, 0.0)
-        dirs = self._missing_dirs
-        if dirs is None:  # once per change of the sections reached, not once per frame
-            missing = np.array(sorted(set(range(N_SECTIONS)) - self._hit), dtype=np.int64)
-            dirs = self._missing_dirs = _SECTION_DIRS[missing]
-        x, y, z = dirs[(dirs @ (cur / n)).argmax()].tolist()
+        missing = self._missing_dirs
+        if missing is None:  # once per change of the sections reached, not once per frame
+            idx = np.array(sorted(set(range(N_SECTIONS)) - self._hit), dtype=np.int64)
+            dirs = _SECTION_DIRS[idx]
+            missing = self._missing_dirs = (dirs, dirs.tolist())
+        dirs, rows = missing
+        x, y, z = rows[int((dirs @ np.array((x / n, y / n, z / n))).argmax())]
         return (x, y, z)
 
 

@@ -58,41 +58,43 @@ class CalibratorSnapshot:
         calibration_saved: bool,
     ) -> CalibratorSnapshot:
         """The state of ``session`` (None: none yet) and of the calibration in use."""
-        common: dict[str, Any] = {
-            "onboard": onboard,
-            "calibration_source": calibration_source,
-            "calibration_age_s": calibration_age_s,
-            "calibration_saved": calibration_saved,
-        }
+        # The fields in their order, not by keyword: a status query may come every frame,
+        # and the frozen class's __init__ took twice as long given keywords.
         if session is None:
             return cls(
-                None,
+                None,  # mode
                 Phase.IDLE,
-                0,
-                False,
-                0,
-                0.0,
-                bytes(10),
-                (0.0, 0.0, 0.0),
-                faces_done=(),
-                report=None,
-                pending_accept=False,
-                **common,
+                0,  # step
+                False,  # running
+                0,  # attempt
+                0.0,  # completion_pct
+                bytes(10),  # completion_mask
+                (0.0, 0.0, 0.0),  # direction
+                onboard,
+                (),  # faces_done
+                None,  # report
+                False,  # pending_accept
+                calibration_source,
+                calibration_age_s,
+                calibration_saved,
             )
         p = session.progress()
         return cls(
-            mode=session.mode.value,
-            phase=session.phase,
-            step=session.step,
-            running=session.running,
-            attempt=session.attempt,
-            completion_pct=p.percent,
-            completion_mask=p.mask,
-            direction=p.direction,
-            faces_done=p.faces_done or (),
-            report=session.report,
-            pending_accept=session.pending_accept,
-            **common,
+            session.mode.value,
+            session.phase,
+            session.step,
+            session.running,
+            session.attempt,
+            p.percent,  # completion_pct
+            p.mask,  # completion_mask
+            p.direction,
+            onboard,
+            p.faces_done or (),
+            session.report,
+            session.pending_accept,
+            calibration_source,
+            calibration_age_s,
+            calibration_saved,
         )
 
     def to_dict(self) -> dict[str, Any]:
