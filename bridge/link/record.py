@@ -75,7 +75,9 @@ class Kind(IntEnum):
     TX = 1  #: bytes the host wrote to the device
 
 
-_KNOWN_KINDS = frozenset(int(k) for k in Kind)
+#: The kinds by their byte, for the reader's lookup of every record's kind: ``Kind(byte)``,
+#: the enum's call, cost more than the record's other checks (a record a frame).
+_KIND_BY_VALUE: dict[int, Kind] = {int(k): k for k in Kind}
 
 
 @dataclass(frozen=True, slots=True)
@@ -233,9 +235,9 @@ class RecordingReader(ClosedOnExit):
             if len(data) < length or zlib.crc32(data, zlib.crc32(head[: _RECORD.size])) != crc:
                 break
             self.good_bytes += _RECORD_HEAD + length
-            if kind not in _KNOWN_KINDS:
+            k = _KIND_BY_VALUE.get(kind)
+            if k is None:
                 continue  # a kind from a later version: skip it
-            k = Kind(kind)
             if kinds is None or k in kinds:
                 yield Chunk(t_ns / 1e9, k, data)
         self.truncated = True

@@ -566,16 +566,14 @@ def encode_body(frame: GmrFrame) -> str:
         hdg = _f1(frame.heading)
         if hdg == "360.0":  # 359.95.. rounds up: the datasheet's range stops at 359.9
             hdg = "0.0"
-        parts = [
-            "PGMRA",
-            str(frame.seq),
-            hdg,
-            _f1(frame.pitch),
-            _f1(frame.roll),
-            *(str(c) for c in (*frame.mag_counts, *frame.acc_counts)),
-            f"{int(frame.flags):02X}",
-        ]
-    elif isinstance(frame, VersionFrame):
+        # One f-string, not a list joined: the simulated firmware encodes every frame it
+        # sends (the fields are validated ints and floats: "{x}" is str(x)).
+        return (
+            f"PGMRA,{frame.seq},{hdg},{_f1(frame.pitch)},{_f1(frame.roll)},"
+            f"{frame.mx},{frame.my},{frame.mz},{frame.ax},{frame.ay},{frame.az},"
+            f"{int(frame.flags):02X}"
+        )
+    if isinstance(frame, VersionFrame):
         parts = ["PGMRV", frame.firmware, frame.hardware, frame.serial]
     elif isinstance(frame, CalProgressFrame):
         parts = [
