@@ -14,6 +14,7 @@ sensor produce well under 0.01 g).
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceABC
@@ -115,11 +116,6 @@ def _smoothstep(s: float) -> float:
     """0 -> 1 with zero slope at both ends, so angular rate is continuous at handovers."""
     s = min(1.0, max(0.0, s))
     return s * s * (3.0 - 2.0 * s)
-
-
-def _slerp(Ra: FloatArray, Rb: FloatArray, s: float) -> FloatArray:
-    """Rotation a fraction ``s`` of the way from ``Ra`` to ``Rb`` along the shortest arc."""
-    return Ra @ rotvec_to_dcm(s * dcm_to_rotvec(Ra.T @ Rb))
 
 
 def _check_time(name: str, v: float, *, positive: bool = False) -> float:
@@ -294,6 +290,9 @@ class AttitudeList(MotionBase):
         self.dwell_s = _check_time("dwell_s", dwell_s)
         self.transition_s = _check_time("transition_s", transition_s)
         self._Rs = [euler_to_dcm(*e) for e in self.eulers]
+        # Each transition's whole turn, the shortest arc from one attitude to the next (a
+        # rotation vector in the first one's axes), made once: not again every frame.
+        self._turns = [dcm_to_rotvec(a.T @ b) for a, b in itertools.pairwise(self._Rs)]
         n = len(self._Rs)
         self.duration = n * self.dwell_s + (n - 1) * self.transition_s
 
@@ -319,7 +318,8 @@ class AttitudeList(MotionBase):
         i, s = self._locate(t)
         if s == 0.0:
             return self._Rs[i]
-        return _slerp(self._Rs[i], self._Rs[i + 1], _smoothstep(s))
+        # a fraction of the turn along the shortest arc (slerp)
+        return self._Rs[i] @ rotvec_to_dcm(_smoothstep(s) * self._turns[i])
 
 
 class OnboardCalRotation(MotionBase):
