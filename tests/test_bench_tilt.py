@@ -148,6 +148,7 @@ def test_the_streams_a_bench_draws_at_once_are_the_time_by_time_numbers_bit_for_
     assert np.array_equal(
         d.manoeuvre_accs_ned_g(ts), np.array([d.manoeuvre_acc_ned_g(float(t)) for t in ts])
     )
+    assert d.kinds_at(ts).tolist() == [d.kind_at(float(t)) for t in ts]
     held = AttitudeList([(0.3, -0.2, 1.0), (-0.4, 0.1, 2.5)], 5.0, 1.5)
     for motion in (held, with_shake(held, 0.05, 3)):
         assert np.array_equal(
