@@ -8,6 +8,7 @@ motion script like those: a pure, seeded function of time.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections.abc import Callable
 from typing import Any
 
@@ -114,7 +115,7 @@ class Drive(MotionBase):
         """(yaw, yaw rate) at ``t``."""
         t = max(0.0, t)
         self._extend(t)
-        i = int(np.searchsorted(self._t0, t, side="right")) - 1
+        i = bisect_right(self._t0, t) - 1  # (np.searchsorted made an array of the list each call)
         tau, length, dyaw = t - self._t0[i], self._len[i], self._dyaw[i]
         if dyaw == 0.0:
             return self._yaw0[i], 0.0

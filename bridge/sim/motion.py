@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from bisect import bisect_right
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceABC
 from typing import Protocol, runtime_checkable
@@ -586,13 +587,17 @@ class Sequence(MotionBase):
         for p in self.parts[:-1]:
             if not math.isfinite(p.duration):
                 raise ValueError("only the last part of a Sequence may be endless")
-        self._starts = np.cumsum([0.0] + [p.duration for p in self.parts[:-1]])
-        self.duration = float(self._starts[-1]) + self.parts[-1].duration
+        # (a list of floats: found with bisect, as numpy's searchsorted would, without a
+        # numpy call on every frame)
+        self._starts: list[float] = np.cumsum(
+            [0.0] + [p.duration for p in self.parts[:-1]]
+        ).tolist()
+        self.duration = self._starts[-1] + self.parts[-1].duration
 
     def _part(self, t: float) -> tuple[Motion, float]:
-        i = int(np.searchsorted(self._starts, t, side="right")) - 1
+        i = bisect_right(self._starts, t) - 1
         i = max(0, i)
-        return self.parts[i], t - float(self._starts[i])
+        return self.parts[i], t - self._starts[i]
 
     def attitude(self, t: float) -> FloatArray:
         """The attitude of the part running at ``t``."""
