@@ -40,6 +40,15 @@ def assert_rotation(R: np.ndarray) -> None:
     assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-9)
 
 
+def assert_rotations(Rs: np.ndarray) -> None:
+    """:func:`assert_rotation` for each of a stack, in one comparison of each kind (a test
+    of hundreds of frames spent most of its time in the calls)."""
+    np.testing.assert_allclose(
+        Rs @ Rs.transpose(0, 2, 1), np.broadcast_to(np.eye(3), Rs.shape), atol=1e-9
+    )
+    assert np.linalg.det(Rs) == pytest.approx(np.ones(len(Rs)), abs=1e-9)
+
+
 # ---------------------------------------------------------------- geodesic grid (80 sections)
 
 
@@ -158,9 +167,11 @@ def test_onboard_cal_rotation_matches_the_datasheet_routine() -> None:
     level_t = np.arange(0.0, 20.0, 0.1)
     side_t = np.arange(24.0, 44.0, 0.1)
     # level phase: gravity straight along +z (tilt 0), heading sweeps the full circle
-    for t in level_t:
-        np.testing.assert_allclose(m.attitude(float(t)).T @ DOWN, DOWN, atol=1e-12)
-        assert m.phase_at(float(t)) == "level"
+    level_g = [m.attitude(float(t)).T @ DOWN for t in level_t]
+    np.testing.assert_allclose(
+        np.array(level_g), np.broadcast_to(DOWN, (len(level_t), 3)), atol=1e-12
+    )
+    assert all(m.phase_at(float(t)) == "level" for t in level_t)
     headings = np.array([m.heading_deg(float(t)) for t in level_t])
     assert np.histogram(headings, bins=36, range=(0, 360))[0].min() > 0
     # side phase: |gz| < 0.35 g, and body z sweeps every horizontal direction
@@ -196,10 +207,10 @@ def test_the_routine_at_hand_pace_keeps_the_datasheets_conditions_and_turns_full
         "side",
     ]
     assert m.phase_at(m.duration + 1.0) == "held"
-    tilt, gz_side, level_yaw, side_az = [], [], [], []
+    tilt, gz_side, level_yaw, side_az, Rs = [], [], [], [], []
     for t, p in zip(ts, phases, strict=True):
         R = m.attitude(float(t))
-        assert_rotation(R)
+        Rs.append(R)
         g = R.T @ DOWN  # gravity in body axes
         if p == "level":
             tilt.append(math.degrees(math.acos(g[2])))
@@ -207,6 +218,7 @@ def test_the_routine_at_hand_pace_keeps_the_datasheets_conditions_and_turns_full
         elif p == "side":
             gz_side.append(abs(g[2]))
             side_az.append(math.degrees(math.atan2(R[1, 2], R[0, 2])) % 360.0)
+    assert_rotations(np.array(Rs))
     # the hand wobbles (never exactly level) but stays within the device's conditions
     assert 1.0 < max(tilt) <= 3.0 * math.sqrt(2.0) + 1e-9 < 20.0
     assert max(gz_side) < 0.35 and max(gz_side) > 0.01
@@ -275,8 +287,7 @@ def test_tumble_is_smooth_at_its_rate_and_reproducible() -> None:
     m = Tumble(seed=3, rate_dps=40.0)
     ts = np.arange(0.0, 120.0, 0.02)
     Rs = m.attitudes(ts)
-    for R in Rs[::500]:
-        assert_rotation(R)
+    assert_rotations(Rs[::500])
     # each step's rotation once: its angle is the rate, its vector the rate vector
     steps = [dcm_to_rotvec(a.T @ b) for a, b in itertools.pairwise(Rs)]
     rates = np.array([math.degrees(float(np.linalg.norm(v))) for v in steps]) / 0.02
