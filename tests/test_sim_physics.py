@@ -131,8 +131,10 @@ def test_one_frame_at_a_time_samples_what_the_stack_samples_bit_for_bit(seed: in
     rng = np.random.default_rng(seed)
     d = {k: getattr(quiet(UnitErrors.draw(rng)), k) for k in UnitErrors.__dataclass_fields__}
     model = SensorModel(UnitErrors(**(d | {"hard_iron_G": np.array([0.3, 0.0, 0.0])})), FIELD)
-    Rs = random_rotations(rng, 300)
-    acc = rng.normal(0.0, 0.3, size=(300, 3))
+    # ... and right-angle ones, whose exact (and negative) zeros show a sum's sign of zero
+    right = [np.eye(3), -np.eye(3) * [1.0, 1.0, -1.0], euler_to_dcm(0.5 * math.pi, 0.0, 0.0)]
+    Rs = np.concatenate([random_rotations(rng, 300), right])
+    acc = rng.normal(0.0, 0.3, size=(len(Rs), 3))
     for lin in (None, acc):
         whole = model.sample(Rs, rng, lin)
         ones = [model.sample(R, rng, None if lin is None else lin[i]) for i, R in enumerate(Rs)]
@@ -140,6 +142,7 @@ def test_one_frame_at_a_time_samples_what_the_stack_samples_bit_for_bit(seed: in
             got = np.concatenate([getattr(s, f) for s in ones])
             assert np.array_equal(got, getattr(whole, f)), f
             assert got.dtype == getattr(whole, f).dtype
+            assert got.tobytes() == getattr(whole, f).tobytes(), f  # zeros' signs too
         assert whole.saturated.any() and not whole.saturated.all()
 
 
