@@ -218,10 +218,11 @@ def run_drive(
     ts = np.arange(0.0, cfg.seconds, 1.0 / cfg.rate_hz)
     frames = record(unit.model, drive, ts, seed)
     truth = magnetic_heading_deg(frames.R, field.declination_deg)
-    # The manoeuvre's |a| of every frame in one call (not a numpy norm per frame: 4200-7500 a
-    # drive); the same numbers, 982 800 frames of 39 drives compared.
+    # The manoeuvre's |a| and kind of every frame in one call each (not a numpy norm and a
+    # lookup per frame: 4200-7500 a drive); the same numbers, 982 800 frames of 39 drives
+    # compared, and the same names (tests/test_bench_tilt.py).
     man = np.linalg.norm(drive.manoeuvre_accs_ned_g(ts), axis=1)
-    kinds = np.array([drive.kind_at(float(t)) for t in ts])
+    kinds = drive.kinds_at(ts)
     ap = AutopilotAttitude(
         drive,
         seed=seed,

@@ -40,6 +40,15 @@ def assert_rotation(R: np.ndarray) -> None:
     assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-9)
 
 
+def assert_rotations(Rs: np.ndarray) -> None:
+    """:func:`assert_rotation` for each of a stack, in one comparison of each kind (a test
+    of hundreds of frames spent most of its time in the calls)."""
+    np.testing.assert_allclose(
+        Rs @ Rs.transpose(0, 2, 1), np.broadcast_to(np.eye(3), Rs.shape), atol=1e-9
+    )
+    assert np.linalg.det(Rs) == pytest.approx(np.ones(len(Rs)), abs=1e-9)
+
+
 # ---------------------------------------------------------------- geodesic grid (80 sections)
 
 
@@ -158,9 +167,11 @@ def test_onboard_cal_rotation_matches_the_datasheet_routine() -> None:
     level_t = np.arange(0.0, 20.0, 0.1)
     side_t = np.arange(24.0, 44.0, 0.1)
     # level phase: gravity straight along +z (tilt 0), heading sweeps the full circle
-    for t in level_t:
-        np.testing.assert_allclose(m.attitude(float(t)).T @ DOWN, DOWN, atol=1e-12)
-        assert m.phase_at(float(t)) == "level"
+    level_g = [m.attitude(float(t)).T @ DOWN for t in level_t]
+    np.testing.assert_allclose(
+        np.array(level_g), np.broadcast_to(DOWN, (len(level_t), 3)), atol=1e-12
+    )
+    assert all(m.phase_at(float(t)) == "level" for t in level_t)
     headings = np.array([m.heading_deg(float(t)) for t in level_t])
     assert np.histogram(headings, bins=36, range=(0, 360))[0].min() > 0
     # side phase: |gz| < 0.35 g, and body z sweeps every horizontal direction
@@ -196,10 +207,10 @@ def test_the_routine_at_hand_pace_keeps_the_datasheets_conditions_and_turns_full
         "side",
     ]
     assert m.phase_at(m.duration + 1.0) == "held"
-    tilt, gz_side, level_yaw, side_az = [], [], [], []
+    tilt, gz_side, level_yaw, side_az, Rs = [], [], [], [], []
     for t, p in zip(ts, phases, strict=True):
         R = m.attitude(float(t))
-        assert_rotation(R)
+        Rs.append(R)
         g = R.T @ DOWN  # gravity in body axes
         if p == "level":
             tilt.append(math.degrees(math.acos(g[2])))
@@ -207,6 +218,7 @@ def test_the_routine_at_hand_pace_keeps_the_datasheets_conditions_and_turns_full
         elif p == "side":
             gz_side.append(abs(g[2]))
             side_az.append(math.degrees(math.atan2(R[1, 2], R[0, 2])) % 360.0)
+    assert_rotations(np.array(Rs))
     # the hand wobbles (never exactly level) but stays within the device's conditions
     assert 1.0 < max(tilt) <= 3.0 * math.sqrt(2.0) + 1e-9 < 20.0
     assert max(gz_side) < 0.35 and max(gz_side) > 0.01
@@ -275,13 +287,14 @@ def test_tumble_is_smooth_at_its_rate_and_reproducible() -> None:
     m = Tumble(seed=3, rate_dps=40.0)
     ts = np.arange(0.0, 120.0, 0.02)
     Rs = m.attitudes(ts)
-    for R in Rs[::500]:
-        assert_rotation(R)
-    rates = np.array([rot_angle_deg(a, b) for a, b in itertools.pairwise(Rs)]) / 0.02
+    assert_rotations(Rs[::500])
+    # each step's rotation once: its angle is the rate, its vector the rate vector
+    steps = [dcm_to_rotvec(a.T @ b) for a, b in itertools.pairwise(Rs)]
+    rates = np.array([math.degrees(float(np.linalg.norm(v))) for v in steps]) / 0.02
     # human rate: the nominal speed (plus the slow spin), never a jump
     assert rates.min() > 0.95 * 40.0 and rates.max() < 1.15 * 40.0
     # smooth: the rate vector changes gradually (bounded angular acceleration)
-    w = np.array([dcm_to_rotvec(a.T @ b) for a, b in itertools.pairwise(Rs)]) / 0.02
+    w = np.array(steps) / 0.02
     dw = np.degrees(np.linalg.norm(np.diff(w, axis=0), axis=1)) / 0.02
     assert dw.max() < 200.0  # deg/s^2
     np.testing.assert_allclose(Tumble(seed=3, rate_dps=40.0).attitude(77.7), m.attitude(77.7))
@@ -377,9 +390,10 @@ def test_drive_turns_everywhere_rolls_and_pitches_within_bounds() -> None:
     assert np.abs(e[:, :2]).max() > 10.0  # it does roll and pitch
     octants = np.histogram(np.array([d.heading_deg(float(t)) for t in ts]), 8, (0, 360))[0]
     assert (octants > 0).all()  # ten minutes see every heading
-    straight = [t for t in ts if d.yaw_rate_dps(float(t)) == 0.0]
+    rates = [d.yaw_rate_dps(float(t)) for t in ts]  # (each time's asked once)
+    straight = [r for r in rates if r == 0.0]
     assert 0.2 * len(ts) < len(straight) < 0.8 * len(ts)  # straights and turns
-    assert max(abs(d.yaw_rate_dps(float(t))) for t in ts) == pytest.approx(15.0, abs=0.5)
+    assert max(abs(r) for r in rates) == pytest.approx(15.0, abs=0.5)
 
 
 def test_drive_acceleration_is_the_derivative_of_the_velocity() -> None:

@@ -139,24 +139,30 @@ def test_mounting_residual_learns_how_the_boards_sit() -> None:
     assert res.scatter_deg == pytest.approx(math.degrees(0.005 * math.sqrt(3)), rel=0.3)
 
 
-def davenport_reference(
-    pairs: list[tuple[np.ndarray, np.ndarray]], prior: float, memory: float
-) -> np.ndarray:
+class DavenportReference:
     """The q-method's rotation by numpy's eigensolver, from the pairs themselves (forgetting
-    as the residual does): what MountingResidual must give, converged."""
-    k = 1.0 - 1.0 / memory
-    B = prior * np.eye(3)
-    for a, b in pairs:
-        B = B - prior * np.eye(3)
-        B = k * B + np.outer(a, b) + prior * np.eye(3)
-    S, s = B + B.T, np.trace(B)
-    z = np.array([B[1, 2] - B[2, 1], B[2, 0] - B[0, 2], B[0, 1] - B[1, 0]])
-    K = np.block([[np.array([[s]]), z[None, :]], [z[:, None], S - s * np.eye(3)]])
-    ev, V = np.linalg.eigh(K)
-    assert ev[-1] - ev[-2] > 1e-6 * ev[-1]  # a unique answer
-    q0, v = V[0, -1], V[1:, -1]
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return (q0 * q0 - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) - 2.0 * q0 * vx
+    as the residual does): what MountingResidual must give, converged. Its B is kept as the
+    pairs come (the same arithmetic, pair after pair, as summing them all again at each
+    check: the same matrix to the bit)."""
+
+    def __init__(self, prior: float, memory: float) -> None:
+        self.prior, self.k = prior, 1.0 - 1.0 / memory
+        self.B = prior * np.eye(3)
+
+    def add(self, a: np.ndarray, b: np.ndarray) -> None:
+        B = self.B - self.prior * np.eye(3)
+        self.B = self.k * B + np.outer(a, b) + self.prior * np.eye(3)
+
+    def rotation(self) -> np.ndarray:
+        B = self.B
+        S, s = B + B.T, np.trace(B)
+        z = np.array([B[1, 2] - B[2, 1], B[2, 0] - B[0, 2], B[0, 1] - B[1, 0]])
+        K = np.block([[np.array([[s]]), z[None, :]], [z[:, None], S - s * np.eye(3)]])
+        ev, V = np.linalg.eigh(K)
+        assert ev[-1] - ev[-2] > 1e-6 * ev[-1]  # a unique answer
+        q0, v = V[0, -1], V[1:, -1]
+        vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+        return (q0 * q0 - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) - 2.0 * q0 * vx
 
 
 @pytest.mark.parametrize(
@@ -175,17 +181,17 @@ def test_mounting_residual_is_the_converged_q_method_answer(
     rng = np.random.default_rng(7)
     M = axis_angle_to_dcm(list(axis), math.radians(angle_deg_))  # down_compass = M^T down_ap
     res = MountingResidual(prior_weight=prior, memory=500.0)
-    pairs = []
+    reference = DavenportReference(prior, 500.0)
     for i in range(1, 801):
         roll, pitch = rng.uniform(-tilt, tilt, 2)
         R = euler_to_dcm(roll, pitch, rng.uniform(0.0, 6.28))
         ap = R.T @ np.array([0.0, 0.0, 1.0])
         noisy = M.T @ ap + rng.normal(0.0, 0.003, 3)
         a = noisy / np.linalg.norm(noisy)
-        pairs.append((a, ap))
+        reference.add(a, ap)
         res.add(vec(a), vec(ap))
         if i % 200 == 0:  # solved on the tenth pair: the answer is the converged one
-            want = davenport_reference(pairs, prior, 500.0)
+            want = reference.rotation()
             got = np.array([res.apply((1.0, 0.0, 0.0)), res.apply((0.0, 1.0, 0.0))]).T
             err = np.linalg.norm(got - want[:, :2], axis=0).max()
             assert err < 1e-9, (i, err)

@@ -42,9 +42,12 @@ from bridge.sim.motion import Motion
 from bridge.types import FloatArray
 
 
-@dataclass(frozen=True, slots=True)
+# Not frozen, on purpose: a drive's stream is made of thousands (8 500 in the tilt bench's
+# 420 s drive), and a frozen dataclass's __init__ (object.__setattr__ per field) costs five
+# times plain slot stores -- as bridge.core.aligned.AttitudeSample. Read-only by contract.
+@dataclass(slots=True)
 class AttitudeMessage:
-    """One ATTITUDE as the companion receives it."""
+    """One ATTITUDE as the companion receives it (read-only by contract)."""
 
     arrival_s: float  #: when it arrives (the simulation's clock)
     time_boot_ms: int  #: its stamp, on the autopilot's clock

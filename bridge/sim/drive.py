@@ -8,6 +8,7 @@ motion script like those: a pure, seeded function of time.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections.abc import Callable
 from typing import Any
 
@@ -114,7 +115,7 @@ class Drive(MotionBase):
         """(yaw, yaw rate) at ``t``."""
         t = max(0.0, t)
         self._extend(t)
-        i = int(np.searchsorted(self._t0, t, side="right")) - 1
+        i = bisect_right(self._t0, t) - 1  # (np.searchsorted made an array of the list each call)
         tau, length, dyaw = t - self._t0[i], self._len[i], self._dyaw[i]
         if dyaw == 0.0:
             return self._yaw0[i], 0.0
@@ -332,14 +333,18 @@ class ManoeuvreDrive(MotionBase):
             )
 
         # The wave surface along the track and across it: slopes in both directions.
-        phase = wave_k * np.cos(wave_cross) * s
-        slope_along = wave_amp * wave_k * np.cos(wave_cross) * np.cos(phase)
-        slope_across = wave_amp * wave_k * np.sin(wave_cross) * np.cos(phase)
+        # (Each cosine of a whole drive's grid taken once: they are most of this build.)
+        cos_cross = np.cos(wave_cross)
+        phase = wave_k * cos_cross * s
+        cos_phase = np.cos(phase)
+        slope_along = wave_amp * wave_k * cos_cross * cos_phase
+        slope_across = wave_amp * wave_k * np.sin(wave_cross) * cos_phase
         pitch = road(max_pitch_deg) + np.arctan(slope_along)
         roll = road(max_roll_deg) + np.arctan(slope_across)
         # Velocity along the road (nose-up pitch climbs: NED down velocity negative).
+        cos_pitch = np.cos(pitch)
         vel = speed[:, None] * np.stack(
-            [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), -np.sin(pitch)], axis=1
+            [cos_pitch * np.cos(yaw), cos_pitch * np.sin(yaw), -np.sin(pitch)], axis=1
         )
         acc = np.gradient(vel, dt, axis=0) / STANDARD_GRAVITY
         vib = np.random.default_rng([seed, 0x71B]).normal(0.0, vibration_g, size=(n, 3))
@@ -431,6 +436,12 @@ class ManoeuvreDrive(MotionBase):
         """The stretch ``t`` falls in: one of :data:`MANOEUVRES`."""
         i, _ = self._index(t)
         return MANOEUVRES[int(self._kind[i])]
+
+    def kinds_at(self, times: npt.ArrayLike) -> npt.NDArray[np.str_]:
+        """:meth:`kind_at` at each time, as an array of names (the same names: a benchmark
+        asks for a drive's worth at once)."""
+        _t, i, _f = self._indices(times)
+        return np.array(MANOEUVRES)[self._kind[i]]
 
     def speed(self, t: float) -> float:
         """Speed along the track, m/s."""

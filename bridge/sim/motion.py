@@ -14,7 +14,9 @@ sensor produce well under 0.01 g).
 
 from __future__ import annotations
 
+import itertools
 import math
+from bisect import bisect_right
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceABC
 from typing import Protocol, runtime_checkable
@@ -115,11 +117,6 @@ def _smoothstep(s: float) -> float:
     """0 -> 1 with zero slope at both ends, so angular rate is continuous at handovers."""
     s = min(1.0, max(0.0, s))
     return s * s * (3.0 - 2.0 * s)
-
-
-def _slerp(Ra: FloatArray, Rb: FloatArray, s: float) -> FloatArray:
-    """Rotation a fraction ``s`` of the way from ``Ra`` to ``Rb`` along the shortest arc."""
-    return Ra @ rotvec_to_dcm(s * dcm_to_rotvec(Ra.T @ Rb))
 
 
 def _check_time(name: str, v: float, *, positive: bool = False) -> float:
@@ -294,6 +291,9 @@ class AttitudeList(MotionBase):
         self.dwell_s = _check_time("dwell_s", dwell_s)
         self.transition_s = _check_time("transition_s", transition_s)
         self._Rs = [euler_to_dcm(*e) for e in self.eulers]
+        # Each transition's whole turn, the shortest arc from one attitude to the next (a
+        # rotation vector in the first one's axes), made once: not again every frame.
+        self._turns = [dcm_to_rotvec(a.T @ b) for a, b in itertools.pairwise(self._Rs)]
         n = len(self._Rs)
         self.duration = n * self.dwell_s + (n - 1) * self.transition_s
 
@@ -319,7 +319,8 @@ class AttitudeList(MotionBase):
         i, s = self._locate(t)
         if s == 0.0:
             return self._Rs[i]
-        return _slerp(self._Rs[i], self._Rs[i + 1], _smoothstep(s))
+        # a fraction of the turn along the shortest arc (slerp)
+        return self._Rs[i] @ rotvec_to_dcm(_smoothstep(s) * self._turns[i])
 
 
 class OnboardCalRotation(MotionBase):
@@ -586,13 +587,17 @@ class Sequence(MotionBase):
         for p in self.parts[:-1]:
             if not math.isfinite(p.duration):
                 raise ValueError("only the last part of a Sequence may be endless")
-        self._starts = np.cumsum([0.0] + [p.duration for p in self.parts[:-1]])
-        self.duration = float(self._starts[-1]) + self.parts[-1].duration
+        # (a list of floats: found with bisect, as numpy's searchsorted would, without a
+        # numpy call on every frame)
+        self._starts: list[float] = np.cumsum(
+            [0.0] + [p.duration for p in self.parts[:-1]]
+        ).tolist()
+        self.duration = self._starts[-1] + self.parts[-1].duration
 
     def _part(self, t: float) -> tuple[Motion, float]:
-        i = int(np.searchsorted(self._starts, t, side="right")) - 1
+        i = bisect_right(self._starts, t) - 1
         i = max(0, i)
-        return self.parts[i], t - float(self._starts[i])
+        return self.parts[i], t - self._starts[i]
 
     def attitude(self, t: float) -> FloatArray:
         """The attitude of the part running at ``t``."""
