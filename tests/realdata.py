@@ -16,6 +16,7 @@ No code of the sources is used: only their numbers.
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import math
 from dataclasses import dataclass, replace
@@ -68,6 +69,19 @@ class RealData:
         )
 
 
+def _read_only(data: RealData) -> RealData:
+    """``data`` with its arrays made read-only: a loader's result is shared (see below)."""
+    for a in (data.mag_G, data.acc_g, data.seq, data.t_s):
+        a.setflags(write=False)
+    return data
+
+
+#: The loaders below are cached: a source file is parsed once per process, not again by
+#: every test that starts from it (the 100 Hz tumble's 2000 rows were parsed eight times
+#: in ``test_real_recordings``). Their arrays are read-only, so no test can change what
+#: the next one is given; ``RealData.every`` gives read-only views of them.
+
+
 def _comments_stripped(path: Path) -> list[str]:
     return [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
 
@@ -81,6 +95,7 @@ def _ck(name: str, acc_mag: FloatArray, row: IntArray, source_rate_hz: float) ->
     )
 
 
+@functools.cache
 def ck_tumble(source_rate_hz: float = 100.0) -> RealData:
     """CK-Explorer's hand tumble (LSM9DS1-class: 0.14 mG steps), 394 rows of 12 000.
 
@@ -96,9 +111,10 @@ def ck_tumble(source_rate_hz: float = 100.0) -> RealData:
     rows = list(csv.reader(_comments_stripped(DATA / "ck_tumble.csv")))[1:]
     a = np.array([[float(v) for v in r[1:]] for r in rows])
     row = np.array([int(r[0]) for r in rows], dtype=np.int64)
-    return _ck("ck_tumble", a, row, source_rate_hz)
+    return _read_only(_ck("ck_tumble", a, row, source_rate_hz))
 
 
+@functools.cache
 def ck_tumble_100hz(source_rate_hz: float = 100.0) -> RealData:
     """The same log's 2000 consecutive rows 1400..3399: 20 s of the tumble at its own ~100 Hz.
 
@@ -114,9 +130,10 @@ def ck_tumble_100hz(source_rate_hz: float = 100.0) -> RealData:
     rows = list(csv.reader(_comments_stripped(path)))[1:]
     a = np.array([[float(v) for v in r] for r in rows])
     row = first + np.arange(a.shape[0], dtype=np.int64)
-    return _ck("ck_tumble_100hz", a, row, source_rate_hz)
+    return _read_only(_ck("ck_tumble_100hz", a, row, source_rate_hz))
 
 
+@functools.cache
 def px4_mag_data1(rate_hz: float = 10.0) -> RealData:
     """PX4's replay data: 231 calibration samples (gauss) of a vehicle with ~0.6 G of hard iron.
 
@@ -129,9 +146,10 @@ def px4_mag_data1(rate_hz: float = 10.0) -> RealData:
     n = m.shape[0]
     acc = np.tile([0.0, 0.0, 1.0], (n, 1))
     seq = np.arange(n, dtype=np.int64)
-    return RealData("px4_mag_data1", m, acc, seq, seq / rate_hz, False)
+    return _read_only(RealData("px4_mag_data1", m, acc, seq, seq / rate_hz, False))
 
 
+@functools.cache
 def sap6_hc() -> RealData:
     """The SAP6 cave-survey instrument "HC": 24 still shots, magnetometer (uT) and gravity (m/s^2).
 
@@ -148,7 +166,7 @@ def sap6_hc() -> RealData:
     grav = np.column_stack([-g[:, 1], -g[:, 0], g[:, 2]]) / STANDARD_GRAVITY
     n = mag.shape[0]
     seq = 20 * np.arange(n, dtype=np.int64)
-    return RealData("sap6_HC", mag, grav, seq, seq * 0.1, True)
+    return _read_only(RealData("sap6_HC", mag, grav, seq, seq * 0.1, True))
 
 
 class Published(TypedDict):
