@@ -14,6 +14,7 @@ calibration a source publishes.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import math
 import re
@@ -428,7 +429,13 @@ def test_a_quiet_sensor_is_held_to_the_operators_target(
 # ---------------------------------------------------------------------------
 
 
+@functools.cache
 def _cli(path: Path, *extra: str) -> tuple[int, str]:
+    """``calibrate --recording path --no *extra`` run in-process: its exit code and output.
+
+    Cached: the command is deterministic and shows, saves nothing (``--no``), so a test
+    asking for the same one gets the same run's output (the 394-frame excerpt's minmax
+    run is read by two tests)."""
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         code = main(["calibrate", "--recording", str(path), "--no", *extra])
