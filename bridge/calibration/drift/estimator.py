@@ -263,6 +263,9 @@ class DriftEstimator:
         self.window_s = float(window_s) if window_s is not None else self.settings.window_s
         if not self.window_s >= 2.0 * self.settings.block_s:
             raise ValueError("window_s must hold at least two blocks")
+        #: the blocks as added, each row with its tilt-compensated heading as an eighth
+        #: column: a sample's heading never changes, and the quasi-static test of every
+        #: fit needs it for the whole window (up to 48 blocks), which is why it is kept
         self._blocks: deque[FloatArray] = deque()
         self._last: Vec3 = ZERO
         self._levels: deque[float] = deque(maxlen=12)  # residuals of consistent fits
@@ -288,7 +291,8 @@ class DriftEstimator:
         a = a[np.all(np.isfinite(a), axis=1)]
         if len(a) == 0:
             return
-        self._blocks.append(a)
+        _, _, heading = tilt_compensated_heading(a[:, 1:4], a[:, 4:7])
+        self._blocks.append(np.column_stack((a, heading)))
         self.cut(float(a[-1, 0]) - self.window_s)
 
     def cut(self, before_t: float) -> None:
@@ -305,7 +309,7 @@ class DriftEstimator:
             return None
         s = self.settings
         a = np.concatenate(self._blocks)
-        t, h, g = a[:, 0], a[:, 1:4], a[:, 4:7]
+        t, h, g, hdg = a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7]
         ref = reference if reference is not None else Reference()
         # The gate judges the field as the last fit corrects it, around its median and
         # never tighter than its own spread: a change the fit does not follow yet
@@ -320,10 +324,10 @@ class DriftEstimator:
         keep = _away_from(t, bad, s.guard_s)
         if int(keep.sum()) < s.min_samples:
             return None
-        t, h, g = t[keep], h[keep], g[keep]
+        t, h, g, hdg = t[keep], h[keep], g[keep], hdg[keep]
         gn = np.linalg.norm(g, axis=1)
         u = g / np.where(gn > 1e-9, gn, 1.0)[:, None]
-        qs = _quasi_static(t, h, g, gn, s)
+        qs = _quasi_static(t, hdg, gn, s)
         if self._consistent:  # (after a garbled fit its offset is no base to judge on)
             self._on_model_scale = self._on_scale(h[qs], u[qs], ref)
         if not self._on_model_scale:
@@ -509,20 +513,20 @@ def _away_from(t: FloatArray, bad: npt.NDArray[np.bool_], guard_s: float) -> npt
 
 
 def _quasi_static(
-    t: FloatArray, h: FloatArray, g: FloatArray, gn: FloatArray, s: DriftSettings
+    t: FloatArray, hdg: FloatArray, gn: FloatArray, s: DriftSettings
 ) -> npt.NDArray[np.bool_]:
     """Samples where the accelerometer sees gravity alone: |g| = 1 g and a steady heading.
 
     The heading rate is the tilt-compensated heading's, over +-0.5 s (a turn's
     centripetal acceleration is speed x that rate); across a gap in the samples
-    the rate is unknown and the sample does not count.
+    the rate is unknown and the sample does not count. ``hdg`` is each sample's
+    tilt-compensated heading (degrees), ``gn`` its ``|g|``.
     """
     n = len(t)
     ok = np.abs(gn - 1.0) < s.quasi_static_accel_g
     k = max(1, round(0.5 / s.sample_period_s))
     if n <= 2 * k:
         return np.zeros(n, dtype=bool)
-    _, _, hdg = tilt_compensated_heading(h, g)
     psi = np.unwrap(np.radians(hdg))
     dt = t[2 * k :] - t[: -2 * k]
     rate = np.full(n, np.inf)
