@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from handheld_rig import FIELD, Tumbled, tumble
+from handheld_rig import FIELD, tumble
 from harness import ManualClock
 
 from bridge.app.calibration import CalibrationController
@@ -27,6 +27,7 @@ from bridge.app.pipeline import Pipeline
 from bridge.calibration.sessions import Phase
 from bridge.core.attitude import AttitudeEngine
 from bridge.events import Event, EventBus
+from bridge.protocol.gmr import AttitudeFrame
 
 RATE_HZ = 100.0
 #: Frames before the calibration starts: the frame clock learns the compass's rate (4 s of
@@ -47,8 +48,8 @@ def in_bursts(i: int) -> float:
     return burst / 10.0 + (0.0905 if k == 9 else 0.089 + k * 5e-5)
 
 
-def calibrate(rec: Tumbled, arrival: Callable[[int], float]) -> dict[str, object]:
-    """A host magnetometer calibration of ``rec``'s frames read at ``arrival(i)``: the
+def calibrate(frames: list[AttitudeFrame], arrival: Callable[[int], float]) -> dict[str, object]:
+    """A host magnetometer calibration of a tumble's ``frames`` read at ``arrival(i)``: the
     ``calibration.done`` or ``calibration.failed`` event's data."""
     clock = ManualClock(0.0)
     seen: list[Event] = []
@@ -60,7 +61,7 @@ def calibrate(rec: Tumbled, arrival: Callable[[int], float]) -> dict[str, object
     pipeline = Pipeline(engine, bus, feed=ctl.feed, calibrating=ctl.calibrating)
     try:
         step_one = True
-        for i, frame in enumerate(rec.frames()):
+        for i, frame in enumerate(frames):
             clock.t = arrival(i)
             pipeline.process(frame, clock.t)
             if i == LEAD_FRAMES:
@@ -85,8 +86,9 @@ def calibrate(rec: Tumbled, arrival: Callable[[int], float]) -> dict[str, object
 def test_a_tumble_read_in_bursts_calibrates_as_well_as_one_read_as_it_comes() -> None:
     # a steady hand (0.05 g RMS of shake), 45 deg/s, the compass at 100 Hz
     rec = tumble(3, 0.05, seconds=150.0, rate_hz=RATE_HZ, dps=45.0)
-    even = calibrate(rec, as_they_come)
-    bursts = calibrate(rec, in_bursts)
+    frames = rec.frames()  # (frozen: both readings get the same frames, built once)
+    even = calibrate(frames, as_they_come)
+    bursts = calibrate(frames, in_bursts)
     assert even["kind"] == "calibration.done", even.get("reason")
     assert bursts["kind"] == "calibration.done", bursts.get("reason")
     predicted = {}
