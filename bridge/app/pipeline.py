@@ -39,13 +39,12 @@ from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.geometry import wrap_degrees_360
 from bridge.device import LinkState, Received
 from bridge.events import Event, EventBus, Severity
-from bridge.protocol.gmr import AttitudeFrame, Flags
+from bridge.protocol.gmr import AttitudeFrame
 from bridge.protocol.heading import HeadingFrame
 from bridge.types import HeadingReference
 
 log = logging.getLogger(__name__)
 
-_SAT = int(Flags.SAT)
 
 #: Disturbance start/end events: at most one per this many seconds (no flapping on the links).
 DISTURBANCE_EVENT_MIN_S = 5.0
@@ -161,8 +160,7 @@ class Pipeline:
         if a.disturbed is not self._disturbed:
             # (its hold-off on the compass's clock too: the same frame ends it however read)
             self._disturbance_changed(a.disturbed, a, tf)
-        # int & int: Flags' own "&" is Python code in the enum module (per frame).
-        saturated = (int(f.flags) & _SAT) != 0
+        saturated = f.sat_flag
         if self._observe is not None:
             # tf too: the monitor keeps a sample per 0.1 s and judges the heading rate in its
             # samples' own time (a burst's arrivals would put nine frames in one instant)

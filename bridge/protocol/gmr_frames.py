@@ -99,6 +99,7 @@ _HEX2_RE = re.compile(r"[0-9A-Fa-f]{2}")
 _ADC_NAMES = ("mx", "my", "mz", "ax", "ay", "az")
 #: Flags by value: a tuple index per frame instead of the enum's call machinery.
 _FLAGS_BY_VALUE: tuple[Flags, ...] = tuple(Flags(i) for i in range(FLAGS_MASK + 1))
+_SAT = int(Flags.SAT)
 
 
 def _f1(x: float) -> str:
@@ -195,6 +196,12 @@ class AttitudeFrame:
         _set(self, "ay", ay)
         _set(self, "az", az)
         _set(self, "flags", _FLAGS_BY_VALUE[flags])
+
+    @property
+    def sat_flag(self) -> bool:
+        """The device's SAT flag: a channel at an ADC rail (the flags read as an int:
+        ``Flags``'s own ``&`` is the enum module's Python code, and this is read every frame)."""
+        return (int(self.flags) & _SAT) != 0
 
     @property
     def mag_counts(self) -> tuple[int, int, int]:

@@ -93,7 +93,7 @@ def read_recording(path: str, progress: Callable[[float], None] | None = None) -
     import os
 
     from bridge.link.record import RecordingReader
-    from bridge.protocol.gmr import AttitudeFrame, Flags, GmrDecoder
+    from bridge.protocol.gmr import AttitudeFrame, GmrDecoder
 
     size = max(1, os.path.getsize(path))
     dec = GmrDecoder(direction="host")
@@ -110,9 +110,7 @@ def read_recording(path: str, progress: Callable[[float], None] | None = None) -
                 if isinstance(f, AttitudeFrame):
                     mag.append((f.mx, f.my, f.mz))
                     acc.append((f.ax, f.ay, f.az))
-                    # (membership: ``flags & SAT`` would build a Flags through the enum's
-                    # machinery for every frame, five times the cost)
-                    sat.append(Flags.SAT in f.flags)
+                    sat.append(f.sat_flag)
                     seq.append(f.seq)
                     arrival.append(chunk.t)
             if progress is not None:

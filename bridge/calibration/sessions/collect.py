@@ -38,7 +38,7 @@ from bridge.calibration.fits.ellipsoid import fit_sphere
 from bridge.calibration.fits.samples import COMPASS_CAL_NUM_SAMPLES, SampleAcceptor
 from bridge.calibration.sessions.motion import FrameSeries, MotionJudge, MotionWarning
 from bridge.core import sensor
-from bridge.protocol.gmr import AttitudeFrame, Flags
+from bridge.protocol.gmr import AttitudeFrame
 from bridge.types import FloatArray, Vec3
 
 #: ArduPilot's progress split: step one is the first third of the bar.
@@ -53,9 +53,6 @@ _SECTION_DIRS: FloatArray = np.array(
     [section_vertices(i).mean(axis=0) for i in range(N_SECTIONS)], dtype=np.float64
 )
 _SECTION_DIRS /= np.linalg.norm(_SECTION_DIRS, axis=1, keepdims=True)
-
-
-_SAT = int(Flags.SAT)
 
 
 def counts_to_nominal(
@@ -78,8 +75,7 @@ def frame_vectors(f: AttitudeFrame) -> tuple[Vec3, Vec3, bool]:
     """An attitude frame's raw vectors in nominal gauss and g, and whether it is saturated
     (a channel at an ADC rail, or the device's SAT flag)."""
     mag, acc, sat = counts_to_nominal(f.mx, f.my, f.mz, f.ax, f.ay, f.az)
-    # the flag as an int: Flags's own ``&`` is the enum's Python method, run every frame
-    return mag, acc, sat or bool(int(f.flags) & _SAT)
+    return mag, acc, sat or f.sat_flag
 
 
 # ---------------------------------------------------------------------------
