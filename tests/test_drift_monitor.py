@@ -107,25 +107,39 @@ def test_a_change_is_announced_once_as_a_warning_with_the_change_and_heading_err
 
 class Learned:
     """The learning drive (120 s, then 180 s with the hard iron changed) and the modes the
-    monitor was turned to (``on_mode``); ``undone`` once the undo test has undone it."""
+    monitor was turned to (``on_mode``)."""
 
     def __init__(self) -> None:
         self.lowered: list[str] = []
         self.rig = Rig(mode="learn", on_mode=self.lowered.append)
         self.rig.drive(120.0)
         self.rig.drive(180.0, changed=True)
-        self.undone = False
 
 
 @pytest.fixture(scope="module")
-def learned() -> Learned:
-    """The module's costliest drive, driven once: the learning test judges what it learned,
-    then the undo test undoes it (file order; the learning test checks it came first)."""
-    return Learned()
+def _drives() -> list[Learned]:
+    """The module's costliest drive, kept (at most one, never undone) for the next test
+    that asks: the learning test only reads it, the undo test takes it away and undoes it.
+    In file order it is driven once; in any other order (xdist stealing the undo test)
+    each test still gets a drive of its own, as before."""
+    return []
+
+
+@pytest.fixture
+def learned(_drives: list[Learned]) -> Learned:
+    """A learning drive to judge (kept for the undo test)."""
+    if not _drives:
+        _drives.append(Learned())
+    return _drives[0]
+
+
+@pytest.fixture
+def learned_to_undo(_drives: list[Learned]) -> Learned:
+    """A learning drive to undo (taken: no later test sees it undone)."""
+    return _drives.pop() if _drives else Learned()
 
 
 def test_learning_applies_bounded_steps_and_brings_the_offsets_back(learned: Learned) -> None:
-    assert not learned.undone, "runs before the undo test: it judges the learning itself"
     rig = learned.rig
     kinds = rig.kinds()
     assert "calibration.drift" in kinds and "calibration.learned" in kinds
@@ -177,12 +191,11 @@ def test_off_watches_nothing_and_a_new_calibration_starts_over() -> None:
         rig.monitor.set_mode("sometimes")
 
 
-def test_undo_goes_back_to_where_learning_started_once(learned: Learned) -> None:
+def test_undo_goes_back_to_where_learning_started_once(learned_to_undo: Learned) -> None:
     # before any drive (a fresh monitor, learning as the drive's): nothing to undo
     assert Rig(mode="learn").monitor.undo() == (False, "Nothing learned to undo")
-    rig, lowered = learned.rig, learned.lowered
+    rig, lowered = learned_to_undo.rig, learned_to_undo.lowered
     assert rig.applied
-    learned.undone = True
     done, text = rig.monitor.undo()
     assert done and "detect" in text
     assert rig.engine.calibration == rig.start_cal  # no state directory: the one in memory
