@@ -28,9 +28,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import companion_bridge as companion
+import mavsdk
 import pytest
 from autopilots import Autopilot, M, check_all, start_px4
 from companion_bridge import Bridge, start_bridge
+from mavsdk import ComponentType, Configuration, Mavsdk
+from mavsdk.plugins.param.param import Param, ParamError, ParamResult, ProtocolVersion
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -192,12 +195,6 @@ def check_reads_for_every_component_are_answered_and_commands_keep_their_rule(se
 
 
 def _mavsdk_params(port: int) -> set[str]:
-    # imported here, not at the top: every run of the suite collects this module, the
-    # in-memory tier too (which deselects it); MAVSDK's import cost that ~20 ms for nothing
-    import mavsdk
-    from mavsdk import ComponentType, Configuration, Mavsdk
-    from mavsdk.plugins.param.param import Param, ParamError, ParamResult, ProtocolVersion
-
     log: list[str] = []
 
     def on_log(_level: Any, message: str, _file: Any, _line: int) -> bool:

@@ -16,10 +16,16 @@ import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import mavsdk
 import pytest
 from mavlink_clients import new_value, writable
+from mavsdk import Autopilot, ComponentType, Configuration, Mavsdk
+from mavsdk.plugins.calibration.calibration import Calibration as CalibrationPlugin
+from mavsdk.plugins.calibration.calibration import CalibrationResult
+from mavsdk.plugins.param.param import Param
+from mavsdk.plugins.telemetry.telemetry import Telemetry
 from test_mavlink_calibration import (
     FIELD,
     LEAD_S,
@@ -32,13 +38,6 @@ from bridge.app.paramspec import REAL32
 from bridge.calibration.model import Calibration
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.sim.motion import SixFaces, Still, Tumble
-
-# MAVSDK is imported where it is used, not here: every run of the suite collects this
-# module, the in-memory tier too, which deselects its tests; importing MAVSDK and its
-# plugins cost that collection ~20 ms for nothing.
-if TYPE_CHECKING:
-    from mavsdk import Mavsdk
-    from mavsdk.plugins.calibration.calibration import CalibrationResult
 
 pytestmark = pytest.mark.integration  # real sockets, processes or threads
 
@@ -56,8 +55,6 @@ class Run:
     done: threading.Event = field(default_factory=threading.Event)
 
     def __call__(self, result: CalibrationResult, data: Any, _user: Any) -> None:
-        from mavsdk.plugins.calibration.calibration import CalibrationResult
-
         if result is CalibrationResult.NEXT:
             if data.has_progress:
                 self.progress.append(float(data.progress))
@@ -77,9 +74,6 @@ class Run:
 def connect(rigs: Callable[..., Rig]) -> Iterator[Callable[[Rig], Any]]:
     """MAVSDK as a ground station on a rig's udpin port -> the discovered autopilot system.
     Every instance is destroyed before the rigs stop; MAVSDK's log is kept for failures."""
-    import mavsdk
-    from mavsdk import ComponentType, Configuration, Mavsdk
-
     made: list[Mavsdk] = []
     log: list[str] = []
 
@@ -106,12 +100,6 @@ def connect(rigs: Callable[..., Rig]) -> Iterator[Callable[[Rig], Any]]:
 def test_mavsdk_discovery_telemetry_parameters_and_level(
     tmp_path: Path, rigs: Callable[..., Rig], connect: Callable[[Rig], Any]
 ) -> None:
-    from mavsdk import Autopilot
-    from mavsdk.plugins.calibration.calibration import Calibration as CalibrationPlugin
-    from mavsdk.plugins.calibration.calibration import CalibrationResult
-    from mavsdk.plugins.param.param import Param
-    from mavsdk.plugins.telemetry.telemetry import Telemetry
-
     roll, pitch, yaw = 4.0, -7.0, 40.0
     rig = rigs(tmp_path, ideal=True, motion=Still.from_deg(roll, pitch, yaw), mavlink=PX4)
     system = connect(rig)
@@ -168,9 +156,6 @@ def test_mavsdk_discovery_telemetry_parameters_and_level(
 def test_mavsdk_calibrates_the_magnetometer_while_it_tumbles(
     tmp_path: Path, rigs: Callable[..., Rig], connect: Callable[[Rig], Any]
 ) -> None:
-    from mavsdk.plugins.calibration.calibration import Calibration as CalibrationPlugin
-    from mavsdk.plugins.calibration.calibration import CalibrationResult
-
     rig = rigs(
         tmp_path,
         fast=True,
@@ -193,9 +178,6 @@ def test_mavsdk_calibrates_the_magnetometer_while_it_tumbles(
 def test_mavsdk_calibrates_the_accelerometer_on_six_faces(
     tmp_path: Path, rigs: Callable[..., Rig], connect: Callable[[Rig], Any]
 ) -> None:
-    from mavsdk.plugins.calibration.calibration import Calibration as CalibrationPlugin
-    from mavsdk.plugins.calibration.calibration import CalibrationResult
-
     rig = rigs(
         tmp_path,
         fast=True,
