@@ -35,14 +35,9 @@ def rot_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return math.degrees(float(np.linalg.norm(dcm_to_rotvec(Ra.T @ Rb))))
 
 
-def assert_rotation(R: np.ndarray) -> None:
-    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
-    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-9)
-
-
 def assert_rotations(Rs: np.ndarray) -> None:
-    """:func:`assert_rotation` for each of a stack, in one comparison of each kind (a test
-    of hundreds of frames spent most of its time in the calls)."""
+    """Every matrix of the stack ``Rs`` is a rotation (orthonormal, determinant +1), in one
+    comparison of each kind (a test of hundreds of frames spent most of its time in calls)."""
     np.testing.assert_allclose(
         Rs @ Rs.transpose(0, 2, 1), np.broadcast_to(np.eye(3), Rs.shape), atol=1e-9
     )
