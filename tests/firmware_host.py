@@ -51,6 +51,8 @@ class Host:
 
     def _poll(self) -> None:
         data = self.fw.poll(self.t)
+        if not data:  # most polls (every ms, frames at 10 Hz): nothing came, nothing to decode
+            return
         self.raw += data
         for f in self.dec.feed(data):
             self.log.append((self.t, f))
