@@ -425,9 +425,10 @@ class AttitudeEngine:
         if est is not None:
             accel = est.down  # the tilt policy's down replaces the accelerometer's
             gx, gy, gz = accel
+            gn = math.sqrt(gx * gx + gy * gy + gz * gz)
         else:
             accel = (gx, gy, gz)
-        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+            gn = an  # the same down: its |g| is the one just taken (most frames: no policy)
         bn = math.sqrt(hx * hx + hy * hy + hz * hz)
         degraded = False
         if gn > 1e-6:
