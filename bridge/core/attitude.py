@@ -428,7 +428,7 @@ class AttitudeEngine:
             gn = math.sqrt(gx * gx + gy * gy + gz * gz)
         else:
             accel = (gx, gy, gz)
-            gn = an  # the same down: its |g| is the one just taken (most frames: no policy)
+            gn = an  # the same down: its |g| is the one just taken
         bn = math.sqrt(hx * hx + hy * hy + hz * hz)
         degraded = False
         if gn > 1e-6:
