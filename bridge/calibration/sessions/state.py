@@ -54,7 +54,13 @@ class Phase(enum.StrEnum):
     @property
     def running(self) -> bool:
         """Waiting, collecting or fitting."""
-        return self in (Phase.WAITING, Phase.COLLECTING, Phase.FITTING)
+        return self in _RUNNING
+
+
+# A set, not a tuple of Phase.WAITING, ...: on 3.11 every ``Phase.X`` goes through EnumType's
+# __getattr__ hook (about 0.2 us), and ``running`` is asked several times a frame while a
+# calibration collects (the controller, the session, its progress, the status snapshot).
+_RUNNING = frozenset((Phase.WAITING, Phase.COLLECTING, Phase.FITTING))
 
 
 class Result(enum.StrEnum):
