@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.report import Failure, SessionReport, failure_report
@@ -121,10 +121,14 @@ def device_error(message: str) -> Emit:
 Job = Compute | Device
 
 
-@dataclass(frozen=True, slots=True)
-class Progress:
+class Progress(NamedTuple):
     """How far a session is: percent (0-100), sphere coverage, where to turn, device spans,
-    faces done."""
+    faces done.
+
+    A named tuple rather than a frozen dataclass: a collecting session makes two a frame
+    (its progress event's check, the status snapshot), and a frozen dataclass's
+    ``__init__`` sets each field through ``object.__setattr__`` at three times the cost.
+    """
 
     percent: float
     mask: bytes = NO_MASK
@@ -172,10 +176,8 @@ class Session:
 
     def progress(self, *, hint: bool = True) -> Progress:
         """How far it is (``hint=False``: skip the costlier direction hint, per frame)."""
-        if self.phase is Phase.SUCCEEDED:
-            return self._progress(hint, 100.0)
-        if not self.running:
-            return self._progress(hint, 0.0)
+        if not self.running:  # (asked first: a running session is asked twice a frame)
+            return self._progress(hint, 100.0 if self.phase is Phase.SUCCEEDED else 0.0)
         p = self._progress(hint, None)
         return (
             p if p.percent <= 99.0 else Progress(99.0, p.mask, p.direction, p.spans, p.faces_done)
