@@ -335,12 +335,18 @@ class Session:
         (a new phase, step or attempt goes out at once)."""
         if not self.running:
             return []
-        p = self.progress(hint=False)
-        key = (self.phase, self.step, self.attempt, int(p.percent), p.mask)
-        if key == self._progress_key:
+        last, soon = self._progress_key, now - self._progress_at < self.settings.progress_interval_s
+        stage = (self.phase, self.step, self.attempt)
+        if soon and last[:3] == stage:
+            # Within the interval, at the last event's stage, nothing goes out whatever the
+            # figure says: most frames stop here without working the progress out.
             return []
-        moved_on = not self._progress_key or self._progress_key[:3] != key[:3]
-        if not moved_on and now - self._progress_at < self.settings.progress_interval_s:
+        p = self.progress(hint=False)
+        key = (*stage, int(p.percent), p.mask)
+        if key == last:
+            return []
+        moved_on = not last or last[:3] != stage
+        if not moved_on and soon:
             return []
         return [self.progress_event(now)]
 
