@@ -116,29 +116,38 @@ def _linear_joints(grams: FloatArray) -> list[Candidate | None]:
     # The mean of |P (x - o)|^2 over the rows is linear in their means (_magnitude_moment).
     mu, S = _second_moments(grams[k, -1, :-1] / n[k, None])
     M = _magnitude_moment(mu, S, o)
-    for j, b in enumerate(k):
-        out[b] = _scaled_start(P[j], o[j], M[j : j + 1])
+    for b, start in zip(k.tolist(), _scaled_starts(P, o, M), strict=True):
+        out[b] = start
     return out
 
 
-def _scaled_start(P: FloatArray, o: FloatArray, M: FloatArray) -> Candidate | None:
-    """The linear start of one problem from its ``P``, ``o`` and :func:`_magnitude_moment`:
-    scaled so the rows' mean ``|P (x - o)|^2`` is 1, ``P`` split into ``Q^T L``."""
-    mean_sq = float(np.einsum("ij,kij->", P.T @ P, M))
-    if not (math.isfinite(mean_sq) and mean_sq > 0.0):
-        return None
-    c = 1.0 / math.sqrt(mean_sq)
-    P = c * P
+def _scaled_starts(P: FloatArray, o: FloatArray, M: FloatArray) -> list[Candidate | None]:
+    """The linear starts of a stack of problems from their ``P`` (B, 3, 3), ``o`` (B, 3) and
+    :func:`_magnitude_moment` (B, 3, 3): each scaled so its rows' mean ``|P (x - o)|^2`` is 1,
+    ``P`` split into ``Q^T L``. The stacked products, factorisations and inverses run
+    numpy's routine on each matrix as it would alone (the same numbers), in one call."""
+    out: list[Candidate | None] = [None] * len(P)
+    mean_sq = np.einsum("bij,bij->b", np.swapaxes(P, 1, 2) @ P, M)
+    k = np.flatnonzero(np.isfinite(mean_sq) & (mean_sq > 0.0))
+    c = 1.0 / np.sqrt(mean_sq[k])
+    P = c[:, None, None] * P[k]
+    A = np.swapaxes(P, 1, 2) @ P
     try:
-        L = _lower_factor(P.T @ P)
-    except np.linalg.LinAlgError:
-        return None
-    Q = (P @ np.linalg.inv(L)).T
-    try:
-        accel = AffineCalibration.from_arrays(o, L)
-    except ValueError:
-        return None
-    return accel, Q, c
+        L = _lower_factor(A)
+    except np.linalg.LinAlgError:  # one of them is not positive definite: no start for it
+        factors = []
+        for j in range(len(k)):
+            with contextlib.suppress(np.linalg.LinAlgError):
+                factors.append((j, _lower_factor(A[j])))
+        if not factors:
+            return out
+        k, c, P = k[[j for j, _ in factors]], c[[j for j, _ in factors]], P[[j for j, _ in factors]]
+        L = np.stack([f for _, f in factors])
+    Q = np.swapaxes(P @ np.linalg.inv(L), 1, 2)
+    for j, (b, cj) in enumerate(zip(k.tolist(), c.tolist(), strict=True)):
+        with contextlib.suppress(ValueError):  # not a calibration: no start
+            out[b] = AffineCalibration.from_arrays(o[b], L[j]), Q[j], cj
+    return out
 
 
 _TRI = ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2))  # lower-triangular entries of L
@@ -230,13 +239,13 @@ def _joint_coefficients(
     return c, Cd, Cm
 
 
-def _correlation_time(r: FloatArray) -> float:
-    """Integrated autocorrelation time of a residual series, in rows (1 for white noise).
+def _correlation_time(x: FloatArray) -> float:
+    """Integrated autocorrelation time of a residual series, in rows (1 for white noise),
+    from its deviations from its mean ``x``.
 
     Summed over the initial positive run of the autocorrelation (up to a tenth
     of the series), so slow beats count fully and noise does not.
     """
-    x = r - float(np.mean(r))
     n = x.size
     var = float(x @ x)
     if n < 4 or not var > 0.0:
@@ -252,7 +261,10 @@ def _correlation_time(r: FloatArray) -> float:
 
 def _weight(r: FloatArray) -> float:
     """Weight of a residual series in a joint fit: 1 / sqrt(variance x correlation time)."""
-    return 1.0 / max(math.sqrt(float(np.var(r)) * _correlation_time(r)), 1e-12)
+    x = r - float(np.mean(r))
+    # np.var(r), from the deviations made once: numpy's var is their squares' sum over n
+    var = float(np.add.reduce(x * x)) / x.size
+    return 1.0 / max(math.sqrt(var * _correlation_time(x)), 1e-12)
 
 
 #: Gauss-Newton stops after a step this small (the parameters are of order 1): over the tests'
@@ -359,8 +371,8 @@ def solve_joints(
             Ll = L[live]
             Ll[:, _TRI_A, _TRI_B] += step[:, 3:9]
             L[live] = Ll
-            for k, b in enumerate(live):
-                Q[b] = rotvec_to_dcm(step[k, 9:12]) @ Q[b]
+            # (a stacked matmul: each product as alone)
+            Q[live] = np.stack([rotvec_to_dcm(st) for st in step[:, 9:12]]) @ Q[live]
             s[live] = s[live] + step[:, 12]
             live = live[~bad & ~(np.max(np.abs(step), axis=1) < _STEP_TOL)]
             if live.size == 0:
@@ -407,14 +419,15 @@ def solve_rotations(
         if live.size == 0:
             break
         rhs = np.empty((live.size, 4))
+        coef = np.concatenate([R[live].reshape(-1, 9), -s[live, None]], axis=1)
         for k, b in enumerate(live.tolist()):
-            e = F[b] @ np.append(R[b].reshape(9), -s[b])
+            e = F[b] @ coef[k]
             rhs[k] = -(Cl[k].T @ (F[b].T @ e))
         step = np.linalg.solve(JTJ, rhs[:, :, None])[:, :, 0]
-        small = np.zeros(live.size, dtype=bool)
-        for k, b in enumerate(live.tolist()):
-            R[b] = rotvec_to_dcm(step[k, :3]) @ R[b]
-            small[k] = float(np.linalg.norm(step[k])) < _STEP_TOL
+        # (a stacked matmul: each product as alone)
+        R[live] = np.stack([rotvec_to_dcm(st) for st in step[:, :3]]) @ R[live]
+        # |step| as np.linalg.norm gives it: the square root of its dot with itself
+        small = np.array([math.sqrt(st @ st) < _STEP_TOL for st in step])
         s[live] = s[live] + step[:, 3]
         live = live[~small]
         if live.size == 0:

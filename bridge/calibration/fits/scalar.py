@@ -183,12 +183,13 @@ def _lower_factor(A: FloatArray) -> FloatArray:
     """Lower-triangular ``L`` with ``L.T @ L = A`` (A symmetric positive definite).
 
     Cholesky gives ``A = C C.T`` with C lower; flipping the index order turns it
-    into the "upper-lower" factorisation we need.
+    into the "upper-lower" factorisation we need. ``A`` may be a stack (B, 3, 3): each
+    matrix factorised as alone (``LinAlgError`` if any is not positive definite).
     """
     J = np.eye(3)[::-1]
     C = np.linalg.cholesky(J @ A @ J)
     U = J @ C @ J  # upper triangular, A = U U.T
-    return U.T
+    return np.swapaxes(U, -1, -2)
 
 
 def _algebraic_ellipsoid(x: FloatArray) -> tuple[FloatArray, FloatArray] | None:
