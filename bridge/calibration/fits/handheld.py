@@ -98,12 +98,16 @@ def tilted_attitudes(rng: np.random.Generator, n: int, max_tilt_deg: float) -> F
     az = rng.uniform(0.0, 2.0 * math.pi, n)
     cos_t = rng.uniform(math.cos(math.radians(max_tilt_deg)), 1.0, n)
     tilt = np.arccos(np.clip(cos_t, -1.0, 1.0))
-    out = np.empty((n, 3, 3))
-    for i in range(n):
-        # tilt about a horizontal axis after the heading: body z leaves the vertical by tilt[i]
-        axis = (math.cos(az[i]), math.sin(az[i]), 0.0)
-        out[i] = axis_angle_to_dcm(axis, float(tilt[i])) @ euler_to_dcm(0.0, 0.0, float(yaw[i]))
-    return out
+    if n == 0:
+        return np.empty((0, 3, 3))
+    # tilt about a horizontal axis after the heading: body z leaves the vertical by tilt[i]
+    tilts = [
+        axis_angle_to_dcm((math.cos(a), math.sin(a), 0.0), t)
+        for a, t in zip(az.tolist(), tilt.tolist(), strict=True)
+    ]
+    headings = [euler_to_dcm(0.0, 0.0, y) for y in yaw.tolist()]
+    # (a stacked matmul: each product as alone)
+    return np.asarray(np.stack(tilts) @ np.stack(headings), dtype=np.float64)
 
 
 _EVAL_R = tilted_attitudes(np.random.default_rng(0x7417), 120, EVAL_TILT_DEG)

@@ -252,7 +252,8 @@ def _correlation_time(x: FloatArray) -> float:
         return 1.0
     tau = 1.0
     for lag in range(1, max(2, n // 10)):
-        rho = float(x[:-lag] @ x[lag:]) / var
+        # (ndarray.dot: the BLAS dot that @ calls, without the matmul ufunc's dispatch)
+        rho = float(x[:-lag].dot(x[lag:])) / var
         if rho <= 0.0:
             break
         tau += 2.0 * rho
