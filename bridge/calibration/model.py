@@ -50,13 +50,14 @@ IDENTITY: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 def _vec3(v: npt.ArrayLike) -> Vec3:
-    a = np.asarray(v, dtype=np.float64).reshape(3)
-    return (float(a[0]), float(a[1]), float(a[2]))
+    # tolist: the same Python floats as float() of each item, in one call
+    x, y, z = np.asarray(v, dtype=np.float64).reshape(3).tolist()
+    return (x, y, z)
 
 
 def _mat3(m: npt.ArrayLike) -> Mat3:
-    a = np.asarray(m, dtype=np.float64).reshape(3, 3)
-    return (_vec3(a[0]), _vec3(a[1]), _vec3(a[2]))
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(m, dtype=np.float64).reshape(3, 3).tolist()
+    return ((a, b, c), (d, e, f), (g, h, i))
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,9 +102,12 @@ class AffineCalibration:
     @classmethod
     def from_arrays(cls, offset: npt.ArrayLike, matrix: npt.ArrayLike) -> AffineCalibration:
         """Build from numpy arrays; raises ``ValueError`` on non-finite or singular input."""
-        off, mat = _vec3(offset), _mat3(matrix)
-        m = np.asarray(mat)
-        if not (np.all(np.isfinite(off)) and np.all(np.isfinite(m))):
+        # (every fit builds its results here, the hand-held fit dozens of times a fit: the
+        # arrays as given, plain floats and ndarray.all() rather than numpy's function layers)
+        off = _vec3(offset)
+        m = np.asarray(matrix, dtype=np.float64).reshape(3, 3)
+        mat = _mat3(m)
+        if not (all(map(math.isfinite, off)) and np.isfinite(m).all()):
             raise ValueError("calibration must be finite")
         if abs(float(np.linalg.det(m))) < 1e-9:
             raise ValueError("calibration matrix is singular")
