@@ -262,8 +262,10 @@ def _correlation_time(x: FloatArray) -> float:
 
 def _weight(r: FloatArray) -> float:
     """Weight of a residual series in a joint fit: 1 / sqrt(variance x correlation time)."""
-    x = r - float(np.mean(r))
-    # np.var(r), from the deviations made once: numpy's var is their squares' sum over n
+    # np.mean(r) and np.var(r) from the deviations made once: numpy's mean is the sum over
+    # n, its var the deviations' squares' sum over n (the same reductions, without the
+    # layers around them: this runs for every problem of every window of every fit)
+    x = r - float(np.add.reduce(r)) / r.size
     var = float(np.add.reduce(x * x)) / x.size
     return 1.0 / max(math.sqrt(var * _correlation_time(x)), 1e-12)
 
@@ -378,12 +380,16 @@ def solve_joints(
             live = live[~bad & ~(np.max(np.abs(step), axis=1) < _STEP_TOL)]
             if live.size == 0:
                 break
+    usable = (
+        ~failed
+        & np.isfinite(L).all(axis=(1, 2))
+        & (np.diagonal(L, axis1=1, axis2=2) > 0.0).all(axis=1)
+    )
     for k, i in enumerate(act):
-        Lk = L[k]
-        if failed[k] or not np.all(np.isfinite(Lk)) or not np.all(np.diag(Lk) > 0.0):
+        if not usable[k]:
             continue
         with contextlib.suppress(ValueError):  # not a calibration: no candidate
-            out[i] = AffineCalibration.from_arrays(o[k], Lk), Q[k].copy(), float(s[k])
+            out[i] = AffineCalibration.from_arrays(o[k], L[k]), Q[k].copy(), float(s[k])
     return out
 
 
