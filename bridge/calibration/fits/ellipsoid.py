@@ -148,12 +148,22 @@ def _row_norms(v: FloatArray) -> FloatArray:
     return np.sqrt(np.einsum("ij,ij->i", v, v))
 
 
-def _residual_jacobian(
-    x: FloatArray, o: FloatArray, S: FloatArray, radius: float
-) -> tuple[FloatArray, FloatArray]:
+_Parts = tuple[FloatArray, FloatArray, FloatArray]
+
+
+def _parts(x: FloatArray, o: FloatArray, S: FloatArray) -> _Parts:
+    """``x - o``, its rows through ``S`` and their lengths: what the cost and the Jacobian
+    at ``(o, S)`` are made of."""
     d = x - o
     y = d @ S  # S is symmetric: rows are (S d_i)'
-    n = _row_norms(y)
+    return d, y, _row_norms(y)
+
+
+def _residual_jacobian(
+    x: FloatArray, o: FloatArray, S: FloatArray, radius: float, parts: _Parts | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """Residuals and Jacobian at ``(o, S)``; ``parts``: its :func:`_parts`, if made already."""
+    d, y, n = _parts(x, o, S) if parts is None else parts
     n = np.where(n > 0.0, n, 1e-300)
     u = y / n[:, None]
     J = np.empty((len(x), 9))
@@ -165,8 +175,8 @@ def _residual_jacobian(
     return n - radius, J
 
 
-def _cost(x: FloatArray, o: FloatArray, S: FloatArray, radius: float) -> float:
-    r = _row_norms((x - o) @ S) - radius
+def _cost(parts: _Parts, radius: float) -> float:
+    r = parts[2] - radius
     return float(r @ r)
 
 
@@ -183,12 +193,14 @@ def refine_ellipsoid(
     o = np.asarray(offset, dtype=np.float64).reshape(3).copy()
     S = np.asarray(matrix, dtype=np.float64).reshape(3, 3)
     S = (S + S.T) / 2.0
-    cost = _cost(p, o, S, radius)
+    # The parts of the last cost taken are the next Jacobian's (the same numbers): kept.
+    parts = _parts(p, o, S)
+    cost = _cost(parts, radius)
     lam = 1e-3
     it = 0
     rel = math.inf
     for it in range(1, max_iterations + 1):  # noqa: B007 - the count is reported
-        r, J = _residual_jacobian(p, o, S, radius)
+        r, J = _residual_jacobian(p, o, S, radius, parts)
         JTJ = J.T @ J
         g = J.T @ r
         dJ = np.diag(JTJ).copy()
@@ -202,10 +214,11 @@ def refine_ellipsoid(
                 continue
             o_new = o + step[:3]
             S_new = S + _sym(step[3:])
-            new_cost = _cost(p, o_new, S_new, radius)
+            new_parts = _parts(p, o_new, S_new)
+            new_cost = _cost(new_parts, radius)
             if math.isfinite(new_cost) and new_cost < cost:
                 rel = (cost - new_cost) / max(cost, 1e-300)
-                o, S, cost = o_new, S_new, new_cost
+                o, S, cost, parts = o_new, S_new, new_cost, new_parts
                 lam = max(lam / 10.0, 1e-12)
                 improved = True
                 break
