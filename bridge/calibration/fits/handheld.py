@@ -240,15 +240,16 @@ def _trial(
     edges = np.linspace(0, len(wm), blocks + 1).astype(int)
     # Each replicate's Gram matrix is the sum of the other blocks': one pass over the rows.
     F = _with_one(wm.rows)
-    grams = [gram_of(F[edges[b] : edges[b + 1]]) for b in range(blocks)]
-    # The whole series first, then each replicate: solved together (solve_joints).
+    grams = np.stack([gram_of(F[edges[b] : edges[b + 1]]) for b in range(blocks)])
+    # The whole series first, then each replicate: solved together (solve_joints). (The
+    # sums over the stack's first axis add the blocks' matrices in order, as they did
+    # from a list of them.)
     rows = [F]
     gram_sums = [np.sum(grams, axis=0)]
+    others = ~np.eye(blocks, dtype=bool)
     for b in range(blocks):
-        keep = np.ones(len(wm), dtype=bool)
-        keep[edges[b] : edges[b + 1]] = False
-        rows.append(F[keep])
-        gram_sums.append(np.sum(grams[:b] + grams[b + 1 :], axis=0))
+        rows.append(np.concatenate((F[: edges[b]], F[edges[b + 1] :])))
+        gram_sums.append(np.sum(grams[others[b]], axis=0))
     solved = solve(rows, gram_sums)
     if any(r is None for r in solved):
         return None
