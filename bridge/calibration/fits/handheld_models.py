@@ -141,7 +141,8 @@ def _scaled_starts(P: FloatArray, o: FloatArray, M: FloatArray) -> list[Candidat
                 factors.append((j, _lower_factor(A[j])))
         if not factors:
             return out
-        k, c, P = k[[j for j, _ in factors]], c[[j for j, _ in factors]], P[[j for j, _ in factors]]
+        kept = [j for j, _ in factors]
+        k, c, P = k[kept], c[kept], P[kept]
         L = np.stack([f for _, f in factors])
     Q = np.swapaxes(P @ np.linalg.inv(L), 1, 2)
     for j, (b, cj) in enumerate(zip(k.tolist(), c.tolist(), strict=True)):
