@@ -252,11 +252,21 @@ def load_parameters(obs: Observer, system_id: int, since: float) -> tuple[float,
     ``since`` to the bridge's last PARAM_VALUE, the indices it sent in that first round and
     the param_count it gave."""
     obs.mav.param_request_list_send(system_id, 0)
-    obs.wait(
-        "PARAM_VALUE",
-        lambda m: from_bridge(m) and m.param_index == m.param_count - 1,
-        since=since,
-    )
+    try:
+        obs.wait(
+            "PARAM_VALUE",
+            lambda m: from_bridge(m) and m.param_index == m.param_count - 1,
+            since=since,
+        )
+    except pytest.fail.Exception:
+        # Say which way it failed: the request never reached the bridge (nothing from it),
+        # or the router lost part of its answer (the indices that did come).
+        got = obs.history("PARAM_VALUE", from_bridge, since=since)
+        pytest.fail(
+            f"the bridge's last PARAM_VALUE never came: {len(got)} of its PARAM_VALUEs "
+            f"arrived, indices {sorted({m.param_index for _, m in got})}"
+            + (f" of {got[0][1].param_count}" if got else " (was the request forwarded?)")
+        )
     got = obs.history("PARAM_VALUE", from_bridge, since=since)
     return max(t for t, _ in got) - since, {m.param_index for _, m in got}, got[0][1].param_count
 

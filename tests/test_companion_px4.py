@@ -99,7 +99,13 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         s.errors_before = forwarding_errors(ap)
         # QGroundControl's initial load: PARAM_REQUEST_LIST to every component
         t0 = time.monotonic()
-        s.list_seconds, s.list_first_round, s.list_count = companion.load_parameters(obs, sysid, t0)
+        try:
+            s.list_seconds, s.list_first_round, s.list_count = companion.load_parameters(
+                obs, sysid, t0
+            )
+        except pytest.fail.Exception as e:  # PX4's own count of what its router dropped
+            pytest.fail(f"{e}; PX4 forwarding errors {s.errors_before} before, "
+                        f"{forwarding_errors(ap)} now")  # fmt: skip
         time.sleep(3.0)
         s.px4_params = companion.autopilot_parameters(obs, since=t0)
         # PARAM_REQUEST_READ to every component: the bridge answers what it has
