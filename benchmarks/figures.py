@@ -83,9 +83,37 @@ def format_figures(figures: list[Figure]) -> str:
     return "\n".join(lines)
 
 
+def json_option(ap: argparse.ArgumentParser) -> None:
+    """``--json FILE``, the same on every benchmark: the figures also written as JSON to
+    FILE, or with ``-`` printed as JSON on standard output instead of the text."""
+    ap.add_argument(
+        "--json", metavar="FILE", help="also write the figures as JSON ('-': JSON on stdout)"
+    )
+
+
+def write_json(
+    text: str, doc: Any, json_to: str | None, default: Callable[[Any], Any] | None = None
+) -> bool:
+    """What :func:`json_option` asks: ``text`` printed and ``doc`` written as JSON to
+    ``json_to`` (when given), or ``doc`` printed as JSON instead of ``text`` (``-``).
+    ``default`` is for what json cannot write itself. False (said on stderr) when the file
+    could not be written."""
+    if json_to == "-":
+        print(json.dumps(doc, indent=2, default=default))
+        return True
+    print(text)
+    if json_to:
+        try:
+            Path(json_to).write_text(json.dumps(doc, indent=2, default=default) + "\n")
+        except OSError as exc:
+            print(f"cannot write {json_to}: {exc}", file=sys.stderr)
+            return False
+    return True
+
+
 def report_options(ap: argparse.ArgumentParser, *, progress: bool = True) -> None:
-    """``--json FILE`` (``json_to`` of :func:`report`) and, with ``progress``, ``--progress``."""
-    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON ('-': stdout)")
+    """``--json FILE`` (:func:`json_option`) and, with ``progress``, ``--progress``."""
+    json_option(ap)
     if progress:
         progress_option(ap, "live bar")
 
@@ -93,41 +121,34 @@ def report_options(ap: argparse.ArgumentParser, *, progress: bool = True) -> Non
 def report(figures: list[Figure], json_to: str | None, **extra: Any) -> int:
     """Print the figures (a table, or JSON with ``json_to="-"``), maybe write them as JSON.
 
-    Returns the exit code of a benchmark: 0 when every figure meets its target.
+    Returns the exit code of a benchmark: 0 when every figure meets its target (2 when
+    the JSON could not be written).
     """
     ok = all(f.passed is not False for f in figures)
     doc = {"figures": [f.to_dict() for f in figures], "passed": ok, **extra}
-    if json_to == "-":
-        print(json.dumps(doc, indent=2))
-    else:
-        print(format_figures(figures))
-        print(f"overall: {'PASS' if ok else 'FAIL'}")
-        if json_to:
-            Path(json_to).write_text(json.dumps(doc, indent=2) + "\n")
+    text = f"{format_figures(figures)}\noverall: {'PASS' if ok else 'FAIL'}"
+    if not write_json(text, doc, json_to):
+        return 2
     return 0 if ok else 1
 
 
 def result_options(p: argparse.ArgumentParser, progress: str) -> None:
-    """``--json PATH`` and ``--progress`` of a benchmark that prints a result dict with its
-    ``targets`` (``progress``: what the bar shows, for the help); see :func:`finish`."""
-    p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write results as JSON")
+    """``--json FILE`` (:func:`json_option`) and ``--progress`` of a benchmark that prints a
+    result dict with its ``targets`` (``progress``: what the bar shows, for the help); see
+    :func:`finish`."""
+    json_option(p)
     progress_option(p, progress)
 
 
 def finish(
     text: str,
     result: dict[str, Any],
-    json_to: Path | None,
+    json_to: str | None,
     default: Callable[[Any], Any] | None = None,
 ) -> int:
-    """Print ``text`` (the result's report), write ``result`` as JSON to ``json_to`` when
-    given (``default`` for what json cannot write itself). Returns the exit code: 2 when
-    the JSON could not be written (said on stderr), else 0 when every target passed."""
-    print(text)
-    if json_to is not None:
-        try:
-            json_to.write_text(json.dumps(result, indent=2, default=default) + "\n")
-        except OSError as exc:
-            print(f"cannot write {json_to}: {exc}", file=sys.stderr)
-            return 2
+    """Print ``text`` (the result's report) and write ``result`` as JSON as ``json_to`` asks
+    (:func:`write_json`). Returns the exit code: 2 when the JSON could not be written, else
+    0 when every target passed."""
+    if not write_json(text, result, json_to, default):
+        return 2
     return 0 if all(t["pass"] for t in result["targets"]) else 1

@@ -20,7 +20,6 @@ too. The target is 5000 frames/s.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import sys
@@ -31,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.figures import json_option, write_json
 from bridge.app.sample import CompassSample
 from bridge.config import Config, config_from_mapping
 from bridge.core.geometry import random_rotations
@@ -158,21 +158,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=20000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--signed", action="store_true", help="sign every packet (MAVLink 2 signing)")
-    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    json_option(ap)
     args = ap.parse_args(argv)
     # A drawn, uncalibrated unit at random attitudes flags "disturbed" all the time: the
     # events still run (they are part of the path), their log lines are not wanted here.
     logging.disable(logging.WARNING)
     r = run(args.frames, signed=args.signed, repeat=args.repeat)
-    if args.json:
-        print(json.dumps({**asdict(r), "passed": r.passed, "target_fps": TARGET_FPS}))
-    else:
-        print(
-            f"{r.frames} frames, {r.packets_per_frame:.1f} packets/frame "
-            f"({r.bytes_per_frame:.0f} bytes){', signed' if r.signed else ''}: "
-            f"{r.cpu_fps:,.0f} frames/s CPU, {r.wall_fps:,.0f} frames/s wall "
-            f"-- target {TARGET_FPS:,.0f}: {'PASS' if r.passed else 'FAIL'}"
-        )
+    text = (
+        f"{r.frames} frames, {r.packets_per_frame:.1f} packets/frame "
+        f"({r.bytes_per_frame:.0f} bytes){', signed' if r.signed else ''}: "
+        f"{r.cpu_fps:,.0f} frames/s CPU, {r.wall_fps:,.0f} frames/s wall "
+        f"-- target {TARGET_FPS:,.0f}: {'PASS' if r.passed else 'FAIL'}"
+    )
+    doc = {**asdict(r), "passed": r.passed, "target_fps": TARGET_FPS}
+    if not write_json(text, doc, args.json):
+        return 2
     return 0 if r.passed else 1
 
 

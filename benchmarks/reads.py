@@ -36,6 +36,7 @@ import numpy as np
 
 import bridge.app.calibration.drift as drift_module
 from benchmarks.drift import Unit
+from benchmarks.figures import json_option, write_json
 from bridge.app.calibration.drift import DriftMonitor
 from bridge.app.pipeline import Pipeline
 from bridge.app.sample import CompassSample
@@ -404,12 +405,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     for flag, kind, default, text in options:
         p.add_argument(flag, type=kind, default=default, help=text)
+    json_option(p)
     args = p.parse_args(list(argv) if argv is not None else None)
     logging.getLogger("bridge.events").setLevel(logging.ERROR)  # the events are the figures
     rows = run(args.seed, args.before, args.after)
-    print(
+    text = (
         f"unit seed {args.seed} at {RATE_HZ} Hz, hard iron moved 40 mG {args.before:g} s in, "
-        f"learn, {args.before + args.after:g} s; times in seconds of the drive"
+        f"learn, {args.before + args.after:g} s; times in seconds of the drive\n"
+        + format_table(rows)
     )
-    print(format_table(rows))
-    return 0
+    doc = {
+        "seed": args.seed,
+        "rate_hz": RATE_HZ,
+        "before_s": args.before,
+        "after_s": args.after,
+        "rows": rows,
+    }
+    return 0 if write_json(text, doc, args.json, default=float) else 2

@@ -41,20 +41,19 @@ still and hand-held, the tilt path's RMS no worse than the accelerometer path's
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from benchmarks.drift import Unit
+from benchmarks.figures import finish, json_option
 from benchmarks.scoring import magnetic_heading_deg, positive_int, target, wrap180
 from bridge.app.tilt import TiltSources
 from bridge.calibration.fits.handheld import tilted_attitudes
@@ -480,7 +479,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("--no-timesync", action="store_true", help="the autopilot answers no TIMESYNC")
     p.add_argument("--holds", type=positive_int, default=d.holds, help="still / hand-held holds")
-    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    json_option(p)
     a = p.parse_args(argv)
     cfg = TiltBenchConfig(
         units=a.units,
@@ -497,10 +496,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         holds=a.holds,
     )
     result = run(cfg, progress=lambda s: print(f"  ... {s}", file=sys.stderr, flush=True))
-    print(format_report(result))
-    if a.json:
-        Path(a.json).write_text(json.dumps(result, indent=2, default=float) + "\n")
-    return 0 if all(t["pass"] for t in result["targets"]) else 1
+    return finish(format_report(result), result, a.json, default=float)
 
 
 if __name__ == "__main__":  # pragma: no cover

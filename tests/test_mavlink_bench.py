@@ -37,7 +37,7 @@ def test_every_stream_is_encoded_on_every_frame() -> None:
 
 def test_signed_packets_carry_the_signature(capsys: Any) -> None:
     unsigned = run(600, repeat=1)
-    code = main(["--frames", "600", "--repeat", "1", "--signed", "--json"])
+    code = main(["--frames", "600", "--repeat", "1", "--signed", "--json", "-"])
     doc = json.loads(capsys.readouterr().out)
     assert doc["signed"] is True and doc["frames"] == 600
     assert code == (0 if doc["passed"] else 1)
