@@ -148,7 +148,6 @@ class TiltFilter:
         self._gate_from: list[tuple[Vec3, Vec3]] = [((0, 0, 1), (0, 0, 0))] * 2  # (down, field)
         self._steady_since: float | None = None  # the accelerometer steady since
         self._steady_lp: Vec3 | None = None  # ... and its down then
-        self.still_s = 0.0
         self._spinning_until = -math.inf  # turned by hand (faster than a vehicle) until
         self._fresh_until = -math.inf  # restarted: the accelerometer as it is until
         # (t, low-passed down, field, the accelerometer's down, at 1 g)
@@ -354,8 +353,6 @@ class TiltFilter:
             self._steady_since, self._steady_lp = None, None
         elif self._steady_since is None:
             self._steady_since, self._steady_lp = t, ahat
-        #: How long the accelerometer has been still (1 g, its down not moving, no turn).
-        self.still_s = 0.0 if self._steady_since is None else t - self._steady_since
         if has_field:
             # The field's rotation about down over the last second, rad/s (the yaw rate: the
             # tilt changes it only through its own rate, which a vehicle keeps low).
