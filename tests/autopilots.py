@@ -250,6 +250,33 @@ class Observer:
                         self._cond.acquire()
                 self._cond.wait(0.1)
 
+    def until_quiet(
+        self,
+        kind: str,
+        cond: Callable[[Any], bool],
+        since: float,
+        quiet_s: float,
+        done: Callable[[list[Any]], bool],
+        limit_s: float = DEADLINE_S,
+    ) -> list[tuple[float, Any]]:
+        """The ``kind`` messages (matching ``cond``) that arrived from ``since`` on, once
+        ``done`` holds for them or none has come for ``quiet_s`` (a client's time-out:
+        what it then has is all it will get), and after ``limit_s`` at most."""
+        end = time.monotonic() + limit_s
+        got: list[tuple[float, Any]] = []
+        checked = 0
+        with self._cond:
+            while True:
+                for t, m in self._seen[checked:]:
+                    if t >= since and m.get_type() == kind and cond(m):
+                        got.append((t, m))
+                checked = len(self._seen)
+                now = time.monotonic()
+                last = got[-1][0] if got else since
+                if done([m for _, m in got]) or now - last >= quiet_s or now >= end:
+                    return got
+                self._cond.wait(min(0.1, max(0.0, last + quiet_s - now)))
+
     def command(
         self, target: tuple[int, int], command: int, *params: float, timeout: float = 10.0
     ) -> Any:

@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -246,29 +247,64 @@ def from_bridge(m: Any) -> bool:
     return bool(m.get_srcComponent() == 200)
 
 
+#: QGroundControl's ParameterManager (src/FactSystem/ParameterManager.cc) restarts a 3 s
+#: timer on every PARAM_VALUE (``_waitingParamTimeoutTimer``); when it fires,
+#: ``_waitingParamTimeout`` asks again for the indices still missing, by index, at most
+#: ten at a time (``_fillIndexBatchQueue``), each up to five times
+#: (``_maxInitialLoadRetrySingleParam``).
+QGC_PARAM_TIMEOUT_S = 3.0
+QGC_BATCH = 10
+QGC_RETRIES = 5
+
+
 def load_parameters(obs: Observer, system_id: int, since: float) -> tuple[float, set[int], int]:
     """QGroundControl's initial load: PARAM_REQUEST_LIST to every component of
-    ``system_id``; waits for the bridge's last PARAM_VALUE. Returns the seconds from
-    ``since`` to the bridge's last PARAM_VALUE, the indices it sent in that first round and
-    the param_count it gave."""
+    ``system_id``; the bridge's answers until its last index, or until none has come for
+    QGroundControl's :data:`QGC_PARAM_TIMEOUT_S`. Returns the seconds from ``since`` to the
+    last of them, the indices that came in this first round and the param_count given."""
     obs.mav.param_request_list_send(system_id, 0)
-    try:
-        obs.wait(
-            "PARAM_VALUE",
-            lambda m: from_bridge(m) and m.param_index == m.param_count - 1,
-            since=since,
-        )
-    except pytest.fail.Exception:
-        # Say which way it failed: the request never reached the bridge (nothing from it),
-        # or the router lost part of its answer (the indices that did come).
-        got = obs.history("PARAM_VALUE", from_bridge, since=since)
+    got = obs.until_quiet(
+        "PARAM_VALUE",
+        from_bridge,
+        since,
+        QGC_PARAM_TIMEOUT_S,
+        lambda ms: any(m.param_index == m.param_count - 1 for m in ms),
+    )
+    if not got:
+        # Nothing from the bridge: the request never reached it (QGroundControl would not
+        # know it has parameters at all).
         pytest.fail(
-            f"the bridge's last PARAM_VALUE never came: {len(got)} of its PARAM_VALUEs "
-            f"arrived, indices {sorted({m.param_index for _, m in got})}"
-            + (f" of {got[0][1].param_count}" if got else " (was the request forwarded?)")
+            f"no PARAM_VALUE from the bridge within {QGC_PARAM_TIMEOUT_S} s of the "
+            "PARAM_REQUEST_LIST: was the request forwarded?"
         )
-    got = obs.history("PARAM_VALUE", from_bridge, since=since)
     return max(t for t, _ in got) - since, {m.param_index for _, m in got}, got[0][1].param_count
+
+
+def _has_all(indices: frozenset[int], messages: list[Any]) -> bool:
+    return indices <= {m.param_index for m in messages}
+
+
+def fetch_missing(obs: Observer, system_id: int, have: set[int], count: int) -> set[int]:
+    """What QGroundControl does after a first round that missed some (see
+    :data:`QGC_PARAM_TIMEOUT_S`): PARAM_REQUEST_READ by index to the bridge for the missing
+    ones, ten at a time, each up to five times. Returns every index the bridge then sent."""
+    have = set(have)
+    for _ in range(QGC_RETRIES):
+        batch = frozenset(sorted(set(range(count)) - have)[:QGC_BATCH])
+        if not batch:
+            break
+        since = time.monotonic()
+        for i in sorted(batch):
+            obs.mav.param_request_read_send(system_id, 200, b"", i)
+        got = obs.until_quiet(
+            "PARAM_VALUE",
+            from_bridge,
+            since,
+            QGC_PARAM_TIMEOUT_S,
+            partial(_has_all, batch),
+        )
+        have |= {m.param_index for _, m in got}
+    return have
 
 
 def set_bridge_parameter(obs: Observer, system_id: int, name: str, value: float) -> Any:
