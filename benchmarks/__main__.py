@@ -30,6 +30,7 @@ BENCHMARKS = {
     "tilt": "heading under acceleration: accelerometer, autopilot and magnetometer tilt sources",
     "versus": "CPU and latency against a naive 40-line forwarder on the same compass, interleaved",
     "reads": "the drift monitor on frames read as they come, in the link's bursts, on a busy host",
+    "soak": "a long run of the real daemon: its memory, threads and files, and its answers",
 }
 
 log = logging.getLogger(__name__)

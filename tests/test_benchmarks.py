@@ -4,6 +4,7 @@ from a checkout (the benchmarks are not installed with the package)."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,9 @@ import pytest
 
 from benchmarks.__main__ import BENCHMARKS, build_parser, main
 from benchmarks.figures import Figure, finish, report, write_json
+from benchmarks.soak import GroundStation, Sample, after_warmup, slope_per_hour
+from benchmarks.soak import figures as soak_figures
+from benchmarks.soak import run as soak_run
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -33,7 +37,16 @@ def test_bench_accuracy_is_wired(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_bench_drift_is_there() -> None:
     assert build_parser().parse_args(["drift"]).bench == "drift"
-    assert set(BENCHMARKS) == {"accuracy", "pipeline", "fuzz", "drift", "tilt", "versus", "reads"}
+    assert set(BENCHMARKS) == {
+        "accuracy",
+        "pipeline",
+        "fuzz",
+        "drift",
+        "tilt",
+        "versus",
+        "reads",
+        "soak",
+    }
 
 
 @pytest.mark.integration
@@ -92,3 +105,54 @@ def test_a_json_file_that_cannot_be_written_is_said_and_exits_2(
     assert finish("text", passed, None) == 0
     assert finish("text", {"targets": [{"pass": False}]}, None) == 1
     assert report([Figure("x", 1.0, "s", target=2.0)], nowhere) == 2
+
+
+# -- soak ------------------------------------------------------------------------------
+
+
+def _soak_samples(slope_mb_h: float, *, start_mb: float = 60.0, n: int = 121) -> list[Sample]:
+    """A reading every 5 s for ten minutes, the resident set growing at ``slope_mb_h``
+    (plus a page's wobble), 20 MB more during the first minute (the warm-up)."""
+    out = []
+    for i in range(n):
+        t = 5.0 * i
+        warm = 20.0 * min(1.0, t / 60.0)
+        wobble = 0.004 * ((i * 7) % 3 - 1)
+        out.append(Sample(t, start_mb + warm + slope_mb_h * t / 3600.0 + wobble, 17, 18))
+    return out
+
+
+def test_soak_growth_is_the_slope_after_the_warm_up() -> None:
+    gcs = GroundStation(lists=10, whole=10, sets=10, acks=10)
+    for slope in (0.0, 0.5, 3.0):
+        figs = {f.name: f for f in soak_figures(_soak_samples(slope), gcs, warmup_s=60.0)}
+        assert figs["rss_growth"].value == pytest.approx(slope, abs=0.05)
+        assert figs["rss_growth"].passed is (slope <= 1.0)
+    # the warm-up's 20 MB counted in: a growth far past the target
+    assert slope_per_hour(_soak_samples(0.0)) > 10.0
+    assert after_warmup(_soak_samples(0.0), 60.0)[0].t == 60.0
+
+
+def test_soak_counts_threads_files_and_answers_after_the_warm_up() -> None:
+    samples = _soak_samples(0.0)
+    samples[3] = Sample(samples[3].t, samples[3].rss_mb, 12, 9)  # starting up: not counted
+    samples[-5] = Sample(samples[-5].t, samples[-5].rss_mb, 18, 18)  # a thread more, later
+    figs = {
+        f.name: f
+        for f in soak_figures(samples, GroundStation(lists=4, whole=3, sets=4, acks=4), 60.0)
+    }
+    assert figs["threads_change"].value == 1.0 and figs["threads_change"].passed is False
+    assert figs["fds_change"].value == 0.0 and figs["fds_change"].passed is True
+    assert figs["lists_answered"].value == 75.0 and figs["lists_answered"].passed is False
+    assert all(math.isnan(f.value) for f in soak_figures([], GroundStation(), 60.0))
+
+
+@pytest.mark.integration
+def test_a_short_soak_talks_to_the_real_daemon_and_reads_it() -> None:
+    """The daemon child and the ground station: every list answered whole, every command
+    acknowledged, a reading per period (the growth target is the benchmark's, not this)."""
+    samples, gcs = soak_run(0.4, period_s=2.0, sample_s=2.0)
+    assert 10 <= len(samples) <= 13
+    assert all(20.0 < s.rss_mb < 200.0 and s.threads > 1 and s.fds > 3 for s in samples)
+    assert gcs.lists >= 9 and gcs.whole == gcs.lists
+    assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 9
