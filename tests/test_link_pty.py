@@ -11,9 +11,11 @@ Every wait is bounded by a deadline.
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -276,6 +278,43 @@ def test_pty_compass_unplug_replug(sim_path: Path, power_cycle: bool) -> None:
     i = changes.index(LinkState.ABSENT)
     assert changes[i:] == [LinkState.ABSENT, LinkState.OPENING, LinkState.STREAMING]
     assert c.open_failures >= 1
+
+
+def _open_files() -> list[str]:
+    """What this process has open: the link's port and the simulator's pty among them."""
+    out = []
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):  # the listing's own descriptor is gone by now
+            out.append(os.readlink(f"/proc/self/fd/{fd}"))
+    return sorted(out)
+
+
+def test_an_adapter_that_drops_out_again_and_again_leaves_no_file_or_thread_behind(
+    sim_path: Path,
+) -> None:
+    """A USB-serial adapter shaken loose in flight comes and goes many times: after each
+    return the link is streaming again with the threads and open files it had after the
+    first (a descriptor or a reader thread per reconnect would add up over a flight)."""
+    col = Collector()
+    with streaming_at_20hz(sim_path, 9, col) as (_fw, sim, link):
+
+        def reconnected(times: int) -> bool:
+            return link.counters.reconnects == times
+
+        def frames_after(n: int) -> bool:
+            return len(col.seqs()) >= n + 5
+
+        counts: list[tuple[int, int]] = []
+        for cycle in range(5):
+            sim.unplug(0.3)
+            assert link.wait_state(LinkState.ABSENT, 5.0)
+            assert sim.wait_plugged(5.0) is not None
+            assert link.wait_state(LinkState.STREAMING, 5.0)
+            assert wait_until(partial(reconnected, cycle + 1), 5.0)
+            assert wait_until(partial(frames_after, len(col.seqs())), 5.0)  # frames again
+            counts.append((len(_open_files()), threading.active_count()))
+        assert len(set(counts)) == 1, (counts, _open_files())
+        assert link.counters.lost_frames == 0
 
 
 def test_a_failing_consumer_is_counted_and_a_waiting_command_ends_on_close(peer: Peer) -> None:
