@@ -76,6 +76,24 @@ def test_an_explicit_save_storm_is_paced_too(tmp_path: Path) -> None:
     params.close()
 
 
+def test_a_save_with_nothing_pending_writes_nothing_and_waits_for_nothing(tmp_path: Path) -> None:
+    """PREFLIGHT_STORAGE after the saver has written what was set: the stored values are
+    those in use, so nothing is written again and the caller (MAVLink's dispatch) is not
+    held for the rest of the interval."""
+    params, docs = make(tmp_path / "state")
+    params.set("BRG_SR_HUD", 3.0)
+    assert params.save() and len(docs.writes) == 1
+    t0 = time.monotonic()
+    for _ in range(3):
+        assert params.save()
+    assert len(docs.writes) == 1
+    assert time.monotonic() - t0 < 0.5 * SAVE_INTERVAL_S  # a write would wait ~1 s
+    params.set("BRG_SR_HUD", 4.0)  # pending again: written, paced as before
+    assert params.save() and len(docs.writes) == 2
+    assert stored(tmp_path / "state")["BRG_SR_HUD"] == 4.0
+    params.close()
+
+
 def test_a_write_that_failed_is_done_when_storage_is_back(tmp_path: Path) -> None:
     blocker = tmp_path / "blocked"
     blocker.write_text("a file where the state directory's parent should be\n")

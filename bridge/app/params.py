@@ -222,8 +222,13 @@ class ParamStore:
 
     def save(self) -> bool:
         """Write the values set by users (at once, or when the interval since the last write
-        is over); False (and :attr:`last_error`) if it failed."""
-        with self._save_lock:
+        is over); False (and :attr:`last_error`) if it failed. Once this run has written them,
+        with nothing pending since and that write done (:attr:`saved`), the file holds the
+        values in use: True at once -- no write again, and no wait on the caller's thread
+        (PREFLIGHT_STORAGE's: MAVLink's dispatch)."""
+        with self._save_lock:  # (after a write the saver may be doing)
+            if self.writes and self.saved:
+                return True
             wait = self._last_write + SAVE_INTERVAL_S - self._clock()
             if wait > 0:
                 time.sleep(wait)
