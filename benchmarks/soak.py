@@ -37,6 +37,7 @@ from pathlib import Path
 
 from benchmarks.figures import Figure, Step, no_step, report, report_options
 from benchmarks.procstat import free_port, process_rss_mb, stop_child, wait_until
+from bridge.mavlink.paramproto import LIST_INTERVAL_S
 
 log = logging.getLogger(__name__)
 
@@ -144,12 +145,14 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
     """Every ``period_s``: a parameter list, a PARAM_SET and a command, to component 200."""
     from pymavlink import mavutil
 
+    mav = mavutil.mavlink
     conn = mavutil.mavlink_connection(url, source_system=255, source_component=190)
     try:
         hb = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=15.0)
         if hb is None:
             return
         target = (hb.get_srcSystem(), hb.get_srcComponent())
+        answers = ["PARAM_VALUE", "COMMAND_ACK"]
         k = 0
         while not stop.is_set():
             end = time.monotonic() + period_s
@@ -157,24 +160,33 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
             seen: set[int] = set()
             count = -1
             while time.monotonic() < end and not stop.is_set():
-                m = conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.2)
-                if m is not None:
-                    seen.add(m.param_index)
-                    count = m.param_count
-                    if seen >= set(range(count)):
-                        break
+                m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
+                if m is None:
+                    continue
+                if m.get_type() == "COMMAND_ACK":  # the last period's, late
+                    gcs.acks += 1
+                    continue
+                seen.add(m.param_index)
+                count = m.param_count
+                if seen >= set(range(count)):
+                    break
             whole = count > 0 and seen >= set(range(count))
             if stop.is_set() and not whole:
                 break  # the run ended while this list came: not a list to judge
             gcs.lists += 1
             gcs.whole += whole
             # then a value set (its echo is not counted) and a command
-            conn.mav.param_set_send(*target, SET_PARAM.encode(), SET_VALUES[k % 2], 9)  # REAL32
+            conn.mav.param_set_send(
+                *target, SET_PARAM.encode(), SET_VALUES[k % 2], mav.MAV_PARAM_TYPE_REAL32
+            )
             gcs.sets += 1
-            conn.mav.command_long_send(*target, 510, 0, 30, 0, 0, 0, 0, 0, 0)  # ATTITUDE's
+            conn.mav.command_long_send(
+                *target, mav.MAV_CMD_GET_MESSAGE_INTERVAL, 0, mav.MAVLINK_MSG_ID_ATTITUDE,
+                0, 0, 0, 0, 0, 0,
+            )  # fmt: skip
             while time.monotonic() < end and not stop.is_set():
-                if conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.2) is not None:
-                    gcs.acks += 1
+                m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
+                gcs.acks += m is not None and m.get_type() == "COMMAND_ACK"
             k += 1
     finally:
         conn.close()
@@ -183,19 +195,27 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
 def run(
     minutes: float = 10.0, *, period_s: float = 5.0, sample_s: float = 5.0, step: Step = no_step
 ) -> tuple[list[Sample], GroundStation]:
-    """The daemon child for ``minutes``, the ground station beside it; the samples."""
+    """The daemon child for ``minutes``, the ground station beside it; the samples.
+    ``period_s`` must be longer than the bridge's :data:`LIST_INTERVAL_S`: a peer asking
+    for the list more often is refused by design (the list amplifier's limit)."""
+    if period_s <= LIST_INTERVAL_S:
+        raise ValueError(f"period_s must be > {LIST_INTERVAL_S} s (LIST_INTERVAL_S)")
     samples: list[Sample] = []
     gcs = GroundStation()
     stop = threading.Event()
     with tempfile.TemporaryDirectory(prefix="cb-soak-") as tmp:
         gcs_port = free_port(socket.SOCK_DGRAM)
         cfg = _config(Path(tmp), gcs_port)
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "bridge", "run", "--config", str(cfg)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
-        )
+        # Its log to a file, not a pipe: over a long run a pipe nobody reads fills and
+        # would stop the daemon on its next warning.
+        stderr = Path(tmp) / "daemon.log"
+        with open(stderr, "wb") as err_out:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "bridge", "run", "--config", str(cfg)],
+                stdout=subprocess.DEVNULL,
+                stderr=err_out,
+                env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+            )
         station = threading.Thread(
             target=_ground_station,
             args=(f"udpin:127.0.0.1:{gcs_port}", period_s, gcs, stop),
@@ -225,9 +245,8 @@ def run(
         finally:
             stop.set()
             station.join(period_s + 2.0)
-            err = stop_child(proc)
-        if err:
-            log.debug("daemon stderr: %s", err.decode(errors="replace")[-2000:])
+            stop_child(proc)
+        log.debug("daemon stderr: %s", stderr.read_text(errors="replace")[-2000:])
     return samples, gcs
 
 
@@ -244,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample", type=float, default=5.0, help="seconds between readings")
     report_options(ap)
     args = ap.parse_args(argv)
-    if args.minutes <= 0 or args.period <= 0 or args.sample <= 0:
-        ap.error("--minutes, --period and --sample must be > 0")
+    if args.minutes <= 0 or args.period <= LIST_INTERVAL_S or args.sample <= 0:
+        ap.error(f"--minutes and --sample must be > 0, --period > {LIST_INTERVAL_S:g}")
     with Progress("soak", 1.0, enabled=args.progress) as bar:
         samples, gcs = run(
             args.minutes,

@@ -286,8 +286,9 @@ def _has_all(indices: frozenset[int], messages: list[Any]) -> bool:
 
 def fetch_missing(obs: Observer, system_id: int, have: set[int], count: int) -> set[int]:
     """What QGroundControl does after a first round that missed some (see
-    :data:`QGC_PARAM_TIMEOUT_S`): PARAM_REQUEST_READ by index to the bridge for the missing
-    ones, ten at a time, each up to five times. Returns every index the bridge then sent."""
+    :data:`QGC_PARAM_TIMEOUT_S`): PARAM_REQUEST_READ by index to the bridge for the lowest
+    ten missing, again after each answer or time-out, five rounds at most. Returns the
+    indices it then has."""
     have = set(have)
     for _ in range(QGC_RETRIES):
         batch = frozenset(sorted(set(range(count)) - have)[:QGC_BATCH])

@@ -151,8 +151,10 @@ def test_soak_counts_threads_files_and_answers_after_the_warm_up() -> None:
 def test_a_short_soak_talks_to_the_real_daemon_and_reads_it() -> None:
     """The daemon child and the ground station: every list answered whole, every command
     acknowledged, a reading per period (the growth target is the benchmark's, not this)."""
-    samples, gcs = soak_run(0.4, period_s=2.0, sample_s=2.0)
+    samples, gcs = soak_run(0.4, period_s=3.0, sample_s=2.0)
     assert 10 <= len(samples) <= 13
     assert all(20.0 < s.rss_mb < 200.0 and s.threads > 1 and s.fds > 3 for s in samples)
-    assert gcs.lists >= 9 and gcs.whole == gcs.lists
-    assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 9
+    assert gcs.lists >= 6 and gcs.whole == gcs.lists
+    assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 6
+    with pytest.raises(ValueError, match="LIST_INTERVAL_S"):
+        soak_run(0.1, period_s=2.0)  # lists refused by design that often
