@@ -229,13 +229,22 @@ def check_px4_fuses_the_feed_at_once_and_holds_it(run: Timeline) -> None:
     t_ev = _t(run, ev["timestamp"])
     fused = ev["fused"].astype(bool)
     span = (t_ev >= fused_t[0]) & (t_ev < run.learned_at)
-    n_fed = int(np.sum((fed_t >= fused_t[0]) & (fed_t < run.learned_at)))
+    in_span = (fed_t >= fused_t[0]) & (fed_t < run.learned_at)
+    n_fed = int(np.sum(in_span))
     rejected_first = int(np.sum(~fused[t_ev < fused_t[0]]))
     print(
         f"PX4: {int(np.sum(fused[span]))} of {n_fed} ODOMETRY samples fused from the first "
         f"fused one to the learned step; {rejected_first} rejected before EKF2's yaw reset"
     )
-    assert abs(int(np.sum(span)) - n_fed) <= 1  # every sample sent reached EKF2
+    # Every sample sent reached EKF2, but those PX4's own clock bunched: SITL runs in
+    # lockstep with SIH, so while PX4 is starved of CPU its time stands still and samples
+    # the bridge sent 100 ms apart arrive a 4 ms step apart on it; EKF2 drops one that comes
+    # within its minimum observation interval of the last ("EV data too fast",
+    # EstimatorInterface::setExtVisionData). With none bunched, all of them reached it.
+    sampled = np.asarray(vo["timestamp_sample"], dtype=float)[in_span]
+    bunched = int(np.sum(np.diff(sampled) < 50_000))  # under half the feed's 100 ms, in us
+    print(f"PX4: {bunched} ODOMETRY samples within 50 ms of the one before on PX4's clock")
+    assert -1 <= n_fed - int(np.sum(span)) <= 1 + bunched
     # Held: on a quiet machine every one is fused (317/317, 319/319 alone). With the suite's
     # other real-time tests on the same two cores, EKF2 leaves a few unfused (309/315, and
     # 308/315 with 7 in a row, seen; which of PX4 or the bridge ran late is not known):
@@ -300,15 +309,29 @@ def check_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
     ts = run.log["timesync_status"]
     t_ts = _t(run, ts["timestamp"])
     observed = ts["observed_offset"].astype(float) / 1e6
+
     # The medians of the few seconds either side: one round trip that a busy machine delays
     # moves a single observation by tens of ms, and the offset drifts during a run (tens of
     # ms, restart or not: the further apart the windows, the larger); a restarted clock moves
     # them all by the bridge's uptime.
-    before = observed[(t_ts < run.restart_at) & (t_ts > run.restart_at - 3.0)]
-    after = observed[(t_ts > run.restart_at + 1.0) & (t_ts < run.restart_at + 4.0)]
-    jump = abs(float(np.median(after)) - float(np.median(before)))
-    print(f"PX4 time sync: observed offset moved by {jump * 1000:.1f} ms across the restart")
-    assert jump < 0.1
+    # On a slow host PX4's SITL clock (in lockstep with SIH) also runs slower than the wall
+    # clock the bridge stamps with -- 2.5-15 % on 27 Nov's slow VM, the offset moving 0.1-1 s
+    # between the windows --, so the trend of the windows before the restart is taken out.
+    def window(lo: float, hi: float) -> tuple[float, float]:
+        sel = (t_ts > run.restart_at + lo) & (t_ts < run.restart_at + hi)
+        return float(np.median(t_ts[sel])), float(np.median(observed[sel]))
+
+    t_early, early = window(-10.0, -7.0)
+    t_before, before = window(-3.0, 0.0)
+    t_after, after = window(1.0, 4.0)
+    drift = (before - early) / (t_before - t_early)  # s/s: PX4's clock against the wall
+    moved = abs(after - before)
+    jump = abs(after - (before + drift * (t_after - t_before)))
+    print(
+        f"PX4 time sync: observed offset moved by {moved * 1000:.1f} ms across the restart, "
+        f"{jump * 1000:.1f} ms beside its drift before it ({drift * 1000:+.1f} ms/s)"
+    )
+    assert jump < 1.0  # a restarted clock: the bridge's whole uptime (40 s and more here)
 
 
 def check_px4_uses_the_bridges_variance_above_ekf2_eva_noise(run: Timeline) -> None:
