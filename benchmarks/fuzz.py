@@ -40,7 +40,6 @@ import os
 import random
 import select
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -57,6 +56,7 @@ from benchmarks.procstat import (
     DatagramReceiver,
     free_port,
     process_rss_mb,
+    start_daemon,
     stop_child,
     udp_socket,
     wait_until,
@@ -521,13 +521,7 @@ def run(
             target=_paced_frames, args=(pty, serial, stop_frames), daemon=True
         )
         frames.start()
-        with open(errlog, "wb") as err:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "bridge", "run", "--config", str(_config(tmp, pty.path, udp_port))],
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
-            )  # fmt: skip
+        proc = start_daemon(_config(tmp, pty.path, udp_port), errlog)
         peer = MavlinkPeer(udp_port)
         heartbeat = peer.mav.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3)
         try:

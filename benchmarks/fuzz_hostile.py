@@ -33,7 +33,6 @@ import contextlib
 import json
 import logging
 import math
-import os
 import socket
 import subprocess
 import sys
@@ -50,6 +49,7 @@ from benchmarks.procstat import (
     DatagramReceiver,
     free_port,
     process_rss_mb,
+    start_daemon,
     stop_child,
     wait_until,
 )
@@ -159,13 +159,7 @@ def _daemon(
         f'[storage]\ndir = "{tmp / (name + "-state")}"\n{config}'
     )
     errlog = tmp / f"{name}.log"
-    with open(errlog, "wb") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "bridge", "run", "--config", str(cfg)],
-            stdout=subprocess.DEVNULL,
-            stderr=err,
-            env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
-        )
+    proc = start_daemon(cfg, errlog)
     try:
         yield proc, fw, errlog
     finally:

@@ -10,6 +10,7 @@ import os
 import socket
 import struct
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -136,6 +137,19 @@ class DatagramReceiver(ClosedOnExit):
         for t in self._threads:
             t.join(2.0)
         self.sock.close()
+
+
+def start_daemon(config: Path, log: Path) -> subprocess.Popen[bytes]:
+    """``python -m bridge run --config CONFIG`` as a child, its log (stderr) to the file
+    ``log``: a pipe nobody reads would fill over a long run and stop the daemon on its
+    next warning. Stop it with :func:`stop_child`."""
+    with open(log, "wb") as err:
+        return subprocess.Popen(
+            [sys.executable, "-m", "bridge", "run", "--config", str(config)],
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+        )
 
 
 def stop_child(proc: subprocess.Popen[bytes]) -> bytes:

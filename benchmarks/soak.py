@@ -26,7 +26,6 @@ import logging
 import math
 import os
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -36,7 +35,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from benchmarks.figures import Figure, Step, no_step, report, report_options
-from benchmarks.procstat import free_port, process_rss_mb, stop_child, wait_until
+from benchmarks.procstat import (
+    free_port,
+    process_rss_mb,
+    start_daemon,
+    stop_child,
+    wait_until,
+)
 from bridge.mavlink.paramproto import LIST_INTERVAL_S
 
 log = logging.getLogger(__name__)
@@ -206,16 +211,8 @@ def run(
     with tempfile.TemporaryDirectory(prefix="cb-soak-") as tmp:
         gcs_port = free_port(socket.SOCK_DGRAM)
         cfg = _config(Path(tmp), gcs_port)
-        # Its log to a file, not a pipe: over a long run a pipe nobody reads fills and
-        # would stop the daemon on its next warning.
         stderr = Path(tmp) / "daemon.log"
-        with open(stderr, "wb") as err_out:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "bridge", "run", "--config", str(cfg)],
-                stdout=subprocess.DEVNULL,
-                stderr=err_out,
-                env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
-            )
+        proc = start_daemon(cfg, stderr)
         station = threading.Thread(
             target=_ground_station,
             args=(f"udpin:127.0.0.1:{gcs_port}", period_s, gcs, stop),
