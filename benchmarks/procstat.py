@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import socket
 import struct
 import subprocess
@@ -68,10 +69,29 @@ def thread_stats(pid: int) -> dict[int, tuple[str, int, int, int]]:
     return out
 
 
+#: Where :func:`free_port` picks: below the kernel's ephemeral ports (Linux's
+#: ip_local_port_range, 32768-60999), so no socket the kernel numbers itself -- any process's
+#: client socket -- takes the port between the pick and its use (a MAVProxy told to listen on
+#: a port picked seconds before found it taken once: "Address already in use"); above the
+#: autopilots' fixed ports (ArduPilot's 5760 and up, PX4's 13030-19460 plus the instance).
+PICK_PORTS = (20000, 32000)
+#: Its own generator, seeded from the OS: Hypothesis seeds the global one for each example,
+#: which would give every pytest-xdist worker the same picks.
+_pick = random.Random()
+
+
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
     """A port of ``kind`` (``socket.SOCK_STREAM``, the default, or ``SOCK_DGRAM``) free on
-    127.0.0.1 just now (the tests' rigs take theirs here too)."""
-    with socket.socket(socket.AF_INET, kind) as s:
+    127.0.0.1 just now, in :data:`PICK_PORTS` (the tests' rigs take theirs here too)."""
+    for _ in range(100):
+        port = _pick.randint(*PICK_PORTS)
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:  # in use (or in TIME_WAIT): another
+                continue
+            return port
+    with socket.socket(socket.AF_INET, kind) as s:  # a crowded range: the kernel's pick
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
