@@ -10,8 +10,8 @@ rate, between two values: the parameter store writes ``params.json`` each time) 
 a GET_MESSAGE_INTERVAL command. Every ``--sample`` seconds the child's resident set
 (``VmRSS``), threads (``/proc/PID/task``) and open files (``/proc/PID/fd``) are read.
 
-Figures, from the samples after the warm-up (the first third of the run, at least
-60 s: buffers, histories and caches filling to their caps):
+Figures, from the samples after the warm-up (:func:`warmup_s`: the first third of the
+run, at least 60 s -- buffers, histories and caches filling to their caps):
 
 * **rss_growth** -- the least-squares slope of the resident set, MB an hour. Target
   1 MB/h (a day of service within the memory a small companion computer spares).
@@ -73,17 +73,23 @@ class GroundStation:
 
 
 def slope_per_hour(samples: Sequence[Sample]) -> float:
-    """The least-squares slope of ``rss_mb`` over ``t``, MB an hour (0 with < 2 samples)."""
+    """The least-squares slope of ``rss_mb`` over ``t``, MB an hour (NaN without two
+    readings at different times: no slope to give)."""
     n = len(samples)
-    if n < 2:
-        return 0.0
-    mt = sum(s.t for s in samples) / n
-    mr = sum(s.rss_mb for s in samples) / n
+    mt = sum(s.t for s in samples) / n if n else 0.0
+    mr = sum(s.rss_mb for s in samples) / n if n else 0.0
     sxx = sum((s.t - mt) ** 2 for s in samples)
     if sxx == 0.0:
-        return 0.0
+        return math.nan
     sxy = sum((s.t - mt) * (s.rss_mb - mr) for s in samples)
     return sxy / sxx * 3600.0
+
+
+def warmup_s(minutes: float) -> float:
+    """The warm-up of a run of ``minutes``: its first third, at least 60 s; none in a run
+    of 90 s or less (a check of the rig, too short to judge growth)."""
+    run_s = minutes * 60.0
+    return max(60.0, run_s / 3.0) if run_s > 90.0 else 0.0
 
 
 def after_warmup(samples: Sequence[Sample], warmup_s: float) -> list[Sample]:
@@ -95,7 +101,7 @@ def figures(samples: Sequence[Sample], gcs: GroundStation, warmup_s: float) -> l
     """The soak's figures (see the module docstring) from its samples after ``warmup_s``."""
     kept = after_warmup(samples, warmup_s)
     span = (kept[-1].t - kept[0].t) if kept else 0.0
-    growth = slope_per_hour(kept) if len(kept) >= 2 else math.nan
+    growth = slope_per_hour(kept)
     rss = {"first_mb": kept[0].rss_mb, "last_mb": kept[-1].rss_mb} if kept else {}
 
     def change(name: str) -> float:
@@ -171,11 +177,11 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
                 if m.get_type() == "COMMAND_ACK":  # the last period's, late
                     gcs.acks += 1
                     continue
-                seen.add(m.param_index)
+                seen.add(m.param_index)  # (indices 0 .. count - 1)
                 count = m.param_count
-                if seen >= set(range(count)):
+                if len(seen) >= count:
                     break
-            whole = count > 0 and seen >= set(range(count))
+            whole = count > 0 and len(seen) >= count
             if stop.is_set() and not whole:
                 break  # the run ended while this list came: not a list to judge
             gcs.lists += 1
@@ -269,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
             sample_s=args.sample,
             step=lambda f, n: bar.update(f, note=n),
         )
-    warmup = max(60.0, args.minutes * 60.0 / 3.0) if args.minutes * 60.0 > 90.0 else 0.0
+    warmup = warmup_s(args.minutes)
     return report(figures(samples, gcs, warmup), args.json, warmup_s=warmup)
 
 

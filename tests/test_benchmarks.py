@@ -14,7 +14,7 @@ import pytest
 
 from benchmarks.__main__ import BENCHMARKS, build_parser, main
 from benchmarks.figures import Figure, finish, report, write_json
-from benchmarks.soak import GroundStation, Sample, after_warmup, slope_per_hour
+from benchmarks.soak import GroundStation, Sample, after_warmup, slope_per_hour, warmup_s
 from benchmarks.soak import figures as soak_figures
 from benchmarks.soak import run as soak_run
 
@@ -131,6 +131,8 @@ def test_soak_growth_is_the_slope_after_the_warm_up() -> None:
     # the warm-up's 20 MB counted in: a growth far past the target
     assert slope_per_hour(_soak_samples(0.0)) > 10.0
     assert after_warmup(_soak_samples(0.0), 60.0)[0].t == 60.0
+    assert (warmup_s(10.0), warmup_s(2.0), warmup_s(1.5)) == (200.0, 60.0, 0.0)
+    assert math.isnan(slope_per_hour(_soak_samples(0.0)[:1]))
 
 
 def test_soak_counts_threads_files_and_answers_after_the_warm_up() -> None:
