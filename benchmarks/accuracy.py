@@ -66,7 +66,7 @@ from bridge.calibration.fits.handheld import tilted_attitudes
 from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
 from bridge.calibration.fits.scalar import field_spread_nT
 from bridge.calibration.fits.twelve_position import twelve_position_attitudes
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import euler_to_dcm, random_rotations
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field

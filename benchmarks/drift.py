@@ -46,8 +46,8 @@ from bridge.app.settings import EngineSettings
 from bridge.calibration.drift.estimator import DriftSettings
 from bridge.calibration.fits.handheld import tilted_attitudes
 from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
-from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Event, EventBus

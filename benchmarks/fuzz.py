@@ -444,8 +444,8 @@ def _state_files(directory: Path) -> dict[str, str]:
 
 def _expected_angles(frames: list[Any]) -> dict[int, list[tuple[float, float, float]]]:
     """Roll, pitch, yaw of every offline frame as the daemon computes them, binned by yaw."""
-    from bridge.calibration.model import Calibration
     from bridge.core.attitude import AttitudeEngine
+    from bridge.core.calibration import Calibration
 
     engine = AttitudeEngine(Calibration(), reference=None, heading_reference="magnetic")
     seen: dict[tuple[int, ...], tuple[float, float, float]] = {}

@@ -38,10 +38,10 @@ from benchmarks.scoring import (
 )
 from bridge.calibration.fits.handheld import tilted_attitudes
 from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate
-from bridge.calibration.model import CalibrationResult
 from bridge.calibration.sessions import CalibratorSettings
 from bridge.calibration.sessions.collect import MagCollector, sphere_step
 from bridge.calibration.sessions.motion import MotionJudge
+from bridge.core.calibration import CalibrationResult
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField
 from bridge.sim.motion import HandShake, Tumble

@@ -167,8 +167,8 @@ class _TimedPty:
 
 def _expected_yaws(writes: list[tuple[float, bytes]]) -> list[tuple[float, float]]:
     """``(t_written, yaw_rad)`` of every ``$PGMRA`` written, as the daemon will compute it."""
-    from bridge.calibration.model import Calibration
     from bridge.core.attitude import AttitudeEngine
+    from bridge.core.calibration import Calibration
     from bridge.protocol.gmr import AttitudeFrame, GmrDecoder
 
     engine = AttitudeEngine(Calibration(), reference=None, heading_reference="magnetic")

@@ -42,13 +42,13 @@ from bridge.app.pipeline import Pipeline
 from bridge.app.sample import CompassSample
 from bridge.app.settings import EngineSettings
 from bridge.calibration.drift.estimator import DriftEstimate, DriftEstimator, Reference
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import earth_field
-from bridge.device import Received
 from bridge.events import Event, EventBus
 from bridge.link.serial_link import BurstReads
 from bridge.mavlink.schedule import ATTITUDE, StreamSchedule
+from bridge.protocol.device import Received
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.physics import DEFAULT_LOCATION
 from bridge.types import FloatArray

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import tilt_compensated_heading
+from bridge.core.calibration import Calibration
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.sim.physics import SensorModel
 from bridge.types import BoolArray, FloatArray

@@ -57,8 +57,8 @@ from benchmarks.figures import finish, json_option
 from benchmarks.scoring import magnetic_heading_deg, positive_int, target, wrap180
 from bridge.app.tilt import TiltSources
 from bridge.calibration.fits.handheld import tilted_attitudes
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine, tilt_compensated_heading
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import dcm_to_euler
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.vectors import down_from_euler

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import TextIO
 
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
-from bridge.device import LinkState
+from bridge.protocol.device import LinkState
 
 #: The simulated truth of a sample's heading, in the sample's own reference (None: unknown).
 TruthFn = Callable[[CompassSample], float | None]

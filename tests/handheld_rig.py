@@ -16,8 +16,8 @@ import numpy.typing as npt
 
 from benchmarks.scoring import HeldScore, score_held
 from bridge.calibration.fits.handheld import tilted_attitudes
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.collect import MagCollector, sphere_step
+from bridge.core.calibration import Calibration
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField, earth_field
 from bridge.protocol.gmr import AttitudeFrame, Flags

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
-from bridge.device import (
+from bridge.protocol.device import (
     CommandError,
     LinkCounters,
     LinkDown,
@@ -519,7 +519,7 @@ class LinkHarness:
 
 
 class HarnessPort:
-    """The harness as a :class:`bridge.device.DevicePort` (what the application uses).
+    """The harness as a :class:`bridge.protocol.device.DevicePort` (what the application uses).
 
     :meth:`command` runs the transaction to its end in simulated time (the
     caller's thread steps the harness), so an application that commands the

@@ -13,8 +13,8 @@ import numpy as np
 from hypothesis import settings
 
 from bridge.app.calibration.store import CalibrationStore
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import tilt_compensated_heading
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField

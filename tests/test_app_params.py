@@ -21,7 +21,7 @@ from bridge.app.paramspec import (
     limits_from_values,
     same_calibration,
 )
-from bridge.calibration.model import AffineCalibration, Calibration, split_rotation
+from bridge.core.calibration import AffineCalibration, Calibration, split_rotation
 from bridge.core.geometry import euler_to_dcm, rotvec_to_dcm
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.core.quality import QualityLimits

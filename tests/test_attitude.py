@@ -10,7 +10,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core import sensor
 from bridge.core.attitude import (
     AttitudeEngine,
@@ -18,6 +17,7 @@ from bridge.core.attitude import (
     attitude_matrix_from_vectors,
     tilt_compensated_heading,
 )
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.core.geometry import (
     angle_diff_deg,
     euler_to_dcm,

@@ -14,9 +14,9 @@ from bridge.calibration.fits.accel_faces import (
     fit_six_face,
     level_trim,
 )
-from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core import sensor
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.core.geometry import angle_diff_deg, axis_angle_to_dcm, euler_to_dcm
 from bridge.sim.physics import SensorModel, UnitErrors
 

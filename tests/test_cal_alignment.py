@@ -14,7 +14,7 @@ import pytest
 from bridge.calibration.fits.alignment import fit_alignment, fit_ellipsoid_aligned, linear_alignment
 from bridge.calibration.fits.ellipsoid import fit_ellipsoid
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import AffineCalibration
+from bridge.core.calibration import AffineCalibration
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm_batch, random_rotations
 
 B_NED = np.array([0.2152, 0.0138, 0.4333])

@@ -21,9 +21,9 @@ from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptan
 from bridge.calibration.fits.handheld_models import _solve_joint
 from bridge.calibration.fits.methods import BEST, CalibrationData, calibrate, fit, judge
 from bridge.calibration.fits.series import hann_kernel, motion_rms_g, runs, window_means
-from bridge.calibration.model import AffineCalibration, CalibrationResult
 from bridge.calibration.sessions.report import fit_report
 from bridge.calibration.sessions.state import Mode
+from bridge.core.calibration import AffineCalibration, CalibrationResult
 from bridge.core.geometry import axis_angle_to_dcm
 from bridge.sim.physics import UnitErrors
 from bridge.tools.calreport import heading_error_estimate_deg, horizontal_field_G

@@ -21,7 +21,7 @@ from bridge.calibration.fits.methods import (
     judge,
 )
 from bridge.calibration.fits.twelve_position import twelve_position_attitudes
-from bridge.calibration.model import AffineCalibration
+from bridge.core.calibration import AffineCalibration
 from bridge.core.geometry import euler_to_dcm, random_rotations
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import EarthField

@@ -8,7 +8,7 @@ from helpers import examples
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bridge.calibration.model import AffineCalibration, ArduPilotView, Calibration
+from bridge.core.calibration import AffineCalibration, ArduPilotView, Calibration
 from bridge.core.geometry import euler_to_dcm
 from bridge.protocol.gmr import ParamsFrame
 
@@ -128,7 +128,7 @@ def test_corrects_iron_is_numpys_allclose_rule(
 ) -> None:
     """Rotations (a level trim, a mounting) alone are no calibration; any offset or gain
     beyond the tolerance is -- the same answer as numpy's allclose, at the borders too."""
-    from bridge.calibration.model import corrects_iron
+    from bridge.core.calibration import corrects_iron
 
     r = euler_to_dcm(roll, pitch, yaw) @ np.diag([scale, 1.0, 1.0])
     r[0, 1] += skew

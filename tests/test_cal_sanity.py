@@ -14,7 +14,7 @@ from bridge.calibration.fits.sanity import (
     check_accel_calibration,
     check_mag_calibration,
 )
-from bridge.calibration.model import AffineCalibration
+from bridge.core.calibration import AffineCalibration
 from bridge.core.geometry import axis_angle_to_dcm
 
 GOOD_OFFSET = (0.05, -0.12, 0.08)  # gauss: 50, -120, 80 mG of hard iron

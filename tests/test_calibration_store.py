@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from bridge.app.calibration.store import LEARNED_SOURCE, CalibrationStore
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.storage import StateStore
 
 

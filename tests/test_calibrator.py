@@ -30,7 +30,6 @@ from helpers import heading_errors, load_calibration, random_attitudes
 
 from bridge.app.calibration import CalibrationController
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions import (
     CalibratorSettings,
     CalibratorSnapshot,
@@ -39,11 +38,12 @@ from bridge.calibration.sessions import (
     Result,
 )
 from bridge.config import Config, config_from_mapping
+from bridge.core.calibration import Calibration
 from bridge.core.sensor import acc_counts_to_g
 from bridge.core.wmm import EarthField, earth_field
-from bridge.device import LinkState
 from bridge.events import Event, Severity
 from bridge.mavlink import calmap
+from bridge.protocol.device import LinkState
 from bridge.protocol.gmr import ParamsFrame
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import (

@@ -21,10 +21,10 @@ from handheld_rig import FIELD, Tumbled, held, tumble
 
 from bridge.app.calibration import CalibrationController
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions import CalibratorSettings, Failure, Phase
 from bridge.calibration.sessions.motion import MOTION_TEXT, FrameSeries, MotionJudge
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import Calibration
 from bridge.events import Event, EventBus, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink.commands import CalibrationRelay

@@ -23,8 +23,8 @@ from test_calibrator import (
 )
 
 from bridge.app.calibration.keeper import RETRY_S
-from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.calibration.sessions import Phase, Result
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.sim.motion import Still, YawTurns
 
 

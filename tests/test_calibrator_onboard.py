@@ -24,7 +24,7 @@ from test_calibrator import (
 
 from bridge.calibration.sessions import INSTRUCTION_LEVEL_TURN, INSTRUCTION_SIDE_TURN, Phase, Result
 from bridge.daemon import build_daemon
-from bridge.device import LinkState
+from bridge.protocol.device import LinkState
 from bridge.protocol.gmr import Flags
 from bridge.sim.firmware import make_firmware
 from bridge.sim.motion import (

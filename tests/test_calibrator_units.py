@@ -27,12 +27,6 @@ from bridge.calibration.fits.coverage import section
 from bridge.calibration.fits.fixed_yaw import fixed_yaw_calibration
 from bridge.calibration.fits.methods import BEST, CalibrationData, fit, judge
 from bridge.calibration.fits.sanity import orientation_confidence
-from bridge.calibration.model import (
-    AffineCalibration,
-    Calibration,
-    CalibrationReport,
-    CalibrationResult,
-)
 from bridge.calibration.sessions.collect import (
     FaceCollector,
     MagCollector,
@@ -44,6 +38,12 @@ from bridge.calibration.sessions.onboard import OnboardMagTracker
 from bridge.calibration.sessions.report import Failure, SessionReport, fit_report
 from bridge.calibration.sessions.state import Mode
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import (
+    AffineCalibration,
+    Calibration,
+    CalibrationReport,
+    CalibrationResult,
+)
 from bridge.core.geometry import axis_angle_to_dcm, euler_to_dcm, random_rotations
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.events import EventBus

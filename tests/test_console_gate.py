@@ -13,9 +13,9 @@ from waiting import wait_for
 
 from bridge.app.sample import CompassSample, DaemonStatus
 from bridge.console import ConsoleOutput, TerminalGate, format_line
-from bridge.device import LinkCounters, LinkState
 from bridge.events import Event
 from bridge.mavlink.commands import CalibrationRelay
+from bridge.protocol.device import LinkCounters, LinkState
 from bridge.storage import StateStore
 from bridge.tools.calhelp import PlainProgress, is_progress_text, no_bridge_hint
 from bridge.types import HeadingReference

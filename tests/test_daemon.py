@@ -30,9 +30,9 @@ from waiting import wait_until
 
 from bridge.app.bridge import Bridge
 from bridge.app.sample import CompassSample, DaemonStatus, LatestSampleWorker
-from bridge.calibration.model import Calibration
 from bridge.config import Config, load_config
 from bridge.console import ConsoleOutput
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import angle_diff_deg, euler_to_dcm
 from bridge.core.wmm import earth_field
 from bridge.daemon import Daemon, build_daemon, run_daemon

@@ -266,7 +266,7 @@ def test_every_repository_path_in_docstrings_comments_and_docs_exists() -> None:
 def test_the_resolver_tells_a_real_name_from_a_dangling_one() -> None:
     assert resolves("bridge.app.pipeline.Pipeline.on_frame")  # a method
     assert resolves("bridge.sim.firmware.Firmware.truth")  # set on self in __init__
-    assert resolves("bridge.device.Received.frame")  # a field
+    assert resolves("bridge.protocol.device.Received.frame")  # a field
     assert resolves("benchmarks.pipeline")
     assert not resolves("bridge.daemon.CompassSample")  # moved to bridge.app.sample
     assert not resolves("bridge.ports.DevicePort")  # a module that is gone

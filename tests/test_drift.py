@@ -25,7 +25,7 @@ from bridge.calibration.drift.estimator import (
     with_offset_change,
 )
 from bridge.calibration.drift.judge import DriftJudge
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.core.sensor import acc_counts_to_g, mag_counts_to_gauss
 from bridge.core.wmm import earth_field
 from bridge.sim.drive import Drive

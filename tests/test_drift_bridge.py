@@ -18,9 +18,9 @@ from bridge.app.calibration.store import CalibrationStore
 from bridge.config import config_from_mapping
 from bridge.core.wmm import earth_field
 from bridge.daemon import Daemon, build_daemon
-from bridge.device import Received
 from bridge.events import Event
 from bridge.link.transport import SimTransport
+from bridge.protocol.device import Received
 from bridge.protocol.gmr import AttitudeFrame, Flags
 from bridge.sim.firmware import make_firmware
 from bridge.sim.physics import DEFAULT_LOCATION

@@ -17,9 +17,9 @@ from test_mavlink_rig import DEADLINE_S, FastClock, M, connect_gcs, free_port, m
 
 from bridge.app.calibration.store import CalibrationStore
 from bridge.daemon import build_daemon
-from bridge.device import LinkState
 from bridge.link.transport import SimTransport
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
+from bridge.protocol.device import LinkState
 from bridge.sim.drive import Drive
 from bridge.sim.firmware import make_firmware
 from bridge.sim.physics import DEFAULT_LOCATION, UnitErrors

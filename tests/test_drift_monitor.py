@@ -21,8 +21,8 @@ from benchmarks.drift import Unit
 from bridge.app.calibration.drift import LEARNED, DriftMonitor, DriftStatus
 from bridge.app.settings import EngineSettings
 from bridge.calibration.drift.estimator import DriftSettings
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import earth_field
 from bridge.events import Event, EventBus, Severity
 from bridge.sim.physics import DEFAULT_LOCATION

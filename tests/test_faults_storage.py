@@ -30,7 +30,7 @@ from service_harness import (
     toml_config,
 )
 
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.sim.firmware import make_firmware
 from bridge.sim.motion import Still
 from bridge.sim.pty import PtyCompass

@@ -21,9 +21,9 @@ import pytest
 from harness import PARAMS, Collector
 from test_link_pty import Peer, make_link, wait_until
 
-from bridge.device import Received
 from bridge.link.serial_link import BURST_LEAD_S, MAX_BURST_S, CompassLink, LinkState
 from bridge.link.transport import SerialTransport
+from bridge.protocol.device import Received
 from bridge.protocol.gmr import AttitudeFrame
 
 pytestmark = pytest.mark.integration

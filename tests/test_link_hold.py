@@ -12,7 +12,6 @@ import threading
 
 import pytest
 
-from bridge.device import Received
 from bridge.link.serial_link import (
     AFTER_FRAME_S,
     BURST_LEAD_S,
@@ -26,6 +25,7 @@ from bridge.link.serial_link import (
     held_count,
     hold_end,
 )
+from bridge.protocol.device import Received
 from bridge.protocol.gmr import AttitudeFrame, Flags
 
 RATE_HZ = 100

@@ -21,7 +21,7 @@ from harness import (
     default_reply,
 )
 
-from bridge.device import (
+from bridge.protocol.device import (
     CommandLate,
     CommandNotSupported,
     CommandRejected,

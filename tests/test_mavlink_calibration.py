@@ -28,7 +28,7 @@ from test_mavlink_rig import (
     wait_until,
 )
 
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import earth_field
 from bridge.mavlink.commands import ONBOARD_REPORTS, REPORT_PERIOD_S
 from bridge.protocol.gmr import ParamsFrame

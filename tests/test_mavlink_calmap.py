@@ -9,9 +9,9 @@ import pytest
 from test_mavlink_telemetry import decode, wire_text
 
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import ArduPilotView
 from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
 from bridge.calibration.sessions.report import DeviceOutcome, FitQuality
+from bridge.core.calibration import ArduPilotView
 from bridge.events import Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink.commands import (

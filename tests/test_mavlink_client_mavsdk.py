@@ -35,7 +35,7 @@ from test_mavlink_calibration import (
 from test_mavlink_rig import DEADLINE_S, Rig, wait_until
 
 from bridge.app.paramspec import REAL32
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.mavlink import telemetry as T  # noqa: N812 - short
 from bridge.sim.motion import SixFaces, Still, Tumble
 

@@ -33,7 +33,7 @@ from test_mavlink_rig import (
 )
 
 from bridge.app import pipeline as pipeline_module
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.core.mounting import Rotation
 from bridge.core.wmm import earth_field
 from bridge.sim.motion import Still

@@ -13,8 +13,8 @@ import pytest
 
 from bridge.app.params import PARAMS_DOCUMENT, SAVE_INTERVAL_S, ParamStore
 from bridge.app.settings import EngineSettings
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import Calibration
 from bridge.documents import LoadResult
 from bridge.events import Event, EventBus
 from bridge.storage import StateStore

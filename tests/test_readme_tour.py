@@ -178,7 +178,7 @@ def test_the_first_screen_is_the_simulators_real_output(tmp_path: Path) -> None:
 @pytest.mark.integration
 def test_reset_gives_the_fresh_tour_back(tmp_path: Path) -> None:
     from bridge.app.calibration.store import CalibrationStore
-    from bridge.calibration.model import Calibration
+    from bridge.core.calibration import Calibration
     from bridge.storage import StateStore
 
     env = _fresh_env(tmp_path / "home")

@@ -41,9 +41,9 @@ from bridge.calibration.fits.acceptance import DEFAULT_HEADING_MAX_DEG, Acceptan
 from bridge.calibration.fits.methods import CalibrationData, calibrate, judge
 from bridge.calibration.fits.methods import fit as fit_method
 from bridge.calibration.fits.series import runs
-from bridge.calibration.model import Calibration, CalibrationResult
 from bridge.cli import main
 from bridge.core.attitude import tilt_compensated_heading
+from bridge.core.calibration import Calibration, CalibrationResult
 from bridge.tools.calibrate import RecordedVectors, read_recording
 from bridge.types import BoolArray, FloatArray
 

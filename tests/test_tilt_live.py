@@ -27,8 +27,8 @@ import numpy as np
 import pytest
 from test_mavlink_rig import M, Rig, connect_gcs, mavutil
 
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import earth_field
 from bridge.sim.autopilot import AutopilotAttitude
 from bridge.sim.drive import ManoeuvreDrive

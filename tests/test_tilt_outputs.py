@@ -11,9 +11,9 @@ import pytest
 from zenoh_rig import status_of_a_streaming_bridge
 
 from bridge.app.sample import CompassSample, DaemonStatus
-from bridge.calibration.model import Calibration
 from bridge.console import format_line
 from bridge.core.attitude import AttitudeEngine, FieldReference
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import euler_to_dcm
 from bridge.core.tilt import TiltEstimate, TiltSource
 from bridge.core.vectors import Vec3

@@ -19,8 +19,8 @@ import pytest
 from helpers import load_calibration, png_size
 from test_mavlink_rig import ALT, LAT, LON, M, Rig, free_port
 
-from bridge.calibration.model import AffineCalibration
 from bridge.cli import main
+from bridge.core.calibration import AffineCalibration
 from bridge.core.sensor import gauss_to_mag_counts
 from bridge.core.wmm import earth_field
 from bridge.sim.motion import HandShake, Tumble

@@ -21,8 +21,8 @@ from zenoh_rig import NO_SCOUTING, Bridge, Received, _query, contiguous, free_po
 
 from bridge.app.calibration.store import CALIBRATION_DOCUMENT
 from bridge.app.sample import DaemonStatus
-from bridge.calibration.model import AffineCalibration, Calibration
-from bridge.device import LinkCounters, LinkState
+from bridge.core.calibration import AffineCalibration, Calibration
+from bridge.protocol.device import LinkCounters, LinkState
 from bridge.storage import StateStore
 from bridge.zenoh import schema
 from bridge.zenoh.contract import FleetServices

@@ -19,9 +19,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bridge.app.sample import CompassSample, DaemonStatus
-from bridge.calibration.model import Calibration
 from bridge.config import ConfigError, load_config
 from bridge.core.attitude import AttitudeEngine, FieldReference
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import euler_to_dcm, quaternion_to_dcm
 from bridge.events import Event, Severity
 from bridge.link.serial_link import LinkCounters, LinkState

@@ -6,7 +6,7 @@ store and the per-frame pipeline, reacts to their changes, and gives every
 adapter the same :class:`~bridge.app.services.BridgeServices`. It does no I/O
 of its own: :func:`build_bridge` builds its parts, each after what it needs,
 on the state directory (:class:`~bridge.documents.DocumentStore`); the compass
-(:class:`~bridge.device.DevicePort`: the serial link, or the in-memory tests'
+(:class:`~bridge.protocol.device.DevicePort`: the serial link, or the in-memory tests'
 harness), built after the pipeline it feeds, is connected last
 (:meth:`Bridge.connect`). :func:`bridge.daemon.wiring.build_daemon` does both
 for the daemon. The functions below are the few hooks between the parts,
@@ -32,13 +32,13 @@ from bridge.app.sample import DaemonStatus
 from bridge.app.services import BridgeServices, MessageTap
 from bridge.app.settings import EngineSettings, SettingsChange
 from bridge.app.tilt import TiltSources, frame_latency_s
-from bridge.calibration.model import Calibration
 from bridge.config import Config
 from bridge.core.attitude import AttitudeEngine
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import EarthField, earth_field
-from bridge.device import DevicePort, LinkState
 from bridge.documents import DocumentStore
 from bridge.events import EventBus, Subscribers
+from bridge.protocol.device import DevicePort, LinkState
 from bridge.types import LEARN_MODES, Clock, HeadingReference
 
 log = logging.getLogger(__name__)

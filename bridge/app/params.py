@@ -45,7 +45,7 @@ from bridge.app.paramspec import (
     same_calibration,
 )
 from bridge.app.settings import EngineSettings, SettingsChange
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.documents import DocumentStore, StorageError
 from bridge.events import ChangeRefusedError, Event, EventBus, Severity, Subscribers
 

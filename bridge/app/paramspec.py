@@ -9,7 +9,7 @@ adapter's business (:mod:`bridge.mavlink.paramproto`).
 The calibration group (COMPASS_OFS_*, COMPASS_DIA_*, COMPASS_ODI_*,
 COMPASS_SCALE, COMPASS_ORIENT, BRG_ALIGN_*) *is* the magnetometer
 calibration, written the ArduPilot way (the calibration's parameter view,
-:meth:`bridge.calibration.model.Calibration.ardupilot_parameters`)::
+:meth:`bridge.core.calibration.Calibration.ardupilot_parameters`)::
 
     corrected = COMPASS_SCALE * R(COMPASS_ORIENT) @ R(BRG_ALIGN) @ S @ (raw + COMPASS_OFS / 1000)
     S = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.core.mounting import ROTATION_EULER_DEG, Mounting, Rotation
 from bridge.core.quality import QualityLimits
 from bridge.types import HEADING_REFERENCES, LEARN_MODES

@@ -37,8 +37,8 @@ from bridge.app.sample import CompassSample, Output
 from bridge.core.aligned import FrameClock
 from bridge.core.attitude import AttitudeEngine, AttitudeSolution
 from bridge.core.geometry import wrap_degrees_360
-from bridge.device import LinkState, Received
 from bridge.events import Event, EventBus, Severity
+from bridge.protocol.device import LinkState, Received
 from bridge.protocol.gmr import AttitudeFrame
 from bridge.protocol.heading import HeadingFrame
 from bridge.types import HeadingReference
@@ -141,7 +141,7 @@ class Pipeline:
     ) -> CompassSample | None:
         """One received frame to a sample (None for frames that carry no heading): ``t`` the
         time the outputs pace it by, ``read_at`` when it was read if that differs
-        (:class:`~bridge.device.Received`)."""
+        (:class:`~bridge.protocol.device.Received`)."""
         # When the reader got it, on the compass's clock (frames read in one burst share it).
         arrival = t if read_at is None else read_at
         if self._clock is not None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from bridge.core.attitude import AttitudeSolution
-from bridge.device import LinkCounters, LinkState
+from bridge.protocol.device import LinkCounters, LinkState
 from bridge.types import HeadingReference
 
 log = logging.getLogger(__name__)

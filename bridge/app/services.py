@@ -26,10 +26,10 @@ from bridge.app.params import ParamStore
 from bridge.app.sample import DaemonStatus
 from bridge.app.settings import EngineSettings
 from bridge.app.tilt import TiltSources
-from bridge.calibration.model import corrects_iron
-from bridge.device import DevicePort, LinkState
+from bridge.core.calibration import corrects_iron
 from bridge.documents import DocumentStore
 from bridge.events import EventBus, Subscribers
+from bridge.protocol.device import DevicePort, LinkState
 
 log = logging.getLogger(__name__)
 

@@ -28,8 +28,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeEngine, FieldReference
+from bridge.core.calibration import Calibration
 from bridge.core.mounting import Mounting
 from bridge.core.quality import QualityLimits
 from bridge.core.wmm import EarthField, earth_field

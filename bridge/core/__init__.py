@@ -1,1 +1,2 @@
-"""Pure maths without I/O: geometry, sensor transfer functions, WMM, attitude."""
+"""Pure maths without I/O: geometry, sensor transfer functions, the calibration type, WMM,
+attitude."""

@@ -45,8 +45,8 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import Calibration
 from bridge.core import sensor
+from bridge.core.calibration import Calibration
 from bridge.core.geometry import (
     euler_to_quaternion,
     wrap_degrees_360,

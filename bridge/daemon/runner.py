@@ -55,8 +55,8 @@ from bridge.daemon.wiring import (
     make_simulator,
     make_transport,
 )
-from bridge.device import LinkState
 from bridge.events import ChangeRefusedError
+from bridge.protocol.device import LinkState
 from bridge.systemd.notify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
 from bridge.systemd.status import StatusText
 from bridge.types import Clock

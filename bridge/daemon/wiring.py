@@ -46,10 +46,10 @@ from bridge.app.paramspec import CAL_PARAMS
 from bridge.app.sample import CompassSample, Output
 from bridge.app.services import magnetometer_calibrated
 from bridge.app.state import home_relative, state_summary, stored_parameters, value_text
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions import CalibratorSettings
 from bridge.config import Config, DeviceConfig
 from bridge.console import ConsoleOutput, TerminalGate
+from bridge.core.calibration import Calibration
 from bridge.events import Event
 from bridge.link.observed import ObservedTransport
 from bridge.link.serial_link import CompassLink

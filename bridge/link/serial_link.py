@@ -26,7 +26,8 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 
-from bridge.device import (
+from bridge.link.transport import EndOfRecording, Transport
+from bridge.protocol.device import (
     CommandError,
     CommandLate,
     CommandNotSupported,
@@ -37,7 +38,6 @@ from bridge.device import (
     LinkState,
     Received,
 )
-from bridge.link.transport import EndOfRecording, Transport
 from bridge.protocol.gmr import CommandFrame, GmrFrame, ParamsFrame, VersionFrame
 from bridge.protocol.link import (
     DEFAULT_LATE_ANSWER_WINDOW_S,

@@ -27,8 +27,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import ArduPilotView
 from bridge.calibration.sessions import CalibratorSnapshot, Failure, Mode, Phase, SessionReport
+from bridge.core.calibration import ArduPilotView
 from bridge.events import Event
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.telemetry import STATUSTEXT_LEN, MagCalReport, mag_cal_progress

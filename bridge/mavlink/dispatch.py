@@ -27,9 +27,8 @@ from typing import Any, ClassVar, Protocol
 from bridge import __version__
 from bridge.app.sample import CompassSample
 from bridge.app.services import BridgeServices
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions import CalibratorSnapshot, Outcome, Result
-from bridge.device import LinkState
+from bridge.core.calibration import Calibration
 from bridge.events import ChangeRefusedError, Event, Severity
 from bridge.mavlink import calmap
 from bridge.mavlink import commands as C  # noqa: N812 - short
@@ -39,6 +38,7 @@ from bridge.mavlink.autopilot import AutopilotWatch
 from bridge.mavlink.dialect import Message
 from bridge.mavlink.endpoints import Link
 from bridge.mavlink.paramproto import ParamProtocol
+from bridge.protocol.device import LinkState
 
 log = logging.getLogger(__name__)
 

@@ -44,9 +44,9 @@ from bridge.core.geometry import euler_to_quaternion, wrap_radians_pi
 from bridge.core.quality import heading_usable
 from bridge.core.sensor import STANDARD_GRAVITY
 from bridge.core.tilt import TILT_SOURCES
-from bridge.device import LinkState
 from bridge.mavlink.dialect import Message, message
 from bridge.mavlink.dialect import mavlink as M  # noqa: N812 - the generated module, short
+from bridge.protocol.device import LinkState
 
 Role = Literal["standalone", "companion"]
 HeadingFeed = Literal["off", "px4_odometry", "ardupilot_vision"]

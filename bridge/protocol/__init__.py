@@ -7,6 +7,9 @@
 * :mod:`bridge.protocol.link` -- the compass link as a sans-I/O state machine (bytes and
   ``now`` in; frames, state changes, bytes to write, the next deadline out).
 * :mod:`bridge.protocol.transactions` -- its command transactions.
+* :mod:`bridge.protocol.device` -- the compass as the application sees it
+  (:class:`~bridge.protocol.device.DevicePort`), and the link's words every layer names:
+  its state, counters, received frames and command errors.
 """
 
 from bridge.protocol.framing import (

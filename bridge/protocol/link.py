@@ -12,7 +12,7 @@ line) -- and opens the port when :meth:`~LinkMachine.open_due`. The driver on
 a real port is :class:`bridge.link.serial_link.CompassLink`; the tests' is
 ``tests/harness.py`` (the machine and the simulated firmware on one manual clock).
 
-Link states (:class:`~bridge.device.LinkState`), each change reported once. Only
+Link states (:class:`~bridge.protocol.device.LinkState`), each change reported once. Only
 **attitude frames** count (``$PGMRA``; for a heading-only compass its heading
 sentences): a compass that answers commands but streams nothing is not streaming.
 
@@ -48,7 +48,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, Protocol, TypeAlias
 
-from bridge.device import (
+from bridge.protocol.device import (
     CommandNotSupported,
     LinkCounters,
     LinkDown,
@@ -252,7 +252,7 @@ class LinkMachine:
 
     @property
     def state(self) -> LinkState:
-        """The current :class:`~bridge.device.LinkState`."""
+        """The current :class:`~bridge.protocol.device.LinkState`."""
         return self._state
 
     @property
@@ -304,7 +304,7 @@ class LinkMachine:
         return self._ended
 
     def count(self, name: str, n: int = 1) -> None:
-        """Bump counter ``name`` (a :class:`~bridge.device.LinkCounters` field) by ``n``."""
+        """Bump counter ``name`` (a :class:`~bridge.protocol.device.LinkCounters` field) by ``n``."""
         self._c[name] += n
 
     def take_events(self) -> list[LinkEvent]:
@@ -446,7 +446,7 @@ class LinkMachine:
     def submit(self, cmd: CommandFrame, now: float, timeout: float, retries: int = 2) -> Command:
         """Queue a command transaction (``timeout``: per attempt); its :class:`Command`.
 
-        Raises :class:`~bridge.device.CommandNotSupported` on a heading-only compass.
+        Raises :class:`~bridge.protocol.device.CommandNotSupported` on a heading-only compass.
         """
         if self.protocol != "gmr":
             raise CommandNotSupported(

@@ -11,8 +11,8 @@ the command's deadline plus ``late_window``: the time its answer may still
 come from a device slower than its datasheet. Three rules follow:
 
 * **An answer after the deadline is a time-out**, never a success and never
-  news of something else (a reset): the command ends with :class:`~bridge.device.CommandLate`
-  (a :class:`~bridge.device.CommandTimeout` carrying the answer), the link counts
+  news of something else (a reset): the command ends with :class:`~bridge.protocol.device.CommandLate`
+  (a :class:`~bridge.protocol.device.CommandTimeout` carrying the answer), the link counts
   a time-out and a late answer.
 * **No command is sent again while its answer may still come**: a retry goes
   out only once the previous attempt's slot has expired with no answer (the
@@ -30,7 +30,13 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from bridge.device import CommandError, CommandLate, CommandRejected, CommandTimeout, LinkDown
+from bridge.protocol.device import (
+    CommandError,
+    CommandLate,
+    CommandRejected,
+    CommandTimeout,
+    LinkDown,
+)
 from bridge.protocol.gmr import AckFrame, CommandFrame, GmrFrame, ParamsFrame, VersionFrame
 
 #: Datasheet answer deadlines that differ from the 200 ms default, by command key.
@@ -70,7 +76,7 @@ class Command:
     """One command transaction: what :meth:`LinkMachine.submit` returns.
 
     ``done`` turns True once it has ended; :meth:`result` is then the answer
-    frame, or raises the :class:`~bridge.device.CommandError` it ended with.
+    frame, or raises the :class:`~bridge.protocol.device.CommandError` it ended with.
     """
 
     __slots__ = (

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.core.geometry import GRAVITY_NED, axis_angle_to_dcm
 from bridge.core.sensor import ACC_COUNTS_PER_G, ADC_MAX, MAG_COUNTS_PER_GAUSS, ZERO_COUNTS
 from bridge.core.wmm import earth_field

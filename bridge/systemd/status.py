@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import deque
 
 from bridge.app.sample import CompassSample, DaemonStatus
-from bridge.device import LinkState
+from bridge.protocol.device import LinkState
 
 
 class StatusText:

@@ -45,7 +45,7 @@ import numpy.typing as npt
 from bridge.calibration.fits.acceptance import raw_sections
 from bridge.calibration.fits.coverage import N_SECTIONS, mask_sections
 from bridge.calibration.fits.methods import CalibrationData, calibrate
-from bridge.calibration.model import (
+from bridge.core.calibration import (
     AffineCalibration,
     ArduPilotView,
     Calibration,

@@ -68,7 +68,7 @@ def heading_error_estimate_deg(fitness_mG: float, horizontal_G: float) -> float:
     this a fair *estimate*, not a measurement. The bridge's fitness of a live
     (or recorded) tumble also holds the error the calibration itself is
     predicted to leave (accelerometer and alignment, see
-    :class:`~bridge.calibration.model.CalibrationReport`), so a shaken tumble
+    :class:`~bridge.core.calibration.CalibrationReport`), so a shaken tumble
     cannot look excellent here. NaN when either is unknown.
     """
     if not (math.isfinite(fitness_mG) and math.isfinite(horizontal_G) and horizontal_G > 0):

@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING, Any, Final
 
 if TYPE_CHECKING:  # types only: a consumer (monitor) must not pull in the daemon and numpy
     from bridge.app.sample import CompassSample, DaemonStatus
-    from bridge.device import LinkCounters
     from bridge.events import Event
+    from bridge.protocol.device import LinkCounters
 
 #: The family every schema name starts with.
 SCHEMA_FAMILY: Final = "compass-bridge"

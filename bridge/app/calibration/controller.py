@@ -60,7 +60,6 @@ from typing import Any
 from bridge.app.calibration.flash import write_calibration
 from bridge.app.calibration.keeper import CalibrationKeeper, StrayCalibration
 from bridge.app.calibration.store import CalibrationStore
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.base import (
     Action,
     Apply,
@@ -90,10 +89,11 @@ from bridge.calibration.sessions.state import (
     mask_refusal,
     number,
 )
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import EarthField
-from bridge.device import CommandError, DevicePort
 from bridge.documents import DocumentStore
 from bridge.events import ChangeRefusedError, Event, EventBus, Severity
+from bridge.protocol.device import CommandError, DevicePort
 from bridge.protocol.gmr import AttitudeFrame, CalProgressFrame, Flags
 
 log = logging.getLogger(__name__)

@@ -71,8 +71,8 @@ from bridge.calibration.drift.estimator import (
     with_offset_change,
 )
 from bridge.calibration.drift.judge import DriftJudge, Verdict
-from bridge.calibration.model import Calibration
 from bridge.core.attitude import AttitudeSolution
+from bridge.core.calibration import Calibration
 from bridge.core.mounting import Mounting
 from bridge.events import Event, EventBus, Severity
 from bridge.types import LEARN_MODES, Vec3

@@ -1,7 +1,7 @@
 """Writing a host calibration into the compass flash (``PAR,GET`` / ``PAR,SET``).
 
 The device's model ``H = K * (m - off)`` holds offsets and per-axis gains
-(:meth:`~bridge.calibration.model.Calibration.device_page`); the level reference it
+(:meth:`~bridge.core.calibration.Calibration.device_page`); the level reference it
 keeps (Gxoff .. Gzoff) is read first and written back unchanged.
 """
 
@@ -10,10 +10,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.base import Emit, device_error
 from bridge.calibration.sessions.report import MAG_PARAM_NAMES, params_dict
-from bridge.device import CommandError, CommandRejected
+from bridge.core.calibration import Calibration
+from bridge.protocol.device import CommandError, CommandRejected
 from bridge.protocol.gmr import CommandFrame, ParamsFrame
 
 #: Runs one device command: (name, *args) -> the answer; raises ``CommandError``.

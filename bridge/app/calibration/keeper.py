@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from bridge.app.calibration.store import CalibrationStore
-from bridge.calibration.model import Calibration
-from bridge.device import CommandError
+from bridge.core.calibration import Calibration
 from bridge.documents import StorageError
+from bridge.protocol.device import CommandError
 
 log = logging.getLogger(__name__)
 

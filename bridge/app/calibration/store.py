@@ -30,7 +30,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from bridge.calibration.model import Calibration
+from bridge.core.calibration import Calibration
 from bridge.documents import DocumentStore, StorageError
 
 log = logging.getLogger(__name__)

@@ -45,8 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import AffineCalibration, Calibration
 from bridge.core.attitude import tilt_compensated_heading
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.types import FloatArray, Vec3
 
 ZERO: Vec3 = (0.0, 0.0, 0.0)

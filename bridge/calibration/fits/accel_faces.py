@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.fits.scalar import failed_result, gravity_spread_mg
-from bridge.calibration.model import (
+from bridge.core.calibration import (
     AffineCalibration,
     Calibration,
     CalibrationReport,

@@ -54,7 +54,7 @@ from bridge.calibration.fits.ellipsoid import (
 from bridge.calibration.fits.samples import usable_mask
 from bridge.calibration.fits.sanity import MagCalStatus, SanityLimits, check_mag_calibration
 from bridge.calibration.fits.scalar import field_spread_nT
-from bridge.calibration.model import CalibrationReport, CalibrationResult
+from bridge.core.calibration import CalibrationReport, CalibrationResult
 from bridge.core.wmm import EarthField
 from bridge.types import BoolArray, FloatArray
 

@@ -59,7 +59,7 @@ from bridge.calibration.fits.sanity import (
     rotation_determined,
 )
 from bridge.calibration.fits.scalar import gravity_spread_mg
-from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
+from bridge.core.calibration import AffineCalibration, Calibration, CalibrationResult
 from bridge.core.geometry import dcm_to_rotvec, rotvec_to_dcm
 from bridge.core.sensor import GAUSS_TO_MGAUSS
 from bridge.core.wmm import EarthField

@@ -39,7 +39,7 @@ from bridge.calibration.fits.coverage import coverage
 from bridge.calibration.fits.samples import DEFAULT_OUTLIER_K, inlier_mask, usable_mask
 from bridge.calibration.fits.sanity import SanityLimits, check_mag_calibration
 from bridge.calibration.fits.scalar import failed_result, field_spread_nT
-from bridge.calibration.model import (
+from bridge.core.calibration import (
     AffineCalibration,
     Calibration,
     CalibrationReport,

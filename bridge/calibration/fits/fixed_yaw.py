@@ -15,7 +15,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import AffineCalibration, Calibration
+from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.core.geometry import euler_to_dcm
 
 

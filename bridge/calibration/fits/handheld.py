@@ -70,8 +70,8 @@ from bridge.calibration.fits.series import (
     runs,
     window_means,
 )
-from bridge.calibration.model import AffineCalibration
 from bridge.core.attitude import tilt_compensated_heading
+from bridge.core.calibration import AffineCalibration
 from bridge.core.geometry import axis_angle_to_dcm, dcm_to_rotvec, euler_to_dcm
 from bridge.types import FloatArray
 

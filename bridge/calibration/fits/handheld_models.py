@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from bridge.calibration.fits.scalar import _lower_factor
-from bridge.calibration.model import AffineCalibration
+from bridge.core.calibration import AffineCalibration
 from bridge.core.geometry import rotvec_to_dcm
 from bridge.types import BoolArray, FloatArray
 

@@ -44,7 +44,7 @@ from bridge.calibration.fits.minmax import fit_minmax
 from bridge.calibration.fits.sanity import SanityLimits
 from bridge.calibration.fits.scalar import fit_scalar, fit_scalar_accel, fit_scalar_mag
 from bridge.calibration.fits.twelve_position import fit_twelve_position
-from bridge.calibration.model import AffineCalibration, Calibration, CalibrationResult
+from bridge.core.calibration import AffineCalibration, Calibration, CalibrationResult
 from bridge.core.wmm import EarthField
 from bridge.types import BoolArray, FloatArray
 

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bridge.calibration.fits.scalar import failed_result, field_report
-from bridge.calibration.model import (
+from bridge.core.calibration import (
     AffineCalibration,
     Calibration,
     CalibrationResult,

@@ -45,7 +45,7 @@ from enum import IntEnum
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import AffineCalibration
+from bridge.core.calibration import AffineCalibration
 from bridge.core.mounting import Rotation, rotation_matrix
 from bridge.types import FloatArray
 

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bridge.calibration.model import (
+from bridge.core.calibration import (
     AffineCalibration,
     Calibration,
     CalibrationReport,

@@ -9,7 +9,7 @@ device, no store. Each call returns the :data:`Action` list the runner
 * :class:`Compute` -- a fit to run in the worker; its value comes back through
   :meth:`Session.resolve` (an exception through :meth:`Session.crashed`);
 * :class:`Device` -- a device command to run in the worker; its answer (or the
-  :class:`~bridge.device.CommandError`) comes back through :meth:`Session.resolve`;
+  :class:`~bridge.protocol.device.CommandError`) comes back through :meth:`Session.resolve`;
 * :class:`Apply` -- a calibration to use from now on (engine, store, flash).
 
 The calls: :meth:`Session.begin` once, :meth:`Session.feed` for every frame,
@@ -31,9 +31,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.report import Failure, SessionReport, failure_report
 from bridge.calibration.sessions.state import CalibratorSettings, Mode, Outcome, Phase, Result
+from bridge.core.calibration import Calibration
 from bridge.core.wmm import EarthField
 from bridge.events import Severity
 from bridge.types import Vec3

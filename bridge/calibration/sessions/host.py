@@ -30,12 +30,6 @@ from bridge.calibration.fits.sanity import (
     check_accel_calibration,
     orientation_confidence,
 )
-from bridge.calibration.model import (
-    AffineCalibration,
-    Calibration,
-    CalibrationReport,
-    CalibrationResult,
-)
 from bridge.calibration.sessions.base import (
     Action,
     Apply,
@@ -68,6 +62,12 @@ from bridge.calibration.sessions.state import (
     Phase,
     Result,
     number,
+)
+from bridge.core.calibration import (
+    AffineCalibration,
+    Calibration,
+    CalibrationReport,
+    CalibrationResult,
 )
 from bridge.core.wmm import EarthField, earth_field
 from bridge.events import Severity

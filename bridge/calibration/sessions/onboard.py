@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 
-from bridge.calibration.model import ArduPilotView
 from bridge.calibration.sessions.base import Action, Device, Job, Progress, Session, device_error
 from bridge.calibration.sessions.host import LEVEL_INSTRUCTION, LEVEL_TEXT
 from bridge.calibration.sessions.report import (
@@ -49,7 +48,14 @@ from bridge.calibration.sessions.report import (
 )
 from bridge.calibration.sessions.state import CalibratorSettings, Mode, Outcome, Phase, Result
 from bridge.core import sensor
-from bridge.device import CommandError, CommandLate, CommandRejected, CommandTimeout, LinkDown
+from bridge.core.calibration import ArduPilotView
+from bridge.protocol.device import (
+    CommandError,
+    CommandLate,
+    CommandRejected,
+    CommandTimeout,
+    LinkDown,
+)
 from bridge.protocol.gmr import AckFrame, AttitudeFrame, CalProgressFrame, Flags, ParamsFrame
 
 #: The device's two-step rotation, as the operator is told.

@@ -3,7 +3,7 @@
 :class:`SessionReport` holds what front ends show and the calibration store
 keeps: the method, the verdict (``failure`` None, or a neutral
 :class:`Failure` with the reason), the magnetometer result as ArduPilot's
-COMPASS_* figures (the calibration's :class:`~bridge.calibration.model.ArduPilotView`,
+COMPASS_* figures (the calibration's :class:`~bridge.core.calibration.ArduPilotView`,
 or a device page's), the host fit's quality including the
 hand-held figures (:class:`FitQuality`), an accelerometer or level result, the
 device's answer for an on-board routine, and the notes of the fit.
@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.fits.sanity import MagCalStatus
-from bridge.calibration.model import AffineCalibration, ArduPilotView, CalibrationReport
 from bridge.calibration.sessions.state import Mode
+from bridge.core.calibration import AffineCalibration, ArduPilotView, CalibrationReport
 from bridge.protocol.gmr import ParamsFrame
 from bridge.types import Vec3
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from bridge.calibration.model import Calibration
 from bridge.calibration.sessions.base import Session
 from bridge.calibration.sessions.report import Failure, SessionReport
 from bridge.calibration.sessions.state import Phase
+from bridge.core.calibration import Calibration
 from bridge.core.mounting import Mounting
 
 
