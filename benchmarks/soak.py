@@ -17,6 +17,17 @@ run, at least 60 s -- buffers, histories and caches filling to their caps):
   1 MB/h (a day of service within the memory a small companion computer spares).
 * **threads_change**, **fds_change** -- the largest minus the smallest count. Target 0.
 * **lists_answered** -- the share of the parameter lists that came whole. Target 100 %.
+
+``--unplug-every S`` runs the compass as a vehicle's USB-serial adapter does: a separate
+simulated compass on a pseudo-terminal (``python -m bridge simulate``), which the daemon
+reads through pyserial as it reads a real one. Every S seconds the simulator's cable is
+pulled (SIGUSR1: the pty goes, a new one comes ``--unplug-s`` later) and, half-way
+between, it sends a burst of line noise (SIGUSR2). Threads and files are then judged on
+the readings taken with the link back (its "Compass link restored" heard, the last pull
+:data:`SETTLE_S` past its return), and one figure more:
+
+* **link_returns** -- the share of the pulls the link came back from (a STATUSTEXT
+  "Compass link restored" for each). Target 100 %.
 """
 
 from __future__ import annotations
@@ -25,7 +36,9 @@ import argparse
 import logging
 import math
 import os
+import signal
 import socket
+import subprocess
 import sys
 import tempfile
 import threading
@@ -50,6 +63,10 @@ log = logging.getLogger(__name__)
 SET_PARAM = "BRG_SR_HUD"
 SET_VALUES = (2.0, 4.0)
 RSS_TARGET_MB_PER_H = 1.0
+#: After a pull, readings count for threads and files this long past the pty's return.
+SETTLE_S = 5.0
+#: The link's events as the MAVLink adapter words them (bridge.app.pipeline).
+LINK_LOST, LINK_RESTORED = "Compass link lost", "Compass link restored"
 
 
 @dataclass
@@ -60,6 +77,7 @@ class Sample:
     rss_mb: float
     threads: int
     fds: int
+    settled: bool = True  #: the link up and settled (always, without pulls)
 
 
 @dataclass
@@ -70,6 +88,13 @@ class GroundStation:
     whole: int = 0
     sets: int = 0
     acks: int = 0
+    lost: int = 0  #: "Compass link lost" heard
+    restored: int = 0  #: "Compass link restored" heard
+
+    def hear(self, text: str) -> None:
+        """Count a STATUSTEXT that tells of the compass link."""
+        self.lost += text.startswith(LINK_LOST)
+        self.restored += text.startswith(LINK_RESTORED)
 
 
 def slope_per_hour(samples: Sequence[Sample]) -> float:
@@ -97,17 +122,34 @@ def after_warmup(samples: Sequence[Sample], warmup_s: float) -> list[Sample]:
     return [s for s in samples if s.t >= warmup_s]
 
 
-def figures(samples: Sequence[Sample], gcs: GroundStation, warmup_s: float) -> list[Figure]:
-    """The soak's figures (see the module docstring) from its samples after ``warmup_s``."""
+def figures(
+    samples: Sequence[Sample], gcs: GroundStation, warmup_s: float, unplugs: int = 0
+) -> list[Figure]:
+    """The soak's figures (see the module docstring) from its samples after ``warmup_s``;
+    ``unplugs``: the pulls of the compass's cable (none: no ``link_returns``)."""
     kept = after_warmup(samples, warmup_s)
     span = (kept[-1].t - kept[0].t) if kept else 0.0
     growth = slope_per_hour(kept)
     rss = {"first_mb": kept[0].rss_mb, "last_mb": kept[-1].rss_mb} if kept else {}
 
-    def change(name: str) -> float:
-        values = [getattr(s, name) for s in kept]
-        return float(max(values) - min(values)) if values else math.nan
+    def change(name: str, what: str) -> Figure:
+        values = [getattr(s, name) for s in kept if s.settled]
+        spread = float(max(values) - min(values)) if values else math.nan
+        seen = {"readings": len(values), "counts": sorted(set(values))}
+        return Figure(f"{name}_change", spread, f"{what} (max - min)", 0.0, detail=seen)
 
+    returns = []
+    if unplugs:
+        returns.append(
+            Figure(
+                "link_returns",
+                100.0 * min(gcs.restored, unplugs) / unplugs,
+                "% of cable pulls the link came back from",
+                100.0,
+                lower_is_better=False,
+                detail={"pulls": unplugs, "lost": gcs.lost, "restored": gcs.restored},
+            )
+        )
     return [
         Figure(
             "rss_growth",
@@ -116,8 +158,8 @@ def figures(samples: Sequence[Sample], gcs: GroundStation, warmup_s: float) -> l
             RSS_TARGET_MB_PER_H,
             detail={**rss, "samples": len(kept), "over_s": round(span, 1)},
         ),
-        Figure("threads_change", change("threads"), "threads (max - min)", 0.0),
-        Figure("fds_change", change("fds"), "open files (max - min)", 0.0),
+        change("threads", "threads"),
+        change("fds", "open files"),
         Figure(
             "lists_answered",
             100.0 * gcs.whole / gcs.lists if gcs.lists else math.nan,
@@ -126,16 +168,17 @@ def figures(samples: Sequence[Sample], gcs: GroundStation, warmup_s: float) -> l
             lower_is_better=False,
             detail={"lists": gcs.lists, "sets": gcs.sets, "command_acks": gcs.acks},
         ),
+        *returns,
     ]
 
 
-def _config(tmp: Path, gcs_port: int) -> Path:
+def _config(tmp: Path, gcs_port: int, port: str = "sim") -> Path:
     cfg = tmp / "soak.toml"
     cfg.write_text(
         "\n".join(
             [
                 "[device]",
-                'port = "sim"',
+                f'port = "{port}"',
                 "rate_hz = 100",
                 "[mavlink]",
                 f'endpoints = ["udpout:127.0.0.1:{gcs_port}"]',
@@ -163,7 +206,7 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
         if hb is None:
             return
         target = (hb.get_srcSystem(), hb.get_srcComponent())
-        answers = ["PARAM_VALUE", "COMMAND_ACK"]
+        answers = ["PARAM_VALUE", "COMMAND_ACK", "STATUSTEXT"]
         k = 0
         while not stop.is_set():
             end = time.monotonic() + period_s
@@ -173,6 +216,9 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
             while time.monotonic() < end and not stop.is_set():
                 m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
                 if m is None:
+                    continue
+                if m.get_type() == "STATUSTEXT":
+                    gcs.hear(m.text)
                     continue
                 if m.get_type() == "COMMAND_ACK":  # the last period's, late
                     gcs.acks += 1
@@ -197,27 +243,69 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
             )  # fmt: skip
             while time.monotonic() < end and not stop.is_set():
                 m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
+                if m is not None and m.get_type() == "STATUSTEXT":
+                    gcs.hear(m.text)
                 gcs.acks += m is not None and m.get_type() == "COMMAND_ACK"
             k += 1
     finally:
         conn.close()
 
 
+@dataclass
+class SoakRun:
+    """What a run gave: the readings, the ground station's counts, the cable pulls."""
+
+    samples: list[Sample]
+    gcs: GroundStation
+    pulls: int = 0
+
+
+def _start_simulator(link: Path, unplug_s: float, log: Path) -> subprocess.Popen[bytes]:
+    """``python -m bridge simulate`` serving on a pty at ``link`` (a symlink), its log to
+    ``log``: the compass as the daemon meets a real one, through pyserial."""
+    with open(log, "wb") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "bridge", "simulate", "--link", str(link),
+             "--unplug-s", f"{unplug_s:g}"],
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+        )  # fmt: skip
+    if not wait_until(lambda: link.exists() or proc.poll() is not None, 30.0) or not link.exists():
+        stop_child(proc)
+        raise RuntimeError(f"the simulated compass did not serve ({log.read_text()[-500:]})")
+    return proc
+
+
 def run(
-    minutes: float = 10.0, *, period_s: float = 5.0, sample_s: float = 5.0, step: Step = no_step
-) -> tuple[list[Sample], GroundStation]:
-    """The daemon child for ``minutes``, the ground station beside it; the samples.
+    minutes: float = 10.0,
+    *,
+    period_s: float = 5.0,
+    sample_s: float = 5.0,
+    unplug_every_s: float = 0.0,
+    unplug_s: float = 2.0,
+    step: Step = no_step,
+) -> SoakRun:
+    """The daemon child for ``minutes``, the ground station beside it; the readings.
     ``period_s`` must be longer than the bridge's :data:`LIST_INTERVAL_S`: a peer asking
-    for the list more often is refused by design (the list amplifier's limit)."""
+    for the list more often is refused by design (the list amplifier's limit).
+    ``unplug_every_s`` > 0: the compass on a pty, its cable pulled that often for
+    ``unplug_s`` (line noise half-way between); see the module docstring."""
     if period_s <= LIST_INTERVAL_S:
         raise ValueError(f"period_s must be > {LIST_INTERVAL_S} s (LIST_INTERVAL_S)")
-    samples: list[Sample] = []
-    gcs = GroundStation()
+    if unplug_every_s and unplug_every_s <= unplug_s + SETTLE_S:
+        raise ValueError(f"unplug_every_s must be > unplug_s + {SETTLE_S:g} s (SETTLE_S)")
+    result = SoakRun([], GroundStation())
+    gcs = result.gcs
     stop = threading.Event()
     with tempfile.TemporaryDirectory(prefix="cb-soak-") as tmp:
+        here = Path(tmp)
+        sim = None
+        if unplug_every_s:
+            sim = _start_simulator(here / "compass", unplug_s, here / "simulator.log")
         gcs_port = free_port(socket.SOCK_DGRAM)
-        cfg = _config(Path(tmp), gcs_port)
-        stderr = Path(tmp) / "daemon.log"
+        cfg = _config(here, gcs_port, str(here / "compass") if sim else "sim")
+        stderr = here / "daemon.log"
         proc = start_daemon(cfg, stderr)
         station = threading.Thread(
             target=_ground_station,
@@ -231,26 +319,47 @@ def run(
                 raise RuntimeError("the ground station heard no HEARTBEAT within 30 s")
             t0 = time.monotonic()
             end = t0 + minutes * 60.0
-            while time.monotonic() < end:
+            pulled_at = -math.inf  # the last pull, on the run's clock
+            next_pull = t0 + unplug_every_s if sim else math.inf
+            noise_at = math.inf  # the next burst of line noise
+            next_sample = t0
+            while (now := time.monotonic()) < end:
                 if proc.poll() is not None:
                     raise RuntimeError(f"the daemon exited ({proc.returncode})")
-                rss, _ = process_rss_mb(proc.pid)
-                samples.append(
-                    Sample(
-                        time.monotonic() - t0,
-                        rss,
-                        len(os.listdir(f"/proc/{proc.pid}/task")),
-                        len(os.listdir(f"/proc/{proc.pid}/fd")),
+                if sim is not None and sim.poll() is not None:
+                    raise RuntimeError(f"the simulated compass exited ({sim.returncode})")
+                if sim is not None and now >= next_pull:
+                    sim.send_signal(signal.SIGUSR1)  # the cable out, back in unplug_s
+                    result.pulls += 1
+                    pulled_at, next_pull = now - t0, now + unplug_every_s
+                    noise_at = now + unplug_every_s / 2
+                if sim is not None and now >= noise_at:
+                    sim.send_signal(signal.SIGUSR2)  # a burst of line noise
+                    noise_at = math.inf
+                if now >= next_sample:
+                    rss, _ = process_rss_mb(proc.pid)
+                    back = gcs.restored >= result.pulls and now - t0 >= pulled_at + unplug_s
+                    result.samples.append(
+                        Sample(
+                            now - t0,
+                            rss,
+                            len(os.listdir(f"/proc/{proc.pid}/task")),
+                            len(os.listdir(f"/proc/{proc.pid}/fd")),
+                            settled=back and now - t0 >= pulled_at + unplug_s + SETTLE_S,
+                        )
                     )
-                )
-                step(min(1.0, (time.monotonic() - t0) / (minutes * 60.0)), f"{rss:.1f} MB")
-                time.sleep(max(0.0, min(sample_s, end - time.monotonic())))
+                    step(min(1.0, (now - t0) / (minutes * 60.0)), f"{rss:.1f} MB")
+                    next_sample += sample_s
+                due = min(next_sample, next_pull, noise_at, end)
+                time.sleep(max(0.0, due - time.monotonic()))
         finally:
             stop.set()
             station.join(period_s + 2.0)
             stop_child(proc)
+            if sim is not None:
+                stop_child(sim)
         log.debug("daemon stderr: %s", stderr.read_text(errors="replace")[-2000:])
-    return samples, gcs
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -264,19 +373,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=10.0, help="length of the run")
     ap.add_argument("--period", type=float, default=5.0, help="seconds between requests")
     ap.add_argument("--sample", type=float, default=5.0, help="seconds between readings")
+    ap.add_argument(
+        "--unplug-every",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="the compass on a pty, its cable pulled every S seconds (default 0: never)",
+    )
+    ap.add_argument(
+        "--unplug-s", type=float, default=2.0, metavar="S", help="how long a pull lasts"
+    )
     report_options(ap)
     args = ap.parse_args(argv)
     if args.minutes <= 0 or args.period <= LIST_INTERVAL_S or args.sample <= 0:
         ap.error(f"--minutes and --sample must be > 0, --period > {LIST_INTERVAL_S:g}")
+    if args.unplug_every and args.unplug_every <= args.unplug_s + SETTLE_S:
+        ap.error(f"--unplug-every must be > --unplug-s + {SETTLE_S:g}")
     with Progress("soak", 1.0, enabled=args.progress) as bar:
-        samples, gcs = run(
+        soaked = run(
             args.minutes,
             period_s=args.period,
             sample_s=args.sample,
+            unplug_every_s=args.unplug_every,
+            unplug_s=args.unplug_s,
             step=lambda f, n: bar.update(f, note=n),
         )
     warmup = warmup_s(args.minutes)
-    return report(figures(samples, gcs, warmup), args.json, warmup_s=warmup)
+    figs = figures(soaked.samples, soaked.gcs, warmup, soaked.pulls)
+    return report(figs, args.json, warmup_s=warmup)
 
 
 if __name__ == "__main__":

@@ -149,14 +149,49 @@ def test_soak_counts_threads_files_and_answers_after_the_warm_up() -> None:
     assert all(math.isnan(f.value) for f in soak_figures([], GroundStation(), 60.0))
 
 
+def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_returns() -> None:
+    samples = _soak_samples(0.0)
+    samples[30] = Sample(samples[30].t, samples[30].rss_mb, 17, 17, settled=False)  # port out
+    gcs = GroundStation(lists=4, whole=4, sets=4, acks=4)
+    for text in ("Compass link lost (no valid frame for 2.0 s)", "Compass link restored") * 3:
+        gcs.hear(text)
+    gcs.hear("Parameters saved (storage is back)")  # not the link's
+    assert (gcs.lost, gcs.restored) == (3, 3)
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, unplugs=4)}
+    assert figs["fds_change"].value == 0.0  # the reading with the port out not judged
+    assert figs["link_returns"].value == 75.0 and figs["link_returns"].passed is False
+    samples[31] = Sample(samples[31].t, samples[31].rss_mb, 17, 19)  # settled, one file more
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, unplugs=3)}
+    assert figs["fds_change"].value == 1.0 and figs["link_returns"].passed is True
+    assert "link_returns" not in {f.name for f in soak_figures(samples, gcs, 60.0)}
+
+
 @pytest.mark.integration
 def test_a_short_soak_talks_to_the_real_daemon_and_reads_it() -> None:
     """The daemon child and the ground station: every list answered whole, every command
     acknowledged, a reading per period (the growth target is the benchmark's, not this)."""
-    samples, gcs = soak_run(0.4, period_s=3.0, sample_s=2.0)
-    assert 10 <= len(samples) <= 13
+    soaked = soak_run(0.4, period_s=3.0, sample_s=2.0)
+    samples, gcs = soaked.samples, soaked.gcs
+    assert 10 <= len(samples) <= 13 and soaked.pulls == 0
     assert all(20.0 < s.rss_mb < 200.0 and s.threads > 1 and s.fds > 3 for s in samples)
     assert gcs.lists >= 6 and gcs.whole == gcs.lists
     assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 6
+    assert gcs.lost == 0  # the built-in compass never goes
     with pytest.raises(ValueError, match="LIST_INTERVAL_S"):
         soak_run(0.1, period_s=2.0)  # lists refused by design that often
+
+
+@pytest.mark.integration
+def test_a_short_soak_with_the_compass_on_a_pty_pulled_out_twice() -> None:
+    """The compass on a pseudo-terminal, read through pyserial, its cable pulled every
+    8 s: each pull told lost and restored to the ground station, the lists still whole,
+    and the daemon back on the same threads and files after each return."""
+    soaked = soak_run(0.4, period_s=3.0, sample_s=1.0, unplug_every_s=8.0, unplug_s=1.0)
+    gcs = soaked.gcs
+    assert soaked.pulls == 2 and gcs.lost == 2 and gcs.restored == 2
+    assert gcs.lists >= 5 and gcs.whole == gcs.lists
+    settled = [s for s in soaked.samples if s.settled]
+    assert len(settled) >= 4
+    assert len({(s.threads, s.fds) for s in settled}) == 1, settled
+    with pytest.raises(ValueError, match="SETTLE_S"):
+        soak_run(0.1, unplug_every_s=5.0, unplug_s=1.0)  # no time to settle between pulls
