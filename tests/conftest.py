@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 sys.dont_write_bytecode = False
 
 import pytest  # noqa: E402
+from helpers import EVERYDAY_SHARE, THOROUGH  # noqa: E402
 from hypothesis import settings  # noqa: E402
 from service_harness import FakeServiceManager  # noqa: E402
 
@@ -48,7 +49,14 @@ if TYPE_CHECKING:
 # Hypothesis's per-example deadline (200 ms) is a wall-clock bound: with both cores busy the
 # first example (lazy imports, caches) misses it and the test fails for the machine, not
 # the code. Speed is shown by the benchmarks; the properties here are about results.
-settings.register_profile("compass-bridge", deadline=None)
+# A property test with no count of its own runs Hypothesis's 100 examples in CI and a third
+# of them everyday, as those with one do (helpers.examples).
+DEFAULT_EXAMPLES = 100
+settings.register_profile(
+    "compass-bridge",
+    deadline=None,
+    max_examples=DEFAULT_EXAMPLES if THOROUGH else DEFAULT_EXAMPLES // EVERYDAY_SHARE,
+)
 settings.load_profile("compass-bridge")
 
 # The collector's young generation at 10 000 objects rather than 700: the suite allocates
