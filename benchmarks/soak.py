@@ -123,10 +123,10 @@ def after_warmup(samples: Sequence[Sample], warmup_s: float) -> list[Sample]:
 
 
 def figures(
-    samples: Sequence[Sample], gcs: GroundStation, warmup_s: float, unplugs: int = 0
+    samples: Sequence[Sample], gcs: GroundStation, warmup_s: float, pulls: int = 0
 ) -> list[Figure]:
     """The soak's figures (see the module docstring) from its samples after ``warmup_s``;
-    ``unplugs``: the pulls of the compass's cable (none: no ``link_returns``)."""
+    ``pulls``: the pulls of the compass's cable (none: no ``link_returns``)."""
     kept = after_warmup(samples, warmup_s)
     span = (kept[-1].t - kept[0].t) if kept else 0.0
     growth = slope_per_hour(kept)
@@ -139,15 +139,15 @@ def figures(
         return Figure(f"{name}_change", spread, f"{what} (max - min)", 0.0, detail=seen)
 
     returns = []
-    if unplugs:
+    if pulls:
         returns.append(
             Figure(
                 "link_returns",
-                100.0 * min(gcs.restored, unplugs) / unplugs,
+                100.0 * min(gcs.restored, pulls) / pulls,
                 "% of cable pulls the link came back from",
                 100.0,
                 lower_is_better=False,
-                detail={"pulls": unplugs, "lost": gcs.lost, "restored": gcs.restored},
+                detail={"pulls": pulls, "lost": gcs.lost, "restored": gcs.restored},
             )
         )
     return [

@@ -157,11 +157,11 @@ def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_retur
         gcs.hear(text)
     gcs.hear("Parameters saved (storage is back)")  # not the link's
     assert (gcs.lost, gcs.restored) == (3, 3)
-    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, unplugs=4)}
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=4)}
     assert figs["fds_change"].value == 0.0  # the reading with the port out not judged
     assert figs["link_returns"].value == 75.0 and figs["link_returns"].passed is False
     samples[31] = Sample(samples[31].t, samples[31].rss_mb, 17, 19)  # settled, one file more
-    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, unplugs=3)}
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=3)}
     assert figs["fds_change"].value == 1.0 and figs["link_returns"].passed is True
     assert "link_returns" not in {f.name for f in soak_figures(samples, gcs, 60.0)}
 
