@@ -482,6 +482,30 @@ def test_the_hands_half_second_back_is_one_frame_whatever_a_millisecond_says(ppb
     assert worst < 0.5, worst
 
 
+def test_every_window_edge_holds_whatever_a_millisecond_says() -> None:
+    """The other windows with a frame on their edge at 10 Hz: the field's spin over the
+    last second (its base the frame 1.0 s back, not now and then the one 0.9 s back: a
+    tenth more spin), the hold after a hand (0.5 s) and after a restart. A tumble's 40 s
+    read on frames a nanosecond a second apart either way from the exact 0.1 s gives the
+    same spin, within what the nanoseconds move it, and the same source every frame."""
+    motion = Tumble(3, rate_dps=90.0, reference_ned=FIELD.ned_G)
+    frames = [frame(motion.attitude(n * 0.1)) for n in range(400)]
+
+    def read(period: float) -> tuple[FloatArray, list[str]]:
+        f = TiltFilter()
+        spins, sources = [], []
+        for n, (mag, acc) in enumerate(frames):
+            sources.append(f.update(mag, acc, 5000.0 + n * period).source)
+            spins.append(f.spin_dps)
+        return np.array(spins), sources
+
+    spins, sources = read(0.1)
+    for ppb in (-1.0, 1.0):
+        other, other_sources = read(0.1 * (1.0 + ppb * 1e-9))
+        np.testing.assert_allclose(other, spins, rtol=1e-6, atol=1e-9)
+        assert other_sources == sources
+
+
 def test_frames_read_in_one_burst_share_their_time_and_still_count() -> None:
     """A serial read delivers several frames at once, stamped alike (100 Hz in bursts of 4;
     and a bench's frames all at one instant): the estimate follows a hand's turn all the same."""

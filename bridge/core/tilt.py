@@ -126,7 +126,11 @@ class TiltFilter:
     Pure and single-threaded: the caller owns it.
     """
 
-    _TURN_BASE_S = 1.0  #: the turn rate is measured over this long
+    #: The turn rate is measured over this long. Every window's edge (this one, the hand's
+    #: half second, the spin's and the restart's hold) is a quarter frame interval inside
+    #: it, so a frame on the edge -- at 10 Hz one is exactly there -- falls on one side
+    #: whatever a millisecond of the frame clock or a rounding says.
+    _TURN_BASE_S = 1.0
 
     def __init__(self, settings: TiltSettings | None = None) -> None:
         self.settings = settings if settings is not None else TiltSettings()
@@ -260,7 +264,7 @@ class TiltFilter:
         t_last = self._t
         if self._d is None or t_last is None:
             self._d, t_last = ahat, t
-            self._fresh_until = t + _FRESH_S
+            self._fresh_until = t + _FRESH_S - 0.25 * self._interval  # (edges: see _TURN_BASE_S)
         else:  # frames read in one burst share their arrival: half the mean interval apart
             gap = t - t_last
             gap = gap if gap < 1.0 else 1.0  # max(0, min(1, gap)) as comparisons: every frame
@@ -359,11 +363,11 @@ class TiltFilter:
             d = self._d
             mags = self._mags
             mags.append((t, mhat))
-            horizon = t - self._TURN_BASE_S
+            horizon = t - self._TURN_BASE_S + 0.25 * self._interval  # (the frame 1 s back)
             while len(mags) > 2 and mags[1][0] <= horizon:
                 mags.popleft()
             t0, then = mags[0]
-            if t - t0 < 0.5 * self._TURN_BASE_S:
+            if t - t0 < 0.5 * self._TURN_BASE_S - 0.25 * self._interval:
                 rate = 0.0
             else:
                 # (angle_deg(then, mhat) written out)
@@ -423,7 +427,7 @@ class TiltFilter:
                 )
             ):
                 # Faster than a vehicle turns: a hand. Follow the accelerometer as it is.
-                self._spinning_until = t + 0.5
+                self._spinning_until = t + 0.5 - 0.25 * self._interval  # (edges: _TURN_BASE_S)
                 self.held, self._d = [False, False], ahat
                 # Nothing from before the turn may be rolled back to, nor drifted from.
                 history.clear()
