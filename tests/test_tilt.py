@@ -493,7 +493,8 @@ def test_every_window_edge_holds_whatever_a_millisecond_says() -> None:
 
     def read(period: float) -> tuple[FloatArray, list[str]]:
         f = TiltFilter()
-        spins, sources = [], []
+        spins: list[float] = []
+        sources: list[str] = []
         for n, (mag, acc) in enumerate(frames):
             sources.append(f.update(mag, acc, 5000.0 + n * period).source)
             spins.append(f.spin_dps)
