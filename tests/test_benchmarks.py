@@ -190,8 +190,10 @@ def test_a_short_soak_with_the_compass_on_a_pty_pulled_out_twice() -> None:
     gcs = soaked.gcs
     assert soaked.pulls == 2 and gcs.lost == 2 and gcs.restored == 2
     assert gcs.lists >= 5 and gcs.whole == gcs.lists
-    settled = [s for s in soaked.samples if s.settled]
-    assert len(settled) >= 4
+    # (from 2 s in: the first reading comes as the first list is answered, while the
+    # daemon's start-up may still hold a file -- the benchmark's warm-up leaves it out)
+    settled = [s for s in soaked.samples if s.settled and s.t >= 2.0]
+    assert len(settled) >= 8
     assert len({(s.threads, s.fds) for s in settled}) == 1, settled
     with pytest.raises(ValueError, match="SETTLE_S"):
         soak_run(0.1, unplug_every_s=5.0, unplug_s=1.0)  # no time to settle between pulls
