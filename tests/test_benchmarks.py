@@ -167,6 +167,7 @@ def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_retur
 
 
 @pytest.mark.integration
+@pytest.mark.slow  # 24 s of the daemon's real time: started first
 def test_a_short_soak_talks_to_the_real_daemon_and_reads_it() -> None:
     """The daemon child and the ground station: every list answered whole, every command
     acknowledged, a reading per period (the growth target is the benchmark's, not this)."""
@@ -182,6 +183,7 @@ def test_a_short_soak_talks_to_the_real_daemon_and_reads_it() -> None:
 
 
 @pytest.mark.integration
+@pytest.mark.slow  # 24 s of the daemon's real time: started first
 def test_a_short_soak_with_the_compass_on_a_pty_pulled_out_twice() -> None:
     """The compass on a pseudo-terminal, read through pyserial, its cable pulled every
     8 s: each pull told lost and restored to the ground station, the lists still whole,
