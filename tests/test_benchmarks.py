@@ -14,7 +14,14 @@ import pytest
 
 from benchmarks.__main__ import BENCHMARKS, build_parser, main
 from benchmarks.figures import Figure, finish, report, write_json
-from benchmarks.soak import GroundStation, Sample, after_warmup, slope_per_hour, warmup_s
+from benchmarks.soak import (
+    GroundStation,
+    Sample,
+    after_warmup,
+    floor_change,
+    slope_per_hour,
+    warmup_s,
+)
 from benchmarks.soak import figures as soak_figures
 from benchmarks.soak import run as soak_run
 
@@ -138,7 +145,9 @@ def test_soak_growth_is_the_slope_after_the_warm_up() -> None:
 def test_soak_counts_threads_files_and_answers_after_the_warm_up() -> None:
     samples = _soak_samples(0.0)
     samples[3] = Sample(samples[3].t, samples[3].rss_mb, 12, 9)  # starting up: not counted
-    samples[-5] = Sample(samples[-5].t, samples[-5].rss_mb, 18, 18)  # a thread more, later
+    for i in range(len(samples) - 20, len(samples)):  # a thread more from then on: a leak
+        samples[i] = Sample(samples[i].t, samples[i].rss_mb, 18, 18)
+    samples[40] = Sample(samples[40].t, samples[40].rss_mb, 17, 19)  # a file for a moment
     figs = {
         f.name: f
         for f in soak_figures(samples, GroundStation(lists=4, whole=3, sets=4, acks=4), 60.0)
@@ -147,6 +156,15 @@ def test_soak_counts_threads_files_and_answers_after_the_warm_up() -> None:
     assert figs["fds_change"].value == 0.0 and figs["fds_change"].passed is True
     assert figs["lists_answered"].value == 75.0 and figs["lists_answered"].passed is False
     assert all(math.isnan(f.value) for f in soak_figures([], GroundStation(), 60.0))
+
+
+def test_a_count_is_judged_by_its_floor_a_moment_above_it_is_no_leak() -> None:
+    assert floor_change([21] * 12) == 0.0
+    assert floor_change([21, 22, 21, 21, 21, 21, 21, 21, 23, 21, 21, 21]) == 0.0  # moments
+    assert floor_change([21] * 6 + [22] * 6) == 1.0  # one more from then on
+    assert floor_change([21] * 6 + [22] * 4) == 0.0  # a short tail joins the run before it
+    assert floor_change([21] * 12 + [26] * 6 + [31] * 6) == 10.0  # a port kept per pull
+    assert math.isnan(floor_change([]))
 
 
 def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_returns() -> None:
@@ -160,7 +178,8 @@ def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_retur
     figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=4)}
     assert figs["fds_change"].value == 0.0  # the reading with the port out not judged
     assert figs["link_returns"].value == 75.0 and figs["link_returns"].passed is False
-    samples[31] = Sample(samples[31].t, samples[31].rss_mb, 17, 19)  # settled, one file more
+    for i in range(31, len(samples)):  # settled, one file more from then on
+        samples[i] = Sample(samples[i].t, samples[i].rss_mb, 17, 19)
     figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=3)}
     assert figs["fds_change"].value == 1.0 and figs["link_returns"].passed is True
     assert "link_returns" not in {f.name for f in soak_figures(samples, gcs, 60.0)}
@@ -196,6 +215,9 @@ def test_a_short_soak_with_the_compass_on_a_pty_pulled_out_twice() -> None:
     # daemon's start-up may still hold a file -- the benchmark's warm-up leaves it out)
     settled = [s for s in soaked.samples if s.settled and s.t >= 2.0]
     assert len(settled) >= 8
-    assert len({(s.threads, s.fds) for s in settled}) == 1, settled
+    # judged by the floor of each two readings (two after each return): a file open for a
+    # moment (params.json being written, on a loaded host) is no leak, a file per pull is
+    assert floor_change([s.threads for s in settled], run=2) == 0, settled
+    assert floor_change([s.fds for s in settled], run=2) == 0, settled
     with pytest.raises(ValueError, match="SETTLE_S"):
         soak_run(0.1, unplug_every_s=5.0, unplug_s=1.0)  # no time to settle between pulls
