@@ -67,7 +67,7 @@ SET_PARAM = "BRG_SR_HUD"
 SET_VALUES = (2.0, 4.0)
 RSS_TARGET_MB_PER_H = 1.0
 #: After a pull, readings count for threads and files this long past the pty's return.
-SETTLE_S = 5.0
+SETTLE_S = 3.0
 #: Threads and files are judged by their floor over runs of this many readings.
 FLOOR_READINGS = 6
 #: The link's events as the MAVLink adapter words them (bridge.app.pipeline).

@@ -185,39 +185,32 @@ def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_retur
     assert "link_returns" not in {f.name for f in soak_figures(samples, gcs, 60.0)}
 
 
-@pytest.mark.integration
-@pytest.mark.slow  # 24 s of the daemon's real time: started first
-def test_a_short_soak_talks_to_the_real_daemon_and_reads_it() -> None:
-    """The daemon child and the ground station: every list answered whole, every command
-    acknowledged, a reading per period (the growth target is the benchmark's, not this)."""
-    soaked = soak_run(0.4, period_s=3.0, sample_s=2.0)
-    samples, gcs = soaked.samples, soaked.gcs
-    assert 10 <= len(samples) <= 13 and soaked.pulls == 0
-    assert all(20.0 < s.rss_mb < 200.0 and s.threads > 1 and s.fds > 3 for s in samples)
-    assert gcs.lists >= 6 and gcs.whole == gcs.lists
-    assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 6
-    assert gcs.lost == 0  # the built-in compass never goes
+def test_a_soak_refuses_periods_the_bridge_refuses_by_design() -> None:
     with pytest.raises(ValueError, match="LIST_INTERVAL_S"):
         soak_run(0.1, period_s=2.0)  # lists refused by design that often
+    with pytest.raises(ValueError, match="SETTLE_S"):
+        soak_run(0.1, unplug_every_s=4.0, unplug_s=1.0)  # no time to settle between pulls
 
 
 @pytest.mark.integration
-@pytest.mark.slow  # 24 s of the daemon's real time: started first
+@pytest.mark.slow  # 18 s of the daemon's real time: started first
 def test_a_short_soak_with_the_compass_on_a_pty_pulled_out_twice() -> None:
-    """The compass on a pseudo-terminal, read through pyserial, its cable pulled every
-    8 s: each pull told lost and restored to the ground station, the lists still whole,
-    and the daemon back on the same threads and files after each return."""
-    soaked = soak_run(0.4, period_s=3.0, sample_s=1.0, unplug_every_s=8.0, unplug_s=1.0)
+    """The daemon child, its compass on a pseudo-terminal read through pyserial, its cable
+    pulled every 6 s, and the ground station: each pull told lost and restored, every list
+    answered whole and every command acknowledged, a reading a second, and the daemon back
+    on the same threads and files after each return."""
+    soaked = soak_run(0.3, period_s=3.0, sample_s=1.0, unplug_every_s=6.0, unplug_s=1.0)
     gcs = soaked.gcs
     assert soaked.pulls == 2 and gcs.lost == 2 and gcs.restored == 2
-    assert gcs.lists >= 5 and gcs.whole == gcs.lists
+    assert gcs.lists >= 4 and gcs.whole == gcs.lists
+    assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 4
+    assert 16 <= len(soaked.samples) <= 19
+    assert all(20.0 < s.rss_mb < 200.0 and s.threads > 1 and s.fds > 3 for s in soaked.samples)
     # (from 2 s in: the first reading comes as the first list is answered, while the
     # daemon's start-up may still hold a file -- the benchmark's warm-up leaves it out)
     settled = [s for s in soaked.samples if s.settled and s.t >= 2.0]
-    assert len(settled) >= 8
+    assert len(settled) >= 6 and settled[-1].t >= 16.0, settled  # after the second return too
     # judged by the floor of each two readings (two after each return): a file open for a
     # moment (params.json being written, on a loaded host) is no leak, a file per pull is
     assert floor_change([s.threads for s in settled], run=2) == 0, settled
     assert floor_change([s.fds for s in settled], run=2) == 0, settled
-    with pytest.raises(ValueError, match="SETTLE_S"):
-        soak_run(0.1, unplug_every_s=5.0, unplug_s=1.0)  # no time to settle between pulls
