@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from bridge.types import ClosedOnExit
@@ -159,17 +159,22 @@ class DatagramReceiver(ClosedOnExit):
         self.sock.close()
 
 
-def start_daemon(config: Path, log: Path) -> subprocess.Popen[bytes]:
-    """``python -m bridge run --config CONFIG`` as a child, its log (stderr) to the file
-    ``log``: a pipe nobody reads would fill over a long run and stop the daemon on its
-    next warning. Stop it with :func:`stop_child`."""
+def start_bridge(args: Sequence[str], log: Path) -> subprocess.Popen[bytes]:
+    """``python -m bridge ARGS`` as a child, its log (stderr) to the file ``log``: a pipe
+    nobody reads would fill over a long run and stop the child on its next warning. Stop
+    it with :func:`stop_child`."""
     with open(log, "wb") as err:
         return subprocess.Popen(
-            [sys.executable, "-m", "bridge", "run", "--config", str(config)],
+            [sys.executable, "-m", "bridge", *args],
             stdout=subprocess.DEVNULL,
             stderr=err,
             env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
         )
+
+
+def start_daemon(config: Path, log: Path) -> subprocess.Popen[bytes]:
+    """``python -m bridge run --config CONFIG`` as a child (:func:`start_bridge`)."""
+    return start_bridge(["run", "--config", str(config)], log)
 
 
 def stop_child(proc: subprocess.Popen[bytes]) -> bytes:
