@@ -40,8 +40,9 @@ def test_preflight_storage_write_answers_failed_when_nothing_could_be_saved(
     g.set_param("BRG_SR_HUD", 2.0, REAL32)
     assert g.wait("STATUSTEXT", lambda m: "Parameters NOT saved" in m.text)
     # parameters, calibration file and flash: the first two cannot be written
-    assert g.command(M.MAV_CMD_PREFLIGHT_STORAGE, 1).result == FAILED
-    assert g.command(M.MAV_CMD_PREFLIGHT_STORAGE, 2).result == FAILED  # reset, not saved
+    assert g.command(M.MAV_CMD_PREFLIGHT_STORAGE, 1, final=True).result == FAILED
+    # reset, not saved (its write paced: IN_PROGRESS, then FAILED when the write fails)
+    assert g.command(M.MAV_CMD_PREFLIGHT_STORAGE, 2, final=True).result == FAILED
     assert g.command(M.MAV_CMD_PREFLIGHT_STORAGE, 3).result == FAILED  # identity, not saved
 
 

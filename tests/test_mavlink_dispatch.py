@@ -16,9 +16,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_mavlink_rig import M, Rig, wait_until
+from harness import ManualClock
+from test_mavlink_rig import M, Rig, offline_daemon, wait_until
 
-from bridge.mavlink.dispatch import _mask, flag_param, given, int_param
+from bridge.events import Event
+from bridge.mavlink.commands import Command
+from bridge.mavlink.dispatch import PendingAcks, _mask, flag_param, given, int_param
+from bridge.mavlink.endpoints import Link
+from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.sim.motion import Still
 
 NAN = math.nan
@@ -117,36 +122,166 @@ def test_mavsdk_style_commands_with_nan_parameters(
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
 
 
+class Sent(Link):
+    """A peer without an endpoint: the acks are only kept."""
+
+    def __init__(self) -> None:
+        self.name = "sent"
+        self.acks: list[Any] = []
+
+    def send(self, packet: Any) -> None:
+        self.acks.append(packet)
+
+    @property
+    def results(self) -> list[int]:
+        return [p.result for p in self.acks]
+
+
+def storage_command() -> Command:
+    return Command(M.MAV_CMD_PREFLIGHT_STORAGE, (1.0,) + (0.0,) * 6, 1, 1, 255, 190)
+
+
 @pytest.mark.integration
 def test_an_outcome_from_another_thread_during_the_work_neither_blocks_nor_reorders() -> None:
     """The work (the calibration controller) emits events from its own threads; waiting for
     them must not block on the dispatcher (it deadlocked a live accept), and the final ack
     still follows the IN_PROGRESS one."""
-    from bridge.events import Event
-    from bridge.mavlink.commands import Command
-    from bridge.mavlink.dispatch import PendingAcks
-    from bridge.mavlink.endpoints import Link
-
-    sent: list[Any] = []
-
-    class Sent(Link):
-        """A peer without an endpoint: the acks are only sent to it."""
-
-        def __init__(self) -> None:
-            self.name = "sent"
-
-        def send(self, packet: Any) -> None:
-            sent.append(packet)
-
-    acks = PendingAcks()
+    acks, link = PendingAcks(), Sent()
     cmd = Command(M.MAV_CMD_DO_ACCEPT_MAG_CAL, (0.0,) * 7, 1, 1, 255, 190)
 
-    def work() -> bool:
+    def work(_done: Callable[[bool], None]) -> int:
         t = threading.Thread(target=acks.on_event, args=(Event("calibration.done", "done"),))
         t.start()
         t.join(5.0)
         assert not t.is_alive(), "the event thread blocked on the dispatcher"
-        return True
+        return 1
 
-    assert acks.long_work(cmd, Sent(), work, ("calibration.done",), ("calibration.failed",))
-    assert [p.result for p in sent] == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_ACCEPTED]
+    assert acks.long_work(cmd, link, work, ("calibration.done",), ("calibration.failed",))
+    assert link.results == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_ACCEPTED]
+
+
+@pytest.mark.parametrize("order", ["call, event", "event, call", "call during the work, event"])
+def test_long_work_of_two_outcomes_is_accepted_when_both_came_in_whatever_order(
+    order: str,
+) -> None:
+    """PREFLIGHT_STORAGE write: the paced params.json write (told by a call) and the compass
+    flash's PAR,SET (told by an event) -- one final ack, after both, whichever comes first,
+    before or after the IN_PROGRESS ack."""
+    flash = Event("calibration.device_updated", "written")
+    acks, link = PendingAcks(), Sent()
+    told: list[Callable[[bool], None]] = []
+
+    def work(done: Callable[[bool], None]) -> int:
+        told.append(done)
+        if order.startswith("call during"):
+            done(True)
+        return 2
+
+    assert acks.long_work(storage_command(), link, work, (flash.kind,), ("x.error",))
+    assert link.results == [M.MAV_RESULT_IN_PROGRESS]
+    if order == "call, event":
+        told[0](True)
+        assert link.results == [M.MAV_RESULT_IN_PROGRESS]  # the flash still to come
+        acks.on_event(flash)
+    elif order == "event, call":
+        acks.on_event(flash)
+        assert link.results == [M.MAV_RESULT_IN_PROGRESS]
+        told[0](True)
+    else:
+        acks.on_event(flash)
+    assert link.results == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_ACCEPTED]
+    told[0](True)  # anything after the final ack is not answered again
+    acks.on_event(flash)
+    assert len(link.acks) == 2 and acks.due_at == math.inf
+
+
+@pytest.mark.parametrize("failing", ["call", "event", "call during the work"])
+def test_long_work_fails_at_its_first_failed_outcome_and_answers_once(failing: str) -> None:
+    acks, link = PendingAcks(), Sent()
+    told: list[Callable[[bool], None]] = []
+
+    def work(done: Callable[[bool], None]) -> int:
+        told.append(done)
+        if failing == "call during the work":
+            done(False)
+        return 2
+
+    acks.long_work(storage_command(), link, work, ("x.done",), ("x.error",))
+    if failing == "call":
+        told[0](False)
+    elif failing == "event":
+        acks.on_event(Event("x.error", "no"))
+    assert link.results == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_FAILED]
+    acks.on_event(Event("x.done", "late"))
+    told[0](True)
+    assert len(link.acks) == 2
+
+
+def test_work_that_answers_itself_sends_nothing_and_keeps_nothing() -> None:
+    """Work that finished (0 outcomes to come) leaves the ack to its caller, even if an
+    outcome was told meanwhile; a later event finds nothing waiting."""
+    acks, link = PendingAcks(), Sent()
+
+    def work(done: Callable[[bool], None]) -> int:
+        done(False)
+        return 0
+
+    assert not acks.long_work(storage_command(), link, work, ("x.done",), ("x.error",))
+    acks.on_event(Event("x.done", "late"))
+    assert link.acks == [] and acks.due_at == math.inf
+
+
+class Acks(Sent):
+    """Sent, waited on: acks come from the params saver's thread too."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.came = threading.Condition()
+
+    def send(self, packet: Any) -> None:
+        with self.came:
+            super().send(packet)
+            self.came.notify_all()
+
+    def result(self, n: int) -> int:
+        """The ``n``-th ack's result (0-based), once it has come."""
+        with self.came:
+            assert self.came.wait_for(lambda: len(self.acks) > n, 5.0), f"no ack {n}"
+            return int(self.acks[n].result)
+
+
+@pytest.mark.integration
+def test_preflight_storage_right_after_a_set_answers_in_progress_and_holds_nothing(
+    tmp_path: Path,
+) -> None:
+    """A value set less than a second after the last params.json write is written when the
+    pacing allows. PREFLIGHT_STORAGE write then answers IN_PROGRESS at once (the dispatch
+    thread it runs on answers every other command and parameter request: it used to sleep
+    there for the rest of the second) and ACCEPTED when the saver's write is done; reset
+    alike. A daemon that is never started, its real parameter store and state directory."""
+    cfg, daemon = offline_daemon(tmp_path, "storage")
+    out = MavlinkOutput(
+        MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=ManualClock(100.0)
+    )
+    params = daemon.bridge.params
+    link = Acks()
+    storage = M.MAV_CMD_PREFLIGHT_STORAGE
+    try:
+        params.set("BRG_SR_HUD", 1.0)
+        first = Acks()
+        out.dispatcher.handle(Command(storage, (1.0,) + (0.0,) * 6, 1, 1, 255, 190), first)
+        # the first write is due at once (the saver's, or this one's): nothing to wait for
+        assert first.results == [M.MAV_RESULT_ACCEPTED]
+        writes = params.writes
+        params.set("BRG_SR_HUD", 2.0)  # pending: written a second after the last write
+        out.dispatcher.handle(Command(storage, (1.0,) + (0.0,) * 6, 1, 1, 255, 190), link)
+        assert link.results == [M.MAV_RESULT_IN_PROGRESS]
+        assert params.writes == writes and not params.saved  # answered before the write
+        assert link.result(1) == M.MAV_RESULT_ACCEPTED
+        assert params.saved and params.writes == writes + 1
+        out.dispatcher.handle(Command(storage, (2.0,) + (0.0,) * 6, 1, 1, 255, 190), link)
+        assert link.result(2) == M.MAV_RESULT_IN_PROGRESS  # reset: its write paced alike
+        assert link.result(3) == M.MAV_RESULT_ACCEPTED
+        assert len(link.acks) == 4 and params.writes == writes + 2
+    finally:
+        params.close()

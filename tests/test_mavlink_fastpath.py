@@ -174,9 +174,13 @@ class Peer:
                 self.inbox += self.parser.parse_buffer(self.sock.recv(65535)) or []
 
     def command(self, command: int, *params: float) -> Any:
+        """The command's final COMMAND_ACK (the one after IN_PROGRESS, if long work)."""
         p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
         self.send(self.mav.command_long_encode(1, 1, command, 0, *p))
-        return self.wait("COMMAND_ACK", lambda m: m.command == command)
+        ack = self.wait("COMMAND_ACK", lambda m: m.command == command)
+        if ack.result == M.MAV_RESULT_IN_PROGRESS:
+            ack = self.wait("COMMAND_ACK", lambda m: m.command == command)
+        return ack
 
     def set_param(self, name: str, value: float, ptype: int) -> Any:
         self.send(self.mav.param_set_encode(1, 1, name.encode(), value, ptype))

@@ -360,8 +360,11 @@ def test_preflight_storage(tmp_path: Path, rigs: Callable[..., Rig]) -> None:
     page = rig.fw.flash.page
     assert page.xoff == pytest.approx(2458 - 2560 * 0.080, abs=0.06)
     assert page.zoff == pytest.approx(2458 + 2560 * 0.040, abs=0.06)
-    # 2 = reset to defaults: the bridge's parameters, not the calibration
-    assert g.command(storage, 2).result == ACCEPTED
+    # 2 = reset to defaults: the bridge's parameters, not the calibration (ACCEPTED once
+    # params.json holds them: IN_PROGRESS first if the last write was less than a second ago)
+    assert g.command(storage, 2, final=True).result == ACCEPTED
+    stored = json.loads((tmp_path / "state" / "params.json").read_text())["payload"]["set"]
+    assert "BRG_SR_HUD" not in stored
     assert g.param("BRG_SR_HUD").param_value == 4.0
     assert g.param("COMPASS_OFS_X").param_value == pytest.approx(80.0)
     # 3 = reset the calibration

@@ -186,8 +186,10 @@ class Gcs:
         target: tuple[int, int] = (1, 1),
         use_int: bool = False,
         timeout: float = DEADLINE_S,
+        final: bool = False,
     ) -> Any:
-        """Send COMMAND_LONG (or COMMAND_INT) and return its first COMMAND_ACK."""
+        """Send COMMAND_LONG (or COMMAND_INT) and return its first COMMAND_ACK (``final``: the
+        one after IN_PROGRESS, as QGroundControl and MAVSDK wait for long work's)."""
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         if use_int:
             self.mav.command_int_send(
@@ -207,7 +209,10 @@ class Gcs:
             )
         else:
             self.mav.command_long_send(target[0], target[1], command, 0, *p)
-        return self.wait("COMMAND_ACK", lambda m: m.command == command, timeout)
+        ack = self.wait("COMMAND_ACK", lambda m: m.command == command, timeout)
+        if final and ack.result == M.MAV_RESULT_IN_PROGRESS:
+            ack = self.wait("COMMAND_ACK", lambda m: m.command == command, timeout)
+        return ack
 
     def param(
         self, name: str, timeout: float = DEADLINE_S, target: tuple[int, int] = (1, 1)

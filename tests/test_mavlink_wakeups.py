@@ -105,7 +105,7 @@ def test_a_command_in_progress_times_out_on_its_deadline(out: MavlinkOutput) -> 
     link = Sent()
     cmd = command(M.MAV_CMD_DO_START_MAG_CAL)
     assert out.dispatcher.pending.due_at == math.inf
-    out.dispatcher.pending.long_work(cmd, link, lambda: True, ("calibration.done",), ())
+    out.dispatcher.pending.long_work(cmd, link, lambda _done: 1, ("calibration.done",), ())
     deadline = T0 + FINAL_ACK_TIMEOUT_S
     assert out.dispatcher.pending.due_at == deadline
     assert out.next_look(T0) <= deadline

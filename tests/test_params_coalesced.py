@@ -65,32 +65,110 @@ def test_a_set_storm_is_about_one_write_a_second_and_nothing_is_lost(tmp_path: P
     assert stored(tmp_path / "state")["BRG_SR_HUD"] == last
 
 
-def test_an_explicit_save_storm_is_paced_too(tmp_path: Path) -> None:
+class ManualClock:
+    """The store's clock, moved by the test."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Answers:
+    """``save_then``'s callbacks: each answer, and an event when one comes."""
+
+    def __init__(self) -> None:
+        self.got: list[bool] = []
+        self.came = threading.Event()
+
+    def __call__(self, ok: bool) -> None:
+        self.got.append(ok)
+        self.came.set()
+
+    def next(self) -> bool:
+        assert self.came.wait(5.0), "no answer from the paced write"
+        self.came.clear()
+        return self.got[-1]
+
+
+def test_an_explicit_save_storm_is_paced_too_and_no_caller_waits(tmp_path: Path) -> None:
+    """PREFLIGHT_STORAGE write, again and again, each right after a set: every value is
+    written, a write a second at most, and the caller (MAVLink's dispatch) is never held:
+    within the interval it is answered later, from the saver's write."""
     params, docs = make(tmp_path / "state")
-    t0 = time.monotonic()
-    for i in range(5):  # PREFLIGHT_STORAGE write, again and again
+    answers = Answers()
+    later = 0
+    for i in range(5):
         params.set("BRG_SR_HUD", float(i + 1))
-        assert params.save()
-    assert len(docs.writes) == 5
-    assert time.monotonic() - t0 >= 4 * 0.9 * SAVE_INTERVAL_S
+        now = params.save_then(answers)
+        if now is None:  # the last write was less than a second ago
+            later += 1
+            assert answers.next() is True
+        else:
+            assert now is True and not answers.got
+        assert stored(tmp_path / "state")["BRG_SR_HUD"] == float(i + 1)
+    assert later >= 4  # (the first may find the saver's write done or the interval over)
+    assert len(docs.writes) == 5 and len(answers.got) == later
+    gaps = [b - a for a, b in zip(docs.writes, docs.writes[1:], strict=False)]
+    assert all(g >= 0.9 * SAVE_INTERVAL_S for g in gaps), gaps
     params.close()
 
 
 def test_a_save_with_nothing_pending_writes_nothing_and_waits_for_nothing(tmp_path: Path) -> None:
     """PREFLIGHT_STORAGE after the saver has written what was set: the stored values are
-    those in use, so nothing is written again and the caller (MAVLink's dispatch) is not
-    held for the rest of the interval."""
+    those in use, so nothing is written again and the answer is at once."""
     params, docs = make(tmp_path / "state")
+    answers = Answers()
     params.set("BRG_SR_HUD", 3.0)
-    assert params.save() and len(docs.writes) == 1
-    t0 = time.monotonic()
+    assert params.save_then(answers) in (True, None) and len(answers.got) <= 1
+    if not answers.got and not params.saved:
+        assert answers.next() is True
+    writes = len(docs.writes)
+    assert writes == 1
     for _ in range(3):
-        assert params.save()
-    assert len(docs.writes) == 1
-    assert time.monotonic() - t0 < 0.5 * SAVE_INTERVAL_S  # a write would wait ~1 s
+        assert params.save_then(answers) is True
+    assert len(docs.writes) == writes
     params.set("BRG_SR_HUD", 4.0)  # pending again: written, paced as before
-    assert params.save() and len(docs.writes) == 2
+    if params.save_then(answers) is None:
+        assert answers.next() is True
+    assert len(docs.writes) == 2
     assert stored(tmp_path / "state")["BRG_SR_HUD"] == 4.0
+    params.close()
+
+
+def test_read_back_with_a_write_pending_is_what_was_set_and_waits_for_nothing(
+    tmp_path: Path,
+) -> None:
+    """PREFLIGHT_STORAGE read while the paced write is still to come: what was set is what
+    is stored -- the values set are read back (not params.json's older ones), and so are
+    those of a reset, with no write and no wait; the saver's write then puts them in the
+    file. The store's clock is held still, so its saver writes only when it is moved on."""
+    clock = ManualClock()
+    docs = CountingStore(tmp_path / "state")
+    params = ParamStore(EngineSettings(AttitudeEngine(Calibration())), docs, clock=clock)
+    answers = Answers()
+    params.set("BRG_SR_HUD", 3.0)
+    assert params.save_then(answers) is True  # the first write: due at once
+    params.set("BRG_SR_HUD", 7.0)  # pending: the file still says 3 until the clock moves
+    params.set("BRG_SR_SIMU", 5.0)
+    params.reload()
+    assert params.get("BRG_SR_HUD") == 7.0 and params.get("BRG_SR_SIMU") == 5.0
+    assert len(docs.writes) == 1 and stored(tmp_path / "state") == {"BRG_SR_HUD": 3.0}
+    assert params.save_then(answers) is None
+    clock.t += SAVE_INTERVAL_S  # the interval is over: the saver writes
+    assert answers.next() is True
+    assert stored(tmp_path / "state") == {"BRG_SR_HUD": 7.0, "BRG_SR_SIMU": 5.0}
+    params.reset()  # pending again: the defaults are what is stored
+    default = params.values()["BRG_SR_HUD"]
+    params.reload()
+    assert default != 7.0 and params.get("BRG_SR_HUD") == default
+    assert len(docs.writes) == 2
+    clock.t += SAVE_INTERVAL_S
+    assert params.save_then(answers) in (True, None)
+    if not params.saved:
+        assert answers.next() is True
+    assert stored(tmp_path / "state") == {}
     params.close()
 
 

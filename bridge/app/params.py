@@ -17,8 +17,9 @@ values as a user set them, so they read back as written).
 Writes are **coalesced**: a value set is in force at once and saved by the
 store's saver thread at most once per :data:`SAVE_INTERVAL_S` (a storm of
 PARAM_SETs is one write a second, not one fsync per SET: an SD card's wear);
-an explicit :meth:`ParamStore.save` (PREFLIGHT_STORAGE) writes at once if the
-last write is older than that, else waits for it. A write that fails is tried
+an explicit save (PREFLIGHT_STORAGE's, :meth:`ParamStore.save_then`) writes at once
+if the last write is older than that, else is told when the saver's paced write is
+done -- MAVLink's dispatch never waits for it. A write that fails is tried
 again every interval until it succeeds -- said once when it fails
 (``params.storage_error``) and once when it works again (``params.saved``) --
 and :meth:`ParamStore.close` (the bridge stopping) writes what is pending, so
@@ -106,6 +107,8 @@ class ParamStore:
         self._saver: threading.Thread | None = None
         self._closed = False
         self.writes = 0  #: params.json writes attempted
+        self._waiting: list[Callable[[bool], None]] = []  # save_then's, answered by the next write
+        self._told: list[tuple[Callable[[bool], None], bool]] = []  # ... answered, to call
         self._documents = documents
         self._defaults = dict(defaults or {})
         self._apply_calibration = apply_calibration
@@ -195,20 +198,26 @@ class ParamStore:
                     changed.append(spec.name)
             self._user_set.clear()
             self._apply_all(source)
-            self._dirty = True
-        self.save()  # (paced) its caller answers by the result
+            self._changed()  # written by the saver, paced; PREFLIGHT_STORAGE asks save_then
         if changed:
             self._notify(tuple(changed), source)
 
     def reload(self, source: str = "reload") -> None:
-        """Back to the stored values (what PREFLIGHT_STORAGE "read" means)."""
-        if self._dirty:
-            self.save()  # what was set is what is stored: write it before reading back
+        """Back to the stored values (what PREFLIGHT_STORAGE "read" means).
+
+        What was set is what is stored: with a write pending, the saver's next write puts
+        the values set in use into params.json, so those are read back as they are (not the
+        file's older ones), without waiting for that write."""
         with self._lock:
             before = self._table.values()
+            pending = (
+                {n: before[n] for n in self._user_set if n not in CAL_PARAMS}
+                if self._dirty
+                else None
+            )
             self._table = ParamTable(overrides=self._defaults)
             self._user_set.clear()
-            self._load(None)
+            self._load(None, pending)
             self._apply_all(source)
             after = self._table.values()
         changed = tuple(n for n in after if after[n] != before[n])
@@ -220,19 +229,22 @@ class ParamStore:
         """The stored values are the values in use (nothing pending, the last write worked)."""
         return not self._dirty and not self.last_error
 
-    def save(self) -> bool:
-        """Write the values set by users (at once, or when the interval since the last write
-        is over); False (and :attr:`last_error`) if it failed. Once this run has written them,
-        with nothing pending since and that write done (:attr:`saved`), the file holds the
-        values in use: True at once -- no write again, and no wait on the caller's thread
-        (PREFLIGHT_STORAGE's: MAVLink's dispatch)."""
-        with self._save_lock:  # (after a write the saver may be doing)
+    def save_then(self, done: Callable[[bool], None]) -> bool | None:
+        """Save without waiting: True or False (:attr:`last_error`) when the values in use
+        are now stored -- already, or written at once -- or None when the last write was
+        less than :data:`SAVE_INTERVAL_S` ago: the saver's paced write (or any write before
+        it) then calls ``done(ok)`` from its thread. PREFLIGHT_STORAGE's, from MAVLink's
+        dispatch, which must not be held for the rest of the interval."""
+        with self._save_lock:
             if self.writes and self.saved:
                 return True
-            wait = self._last_write + SAVE_INTERVAL_S - self._clock()
-            if wait > 0:
-                time.sleep(wait)
-            return self._write()
+            if self._last_write + SAVE_INTERVAL_S - self._clock() <= 0 or self._closed:
+                ok = self._write()
+            else:
+                self._waiting.append(done)  # dirty: the saver writes when the interval ends
+                return None
+        self._tell()
+        return ok
 
     def close(self) -> None:
         """Stop the saver; what is pending is written now (the bridge stops)."""
@@ -245,6 +257,7 @@ class ParamStore:
         if self._dirty:
             with self._save_lock:
                 self._write()
+        self._tell()
 
     def _changed(self) -> None:
         """A value to store: the saver writes it within :data:`SAVE_INTERVAL_S` (lock held)."""
@@ -272,9 +285,28 @@ class ParamStore:
             with self._save_lock:  # a save() may have written meanwhile: paced all the same
                 if self._dirty and self._clock() - self._last_write >= SAVE_INTERVAL_S:
                     self._write()
+            self._tell()
 
     def _write(self) -> bool:
-        """One write of params.json (the save lock held)."""
+        """One write of params.json (the save lock held). It holds every value set before it,
+        so its result answers the save_then callers waiting (told by :meth:`_tell`, once the
+        save lock is let go: they send acks)."""
+        waiting, self._waiting = self._waiting, []
+        ok = self._write_document()
+        self._told.extend((fn, ok) for fn in waiting)
+        return ok
+
+    def _tell(self) -> None:
+        """Call the save_then callbacks that a write answered (no lock of the store held)."""
+        with self._save_lock:
+            told, self._told = self._told, []
+        for fn, ok in told:
+            try:
+                fn(ok)
+            except Exception:  # a caller's bug must not stop the saver
+                log.exception("parameters: a save_then callback failed")
+
+    def _write_document(self) -> bool:
         with self._lock:
             if self._documents is None:
                 self.last_error = "no state directory configured"
@@ -409,8 +441,11 @@ class ParamStore:
 
     # -- loading -------------------------------------------------------------------
 
-    def _load(self, stored_view: Mapping[str, float] | None) -> None:
-        """Restore persisted values (refusing, with a warning, what no longer validates)."""
+    def _load(
+        self, stored_view: Mapping[str, float] | None, stored: Mapping[str, float] | None = None
+    ) -> None:
+        """Restore persisted values (refusing, with a warning, what no longer validates):
+        params.json's, or ``stored`` -- what the pending write will put there."""
         cal = self._settings.calibration
         for name, v in cal.ardupilot_parameters().items():
             self._table.put(name, v)
@@ -425,20 +460,9 @@ class ParamStore:
                 for n in CAL_PARAMS:
                     self._table.put(n, float(stored_view[n]))
                 self._own_calibration = cal
-        if self._documents is None:
-            return
-        try:
-            loaded = self._documents.load(PARAMS_DOCUMENT)
-        except Exception as e:  # an unreadable state dir must not stop the bridge
-            log.warning("cannot read stored parameters: %s", e)
-            return
-        for p in loaded.problems:
-            log.warning("stored parameters: %s", p)
-        doc = loaded.payload
-        stored = doc.get("set") if isinstance(doc, dict) else None
-        if not isinstance(stored, dict):
-            return
-        for name, v in stored.items():
+        if stored is None:
+            stored = self._stored()
+        for name, v in (stored or {}).items():
             spec = self._table.spec(str(name))
             if spec is None or spec.group == "cal":
                 log.warning("stored parameter %r unknown, ignored", name)
@@ -448,6 +472,21 @@ class ParamStore:
                 self._user_set.add(spec.name)
             else:
                 log.warning("stored %s = %r refused (%s)", name, v, out.reason)
+
+    def _stored(self) -> dict[str, Any] | None:
+        """params.json's values (None: no file, or one that cannot be read)."""
+        if self._documents is None:
+            return None
+        try:
+            loaded = self._documents.load(PARAMS_DOCUMENT)
+        except Exception as e:  # an unreadable state dir must not stop the bridge
+            log.warning("cannot read stored parameters: %s", e)
+            return None
+        for p in loaded.problems:
+            log.warning("stored parameters: %s", p)
+        doc = loaded.payload
+        stored = doc.get("set") if isinstance(doc, dict) else None
+        return stored if isinstance(stored, dict) else None
 
     def start(self, source: str = "start") -> None:
         """Apply every parameter to the engine (once, when the bridge starts)."""

@@ -97,7 +97,10 @@ class _PendingAck:
     failure_kinds: tuple[str, ...]
     deadline: float
     announced: bool = False  #: the IN_PROGRESS ack is out
-    final: int | None = None  #: an outcome that came before the IN_PROGRESS ack went out
+    final: int | None = None  #: FAILED: an outcome that failed before the IN_PROGRESS ack
+    #: Outcomes still to come; counted down from zero while the work runs (an outcome can
+    #: come before the work has said how many it started), up when it has said.
+    parts: int = 0
 
 
 class PendingAcks:
@@ -117,15 +120,18 @@ class PendingAcks:
         self,
         cmd: C.Command,
         link: Link,
-        work: Callable[[], bool],
+        work: Callable[[Callable[[bool], None]], int],
         kinds: tuple[str, ...],
         failures: tuple[str, ...],
     ) -> bool:
-        """Run ``work``; if it returns True the command is long work: IN_PROGRESS now, and
-        the final COMMAND_ACK when one of ``kinds`` (ACCEPTED) or ``failures`` (FAILED)
-        is emitted, or FAILED after a time-out. Registered *before* the work starts, so an
-        outcome that comes at once is not missed; it is then sent right after the
-        IN_PROGRESS ack, so the two always go out in that order.
+        """Run ``work``; if it returns a count of outcomes still to come, the command is long
+        work: IN_PROGRESS now, and the final COMMAND_ACK when they have all come -- ACCEPTED,
+        or FAILED at the first that failed, or FAILED after a time-out. An outcome is an
+        event of ``kinds`` (or ``failures``), or a call of the ``done(ok)`` handed to the
+        work (any thread: a write another thread finishes). Registered *before* the work
+        starts, so an outcome that comes at once is not missed; the final ack then follows
+        the IN_PROGRESS one, so the two always go out in that order. ``work`` returning 0
+        answered nothing: the caller answers.
         """
         pending = _PendingAck(
             cmd.command,
@@ -138,12 +144,12 @@ class PendingAcks:
         )
         with self.lock:
             self._pending.append(pending)
-        long = False
+        parts = 0
         try:
-            long = work()
+            parts = work(lambda ok: self._outcome(pending, ok))
         finally:
             with self.lock:
-                if not long:
+                if parts <= 0:
                     if pending in self._pending:
                         self._pending.remove(pending)
                 else:
@@ -153,27 +159,42 @@ class PendingAcks:
                         )
                     )
                     pending.announced = True
-                    if pending.final is not None:  # the outcome came during the work
-                        self._pending.remove(pending)
-                        self._send_final(pending, pending.final)
-        return long
+                    pending.parts += parts
+                    self._finish_if_done(pending)  # the outcomes came during the work
+        return parts > 0
 
-    @staticmethod
-    def _send_final(p: _PendingAck, result: int) -> None:
-        p.link.send(T.command_ack(p.command, result, p.system, p.component, progress=100))
+    def _outcome(self, p: _PendingAck, ok: bool) -> None:
+        """One of ``p``'s outcomes came (any thread)."""
+        with self.lock:
+            if p not in self._pending or p.final is not None:
+                return
+            if ok:
+                p.parts -= 1
+            else:
+                p.final = C.FAILED
+            self._finish_if_done(p)
+
+    def _finish_if_done(self, p: _PendingAck) -> None:
+        """Send ``p``'s final ack if it is announced and its outcome known (lock held)."""
+        if not p.announced or (p.final is None and p.parts > 0):
+            return
+        self._pending.remove(p)
+        p.link.send(
+            T.command_ack(
+                p.command, C.ACCEPTED if p.final is None else p.final, p.system, p.component,
+                progress=100,
+            )
+        )  # fmt: skip
 
     def on_event(self, event: Event) -> None:
-        """Finish the commands ``event`` ends (any thread)."""
+        """Count ``event`` as an outcome of the commands that wait for its kind (any thread)."""
         with self.lock:
-            for p in [p for p in self._pending if p.final is None]:
-                if event.kind not in p.kinds and event.kind not in p.failure_kinds:
-                    continue
-                result = C.FAILED if event.kind in p.failure_kinds else C.ACCEPTED
-                if p.announced:
-                    self._pending.remove(p)
-                    self._send_final(p, result)
-                else:
-                    p.final = result  # long_work sends it after the IN_PROGRESS ack
+            waiting = [p for p in self._pending if p.final is None]
+        for p in waiting:
+            if event.kind in p.failure_kinds:
+                self._outcome(p, False)
+            elif event.kind in p.kinds:
+                self._outcome(p, True)
 
     @property
     def due_at(self) -> float:
@@ -349,10 +370,10 @@ class CommandDispatcher:
             self.out.report_answered()
         outcome: list[Outcome] = []
 
-        def accept() -> bool:
+        def accept(_done: Callable[[bool], None]) -> int:
             outcome.append(self.svc.calibrator.accept(self._device_mask(mask)))
             # The device's MAGCAL,END: its answer (RANGE failure included) comes as an event.
-            return outcome[0].result is Result.IN_PROGRESS
+            return 1 if outcome[0].result is Result.IN_PROGRESS else 0
 
         if self.pending.long_work(
             cmd, link, accept, ("calibration.done",), ("calibration.failed",)
@@ -429,46 +450,56 @@ class CommandDispatcher:
         action = int_param(cmd.p(1))
         svc = self.svc
         params = svc.params
+        # Nothing here waits on this (MAVLink's dispatch) thread: a params.json write that
+        # its pacing puts off (a value set less than a second ago) and the compass flash's
+        # PAR,SET are outcomes still to come -- IN_PROGRESS now, the final ack when they came.
         if action == 0:  # read: back to the stored values
             params.reload(source="PREFLIGHT_STORAGE")
             self.out.broadcast(self.out.params.all_values())
             return C.ACCEPTED
         if action == 1:  # write: parameters, calibration file and the compass flash
-            params_saved = params.save()
             device = svc.device
             link_ok = device.protocol == "gmr" and device.state is LinkState.STREAMING
-            outcome: list[Outcome] = []
+            failed: list[str] = []
 
-            def write() -> bool:
+            def write(done: Callable[[bool], None]) -> int:
+                params_saved = params.save_then(done)
+                if params_saved is False:
+                    failed.append(params.last_error or "parameters not saved")
                 cal = svc.settings.calibration
-                outcome.append(
-                    svc.calibrator.apply_calibration(cal, source="storage", write_device=link_ok)
-                )
-                # The flash write (PAR,SET) reports as an event; only worth waiting for
-                # when everything else was saved.
-                return link_ok and params_saved and svc.calibrator.snapshot().calibration_saved
+                out = svc.calibrator.apply_calibration(cal, source="storage", write_device=link_ok)
+                if not out.ok or not svc.calibrator.snapshot().calibration_saved:
+                    failed.append(out.message or "calibration not saved")
+                if failed:
+                    return 0
+                # The flash write (PAR,SET) reports as an event.
+                return int(params_saved is None) + int(link_ok)
 
-            done = ("calibration.device_updated",)
+            done = ("calibration.device_updated",) if link_ok else ()
             if self.pending.long_work(cmd, link, write, done, ("calibration.device_error",)):
                 return None
-            cal_saved = svc.calibrator.snapshot().calibration_saved
-            if not params_saved or not outcome or not outcome[0].ok or not cal_saved:
-                log.error(
-                    "mavlink: PREFLIGHT_STORAGE write failed: %s",
-                    params.last_error or (outcome[0].message if outcome else "?"),
-                )
+            if failed:
+                log.error("mavlink: PREFLIGHT_STORAGE write failed: %s", "; ".join(failed))
                 return C.FAILED
             return C.ACCEPTED
         if action == 2:  # reset the bridge's parameters (not the calibration) to defaults
             params.reset(source="PREFLIGHT_STORAGE")
             self.out.broadcast(self.out.params.all_values())
-            return C.ACCEPTED if params.saved else C.FAILED
+            saved: list[bool | None] = []
+
+            def store(done: Callable[[bool], None]) -> int:
+                saved.append(params.save_then(done))
+                return 1 if saved[0] is None else 0
+
+            if self.pending.long_work(cmd, link, store, (), ()):
+                return None
+            return C.ACCEPTED if saved[0] else C.FAILED
         if action == 3:  # reset the calibration to identity (the compass flash keeps its own)
             out = svc.calibrator.apply_calibration(
                 Calibration(), source="reset", write_device=False
             )
-            saved = svc.calibrator.snapshot().calibration_saved
-            return C.result_code(out) if saved else C.FAILED
+            cal_saved = svc.calibrator.snapshot().calibration_saved
+            return C.result_code(out) if cal_saved else C.FAILED
         return C.DENIED
 
     def _set_message_interval(self, cmd: C.Command, link: Link) -> int | None:
