@@ -282,7 +282,7 @@ class ParamStore:
                 left = self._last_write + SAVE_INTERVAL_S - self._clock()
                 if left > 0 and self._wake.wait_for(lambda: self._closed, left):
                     return
-            with self._save_lock:  # a save() may have written meanwhile: paced all the same
+            with self._save_lock:  # save_then may have written meanwhile: paced all the same
                 if self._dirty and self._clock() - self._last_write >= SAVE_INTERVAL_S:
                     self._write()
             self._tell()
