@@ -13,6 +13,7 @@ for a PX4 one), and run ``magcal start`` to SUCCESS and its automatic accept.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -147,4 +148,14 @@ def test_mavproxy_sets_every_parameter_of_each_flavour(
     mp.send("param show AHRS_ORIENTATION")
     shown = mp.expect(r"^AHRS_ORIENTATION\s")[1].split()[1]
     assert float(shown) == rig.daemon.bridge.params.get("AHRS_ORIENTATION")
+    # write them all (docs/mavlink.md): IN_PROGRESS at once (the compass flash's PAR,SET
+    # follows, and the params.json write if the last set was less than a second ago), then
+    # ACCEPTED with every value set in the file
+    mp.send("long PREFLIGHT_STORAGE 1")
+    assert mp.expect(r"Got COMMAND_ACK: PREFLIGHT_STORAGE: ")[1].endswith("IN_PROGRESS")
+    assert mp.expect(r"Got COMMAND_ACK: PREFLIGHT_STORAGE: ")[1].endswith("ACCEPTED")
+    envelope = json.loads((tmp_path / "state" / "params.json").read_text())
+    values = rig.daemon.bridge.params.values()
+    stored = envelope["payload"]["set"]
+    assert stored and all(stored[n] == values[n] for n in stored), stored
     assert_quiet(mp)
