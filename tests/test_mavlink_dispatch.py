@@ -268,10 +268,9 @@ def test_preflight_storage_right_after_a_set_answers_in_progress_and_holds_nothi
     storage = M.MAV_CMD_PREFLIGHT_STORAGE
     try:
         params.set("BRG_SR_HUD", 1.0)
-        first = Acks()
-        out.dispatcher.handle(Command(storage, (1.0,) + (0.0,) * 6, 1, 1, 255, 190), first)
         # the first write is due at once (the saver's, or this one's): nothing to wait for
-        assert first.results == [M.MAV_RESULT_ACCEPTED]
+        told: list[bool] = []
+        assert params.save_then(told.append) is True
         writes = params.writes
         params.set("BRG_SR_HUD", 2.0)  # pending: written a second after the last write
         out.dispatcher.handle(Command(storage, (1.0,) + (0.0,) * 6, 1, 1, 255, 190), link)
@@ -283,5 +282,6 @@ def test_preflight_storage_right_after_a_set_answers_in_progress_and_holds_nothi
         assert link.result(2) == M.MAV_RESULT_IN_PROGRESS  # reset: its write paced alike
         assert link.result(3) == M.MAV_RESULT_ACCEPTED
         assert len(link.acks) == 4 and params.writes == writes + 2
+        assert told == []  # answered at once, never told again
     finally:
         params.close()
