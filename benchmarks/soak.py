@@ -31,6 +31,15 @@ the readings taken with the link back (its "Compass link restored" heard, the la
 
 * **link_returns** -- the share of the pulls the link came back from (a STATUSTEXT
   "Compass link restored" for each). Target 100 %.
+* **reconnects_unheard** -- the daemon's own count of its port's reopenings (SYS_STATUS
+  ``errors_count2``, 1 Hz) against the returns the ground station heard, on the last
+  settled reading: a reopening nobody was told of, or a return with none. Target 0.
+
+Every run also reads the daemon's other counters from SYS_STATUS (``errors_comm``: the
+lines dropped as noise; ``errors_count1`` lost frames; ``errors_count4`` pipeline
+errors), and one figure more:
+
+* **pipeline_errors** -- frames the daemon's pipeline failed on. Target 0.
 """
 
 from __future__ import annotations
@@ -49,6 +58,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from benchmarks.figures import Figure, Step, no_step, report, report_options
 from benchmarks.procstat import (
@@ -84,6 +94,10 @@ class Sample:
     threads: int
     fds: int
     settled: bool = True  #: the link up and settled (always, without pulls)
+    #: The daemon's port reopenings (its SYS_STATUS; None before one came) and the
+    #: returns heard, both at this reading.
+    reconnects: int | None = None
+    restored: int = 0
 
 
 @dataclass
@@ -96,11 +110,23 @@ class GroundStation:
     acks: int = 0
     lost: int = 0  #: "Compass link lost" heard
     restored: int = 0  #: "Compass link restored" heard
+    #: The daemon's own link counters, from its last SYS_STATUS (None: none came yet).
+    reconnects: int | None = None
+    lost_frames: int = 0
+    bad_lines: int = 0
+    pipeline_errors: int = 0
 
     def hear(self, text: str) -> None:
         """Count a STATUSTEXT that tells of the compass link."""
         self.lost += text.startswith(LINK_LOST)
         self.restored += text.startswith(LINK_RESTORED)
+
+    def status(self, msg: Any) -> None:
+        """Take the daemon's link counters from a SYS_STATUS (bridge.mavlink.telemetry)."""
+        self.reconnects = int(msg.errors_count2)
+        self.lost_frames = int(msg.errors_count1)
+        self.bad_lines = int(msg.errors_comm)
+        self.pipeline_errors = int(msg.errors_count4)
 
 
 def slope_per_hour(samples: Sequence[Sample]) -> float:
@@ -160,7 +186,18 @@ def figures(
 
     returns = []
     if pulls:
-        returns.append(
+        last = next((s for s in reversed(samples) if s.settled and s.reconnects is not None), None)
+        unheard = math.nan if last is None else float(abs((last.reconnects or 0) - last.restored))
+        counted = (
+            {}
+            if last is None
+            else {
+                "at_s": round(last.t, 1),
+                "reconnects": last.reconnects,
+                "restored": last.restored,
+            }
+        )
+        returns += [
             Figure(
                 "link_returns",
                 100.0 * min(gcs.restored, pulls) / pulls,
@@ -168,8 +205,15 @@ def figures(
                 100.0,
                 lower_is_better=False,
                 detail={"pulls": pulls, "lost": gcs.lost, "restored": gcs.restored},
-            )
-        )
+            ),
+            Figure(
+                "reconnects_unheard",
+                unheard,
+                "port reopenings not heard as returns, or returns without one",
+                0.0,
+                detail={**counted, "bad_lines": gcs.bad_lines, "lost_frames": gcs.lost_frames},
+            ),
+        ]
     return [
         Figure(
             "rss_growth",
@@ -187,6 +231,12 @@ def figures(
             100.0,
             lower_is_better=False,
             detail={"lists": gcs.lists, "sets": gcs.sets, "command_acks": gcs.acks},
+        ),
+        Figure(
+            "pipeline_errors",
+            math.nan if gcs.reconnects is None else float(gcs.pipeline_errors),
+            "frames the pipeline failed on (SYS_STATUS)",
+            0.0,
         ),
         *returns,
     ]
@@ -226,7 +276,7 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
         if hb is None:
             return
         target = (hb.get_srcSystem(), hb.get_srcComponent())
-        answers = ["PARAM_VALUE", "COMMAND_ACK", "STATUSTEXT"]
+        answers = ["PARAM_VALUE", "COMMAND_ACK", "STATUSTEXT", "SYS_STATUS"]
         k = 0
         while not stop.is_set():
             end = time.monotonic() + period_s
@@ -239,6 +289,9 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
                     continue
                 if m.get_type() == "STATUSTEXT":
                     gcs.hear(m.text)
+                    continue
+                if m.get_type() == "SYS_STATUS":
+                    gcs.status(m)
                     continue
                 if m.get_type() == "COMMAND_ACK":  # the last period's, late
                     gcs.acks += 1
@@ -265,6 +318,8 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
                 m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
                 if m is not None and m.get_type() == "STATUSTEXT":
                     gcs.hear(m.text)
+                if m is not None and m.get_type() == "SYS_STATUS":
+                    gcs.status(m)
                 gcs.acks += m is not None and m.get_type() == "COMMAND_ACK"
             k += 1
     finally:
@@ -359,6 +414,8 @@ def run(
                             len(os.listdir(f"/proc/{proc.pid}/task")),
                             len(os.listdir(f"/proc/{proc.pid}/fd")),
                             settled=back and now - t0 >= pulled_at + unplug_s + SETTLE_S,
+                            reconnects=gcs.reconnects,
+                            restored=gcs.restored,
                         )
                     )
                     step(min(1.0, (now - t0) / (minutes * 60.0)), f"{rss:.1f} MB")

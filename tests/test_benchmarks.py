@@ -7,7 +7,9 @@ import json
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -185,6 +187,33 @@ def test_soak_with_cable_pulls_judges_files_on_settled_readings_and_counts_retur
     assert "link_returns" not in {f.name for f in soak_figures(samples, gcs, 60.0)}
 
 
+def test_the_daemons_own_reopenings_are_judged_against_the_returns_heard() -> None:
+    """SYS_STATUS's errors_count2 (the daemon's port reopenings) on the last settled reading
+    against the returns heard by then: one nobody was told of is a figure of 1."""
+    samples = _soak_samples(0.0)
+    gcs = GroundStation(lists=4, whole=4, sets=4, acks=4)
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=2)}
+    assert math.isnan(figs["reconnects_unheard"].value)  # no SYS_STATUS heard: not judged
+    assert math.isnan(figs["pipeline_errors"].value)
+    status = SimpleNamespace(errors_count1=3, errors_count2=2, errors_comm=40, errors_count4=0)
+    gcs.status(status)
+    assert (gcs.reconnects, gcs.lost_frames, gcs.bad_lines, gcs.pipeline_errors) == (2, 3, 40, 0)
+    samples[-1] = replace(samples[-1], reconnects=2, restored=2)
+    samples[-2] = replace(samples[-2], reconnects=3, restored=2)  # (not the last settled one)
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=2)}
+    assert figs["reconnects_unheard"].value == 0.0 and figs["reconnects_unheard"].passed
+    assert figs["reconnects_unheard"].detail["bad_lines"] == 40
+    assert figs["pipeline_errors"].value == 0.0
+    samples[-1] = replace(samples[-1], reconnects=3)  # a reopening no STATUSTEXT told of
+    gcs.status(SimpleNamespace(errors_count1=3, errors_count2=3, errors_comm=40, errors_count4=1))
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=2)}
+    assert figs["reconnects_unheard"].value == 1.0 and not figs["reconnects_unheard"].passed
+    assert not figs["pipeline_errors"].passed
+    samples[-1] = replace(samples[-1], settled=False)  # the last settled reading is judged
+    figs = {f.name: f for f in soak_figures(samples, gcs, 60.0, pulls=2)}
+    assert figs["reconnects_unheard"].value == 1.0  # (the one before: 3 against 2)
+
+
 def test_a_soak_refuses_periods_the_bridge_refuses_by_design() -> None:
     with pytest.raises(ValueError, match="LIST_INTERVAL_S"):
         soak_run(0.1, period_s=2.0)  # lists refused by design that often
@@ -202,6 +231,9 @@ def test_a_short_soak_with_the_compass_on_a_pty_pulled_out_twice() -> None:
     soaked = soak_run(0.3, period_s=3.0, sample_s=1.0, unplug_every_s=6.0, unplug_s=1.0)
     gcs = soaked.gcs
     assert soaked.pulls == 2 and gcs.lost == 2 and gcs.restored == 2
+    # ... and the daemon's own counters (SYS_STATUS) say the same: two reopenings of the
+    # port, the line noise between pulls dropped as bad lines, no pipeline error
+    assert gcs.reconnects == 2 and gcs.bad_lines > 0 and gcs.pipeline_errors == 0
     assert gcs.lists >= 4 and gcs.whole == gcs.lists
     assert gcs.acks >= gcs.sets - 1 and gcs.sets >= 4
     assert 16 <= len(soaked.samples) <= 19
