@@ -128,6 +128,17 @@ class GroundStation:
         self.bad_lines = int(msg.errors_comm)
         self.pipeline_errors = int(msg.errors_count4)
 
+    def take(self, msg: Any) -> bool:
+        """A STATUSTEXT or SYS_STATUS counted (True), or another message (False)."""
+        kind = msg.get_type()
+        if kind == "STATUSTEXT":
+            self.hear(msg.text)
+        elif kind == "SYS_STATUS":
+            self.status(msg)
+        else:
+            return False
+        return True
+
 
 def slope_per_hour(samples: Sequence[Sample]) -> float:
     """The least-squares slope of ``rss_mb`` over ``t``, MB an hour (NaN without two
@@ -287,11 +298,7 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
                 m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
                 if m is None:
                     continue
-                if m.get_type() == "STATUSTEXT":
-                    gcs.hear(m.text)
-                    continue
-                if m.get_type() == "SYS_STATUS":
-                    gcs.status(m)
+                if gcs.take(m):
                     continue
                 if m.get_type() == "COMMAND_ACK":  # the last period's, late
                     gcs.acks += 1
@@ -316,11 +323,8 @@ def _ground_station(url: str, period_s: float, gcs: GroundStation, stop: threadi
             )  # fmt: skip
             while time.monotonic() < end and not stop.is_set():
                 m = conn.recv_match(type=answers, blocking=True, timeout=0.2)
-                if m is not None and m.get_type() == "STATUSTEXT":
-                    gcs.hear(m.text)
-                if m is not None and m.get_type() == "SYS_STATUS":
-                    gcs.status(m)
-                gcs.acks += m is not None and m.get_type() == "COMMAND_ACK"
+                if m is not None and not gcs.take(m):
+                    gcs.acks += m.get_type() == "COMMAND_ACK"
             k += 1
     finally:
         conn.close()
