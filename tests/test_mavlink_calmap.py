@@ -273,3 +273,19 @@ def test_a_report_waiting_for_an_answer_keeps_the_keepalive_awake() -> None:
     now[0] += 1.0
     assert relay.keepalive(now[0], lambda: _snap(running=False)) == []
     assert relay.keepalive_due == math.inf
+
+
+def test_a_compass_parameter_set_is_told_by_its_echo_not_a_statustext() -> None:
+    """A PARAM_SET of COMPASS_*: saved at once or within the second (paced), its PARAM_VALUE
+    echo says enough; one that storage refused is said (a warning)."""
+    from bridge.app.calibration.keeper import applied
+
+    relay = CalibrationRelay(clock=lambda: 0.0)
+    for error, paced in (("", False), ("", True)):
+        events, _ = applied("parameters", error, paced, stored=True)
+        assert [relay.packets(e) for e in events] == [[]], (error, paced)
+    events, _ = applied("parameters", "disk full", False, stored=True)
+    texts = [m.text for e in events for m in relay.packets(e)]
+    assert texts[0] == "Calibration applied, NOT saved"
+    events, _ = applied("storage", "", False, stored=True)  # PREFLIGHT_STORAGE's: said
+    assert [m.text for m in relay.packets(events[0])] == ["Calibration accepted and saved"]

@@ -4,6 +4,7 @@ second, nothing set is lost at shutdown, and a write that failed is done once st
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from pathlib import Path
@@ -12,6 +13,7 @@ from typing import Any
 import pytest
 
 from bridge.app.params import PARAMS_DOCUMENT, SAVE_INTERVAL_S, ParamStore
+from bridge.app.paramspec import same_calibration
 from bridge.app.settings import EngineSettings
 from bridge.core.attitude import AttitudeEngine
 from bridge.core.calibration import Calibration
@@ -191,3 +193,49 @@ def test_a_write_that_failed_is_done_when_storage_is_back(tmp_path: Path) -> Non
     assert params.saved and stored(blocker / "state")["BRG_SR_HUD"] == 5.0
     assert [e.kind for e in events] == ["params.storage_error", "params.saved"]
     params.close()
+
+
+def test_a_storm_of_compass_sets_is_in_force_at_once_and_written_once_a_second(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """COMPASS_* PARAM_SETs wrote calibration.json once each (200 sets: 200 writes, fsync
+    each, on MAVLink's dispatch thread). Now the calibration group is paced as params.json
+    is: each value in force at once, the file written at most once a second -- the last
+    value included, by the calibration worker -- and at once when the bridge stops. A daemon
+    that is never started, its calibration worker running, its real state directory."""
+    from test_mavlink_rig import offline_daemon
+
+    writes: list[float] = []
+    save = StateStore.save
+
+    def counted(self: StateStore, name: str, payload: dict[str, Any], version: int = 1) -> None:
+        if name == "calibration":
+            writes.append(time.monotonic())
+        save(self, name, payload, version)
+
+    monkeypatch.setattr(StateStore, "save", counted)
+    _, daemon = offline_daemon(tmp_path / "state", "storm")
+    bridge = daemon.bridge
+    bridge.calibrator.start()
+    try:
+        for i in range(200):
+            assert bridge.params.set("COMPASS_OFS_X", float(1 + i % 50)).accepted
+            assert bridge.params.get("COMPASS_OFS_X") == float(1 + i % 50)  # in force at once
+        in_use = bridge.engine.calibration  # the last value's calibration, in force
+        wanted = Calibration.from_ardupilot_parameters(bridge.params.values(), in_use.accel)
+        assert same_calibration(in_use, wanted, tol=1e-9)
+        assert len(writes) <= 3, len(writes)
+        deadline = time.monotonic() + 5.0
+        while not bridge.calibrator.snapshot().calibration_saved and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert bridge.calibrator.snapshot().calibration_saved  # the last one, by the worker
+        gaps = [b - a for a, b in itertools.pairwise(writes)]
+        assert all(g >= 0.9 for g in gaps), gaps
+        stored_doc = StateStore(tmp_path / "state").load("calibration").payload or {}
+        assert stored_doc["view"]["COMPASS_OFS_X"] == 50.0  # the last value set
+        bridge.params.set("COMPASS_OFS_X", 7.0)  # within the second: pending at the stop
+    finally:
+        bridge.calibrator.close()
+        bridge.params.close()
+    stored_doc = StateStore(tmp_path / "state").load("calibration").payload or {}
+    assert stored_doc["view"]["COMPASS_OFS_X"] == 7.0

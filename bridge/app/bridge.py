@@ -135,8 +135,11 @@ def apply_learned(
 def apply_from_parameters(
     calibrator: CalibrationController, cal: Calibration, view: Mapping[str, float]
 ) -> str:
-    """A calibration set parameter by parameter (a ground station's COMPASS_* writes)."""
-    out = calibrator.apply_calibration(cal, source=PARAMETERS, write_device=False, view=dict(view))
+    """A calibration set parameter by parameter (a ground station's COMPASS_* writes): its
+    save paced, as params.json's (a storm of sets is a write a second)."""
+    out = calibrator.apply_calibration(
+        cal, source=PARAMETERS, write_device=False, view=dict(view), paced=True
+    )
     return "" if out.ok else out.message
 
 

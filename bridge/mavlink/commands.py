@@ -339,7 +339,7 @@ class CalibrationRelay:
         if (
             event.kind == "calibration.accepted"
             and event.data.get("source") == "parameters"
-            and event.data.get("saved")
+            and (event.data.get("saved") or event.data.get("paced"))
         ):
             return []  # a PARAM_SET of COMPASS_*: its PARAM_VALUE echo says enough
         with self._lock:

@@ -58,7 +58,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from bridge.app.calibration.flash import write_calibration
-from bridge.app.calibration.keeper import CalibrationKeeper, StrayCalibration
+from bridge.app.calibration.keeper import CalibrationKeeper, StrayCalibration, applied
 from bridge.app.calibration.store import CalibrationStore
 from bridge.calibration.sessions.base import (
     Action,
@@ -188,6 +188,7 @@ class CalibrationController:
             w.join(timeout)
             if w.is_alive():
                 log.error("calibration worker did not stop within %.1f s", timeout)
+        self._keeper.flush(self._clock())  # a paced save still to come
 
     def run_inline(self) -> None:
         """No worker thread: the owner of the clock (a simulation) calls :meth:`step`."""
@@ -441,12 +442,14 @@ class CalibrationController:
         report: SessionReport | Mapping[str, Any] | None = None,
         write_device: bool = True,
         view: dict[str, float] | None = None,
+        paced: bool = False,
     ) -> Outcome:
         """Use ``calibration`` from now on: engine, state file and (optionally) the device flash.
 
         ``report`` is stored with it (a :class:`SessionReport`, or its JSON form);
         ``view`` is the parameter values a user set it with (stored with it, so they
-        read back as written).
+        read back as written); ``paced``: set value by value, its save paced
+        (:mod:`~bridge.app.calibration.keeper`).
 
         For front ends that set parameters directly (PARAM_SET COMPASS_OFS_X,
         PREFLIGHT_STORAGE reset ...). A failed save keeps the calibration in
@@ -456,8 +459,9 @@ class CalibrationController:
         if isinstance(report, SessionReport):
             report = report.to_dict()
         return self._apply(
-            calibration, source=source, report=report, write_device=write_device, view=view
-        )
+            calibration, source=source, report=report, write_device=write_device, view=view,
+            paced=paced,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ status
 
@@ -623,38 +627,27 @@ class CalibrationController:
         report: Mapping[str, Any] | None,
         write_device: bool,
         view: dict[str, float] | None = None,
+        paced: bool = False,
     ) -> Outcome:
         try:
             self._engine.update_calibration(cal)
         except ChangeRefusedError as e:  # a guard of the heading (an armed autopilot fed by us)
             return Outcome(Result.DENIED, str(e))
-        error = self._keeper.keep(
+        k = self._keeper
+        error = k.keep(
             cal, source=source, accepted_unix=self._wall(), report=report, view=view,
-            now=self._clock(),
+            now=self._clock(), paced=paced,
         )  # fmt: skip
+        events, said = applied(source, error, k.paced, stored=self._store is not None)
         with self._lock:
-            data: dict[str, Any] = {"source": source, "saved": (saved := not error)}
-            if saved:
-                text, severity = "Calibration accepted and saved", Severity.INFO
-            else:
-                text, severity = "Calibration applied, NOT saved", Severity.WARNING
-                data["error"] = error
-            self._pending.append(Event("calibration.accepted", text, severity, data))
-            if not saved and self._store is not None:
-                self._pending.append(
-                    Event(
-                        "calibration.storage_error",
-                        f"Calibration not saved: {error}",
-                        Severity.ERROR,
-                        {"error": error},
-                    )
-                )
+            self._pending += events
         if write_device and self._link is not None and self._link.protocol == "gmr":
             self._jobs.put(functools.partial(self._write_device, cal))
             self.start()
+        elif k.pending:
+            self._jobs.put(None)  # wake the worker: the save is due later (paced, or refused)
         self._flush()
-        how = "and saved" if saved else f"but not saved: {error}"
-        return Outcome(Result.ACCEPTED, f"calibration applied {how}")
+        return Outcome(Result.ACCEPTED, said)
 
     def _write_device(self, cal: Calibration) -> None:
         """Worker: the magnetometer part of a host calibration into the compass flash."""
