@@ -133,3 +133,34 @@ def test_a_calibration_not_saved_is_saved_once_storage_is_back(
     assert rig.ctl.snapshot().calibration_saved
     stored, _ = load_calibration(str(blocker / "state"))
     assert stored == cal and math.isclose(stored.mag.offset[2], 0.03)
+
+
+def test_a_paced_compass_set_that_storage_refuses_is_told_and_saved_once_it_can_be(
+    tmp_path: Path,
+    rigs: Callable[..., Rig],  # noqa: F811
+) -> None:
+    """COMPASS_* values set within a second of the last save are saved by the worker when
+    the second is over: if storage refuses that save, it is said (calibration.storage_error),
+    as a refused save at once is, and it is saved once storage takes it again."""
+    rig = rigs(tmp_path, Still())
+    state = tmp_path / "state"
+
+    def offsets(x: float) -> Calibration:
+        return Calibration(mag=AffineCalibration.from_arrays([x, 0.0, 0.0], np.eye(3)))
+
+    out = rig.ctl.apply_calibration(offsets(0.01), source="parameters", paced=True)
+    assert "and saved" in out.message and rig.ctl.snapshot().calibration_saved
+    out = rig.ctl.apply_calibration(offsets(0.02), source="parameters", paced=True)
+    assert out.message == "calibration applied (saved within a second)"
+    assert not rig.ctl.snapshot().calibration_saved and not rig.log.of("calibration.storage_error")
+    for f in state.iterdir():  # storage goes: a file where the state directory was
+        f.unlink()
+    state.rmdir()
+    state.write_text("not a directory\n")
+    rig.log.wait("calibration.storage_error", timeout=3.0)  # the paced save, refused: said
+    assert not rig.ctl.snapshot().calibration_saved
+    state.unlink()  # storage is back
+    rig.log.wait("calibration.saved", timeout=RETRY_S + 5.0)
+    assert rig.ctl.snapshot().calibration_saved
+    stored, _ = load_calibration(str(state))
+    assert stored == offsets(0.02)

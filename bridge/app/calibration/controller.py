@@ -58,7 +58,12 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from bridge.app.calibration.flash import write_calibration
-from bridge.app.calibration.keeper import CalibrationKeeper, StrayCalibration, applied
+from bridge.app.calibration.keeper import (
+    CalibrationKeeper,
+    StrayCalibration,
+    applied,
+    storage_error,
+)
 from bridge.app.calibration.store import CalibrationStore
 from bridge.calibration.sessions.base import (
     Action,
@@ -611,11 +616,16 @@ class CalibrationController:
         self._after(applies)
 
     def _retry_save(self) -> None:
-        """Worker: a calibration in use that could not be saved, saved once storage takes it."""
+        """Worker: a calibration in use that could not be saved, saved once storage takes it;
+        a paced one saved when its second is over (refused: said, as at once)."""
         k = self._keeper
+        paced = k.paced
         if k.pending and k.retry(self._clock()):
             text = "Calibration saved (storage is back)"
             self._emit(Emit("calibration.saved", text, Severity.NOTICE, {"source": k.source}))
+        elif paced and k.error:
+            with self._lock:
+                self._pending.append(storage_error(k.error))
 
     # ------------------------------------------------------------------ applying
 

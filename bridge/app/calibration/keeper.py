@@ -171,15 +171,16 @@ def applied(source: str, error: str, paced: bool, *, stored: bool) -> tuple[list
         data["error"] = error
     events = [Event("calibration.accepted", text, severity, data)]
     if error and stored:
-        events.append(
-            Event(
-                "calibration.storage_error",
-                f"Calibration not saved: {error}",
-                Severity.ERROR,
-                {"error": error},
-            )
-        )
+        events.append(storage_error(error))
     return events, f"calibration applied{said}"
+
+
+def storage_error(error: str) -> Event:
+    """The event of a calibration storage refused (``error``: why)."""
+    return Event(
+        "calibration.storage_error", f"Calibration not saved: {error}", Severity.ERROR,
+        {"error": error},
+    )  # fmt: skip
 
 
 class StrayCalibration:
