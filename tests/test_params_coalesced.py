@@ -239,3 +239,35 @@ def test_a_storm_of_compass_sets_is_in_force_at_once_and_written_once_a_second(
         bridge.params.close()
     stored_doc = StateStore(tmp_path / "state").load("calibration").payload or {}
     assert stored_doc["view"]["COMPASS_OFS_X"] == 7.0
+
+
+def test_a_compass_set_storage_refused_is_saved_once_storage_is_back(tmp_path: Path) -> None:
+    """A COMPASS_* set that storage refused is retried every RETRY_S by the calibration worker.
+    The worker slept until a job came, and a set is no job: the calibration stayed unsaved
+    (8 s after storage came back, still "NOT saved"). Now the set wakes it."""
+    import shutil
+
+    from test_mavlink_rig import offline_daemon
+
+    from bridge.app.calibration.keeper import RETRY_S
+
+    state = tmp_path / "state"
+    _, daemon = offline_daemon(state, "refused")
+    bridge = daemon.bridge
+    bridge.calibrator.start()
+    try:
+        if state.exists():
+            shutil.rmtree(state)
+        state.write_text("a file where the state directory should be\n")
+        assert bridge.params.set("COMPASS_OFS_X", 12.0).accepted  # in force, not saved
+        assert not bridge.calibrator.snapshot().calibration_saved
+        state.unlink()  # storage is back
+        deadline = time.monotonic() + RETRY_S + 5.0
+        while not bridge.calibrator.snapshot().calibration_saved and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert bridge.calibrator.snapshot().calibration_saved
+        stored_doc = StateStore(state).load("calibration").payload or {}
+        assert stored_doc["view"]["COMPASS_OFS_X"] == 12.0
+    finally:
+        bridge.calibrator.close()
+        bridge.params.close()
