@@ -17,12 +17,11 @@ from typing import Any
 
 import pytest
 from harness import ManualClock
-from test_mavlink_rig import M, Rig, offline_daemon, wait_until
+from test_mavlink_rig import M, Rig, Sent, offline_daemon, wait_until
 
 from bridge.events import Event
 from bridge.mavlink.commands import Command
 from bridge.mavlink.dispatch import PendingAcks, _mask, flag_param, given, int_param
-from bridge.mavlink.endpoints import Link
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 from bridge.sim.motion import Still
 
@@ -122,21 +121,6 @@ def test_mavsdk_style_commands_with_nan_parameters(
     assert g.command(M.MAV_CMD_DO_CANCEL_MAG_CAL, 0).result == ACCEPTED
 
 
-class Sent(Link):
-    """A peer without an endpoint: the acks are only kept."""
-
-    def __init__(self) -> None:
-        self.name = "sent"
-        self.acks: list[Any] = []
-
-    def send(self, packet: Any) -> None:
-        self.acks.append(packet)
-
-    @property
-    def results(self) -> list[int]:
-        return [p.result for p in self.acks]
-
-
 def storage_command() -> Command:
     return Command(M.MAV_CMD_PREFLIGHT_STORAGE, (1.0,) + (0.0,) * 6, 1, 1, 255, 190)
 
@@ -192,7 +176,7 @@ def test_long_work_of_two_outcomes_is_accepted_when_both_came_in_whatever_order(
     assert link.results == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_ACCEPTED]
     told[0](True)  # anything after the final ack is not answered again
     acks.on_event(flash)
-    assert len(link.acks) == 2 and acks.due_at == math.inf
+    assert len(link.messages) == 2 and acks.due_at == math.inf
 
 
 @pytest.mark.parametrize("failing", ["call", "event", "call during the work"])
@@ -214,7 +198,7 @@ def test_long_work_fails_at_its_first_failed_outcome_and_answers_once(failing: s
     assert link.results == [M.MAV_RESULT_IN_PROGRESS, M.MAV_RESULT_FAILED]
     acks.on_event(Event("x.done", "late"))
     told[0](True)
-    assert len(link.acks) == 2
+    assert len(link.messages) == 2
 
 
 def test_work_that_answers_itself_sends_nothing_and_keeps_nothing() -> None:
@@ -228,7 +212,7 @@ def test_work_that_answers_itself_sends_nothing_and_keeps_nothing() -> None:
 
     assert not acks.long_work(storage_command(), link, work, ("x.done",), ("x.error",))
     acks.on_event(Event("x.done", "late"))
-    assert link.acks == [] and acks.due_at == math.inf
+    assert link.messages == [] and acks.due_at == math.inf
 
 
 class Acks(Sent):
@@ -246,8 +230,8 @@ class Acks(Sent):
     def result(self, n: int) -> int:
         """The ``n``-th ack's result (0-based), once it has come."""
         with self.came:
-            assert self.came.wait_for(lambda: len(self.acks) > n, 5.0), f"no ack {n}"
-            return int(self.acks[n].result)
+            assert self.came.wait_for(lambda: len(self.messages) > n, 5.0), f"no ack {n}"
+            return int(self.messages[n].result)
 
 
 @pytest.mark.integration
@@ -281,7 +265,7 @@ def test_preflight_storage_right_after_a_set_answers_in_progress_and_holds_nothi
         out.dispatcher.handle(Command(storage, (2.0,) + (0.0,) * 6, 1, 1, 255, 190), link)
         assert link.result(2) == M.MAV_RESULT_IN_PROGRESS  # reset: its write paced alike
         assert link.result(3) == M.MAV_RESULT_ACCEPTED
-        assert len(link.acks) == 4 and params.writes == writes + 2
+        assert len(link.messages) == 4 and params.writes == writes + 2
         assert told == []  # answered at once, never told again
     finally:
         params.close()

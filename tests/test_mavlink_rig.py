@@ -40,6 +40,7 @@ from bridge.daemon import Daemon, build_daemon
 from bridge.link.serial_link import LinkState
 from bridge.link.transport import SimTransport
 from bridge.mavlink import MavlinkOutput, MavlinkSettings
+from bridge.mavlink.endpoints import Link
 from bridge.protocol.gmr import AttitudeFrame
 from bridge.sim.firmware import Firmware, make_firmware
 from bridge.sim.motion import Motion, YawTurns
@@ -249,6 +250,23 @@ def make_config(tmp_path: Path, state: str = "state", **sections: dict[str, Any]
     for name, values in sections.items():
         raw.setdefault(name, {}).update(values)
     return config_from_mapping(raw, env={}, hostname="test")
+
+
+class Sent(Link):
+    """A link that keeps what it is sent: a peer without an endpoint (the handlers only
+    send to it; nothing here frames, queues or writes)."""
+
+    def __init__(self) -> None:
+        self.name = "sent"
+        self.messages: list[Any] = []
+
+    def send(self, packet: Any) -> None:
+        self.messages.append(packet)
+
+    @property
+    def results(self) -> list[int]:
+        """The COMMAND_ACKs' results, in the order sent."""
+        return [int(p.result) for p in self.messages]
 
 
 def offline_daemon(tmp: Path, hostname: str, **mavlink: Any) -> tuple[Config, Daemon]:

@@ -16,30 +16,16 @@ from pathlib import Path
 
 import pytest
 from harness import ManualClock
-from test_mavlink_rig import M, offline_daemon
+from test_mavlink_rig import M, Sent, offline_daemon
 
 from bridge.app.params import ParamChange
 from bridge.core.pacing import early_s
 from bridge.events import Event, Severity
 from bridge.mavlink import commands as C  # noqa: N812 - short
-from bridge.mavlink.dialect import Message
 from bridge.mavlink.dispatch import FINAL_ACK_TIMEOUT_S
-from bridge.mavlink.endpoints import Link
 from bridge.mavlink.output import MavlinkOutput, MavlinkSettings
 
 T0 = 100.0
-
-
-class Sent(Link):
-    """A link that keeps what it is sent: a peer without an endpoint (the handlers only
-    send to it; nothing here frames, queues or writes)."""
-
-    def __init__(self) -> None:
-        self.name = "sent"
-        self.messages: list[Message] = []
-
-    def send(self, packet: Message) -> None:
-        self.messages.append(packet)
 
 
 @pytest.fixture

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from harness import ManualClock
 
 from bridge.app.params import PARAMS_DOCUMENT, SAVE_INTERVAL_S, ParamStore
 from bridge.app.paramspec import same_calibration
@@ -65,16 +66,6 @@ def test_a_set_storm_is_about_one_write_a_second_and_nothing_is_lost(tmp_path: P
     last = params.get("BRG_SR_HUD")
     params.close()  # the bridge stops a moment after the last set: it is written
     assert stored(tmp_path / "state")["BRG_SR_HUD"] == last
-
-
-class ManualClock:
-    """The store's clock, moved by the test."""
-
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 class Answers:
@@ -144,7 +135,7 @@ def test_read_back_with_a_write_pending_is_what_was_set_and_waits_for_nothing(
     is stored -- the values set are read back (not params.json's older ones), and so are
     those of a reset, with no write and no wait; the saver's write then puts them in the
     file. The store's clock is held still, so its saver writes only when it is moved on."""
-    clock = ManualClock()
+    clock = ManualClock()  # (the store's: its saver writes only when it is moved on)
     docs = CountingStore(tmp_path / "state")
     params = ParamStore(EngineSettings(AttitudeEngine(Calibration())), docs, clock=clock)
     answers = Answers()
@@ -156,7 +147,7 @@ def test_read_back_with_a_write_pending_is_what_was_set_and_waits_for_nothing(
     assert params.get("BRG_SR_HUD") == 7.0 and params.get("BRG_SR_SIMU") == 5.0
     assert len(docs.writes) == 1 and stored(tmp_path / "state") == {"BRG_SR_HUD": 3.0}
     assert params.save_then(answers) is None
-    clock.t += SAVE_INTERVAL_S  # the interval is over: the saver writes
+    clock.advance(SAVE_INTERVAL_S)  # the interval is over: the saver writes
     assert answers.next() is True
     assert stored(tmp_path / "state") == {"BRG_SR_HUD": 7.0, "BRG_SR_SIMU": 5.0}
     params.reset()  # pending again: the defaults are what is stored
@@ -164,7 +155,7 @@ def test_read_back_with_a_write_pending_is_what_was_set_and_waits_for_nothing(
     params.reload()
     assert default != 7.0 and params.get("BRG_SR_HUD") == default
     assert len(docs.writes) == 2
-    clock.t += SAVE_INTERVAL_S
+    clock.advance(SAVE_INTERVAL_S)
     assert params.save_then(answers) is True  # the interval is over: written at once
     assert stored(tmp_path / "state") == {} and answers.got == [True]
     params.close()
@@ -203,7 +194,7 @@ def test_a_storm_of_compass_sets_is_in_force_at_once_and_written_once_a_second(
     is: each value in force at once, the file written at most once a second -- the last
     value included, by the calibration worker -- and at once when the bridge stops. A daemon
     that is never started, its calibration worker running, its real state directory."""
-    from test_mavlink_rig import offline_daemon
+    from test_mavlink_rig import offline_daemon, wait_until
 
     writes: list[float] = []
     save = StateStore.save
@@ -225,10 +216,8 @@ def test_a_storm_of_compass_sets_is_in_force_at_once_and_written_once_a_second(
         wanted = Calibration.from_ardupilot_parameters(bridge.params.values(), in_use.accel)
         assert same_calibration(in_use, wanted, tol=1e-9)
         assert len(writes) <= 3, len(writes)
-        deadline = time.monotonic() + 5.0
-        while not bridge.calibrator.snapshot().calibration_saved and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert bridge.calibrator.snapshot().calibration_saved  # the last one, by the worker
+        # the last one, by the worker
+        assert wait_until(lambda: bridge.calibrator.snapshot().calibration_saved, 5.0)
         gaps = [b - a for a, b in itertools.pairwise(writes)]
         assert all(g >= 0.9 for g in gaps), gaps
         stored_doc = StateStore(tmp_path / "state").load("calibration").payload or {}
@@ -247,7 +236,7 @@ def test_a_compass_set_storage_refused_is_saved_once_storage_is_back(tmp_path: P
     (8 s after storage came back, still "NOT saved"). Now the set wakes it."""
     import shutil
 
-    from test_mavlink_rig import offline_daemon
+    from test_mavlink_rig import offline_daemon, wait_until
 
     from bridge.app.calibration.keeper import RETRY_S
 
@@ -262,10 +251,7 @@ def test_a_compass_set_storage_refused_is_saved_once_storage_is_back(tmp_path: P
         assert bridge.params.set("COMPASS_OFS_X", 12.0).accepted  # in force, not saved
         assert not bridge.calibrator.snapshot().calibration_saved
         state.unlink()  # storage is back
-        deadline = time.monotonic() + RETRY_S + 5.0
-        while not bridge.calibrator.snapshot().calibration_saved and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert bridge.calibrator.snapshot().calibration_saved
+        assert wait_until(lambda: bridge.calibrator.snapshot().calibration_saved, RETRY_S + 5.0)
         stored_doc = StateStore(state).load("calibration").payload or {}
         assert stored_doc["view"]["COMPASS_OFS_X"] == 12.0
     finally:
