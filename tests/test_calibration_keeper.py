@@ -112,3 +112,35 @@ def test_what_a_calibration_applied_says() -> None:
     assert [e.kind for e in events] == ["calibration.accepted", "calibration.storage_error"]
     events, _ = applied("parameters", "no state directory configured", False, stored=False)
     assert [e.kind for e in events] == ["calibration.accepted"]
+
+
+def test_the_status_line_tells_a_paced_save_from_a_refused_one() -> None:
+    """ "saving" while a save waits only for its pace; "NOT SAVED (storage error)" only when
+    storage refused it (the status line said the latter for both)."""
+    from bridge.calibration.sessions.snapshot import CalibratorSnapshot
+    from bridge.systemd.status import calibration_words
+
+    def words(
+        saved: bool,
+        saving: bool,
+        source: str = "parameters",
+        calibrated: bool | None = True,
+        parameters_error: str = "",
+    ) -> str:
+        snap = CalibratorSnapshot.of(
+            None,
+            onboard=False,
+            calibration_source=source,
+            calibration_age_s=None,
+            calibration_saved=saved,
+            calibration_saving=saving,
+        )
+        return calibration_words(snap, calibrated=calibrated, parameters_error=parameters_error)
+
+    assert words(True, False) == "parameters"
+    assert words(False, True) == "parameters, saving"
+    assert words(False, False) == "parameters, NOT SAVED (storage error)"
+    assert words(False, False, source="none (identity)", calibrated=False) == (
+        "none (identity), UNCALIBRATED"
+    )
+    assert words(True, False, parameters_error="disk full") == "parameters; parameters NOT SAVED"

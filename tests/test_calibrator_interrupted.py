@@ -26,6 +26,7 @@ from bridge.app.calibration.keeper import RETRY_S
 from bridge.calibration.sessions import Phase, Result
 from bridge.core.calibration import AffineCalibration, Calibration
 from bridge.sim.motion import Still, YawTurns
+from bridge.systemd.status import calibration_words
 
 
 def onboard_rig(tmp_path: Path, rigs: Callable[..., Rig]) -> Rig:  # noqa: F811
@@ -150,17 +151,24 @@ def test_a_paced_compass_set_that_storage_refuses_is_told_and_saved_once_it_can_
 
     out = rig.ctl.apply_calibration(offsets(0.01), source="parameters", paced=True)
     assert "and saved" in out.message and rig.ctl.snapshot().calibration_saved
+
+    def words() -> str:
+        return calibration_words(rig.ctl.snapshot(), calibrated=True, parameters_error="")
+
+    assert words() == "parameters"
     out = rig.ctl.apply_calibration(offsets(0.02), source="parameters", paced=True)
     assert out.message == "calibration applied (saved within a second)"
     assert not rig.ctl.snapshot().calibration_saved and not rig.log.of("calibration.storage_error")
+    assert rig.ctl.snapshot().calibration_saving and words() == "parameters, saving"
     for f in state.iterdir():  # storage goes: a file where the state directory was
         f.unlink()
     state.rmdir()
     state.write_text("not a directory\n")
     rig.log.wait("calibration.storage_error", timeout=3.0)  # the paced save, refused: said
-    assert not rig.ctl.snapshot().calibration_saved
+    assert not rig.ctl.snapshot().calibration_saved and not rig.ctl.snapshot().calibration_saving
+    assert words() == "parameters, NOT SAVED (storage error)"
     state.unlink()  # storage is back
     rig.log.wait("calibration.saved", timeout=RETRY_S + 5.0)
-    assert rig.ctl.snapshot().calibration_saved
+    assert rig.ctl.snapshot().calibration_saved and words() == "parameters"
     stored, _ = load_calibration(str(state))
     assert stored == offsets(0.02)

@@ -58,7 +58,7 @@ from bridge.daemon.wiring import (
 from bridge.events import ChangeRefusedError
 from bridge.protocol.device import LinkState
 from bridge.systemd.notify import Liveness, Notifier, ServiceNotifier, watchdog_interval_s
-from bridge.systemd.status import StatusText
+from bridge.systemd.status import StatusText, calibration_words
 from bridge.types import Clock
 
 log = logging.getLogger(__name__)
@@ -236,21 +236,17 @@ class Service:
         return self.daemon.link.state is LinkState.STREAMING
 
     def calibration_state(self) -> str:
-        """Calibration in words: where it came from, running, saved or not."""
+        """Calibration in words (:func:`~bridge.systemd.status.calibration_words`)."""
+        bridge = self.daemon.bridge
         try:
-            snap = self.daemon.bridge.calibrator.snapshot()
+            snap = bridge.calibrator.snapshot()
         except Exception:  # the status line must never fail for this
-            return self.daemon.bridge.calibration_source
-        if snap.running:
-            return f"running ({snap.mode}, {snap.completion_pct:.0f}%)"
-        text = snap.calibration_source
-        if not snap.calibration_saved and not text.startswith("none"):
-            text += ", NOT SAVED (storage error)"
-        if magnetometer_calibrated(self.daemon.bridge.services) is False:
-            text += ", UNCALIBRATED"
-        if self.daemon.bridge.params.last_error:
-            text += "; parameters NOT SAVED"
-        return text
+            return bridge.calibration_source
+        return calibration_words(
+            snap,
+            calibrated=magnetometer_calibrated(bridge.services),
+            parameters_error=bridge.params.last_error,
+        )
 
     def status_line(self) -> str:
         """The current STATUS text."""

@@ -11,7 +11,30 @@ from __future__ import annotations
 from collections import deque
 
 from bridge.app.sample import CompassSample, DaemonStatus
+from bridge.calibration.sessions.snapshot import CalibratorSnapshot
 from bridge.protocol.device import LinkState
+
+
+def calibration_words(
+    snap: CalibratorSnapshot, *, calibrated: bool | None, parameters_error: str
+) -> str:
+    """The status line's calibration: where it came from, running, saved or not.
+
+    ``calibrated`` False: no hard- or soft-iron correction in use; ``parameters_error``:
+    why params.json was last refused ("" if it was not). A calibration that waits only for
+    its pace (COMPASS_* values set a moment ago, :attr:`CalibratorSnapshot.calibration_saving`)
+    is "saving": storage has refused nothing, and it is written within the second.
+    """
+    if snap.running:
+        return f"running ({snap.mode}, {snap.completion_pct:.0f}%)"
+    text = snap.calibration_source
+    if not snap.calibration_saved and not text.startswith("none"):
+        text += ", saving" if snap.calibration_saving else ", NOT SAVED (storage error)"
+    if calibrated is False:
+        text += ", UNCALIBRATED"
+    if parameters_error:
+        text += "; parameters NOT SAVED"
+    return text
 
 
 class StatusText:

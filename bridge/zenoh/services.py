@@ -44,6 +44,8 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         "source": _source(svc, snap),
         "age_s": None if snap.calibration_age_s is None else round(snap.calibration_age_s, 1),
         "saved": snap.calibration_saved,
+        # Not saved yet only for its pace (a COMPASS_* value set a moment ago): no storage error.
+        "saving": snap.calibration_saving,
         "fitness_mG": fitness,
         # False: no hard- or soft-iron correction in use (None: a heading-only compass)
         "calibrated": magnetometer_calibrated(svc),

@@ -481,6 +481,7 @@ class CalibrationController:
                 calibration_source=k.source,
                 calibration_age_s=age,
                 calibration_saved=k.saved,
+                calibration_saving=k.paced,
             )
 
     # ------------------------------------------------------------------ running sessions

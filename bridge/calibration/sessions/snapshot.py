@@ -21,7 +21,9 @@ class CalibratorSnapshot:
     (:attr:`Phase.IDLE`, step 0, before the first); ``report`` its result once
     it has one; ``pending_accept`` a successful host magnetometer fit waiting
     for accept; ``calibration_age_s`` how long ago the calibration in use was
-    accepted (None: never, or unknown).
+    accepted (None: never, or unknown); ``calibration_saved`` whether it is on disk, and
+    ``calibration_saving`` whether it waits only for its pace (a COMPASS_* value set
+    within a second of the last save: written within that second, no storage error).
     """
 
     mode: str | None
@@ -39,6 +41,7 @@ class CalibratorSnapshot:
     calibration_source: str
     calibration_age_s: float | None
     calibration_saved: bool
+    calibration_saving: bool = False
 
     @property
     def failure(self) -> Failure | None:
@@ -56,6 +59,7 @@ class CalibratorSnapshot:
         calibration_source: str,
         calibration_age_s: float | None,
         calibration_saved: bool,
+        calibration_saving: bool = False,
     ) -> CalibratorSnapshot:
         """The state of ``session`` (None: none yet) and of the calibration in use."""
         # The fields in their order, not by keyword: a status query may come every frame,
@@ -77,6 +81,7 @@ class CalibratorSnapshot:
                 calibration_source,
                 calibration_age_s,
                 calibration_saved,
+                calibration_saving,
             )
         p = session.progress()
         return cls(
@@ -95,6 +100,7 @@ class CalibratorSnapshot:
             calibration_source,
             calibration_age_s,
             calibration_saved,
+            calibration_saving,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -115,6 +121,7 @@ class CalibratorSnapshot:
             "calibration_source": self.calibration_source,
             "calibration_age_s": self.calibration_age_s,
             "calibration_saved": self.calibration_saved,
+            "calibration_saving": self.calibration_saving,
         }
 
 
