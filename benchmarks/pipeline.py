@@ -1,6 +1,6 @@
 """Speed and footprint of the whole bridge: ``python -m benchmarks pipeline``.
 
-Eight figures, each printed with its target (three without) and PASS/FAIL (``--json`` writes
+Nine figures, each printed with its target (four without) and PASS/FAIL (``--json`` writes
 them as one JSON object too):
 
 * **throughput** (:func:`benchmarks.throughput.shipped`) -- the daemon's per-frame path
@@ -35,6 +35,11 @@ them as one JSON object too):
   (other threads and processes take the caches meanwhile), and back to back (hot).
   No target: what a frame costs in service is the cold figure, and a change that
   is faster hot can be slower cold (docs/performance.md).
+* **simulated frame** -- the simulated compass's one frame
+  (:meth:`bridge.sim.physics.SensorModel.sample` at one attitude, the simulated firmware's
+  per-frame path, ``_sample_one``) against the same frames through the stack path, thread
+  CPU per frame, best of three, the counts compared bit for bit: the figure the faster
+  twin stands on (no target).
 """
 
 from __future__ import annotations
@@ -135,6 +140,45 @@ def cold_frame(n: int = 300, gap_s: float = 0.01) -> Figure:
             "hot_decode_us": round(hd, 1),
             "hot_process_us": round(hp, 1),
             "cold_over_hot": round((cd + cp) / (hd + hp), 1) if hd + hp > 0 else None,
+        },
+    )
+
+
+def simulated_frame(n: int = 2000, seed: int = 4) -> Figure:
+    """The simulated compass's one-frame sample and the stack path's on the same ``n``
+    frames (random attitudes, a small linear acceleration each): thread CPU per frame."""
+    from bridge.core.geometry import random_rotations
+    from bridge.sim.physics import DEFAULT_LOCATION, SensorModel, UnitErrors
+
+    rng = np.random.default_rng(seed)
+    sensor = SensorModel.at_location(UnitErrors.draw(rng), DEFAULT_LOCATION)
+    Rs = list(random_rotations(rng, n))  # C-ordered (3, 3) views, as a motion's attitudes
+    lins = list(rng.normal(0.0, 0.05, size=(n, 3)))
+
+    def run(stack: bool) -> tuple[float, list[bytes]]:
+        best, counts = math.inf, []
+        for _ in range(3):
+            noise = np.random.default_rng([seed, 1])  # the same draws for both paths
+            out = []
+            t0 = time.thread_time()
+            for R, lin in zip(Rs, lins, strict=True):
+                out.append(sensor.sample(R[np.newaxis] if stack else R, noise, lin))
+            best = min(best, time.thread_time() - t0)
+            counts = [s.mag_counts.tobytes() + s.acc_counts.tobytes() for s in out]
+        return 1e6 * best / n, counts
+
+    one_us, one = run(stack=False)
+    stack_us, stacked = run(stack=True)
+    return Figure(
+        "simulated_frame",
+        one_us,
+        "us per frame (thread CPU)",
+        None,
+        detail={
+            "frames": n,
+            "stack_path_us": round(stack_us, 1),
+            "stack_over_one": round(stack_us / one_us, 2) if one_us > 0 else None,
+            "same_counts": one == stacked,
         },
     )
 
@@ -471,6 +515,9 @@ def main(argv: list[str] | None = None) -> int:
     with Progress("cold frame", None, enabled=args.progress) as bar:
         bar.update(note=f"{args.cold_frames} frames, 10 ms apart")
         figures.append(cold_frame(args.cold_frames))
+    with Progress("simulated frame", None, enabled=args.progress) as bar:
+        bar.update(note="2000 frames, two paths")
+        figures.append(simulated_frame())
     if not args.skip_live:
         with Progress("live daemon", 1.0, enabled=args.progress) as bar:
             figures += live(args.duration, step=lambda f, n: bar.update(f, note=n))

@@ -27,7 +27,12 @@ def test_small_run_writes_every_figure_with_a_verdict(tmp_path: Path) -> None:
     )  # fmt: skip
     doc = json.loads(out.read_text())
     figs = {f["name"]: f for f in doc["figures"]}
-    assert set(figs) == {"throughput", "throughput_every_stream", "calibration_fit", "cold_frame"}
+    assert set(figs) == {
+        "throughput", "throughput_every_stream", "calibration_fit", "cold_frame", "simulated_frame"
+    }  # fmt: skip
+    sim = figs["simulated_frame"]  # the faster twin's figure: its counts are the stack path's
+    assert sim["target"] is None and sim["detail"]["frames"] == 2000
+    assert sim["detail"]["same_counts"] is True and sim["detail"]["stack_path_us"] > 0.0
     cold = figs["cold_frame"]
     d = cold["detail"]
     assert cold["target"] is None and cold["passed"] is None and d["frames"] == 20
