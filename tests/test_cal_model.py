@@ -13,7 +13,7 @@ from bridge.core.geometry import euler_to_dcm
 from bridge.protocol.gmr import ParamsFrame
 
 
-def test_apply_batch_and_scalar_agree() -> None:
+def test_apply_one_vector_and_a_batch_agree() -> None:
     cal = AffineCalibration.from_arrays(
         [0.1, -0.2, 0.05], [[1.1, 0.02, 0], [0.01, 0.9, 0.03], [0, 0, 1.05]]
     )
@@ -21,7 +21,7 @@ def test_apply_batch_and_scalar_agree() -> None:
     batch = cal.apply(raw)
     expected = (raw - np.array([0.1, -0.2, 0.05])) @ np.asarray(cal.matrix).T
     assert np.allclose(batch, expected)
-    assert np.allclose(cal.apply_tuple(*raw[1]), batch[1])
+    assert np.allclose(cal.apply(raw[1]), batch[1])  # one vector (3,), as a row of the batch
 
 
 angles = st.floats(-0.05, 0.05)

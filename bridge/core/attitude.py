@@ -378,7 +378,10 @@ class AttitudeEngine:
         Raises ``ValueError`` on non-finite input (the quality state is left untouched).
         """
         s = self._state  # one read: a concurrent update cannot mix two configurations
-        # (The tuples unpacked at once rather than indexed entry by entry: every frame.)
+        # Each sensor's chain M @ (counts - o) (_sensor_chain: the nominal transfer, the
+        # calibration's AffineCalibration.apply and the mounting folded into one map), written
+        # out per sensor rather than through a helper: a call and a tuple each, every frame.
+        # (The tuples unpacked at once rather than indexed entry by entry, for the same reason.)
         o0, o1, o2 = s.mo
         dx, dy, dz = mx - o0, my - o1, mz - o2
         m0, m1, m2, m3, m4, m5, m6, m7, m8 = s.mm

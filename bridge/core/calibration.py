@@ -128,16 +128,6 @@ class AffineCalibration:
         r = np.asarray(raw, dtype=np.float64)
         return (r - self.offset_array) @ self.matrix_array.T
 
-    def apply_tuple(self, x: float, y: float, z: float) -> Vec3:
-        """Scalar fast path for the per-frame pipeline (no numpy on 3-vectors)."""
-        o, m = self.offset, self.matrix
-        dx, dy, dz = x - o[0], y - o[1], z - o[2]
-        return (
-            m[0][0] * dx + m[0][1] * dy + m[0][2] * dz,
-            m[1][0] * dx + m[1][1] * dy + m[1][2] * dz,
-            m[2][0] * dx + m[2][1] * dy + m[2][2] * dz,
-        )
-
     def then_rotate(self, rotation: npt.ArrayLike) -> AffineCalibration:
         """This calibration followed by a rotation (e.g. magnetometer-to-accelerometer alignment)."""
         return AffineCalibration.from_arrays(self.offset, np.asarray(rotation) @ self.matrix_array)
