@@ -112,7 +112,9 @@ class CalibrationKeeper:
             self.source, self.accepted_unix = source, accepted_unix
             if paced and now < self._saved_at + PACE_S and (self._unsaved is None or self.paced):
                 self._unsaved, self._retry_at = item, self._saved_at + PACE_S
-                self.saved, self.paced = False, True
+                # paced first: a status read between the two stores (no lock there) sees
+                # "saving" or the saved one, never a storage error that did not happen
+                self.paced, self.saved = True, False
                 return ""
             return self._save(item, now)
 
