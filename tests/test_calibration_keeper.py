@@ -116,13 +116,15 @@ def test_what_a_calibration_applied_says() -> None:
 
 def test_the_status_line_tells_a_paced_save_from_a_refused_one() -> None:
     """ "saving" while a save waits only for its pace; "NOT SAVED (storage error)" only when
-    storage refused it (the status line said the latter for both)."""
+    storage refused it; nothing for a calibration never ours to save (the status line said
+    "NOT SAVED (storage error)" for all three)."""
     from bridge.calibration.sessions.snapshot import CalibratorSnapshot
     from bridge.systemd.status import calibration_words
 
     def words(
         saved: bool,
-        saving: bool,
+        saving: bool = False,
+        error: str = "",
         source: str = "parameters",
         calibrated: bool | None = True,
         parameters_error: str = "",
@@ -134,13 +136,33 @@ def test_the_status_line_tells_a_paced_save_from_a_refused_one() -> None:
             calibration_age_s=None,
             calibration_saved=saved,
             calibration_saving=saving,
+            calibration_save_error=error,
         )
         return calibration_words(snap, calibrated=calibrated, parameters_error=parameters_error)
 
-    assert words(True, False) == "parameters"
-    assert words(False, True) == "parameters, saving"
-    assert words(False, False) == "parameters, NOT SAVED (storage error)"
-    assert words(False, False, source="none (identity)", calibrated=False) == (
+    assert words(True) == "parameters"
+    assert words(False, saving=True) == "parameters, saving"
+    assert words(False, error="disk full") == "parameters, NOT SAVED (storage error)"
+    simulator = "simulator (the unit's true errors)"
+    assert words(False, source=simulator) == simulator  # never saved, never refused
+    assert words(False, source="none (identity)", calibrated=False) == (
         "none (identity), UNCALIBRATED"
     )
-    assert words(True, False, parameters_error="disk full") == "parameters; parameters NOT SAVED"
+    assert words(True, parameters_error="disk full") == "parameters; parameters NOT SAVED"
+
+
+def test_what_a_keeper_says_of_its_calibration_follows_its_saves() -> None:
+    """The keeper's own state behind those words: refused (error, retried), waiting for its
+    pace (paced, no error), saved (neither)."""
+    docs = Documents()
+    k = CalibrationKeeper(CalibrationStore(docs))
+    assert not k.saved and not k.paced and k.error == ""  # nothing kept yet: nothing refused
+    keep(k, 0.01, now=10.0)
+    keep(k, 0.02, now=10.1)
+    assert not k.saved and k.paced and k.error == ""
+    docs.full = True
+    k.retry(11.0)
+    assert not k.saved and not k.paced and k.error == "no space left on device"
+    docs.full = False
+    k.retry(11.0 + RETRY_S)
+    assert k.saved and not k.paced and k.error == ""

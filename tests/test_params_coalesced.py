@@ -228,6 +228,7 @@ def test_a_storm_of_compass_sets_is_in_force_at_once_and_written_once_a_second(
         # set a second after a stall of the machine would have been saved at once: either).
         zenoh_status = calibration_state(bridge.services)
         assert zenoh_status["saving"] is (not zenoh_status["saved"])
+        assert zenoh_status["save_error"] is None
     finally:
         bridge.calibrator.close()
         bridge.params.close()
@@ -255,8 +256,12 @@ def test_a_compass_set_storage_refused_is_saved_once_storage_is_back(tmp_path: P
         state.write_text("a file where the state directory should be\n")
         assert bridge.params.set("COMPASS_OFS_X", 12.0).accepted  # in force, not saved
         assert not bridge.calibrator.snapshot().calibration_saved
+        refused = calibration_state(bridge.services)  # what Zenoh's status and `status` say
+        assert refused["saved"] is False and refused["saving"] is False
+        assert refused["save_error"]  # why, as storage said it
         state.unlink()  # storage is back
         assert wait_until(lambda: bridge.calibrator.snapshot().calibration_saved, RETRY_S + 5.0)
+        assert calibration_state(bridge.services)["save_error"] is None
         stored_doc = StateStore(state).load("calibration").payload or {}
         assert stored_doc["view"]["COMPASS_OFS_X"] == 12.0
     finally:

@@ -154,3 +154,19 @@ def test_ready_after_bounded_wait_without_a_compass(
         mark = len(manager.messages)
         manager.wait_for(lambda m: len(_watchdogs(manager.since(mark))) >= 3, after=mark)
         assert d.stop() == 0
+
+
+def test_a_calibration_never_ours_to_save_is_no_storage_error(
+    tmp_path: Path, manager: FakeServiceManager
+) -> None:
+    """The simulated compass's own calibration (its true errors) is in use and not in the
+    state directory, and nothing refused it: STATUS names it and says nothing of saving
+    (it said "NOT SAVED (storage error)", with the state directory fine)."""
+    cfg = tmp_path / "bridge.toml"
+    cfg.write_text(toml_config("sim", tmp_path / "state", extra="[sim]\ncalibrated = true\n"))
+    with DaemonProcess(cfg, manager, tmp_path / "daemon.log", watchdog_usec=WATCHDOG_USEC) as d:
+        _, st = manager.wait_for(lambda m: 8.0 <= _rate(m) <= 12.0, proc=d)
+        status = st.get("STATUS") or ""
+        assert "calibration simulator (the unit's true errors)" in status, status
+        assert "NOT SAVED" not in status and "saving" not in status, status
+        assert d.stop() == 0

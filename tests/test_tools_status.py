@@ -75,3 +75,30 @@ def test_a_drifted_calibration_is_said_on_its_own_line() -> None:
         "drift": {**drift, "state": "ok", "detected": False, "learned_mG": 38.0, "steps": 4,
                   "mode": "learn"}}}))  # fmt: skip
     assert "drift        ok, 38 mG learned in 4 steps, mode learn" in format_human([ok])
+
+
+def test_a_calibration_storage_refused_is_said_and_a_paced_one_is_saving() -> None:
+    """The status document's save_error is said beside the calibration (it is lost at the
+    next restart until storage takes it); a paced one is "saving"; one never ours to save
+    (the simulator's) says neither."""
+
+    def calibration_line(cal: dict[str, object]) -> str:
+        a = BridgeAnswers(
+            "fleet/x/compass",
+            status={"link": {"state": "streaming", "port": "/dev/ttyUSB0", "frame_rate_hz": 10.0},
+                    "calibration": {"state": "idle", "age_s": 5.0, **cal}},
+            heading={"heading_deg": 12.0, "flags": {"disturbed": False, "saturated": False}},
+        )  # fmt: skip
+        rec = summarise(a)
+        assert rec["calibration"]["save_error"] == cal.get("save_error")
+        return next(line for line in format_human([rec]).splitlines() if "calibration" in line)
+
+    refused = calibration_line({"source": "mag", "saved": False, "saving": False,
+                                "save_error": "[Errno 28] No space left on device"})  # fmt: skip
+    assert "NOT SAVED, lost at a restart until storage takes it: [Errno 28] No space" in refused
+    paced = calibration_line({"source": "parameters", "saved": False, "saving": True,
+                              "save_error": None})  # fmt: skip
+    assert paced.endswith(", saving") and "NOT SAVED" not in paced
+    simulator = calibration_line({"source": "simulator (the unit's true errors)",
+                                  "saved": False, "saving": False, "save_error": None})  # fmt: skip
+    assert "NOT SAVED" not in simulator and "saving" not in simulator

@@ -21,15 +21,18 @@ def calibration_words(
     """The status line's calibration: where it came from, running, saved or not.
 
     ``calibrated`` False: no hard- or soft-iron correction in use; ``parameters_error``:
-    why params.json was last refused ("" if it was not). A calibration that waits only for
-    its pace (COMPASS_* values set a moment ago, :attr:`CalibratorSnapshot.calibration_saving`)
-    is "saving": storage has refused nothing, and it is written within the second.
+    why params.json was last refused ("" if it was not). "NOT SAVED (storage error)" only
+    when storage refused the calibration in use (it is retried); "saving" while it waits
+    only for its pace (COMPASS_* values set a moment ago); nothing for one that was never
+    ours to save (the simulator's true calibration, none at all).
     """
     if snap.running:
         return f"running ({snap.mode}, {snap.completion_pct:.0f}%)"
     text = snap.calibration_source
-    if not snap.calibration_saved and not text.startswith("none"):
-        text += ", saving" if snap.calibration_saving else ", NOT SAVED (storage error)"
+    if snap.calibration_saving:
+        text += ", saving"
+    elif snap.calibration_save_error:
+        text += ", NOT SAVED (storage error)"
     if calibrated is False:
         text += ", UNCALIBRATED"
     if parameters_error:

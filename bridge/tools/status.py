@@ -103,6 +103,9 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
             # False: no hard- or soft-iron correction in use; None: not said (a heading-only
             # compass calibrates itself, or the bridge is older)
             "calibrated": cal_state.get("calibrated"),
+            # why storage refused the calibration in use (lost at a restart until it is saved)
+            "save_error": cal_state.get("save_error"),
+            "saving": cal_state.get("saving"),
             "field_spread_before_nT": report.get("field_spread_before_nT"),
             "field_spread_after_nT": report.get("field_spread_after_nT"),
         },
@@ -252,6 +255,12 @@ def format_human(records: list[dict[str, Any]]) -> str:
             parts.append(f"calibration {cal['state']}")
         if cal.get("calibrated") is False:
             parts.append("UNCALIBRATED (calibrate it: docs/calibration.md)")
+        if cal.get("save_error"):
+            parts.append(
+                f"NOT SAVED, lost at a restart until storage takes it: {cal['save_error']}"
+            )
+        elif cal.get("saving"):
+            parts.append("saving")
         out.append("  calibration  " + ", ".join(parts))
         drift = r.get("drift")
         if drift:

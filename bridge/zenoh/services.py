@@ -46,6 +46,9 @@ def calibration_state(svc: BridgeServices) -> dict[str, Any]:
         "saved": snap.calibration_saved,
         # Not saved yet only for its pace (a COMPASS_* value set a moment ago): no storage error.
         "saving": snap.calibration_saving,
+        # Why storage refused it (retried); null: it did not (saved, saving, or never ours
+        # to save, such as the simulator's true calibration).
+        "save_error": snap.calibration_save_error or None,
         "fitness_mG": fitness,
         # False: no hard- or soft-iron correction in use (None: a heading-only compass)
         "calibrated": magnetometer_calibrated(svc),

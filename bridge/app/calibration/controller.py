@@ -29,19 +29,9 @@ it is released, in order, so a subscriber may call back into the controller
 (by whichever thread is delivering: a command never waits for another thread's
 delivery).
 
-Routes (``onboard`` = the BRG_CAL_ONBOARD parameter):
-
-=================  ============================================  ===============================
-command            host (``onboard=False``)                      on-board (``onboard=True``)
-=================  ============================================  ===============================
-magnetometer       ArduPilot's two-step sample collection, then  the device's ``MAGCAL``: two
-                   the engine's best fit (ellipsoid + alignment) guided turns, ``END`` sent
-                                                                 when both are seen
-accelerometer      PX4's six faces, then the six-face fit        (host only: the device has
-                                                                 no six-face routine)
-level              one still average, then the level trim        the device's ``ACCCAL``
-fixed yaw          offsets from a known yaw and the WMM field    (host; written to the device)
-=================  ============================================  ===============================
+Routes: ``onboard`` (the BRG_CAL_ONBOARD parameter) sends magnetometer and level
+calibrations to the compass's own ``MAGCAL`` and ``ACCCAL``; the accelerometer's six
+faces and fixed yaw are the host's either way (docs/calibration.md, "Sessions").
 """
 
 from __future__ import annotations
@@ -482,6 +472,7 @@ class CalibrationController:
                 calibration_age_s=age,
                 calibration_saved=k.saved,
                 calibration_saving=k.paced,
+                calibration_save_error=k.error,
             )
 
     # ------------------------------------------------------------------ running sessions

@@ -23,7 +23,9 @@ class CalibratorSnapshot:
     for accept; ``calibration_age_s`` how long ago the calibration in use was
     accepted (None: never, or unknown); ``calibration_saved`` whether it is on disk, and
     ``calibration_saving`` whether it waits only for its pace (a COMPASS_* value set
-    within a second of the last save: written within that second, no storage error).
+    within a second of the last save: written within that second, no storage error), and
+    ``calibration_save_error`` why storage refused it ("": it did not; a calibration that
+    was never ours to save, such as the simulator's true one, is neither saved nor refused).
     """
 
     mode: str | None
@@ -42,6 +44,7 @@ class CalibratorSnapshot:
     calibration_age_s: float | None
     calibration_saved: bool
     calibration_saving: bool = False
+    calibration_save_error: str = ""
 
     @property
     def failure(self) -> Failure | None:
@@ -60,6 +63,7 @@ class CalibratorSnapshot:
         calibration_age_s: float | None,
         calibration_saved: bool,
         calibration_saving: bool = False,
+        calibration_save_error: str = "",
     ) -> CalibratorSnapshot:
         """The state of ``session`` (None: none yet) and of the calibration in use."""
         # The fields in their order, not by keyword: a status query may come every frame,
@@ -82,6 +86,7 @@ class CalibratorSnapshot:
                 calibration_age_s,
                 calibration_saved,
                 calibration_saving,
+                calibration_save_error,
             )
         p = session.progress()
         return cls(
@@ -101,6 +106,7 @@ class CalibratorSnapshot:
             calibration_age_s,
             calibration_saved,
             calibration_saving,
+            calibration_save_error,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -122,6 +128,7 @@ class CalibratorSnapshot:
             "calibration_age_s": self.calibration_age_s,
             "calibration_saved": self.calibration_saved,
             "calibration_saving": self.calibration_saving,
+            "calibration_save_error": self.calibration_save_error,
         }
 
 
