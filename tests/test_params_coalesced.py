@@ -259,9 +259,12 @@ def test_a_compass_set_storage_refused_is_saved_once_storage_is_back(tmp_path: P
         refused = calibration_state(bridge.services)  # what Zenoh's status and `status` say
         assert refused["saved"] is False and refused["saving"] is False
         assert refused["save_error"]  # why, as storage said it
+        assert bridge.params.set("BRG_SR_HUD", 7.0).accepted  # params.json: refused too
+        assert wait_until(lambda: bridge.status().parameters_error != "", 5.0)
         state.unlink()  # storage is back
         assert wait_until(lambda: bridge.calibrator.snapshot().calibration_saved, RETRY_S + 5.0)
         assert calibration_state(bridge.services)["save_error"] is None
+        assert wait_until(lambda: bridge.status().parameters_error == "", 5.0)
         stored_doc = StateStore(state).load("calibration").payload or {}
         assert stored_doc["view"]["COMPASS_OFS_X"] == 12.0
     finally:

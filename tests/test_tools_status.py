@@ -102,3 +102,21 @@ def test_a_calibration_storage_refused_is_said_and_a_paced_one_is_saving() -> No
     simulator = calibration_line({"source": "simulator (the unit's true errors)",
                                   "saved": False, "saving": False, "save_error": None})  # fmt: skip
     assert "NOT SAVED" not in simulator and "saving" not in simulator
+
+
+def test_parameters_storage_refused_is_said_on_its_own_line() -> None:
+    def text(parameters: dict[str, object] | None) -> str:
+        status: dict[str, object] = {
+            "link": {"state": "streaming", "port": "sim", "frame_rate_hz": 10.0}
+        }
+        if parameters is not None:
+            status["parameters"] = parameters
+        return format_human([summarise(BridgeAnswers("fleet/x/compass", status=status))])
+
+    said = text({"save_error": "[Errno 30] Read-only file system"})
+    assert (
+        "  parameters   NOT SAVED, lost at a restart until storage takes them: "
+        "[Errno 30] Read-only file system"
+    ) in said
+    assert "parameters" not in text({"save_error": None})
+    assert "parameters" not in text(None)  # an older bridge's status: nothing said

@@ -141,6 +141,14 @@ def test_status_and_event_documents() -> None:
     )
     doc = schema.parse(schema.dumps(doc), schema.STATUS)
     assert doc["link"]["state"] == "stale"
+    assert doc["parameters"] == {"save_error": None}  # params.json took them
+    refused = DaemonStatus("sim", LinkState.STALE, counters, 9, 0, "stored", "disk full")
+    doc2 = schema.status_doc(
+        refused, frame_rate_hz=None, calibration={}, publisher={}, t_unix=5.0, uptime_s=1.0
+    )
+    assert schema.parse(schema.dumps(doc2), schema.STATUS)["parameters"] == {
+        "save_error": "disk full"
+    }
     assert doc["link"]["counters"]["bad_lines_total"] == 3
     assert doc["link"]["counters"]["bad_lines"] == {"checksum": 2, "range": 1}
     ev = Event("link.lost", "Compass link lost", Severity.WARNING, {"x": math.nan}, 1.0, 2.0)

@@ -264,6 +264,7 @@ class Bridge:
             # After an accept the calibrator knows better than the start-up value.
             calibration_source=self.calibrator.snapshot().calibration_source
             or self.calibration_source,
+            parameters_error=self.params.last_error,
         )
 
     # -- reactions between the owners ------------------------------------------------

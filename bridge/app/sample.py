@@ -156,6 +156,8 @@ class DaemonStatus:
     samples: int
     pipeline_errors: int
     calibration_source: str
+    #: why params.json was last refused ("": it was not; retried by the parameter store)
+    parameters_error: str = ""
 
 
 # ---------------------------------------------------------------------------

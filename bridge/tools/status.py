@@ -126,6 +126,8 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
     drift = cal_state.get("drift")
     rec["drift"] = dict(drift) if isinstance(drift, dict) else None
     rec["calibrated"] = cal_state.get("calibrated")
+    # parameters set over MAVLink or Zenoh that params.json refused (lost at a restart)
+    rec["parameters_save_error"] = (st.get("parameters") or {}).get("save_error")
     shared = (st.get("zenoh") or {}).get("duplicate_prefix")
     if shared:  # bridge.zenoh.instances: the key prefix is not this bridge's alone
         rec["errors"].append(f"key prefix shared with {len(shared)} other bridge(s): {shared}")
@@ -262,6 +264,11 @@ def format_human(records: list[dict[str, Any]]) -> str:
         elif cal.get("saving"):
             parts.append("saving")
         out.append("  calibration  " + ", ".join(parts))
+        if r.get("parameters_save_error"):
+            out.append(
+                "  parameters   NOT SAVED, lost at a restart until storage takes them: "
+                + str(r["parameters_save_error"])
+            )
         drift = r.get("drift")
         if drift:
             out.append("  drift        " + _drift_text(drift))

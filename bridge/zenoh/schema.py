@@ -374,6 +374,8 @@ def status_doc(
             "samples": status.samples,
             "pipeline_errors": status.pipeline_errors,
             "calibration": dict(calibration),
+            # why params.json was last refused (retried; null: it was not)
+            "parameters": {"save_error": status.parameters_error or None},
             "tilt": dict(tilt) if tilt else None,
             "zenoh": dict(publisher),
         }
