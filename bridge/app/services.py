@@ -79,7 +79,7 @@ class MessageTap:
 class BridgeServices:
     """The running bridge as an adapter sees it (see the module docstring).
 
-    * ``status()`` -- link state and counters, samples, calibration source;
+    * ``status()`` -- link state and counters, samples, calibration source, params.json's storage error;
     * ``settings`` -- calibration, mounting, declination and field in use;
     * ``params`` -- the parameter table (read, set);
     * ``calibrator`` -- calibration commands and state;
