@@ -79,7 +79,8 @@ class MessageTap:
 class BridgeServices:
     """The running bridge as an adapter sees it (see the module docstring).
 
-    * ``status()`` -- link state and counters, samples, calibration source, params.json's storage error;
+    * ``status()`` -- link state and counters, samples, calibration source, and why
+      params.json was refused;
     * ``settings`` -- calibration, mounting, declination and field in use;
     * ``params`` -- the parameter table (read, set);
     * ``calibrator`` -- calibration commands and state;
