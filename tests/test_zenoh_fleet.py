@@ -169,6 +169,26 @@ def test_fleet_view_flags_a_shared_key_prefix_and_follows_an_exact_one() -> None
     assert document_keys("fleet/**") == ("fleet/**",)
 
 
+def test_fleet_view_flags_what_storage_refused() -> None:
+    """NOSAVE: the calibration in use or the parameters set are not in the state directory
+    (refused by storage, retried): they are lost at a restart until saved."""
+    v = FleetView()
+    for n, st in enumerate(
+        (
+            dict(STATUS, calibration={"state": "idle", "source": "mag", "save_error": "full"}),
+            dict(STATUS, parameters={"save_error": "read-only file system"}),
+            dict(STATUS, parameters={"save_error": None}),
+        )
+    ):
+        v.update(f"fleet/{n}/compass/status", _doc(schema.STATUS, **st), 1.0)
+    flags = {r.bridge: r.flags for r in v.rows(1.0)}
+    assert flags == {
+        "fleet/0/compass": "NOSAVE",
+        "fleet/1/compass": "NOSAVE",
+        "fleet/2/compass": "-",
+    }
+
+
 def test_fleet_view_shows_a_running_calibration() -> None:
     v = FleetView()
     st = dict(STATUS, calibration={"state": "running", "percent": 42.4, "source": "stored"})
