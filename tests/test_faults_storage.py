@@ -14,6 +14,8 @@ import ctypes
 import json
 import os
 import random
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -132,6 +134,19 @@ def _calibrate_and_expect_not_saved(bridge: Bridge, manager: FakeServiceManager)
     _, st = manager.wait_for(lambda m: "NOT SAVED" in status_text(m), after=i, proc=d)
     assert "streaming" in status_text(st)
     assert "not saved" in d.log().lower()
+    # The operator's own commands, over the bridge's Zenoh listener, say it too (they did
+    # not: only the STATUS line did).
+    where = ["--connect", f"tcp/127.0.0.1:{bridge.port}"]
+    status = subprocess.run(
+        [sys.executable, "-m", "bridge", "status", f"{bridge.prefix}/status", *where],
+        capture_output=True, text=True, timeout=30.0, check=False,
+    )  # fmt: skip
+    assert "NOT SAVED, lost at a restart until storage takes it" in status.stdout, status
+    table = subprocess.run(
+        [sys.executable, "-m", "bridge", "monitor", bridge.prefix, "--once", *where],
+        capture_output=True, text=True, timeout=30.0, check=False,
+    )  # fmt: skip
+    assert "NOSAVE" in table.stdout, table
     manager.pings_continue(d)
     assert "Traceback" not in d.log()
     assert d.stop() == 0
