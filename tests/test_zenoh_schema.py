@@ -149,6 +149,9 @@ def test_status_and_event_documents() -> None:
     assert schema.parse(schema.dumps(doc2), schema.STATUS)["parameters"] == {
         "save_error": "disk full"
     }
+    assert schema.storage_refused(doc) == [] and schema.storage_refused(doc2) == ["parameters"]
+    doc2["calibration"] = {"save_error": "disk full"}
+    assert schema.storage_refused(doc2) == ["calibration", "parameters"]
     assert doc["link"]["counters"]["bad_lines_total"] == 3
     assert doc["link"]["counters"]["bad_lines"] == {"checksum": 2, "range": 1}
     ev = Event("link.lost", "Compass link lost", Severity.WARNING, {"x": math.nan}, 1.0, 2.0)

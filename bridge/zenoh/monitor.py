@@ -266,10 +266,8 @@ def _row(b: BridgeState, now: float) -> Row:
             flags.append("DRIFT")
         if uncalibrated(s):
             flags.append("UNCAL")
-        if (s.get("calibration") or {}).get("save_error") or (s.get("parameters") or {}).get(
-            "save_error"
-        ):
-            flags.append("NOSAVE")  # storage refused them: lost at a restart until saved
+        if schema.storage_refused(s):  # lost at a restart until saved
+            flags.append("NOSAVE")
     if b.duplicated:
         flags.insert(0, f"DUP{max(2, len(b.instances))}")
     if b.alive is False:

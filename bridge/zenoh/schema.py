@@ -397,6 +397,16 @@ def drift_detected(doc: Mapping[str, Any]) -> bool:
     return isinstance(drift, Mapping) and drift.get("detected") is True
 
 
+def storage_refused(doc: Mapping[str, Any]) -> list[str]:
+    """What a status document says storage refused: ``calibration`` (the one in use) and
+    ``parameters`` (those set), each lost at a restart until it is saved."""
+    return [
+        part
+        for part in ("calibration", "parameters")
+        if isinstance(sub := doc.get(part), Mapping) and sub.get("save_error")
+    ]
+
+
 def event_doc(event: Event) -> dict[str, Any]:
     """``<prefix>/events``: one operator event (calibration, link, disturbance)."""
     doc = _head(EVENT)
