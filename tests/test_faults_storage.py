@@ -14,8 +14,6 @@ import ctypes
 import json
 import os
 import random
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -24,6 +22,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from helpers import run_cli
 from service_harness import (
     DaemonProcess,
     FakeServiceManager,
@@ -141,16 +140,10 @@ def _calibrate_and_expect_not_saved(
         # not: only the STATUS line did). They take seconds: only where the refusal lasts
         # past the retry 5 s on (a full disk's stand-in is gone once the first save's
         # clean-up removed it, and the retry then saves, as it should).
-        where = ["--connect", f"tcp/127.0.0.1:{bridge.port}"]
-        status = subprocess.run(
-            [sys.executable, "-m", "bridge", "status", f"{bridge.prefix}/status", *where],
-            capture_output=True, text=True, timeout=30.0, check=False,
-        )  # fmt: skip
+        where = ("--connect", f"tcp/127.0.0.1:{bridge.port}")
+        status = run_cli(bridge.tmp, "status", f"{bridge.prefix}/status", *where)
         assert "NOT SAVED, lost at a restart until storage takes it" in status.stdout, status
-        table = subprocess.run(
-            [sys.executable, "-m", "bridge", "monitor", bridge.prefix, "--once", *where],
-            capture_output=True, text=True, timeout=30.0, check=False,
-        )  # fmt: skip
+        table = run_cli(bridge.tmp, "monitor", bridge.prefix, "--once", *where)
         assert "NOSAVE" in table.stdout, table
     manager.pings_continue(d)
     assert "Traceback" not in d.log()
