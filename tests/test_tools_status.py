@@ -79,10 +79,11 @@ def test_a_drifted_calibration_is_said_on_its_own_line() -> None:
 
 def test_a_calibration_storage_refused_is_said_and_a_paced_one_is_saving() -> None:
     """The status document's save_error is said beside the calibration (it is lost at the
-    next restart until storage takes it); a paced one is "saving"; one never ours to save
-    (the simulator's) says neither."""
+    next restart until storage takes it) and on the first line, the verdict as it was; a
+    paced one is "saving"; one never ours to save (the simulator's) says neither."""
 
-    def calibration_line(cal: dict[str, object]) -> str:
+    def said(cal: dict[str, object]) -> tuple[str, str]:
+        """(the first line, the calibration line) for a status with calibration ``cal``."""
         a = BridgeAnswers(
             "fleet/x/compass",
             status={"link": {"state": "streaming", "port": "/dev/ttyUSB0", "frame_rate_hz": 10.0},
@@ -91,16 +92,20 @@ def test_a_calibration_storage_refused_is_said_and_a_paced_one_is_saving() -> No
         )  # fmt: skip
         rec = summarise(a)
         assert rec["calibration"]["save_error"] == cal.get("save_error")
-        return next(line for line in format_human([rec]).splitlines() if "calibration" in line)
+        lines = format_human([rec]).splitlines()
+        return lines[0], next(line for line in lines if line.startswith("  calibration"))
 
-    refused = calibration_line({"source": "mag", "saved": False, "saving": False,
-                                "save_error": "[Errno 28] No space left on device"})  # fmt: skip
+    first, refused = said({"source": "mag", "saved": False, "saving": False,
+                           "save_error": "[Errno 28] No space left on device"})  # fmt: skip
+    assert first == "fleet/x/compass: OK; calibration NOT SAVED"  # the verdict stays
     assert "NOT SAVED, lost at a restart until storage takes it: [Errno 28] No space" in refused
-    paced = calibration_line({"source": "parameters", "saved": False, "saving": True,
-                              "save_error": None})  # fmt: skip
+    first, paced = said({"source": "parameters", "saved": False, "saving": True,
+                         "save_error": None})  # fmt: skip
+    assert first == "fleet/x/compass: OK"
     assert paced.endswith(", saving") and "NOT SAVED" not in paced
-    simulator = calibration_line({"source": "simulator (the unit's true errors)",
-                                  "saved": False, "saving": False, "save_error": None})  # fmt: skip
+    first, simulator = said({"source": "simulator (the unit's true errors)",
+                             "saved": False, "saving": False, "save_error": None})  # fmt: skip
+    assert first == "fleet/x/compass: OK"
     assert "NOT SAVED" not in simulator and "saving" not in simulator
 
 
@@ -118,5 +123,6 @@ def test_parameters_storage_refused_is_said_on_its_own_line() -> None:
         "  parameters   NOT SAVED, lost at a restart until storage takes them: "
         "[Errno 30] Read-only file system"
     ) in said
+    assert said.splitlines()[0] == "fleet/x/compass: OK; parameters NOT SAVED"
     assert "parameters" not in text({"save_error": None})
     assert "parameters" not in text(None)  # an older bridge's status: nothing said

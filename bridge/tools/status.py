@@ -232,7 +232,18 @@ def format_human(records: list[dict[str, Any]]) -> str:
         link, c, cal, q = r["link"], r["counters"], r["calibration"], r["quality"]
         v = r.get("verdict") or verdict(r)
         why = ": no calibration in use, the heading carries the compass's iron errors"
-        out.append(f"{r['bridge']}: {v}{why if v == 'UNCALIBRATED' else ''}")
+        # (What storage refused is said on the first line too: the verdict and the exit code
+        # stay as documented for scripts, which read it from the JSON.)
+        unsaved = [
+            what
+            for what, refused in (
+                ("calibration", cal.get("save_error")),
+                ("parameters", r.get("parameters_save_error")),
+            )
+            if refused
+        ]
+        refused_s = f"; {' and '.join(unsaved)} NOT SAVED" if unsaved else ""
+        out.append(f"{r['bridge']}: {v}{why if v == 'UNCALIBRATED' else ''}{refused_s}")
         rate = link.get("frame_rate_hz")
         rate_s = f"{rate:.1f} frames/s" if isinstance(rate, int | float) else "rate unknown"
         out.append(f"  link         {link.get('state')} on {link.get('port')}, {rate_s}")
