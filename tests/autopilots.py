@@ -167,6 +167,10 @@ def free_udp_port() -> int:
 # ------------------------------------------------------------------------------ the observer
 
 
+#: An observer's socket receive buffer: several seconds of an autopilot's telemetry.
+OBSERVER_RCVBUF = 8 << 20
+
+
 class Observer:
     """A pymavlink peer on one of an autopilot's links, with an inbox and bounded waits.
 
@@ -180,6 +184,18 @@ class Observer:
             url, source_system=sysid, source_component=compid, dialect="ardupilotmega"
         )
         self.mav = self.conn.mav
+        # The autopilot streams its own telemetry at hundreds of messages a second, each
+        # parsed in Python by the thread below: while the suite's other processes hold the
+        # cores that thread falls behind, and a default receive buffer (~200 datagrams)
+        # overflows in a second -- a loss in the test's ground station, not on the route.
+        # Room for several seconds (SO_RCVBUFFORCE, 33 on Linux, lets root pass rmem_max).
+        sock = self.conn.port if isinstance(self.conn.port, socket.socket) else None
+        if sock is not None:
+            for opt in (33, socket.SO_RCVBUF):
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, opt, OBSERVER_RCVBUF)
+                    break
+        self._inode = os.fstat(sock.fileno()).st_ino if sock is not None else None
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._seen: list[tuple[float, Any]] = []
@@ -200,6 +216,19 @@ class Observer:
             with self._cond:
                 self._seen.append((time.monotonic(), m))
                 self._cond.notify_all()
+
+    def socket_drops(self) -> int:
+        """Datagrams the kernel dropped at this peer's socket, its receive buffer full
+        (``drops`` of its line in /proc/net/udp; 0 for a link that is no UDP socket)."""
+        if self._inode is None:
+            return 0
+        for table in ("/proc/net/udp", "/proc/net/udp6"):
+            with contextlib.suppress(OSError):
+                for line in Path(table).read_text().splitlines()[1:]:
+                    f = line.split()
+                    if len(f) >= 13 and f[9] == str(self._inode):
+                        return int(f[-1])
+        return 0
 
     def send_heartbeat(self) -> None:
         """Announce ourselves as a ground station (the autopilot then streams to us)."""

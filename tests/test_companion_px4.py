@@ -16,7 +16,8 @@ run serves the module:
   chunks -- arrives whole;
 * ... all of it unless PX4 itself counted a message as dropped: on two cores shared
   with the rest of the suite PX4's SITL loop now and then stalls and drops one paced
-  message (:data:`ROUTER_LOSS_MAX` at most). Every message lost is one PX4 counted, and a
+  message (:data:`ROUTER_LOSS_MAX` at most). Every message lost is one PX4 counted (or one
+  the kernel dropped at the test's own ground station's socket, counted there), and a
   parameter the first round missed is asked for again by index, as QGroundControl
   (``ParameterManager::_waitingParamTimeout``) and MAVProxy (``fetch_check``) do; the
   bridge answers those too;
@@ -53,6 +54,9 @@ class Seen:
 
     errors_before: int = -1
     errors_after: int = -1
+    #: datagrams the kernel dropped at the ground station's own socket (its buffer full)
+    gcs_drops_before: int = -1
+    gcs_drops_after: int = -1
     list_seconds: float = 0.0
     list_first_round: set[int] = field(default_factory=set)
     list_complete: set[int] = field(default_factory=set)
@@ -105,7 +109,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         obs = ap.observer
         sysid = ap.system_id
         obs.wait("HEARTBEAT", companion.from_bridge)  # forwarded by PX4
-        s.errors_before = forwarding_errors(ap)
+        s.errors_before, s.gcs_drops_before = forwarding_errors(ap), obs.socket_drops()
         # QGroundControl's initial load: PARAM_REQUEST_LIST to every component
         t0 = time.monotonic()
         try:
@@ -157,7 +161,7 @@ def seen(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seen]:
         s.broadcast_command_acks = [
             m for _, m in obs.history("COMMAND_ACK", companion.from_bridge, since=t5)
         ]
-        s.errors_after = forwarding_errors(ap)
+        s.errors_after, s.gcs_drops_after = forwarding_errors(ap), obs.socket_drops()
         # MAVSDK as a ground station on another of PX4's forwarding links (its GCS link
         # answers only the first peer it heard, the pymavlink one): the gimbal link, which
         # sends to 13280 + N; its Param plugin for component 200.
@@ -223,17 +227,23 @@ def check_a_parameter_load_for_every_component_brings_the_bridges_whole_list(
 
 def check_every_burst_arrives_whole_but_what_px4_counts_as_dropped(seen: Seen) -> None:
     errors = seen.errors_after - seen.errors_before
+    gcs_drops = seen.gcs_drops_after - seen.gcs_drops_before
     lost = lost_in_bursts(seen)
     print(
         f"PX4 forwarding errors: {seen.errors_before} before, {seen.errors_after} after; "
+        f"dropped at the ground station's socket: {gcs_drops}; "
         f"MESSAGE_INTERVAL storm: {seen.storm_acks} ACKs and {seen.storm_intervals} answers "
         f"of 30; status text chunks {len(seen.text_chunks)} of {TEXT_CHUNKS}; lost in the "
         f"bursts {lost}"
     )
     # Every message lost on the way is one PX4 counted as dropped, and there are few:
     # with none counted (the rule on a machine that keeps PX4's loop on time), every
-    # burst arrived whole.
-    assert lost <= errors <= ROUTER_LOSS_MAX
+    # burst arrived whole. (Or one the kernel dropped at the test's own ground station, its
+    # socket full while the suite held the cores: counted there, never on a quiet machine.
+    # A CI run lost 7 of the first round's 38 with PX4 counting none, before that socket
+    # had room for seconds of PX4's telemetry and its drops were read.)
+    assert lost <= errors + gcs_drops, (lost, errors, gcs_drops)
+    assert errors <= ROUTER_LOSS_MAX
     assert seen.storm_acks <= 30 and seen.storm_intervals <= 30
     assert len(seen.text_chunks) <= TEXT_CHUNKS  # (none counted twice above)
     if len(seen.text_chunks) == TEXT_CHUNKS:

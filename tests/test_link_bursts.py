@@ -179,12 +179,9 @@ def test_a_hold_with_no_frame_waiting_does_not_hide_the_due_frame(peer: Peer) ->
         frames = [i for i in col.items[-3:] if isinstance(i.frame, AttitudeFrame)]
         return frames[-1].t + 0.5 * period if frames else -math.inf
 
-    with make_link(peer.path, col, rate_hz=RATE_HZ, stale_after=2.0, due_at=due) as link:
-        assert link.wait_state(LinkState.STREAMING, 5.0)
-        assert wait_until(lambda: link.params is not None, 5.0)
-        mark = len(col.items)
-        # Two seconds of frames: the tenth below is a tenth of 100, so one stall of the
-        # machine (6 frames of 50 came late after one on a loaded CI run) does not fill it.
+    def window(mark: int) -> str:
+        """Two seconds of frames from item ``mark`` on: asserts the rule; returns "" when the
+        window also shows it (few frames late, nearly every read one frame), else why not."""
         assert wait_until(lambda: len(col.items) - mark >= 2 * RATE_HZ, 8.0)
         items = [i for i in col.items[mark:] if isinstance(i.frame, AttitudeFrame)]
         # A frame stamped just before the due time its predecessor set: held, not sent.
@@ -207,5 +204,19 @@ def test_a_hold_with_no_frame_waiting_does_not_hide_the_due_frame(peer: Peer) ->
         assert all(behind[id(a)] > 0.25 * period for a, _b in late), [
             (seq(a), round(behind[id(a)], 4)) for a, _b in late
         ]
-        assert len(late) <= 0.1 * len(items)  # every other frame at or after its due time
-        assert [n for _, n in reads(col, mark)].count(1) >= 0.9 * len(items)
+        single = [n for _, n in reads(col, mark)].count(1)
+        if len(late) <= 0.1 * len(items) and single >= 0.9 * len(items):
+            return ""  # every other frame at or after its due time, read as it came
+        return f"{len(late)} late and {single} single reads of {len(items)} frames"
+
+    with make_link(peer.path, col, rate_hz=RATE_HZ, stale_after=2.0, due_at=due) as link:
+        assert link.wait_state(LinkState.STREAMING, 5.0)
+        assert wait_until(lambda: link.params is not None, 5.0)
+        # The rule holds in every window. That a window shows it (a tenth late at most, nine
+        # tenths of the reads one frame) needs the machine quiet for two seconds: a stall of
+        # a loaded CI run filled a tenth (6 of 50 late; 89 single reads of 100), every late
+        # frame after a predecessor read late. So up to three windows, one of them quiet.
+        why = [window(len(col.items))]
+        while why[-1] and len(why) < 3:
+            why.append(window(len(col.items)))
+        assert not why[-1], why
