@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any, TextIO
 
 from bridge.core.quality import heading_usable
+from bridge.zenoh import schema
 from bridge.zenoh.monitor import DEFAULT_CONNECT, MonitorOptions, monitor_config
 
 #: What ``status`` asks when no key expression is given: every bridge's status.
@@ -128,6 +129,7 @@ def summarise(a: BridgeAnswers) -> dict[str, Any]:
     rec["calibrated"] = cal_state.get("calibrated")
     # parameters set over MAVLink or Zenoh that params.json refused (lost at a restart)
     rec["parameters_save_error"] = (st.get("parameters") or {}).get("save_error")
+    rec["storage_refused"] = schema.storage_refused(st)  # as `monitor` flags NOSAVE
     shared = (st.get("zenoh") or {}).get("duplicate_prefix")
     if shared:  # bridge.zenoh.instances: the key prefix is not this bridge's alone
         rec["errors"].append(f"key prefix shared with {len(shared)} other bridge(s): {shared}")
@@ -234,14 +236,7 @@ def format_human(records: list[dict[str, Any]]) -> str:
         why = ": no calibration in use, the heading carries the compass's iron errors"
         # (What storage refused is said on the first line too: the verdict and the exit code
         # stay as documented for scripts, which read it from the JSON.)
-        unsaved = [
-            what
-            for what, refused in (
-                ("calibration", cal.get("save_error")),
-                ("parameters", r.get("parameters_save_error")),
-            )
-            if refused
-        ]
+        unsaved = r.get("storage_refused") or []
         refused_s = f"; {' and '.join(unsaved)} NOT SAVED" if unsaved else ""
         out.append(f"{r['bridge']}: {v}{why if v == 'UNCALIBRATED' else ''}{refused_s}")
         rate = link.get("frame_rate_hz")
