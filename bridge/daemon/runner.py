@@ -44,7 +44,7 @@ from types import FrameType
 from typing import Any
 
 from bridge.app.bridge import location_field
-from bridge.app.sample import CompassSample, Output
+from bridge.app.sample import CompassSample, DaemonStatus, Output
 from bridge.app.services import magnetometer_calibrated
 from bridge.config import Config
 from bridge.console import TerminalGate
@@ -235,26 +235,26 @@ class Service:
     def _streaming(self) -> bool:
         return self.daemon.link.state is LinkState.STREAMING
 
-    def calibration_state(self) -> str:
-        """Calibration in words (:func:`~bridge.systemd.status.calibration_words`)."""
+    def calibration_state(self, status: DaemonStatus) -> str:
+        """Calibration in words (:func:`~bridge.systemd.status.calibration_words`), with
+        the parameters' save error ``status`` carries (the one read the line is made of)."""
         bridge = self.daemon.bridge
         try:
             snap = bridge.calibrator.snapshot()
         except Exception:  # the status line must never fail for this
-            return bridge.calibration_source
+            return status.calibration_source
         return calibration_words(
             snap,
             calibrated=magnetometer_calibrated(bridge.services),
-            parameters_error=bridge.params.last_error,
+            parameters_error=status.parameters_error,
         )
 
     def status_line(self) -> str:
         """The current STATUS text."""
         d = self.daemon
         now = self._clock()
-        text = self.status_text.render(
-            d.bridge.status(), self.tap.latest, self.calibration_state(), now
-        )
+        status = d.bridge.status()
+        text = self.status_text.render(status, self.tap.latest, self.calibration_state(status), now)
         silent = self.liveness.silent(now)
         if silent:
             # The link state is kept by the reader: when that hangs, the state is stale too.
