@@ -10,6 +10,7 @@ import threading
 import time
 import tty
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -152,7 +153,8 @@ class PtyFeeder:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.sent = bytearray()
+        self.sent = bytearray()  #: every byte written
+        self.scripted = bytearray()  #: the bytes written by feed(), probes left out
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
         path.symlink_to(os.ttyname(self.slave))
@@ -162,7 +164,29 @@ class PtyFeeder:
             data = f"$LINE,{len(self.sent)},{i}\r\n".encode()
             os.write(self.master, data)
             self.sent += data
+            self.scripted += data
             time.sleep(period)
+
+    def probe_until(self, read: Callable[[], bytes], timeout: float) -> bool:
+        """Writes a ``$PROBE`` line every 50 ms until ``read()`` (what the recording holds)
+        has one of them: the recorder has the port open *and flushed*.
+
+        pyserial empties the port's input at the end of ``open()``, after the descriptor
+        exists: bytes written between the two are gone before the recorder reads, as a
+        compass's are before anyone opened its port. On a loaded machine that gap
+        outlasted 20 lines fed 10 ms apart (a CI run: nothing recorded in 15 s; the same
+        failure with 0.5 s slept inside pyserial's ``_reconfigure_port``). Probes lost to
+        it are not counted against the recording; everything fed after one arrived must
+        be in it."""
+        before = read().count(b"$PROBE")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            data = f"$PROBE,{len(self.sent)}\r\n".encode()
+            os.write(self.master, data)
+            self.sent += data
+            if wait_until(lambda: read().count(b"$PROBE") > before, 0.05):
+                return True
+        return False
 
     def unplug(self) -> None:
         os.close(self.master)
@@ -173,18 +197,6 @@ class PtyFeeder:
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
         self.path.symlink_to(os.ttyname(self.slave))
-
-    def opened_elsewhere(self) -> bool:
-        """Whether another descriptor of this process (the recorder's) has the pty open.
-
-        pyserial flushes the input on open, so bytes fed before the recorder has the port
-        open are lost: the test waits for this instead of sleeping."""
-        name = os.ttyname(self.slave)
-        n = 0
-        for fd in os.listdir("/proc/self/fd"):
-            with contextlib.suppress(OSError):
-                n += os.readlink(f"/proc/self/fd/{fd}") == name
-        return n > 1  # the feeder's own slave descriptor is one
 
     def close(self) -> None:
         for fd in (self.master, self.slave):
@@ -211,17 +223,19 @@ def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
     th.start()
     try:
         assert wait_until(out.exists, 5.0)
-        assert wait_until(feeder.opened_elsewhere, 5.0)
-        feeder.feed(20)
-        first = bytes(feeder.sent)
         # (Bounds for a loaded machine: the recorder flushes as it reads, in well under one.)
-        assert wait_until(lambda: len(out.read_bytes()) > len(first), 15.0)
+        assert feeder.probe_until(lambda: _recorded(out), 15.0)
+        feeder.feed(20)
+        first = bytes(feeder.scripted)
+        assert wait_until(lambda: _recorded(out).endswith(first), 15.0)
         feeder.unplug()
         time.sleep(0.3)  # unplugged for a while, as a cable is
         feeder.replug()
-        assert wait_until(feeder.opened_elsewhere, 10.0)  # the backoff has reopened it
+        assert feeder.probe_until(lambda: _recorded(out), 15.0)  # the backoff has reopened it
         feeder.feed(20)
-        assert wait_until(lambda: _recorded(out) == bytes(feeder.sent), 15.0)
+        assert wait_until(
+            lambda: _recorded(out).endswith(bytes(feeder.scripted[len(first) :])), 15.0
+        )
     finally:
         stop.set()
         th.join(5.0)
@@ -230,12 +244,16 @@ def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
     summary = result[0]
     got, truncated = read(out)
     data = b"".join(c.data for c in got)
-    assert data.startswith(first) and data == bytes(feeder.sent)
+    # every byte fed, in order, none twice; of the probes only those the opening's flush
+    # left (each opening's first recorded bytes are a probe line)
+    lines = data.splitlines(keepends=True)
+    assert b"".join(ln for ln in lines if not ln.startswith(b"$PROBE")) == bytes(feeder.scripted)
+    assert all(ln in feeder.sent for ln in lines) and lines[0].startswith(b"$PROBE")
     assert not truncated
     ts = [c.t for c in got]
     assert ts == sorted(ts) and ts[0] >= 0
     assert getattr(summary, "port_losses", None) == 1
-    assert getattr(summary, "bytes", None) == len(feeder.sent)
+    assert getattr(summary, "bytes", None) == len(data)
     with RecordingReader(out) as r:
         assert (r.header.port, r.header.baud) == (str(feeder.path), 115200)
         assert abs(r.header.start_wall - time.time()) < 60
