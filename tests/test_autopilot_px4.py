@@ -193,6 +193,7 @@ class Follow:
     overshoot: float  #: deg past the bridge's new heading, in the step's direction
     delivered: float  #: wall seconds from the bridge's step to that ODOMETRY's arrival
     reset: bool  #: that ODOMETRY's reset_counter moved: EKF2 resets rather than converges
+    fed_off: float  #: deg, the fed yaw's mean after the step less the bridge's new heading
 
 
 def _follow(tl: Timeline, t0: float, t1: float, settled: float, step: float, tol: float) -> Follow:
@@ -237,11 +238,17 @@ def _follow(tl: Timeline, t0: float, t1: float, settled: float, step: float, tol
         if t >= t0 - 0.5 and abs(companion.angle_diff(h, was)) > abs(step) / 2
     )
     counter = vo["reset_counter"].astype(int)
+    fed_after = [(float(t), float(y)) for t, y in zip(fed_wall, fed, strict=True)]
     return Follow(
         took=(float(max(late)) - s0) if late else 0.0,
         overshoot=companion.overshoot_deg(after, tl.bridge_heading, settled, step),
         delivered=float(fed_wall[i0]) - bridge_step,
         reset=bool(i0 > 0 and counter[i0] != counter[i0 - 1]),
+        # (what PX4 follows is what it was fed: that must be the bridge's heading, whole)
+        fed_off=companion.angle_diff(
+            companion.mean_heading(fed_after, settled, t1, min_samples=5),
+            companion.mean_heading(tl.bridge_heading, settled, t1, min_samples=5),
+        ),
     )
 
 
@@ -313,11 +320,12 @@ def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: T
     print(
         f"PX4 after a learned {step:.2f} deg step: reached PX4 {f.delivered:.2f} s after the "
         f"bridge's step (reset_counter moved: {f.reset}), within 1 deg of it {f.took:.2f} s "
-        f"later on PX4's clock, overshoot {f.overshoot:.2f} deg"
+        f"later on PX4's clock, overshoot {f.overshoot:.2f} deg, fed - bridge "
+        f"{f.fed_off:+.3f} deg after it"
     )
     # EKF2 resets its yaw to a sample whose reset_counter moved (at once, on its own clock);
     # converging through the innovation gate instead would take seconds.
-    assert f.reset and f.took < 0.5 and f.overshoot < 1.0, f
+    assert f.reset and f.took < 0.5 and f.overshoot < 1.0 and abs(f.fed_off) < 0.2, f
     assert f.delivered < 1.0, f  # the bridge's 10 Hz feed, through a loaded machine
     step = companion.angle_diff(
         companion.mean_heading(
@@ -332,9 +340,9 @@ def check_a_learned_correction_and_an_operator_change_are_followed_by_px4(run: T
         f"PX4 after a {step:.1f} deg mounting change: reached PX4 {f.delivered:.2f} s after "
         f"the bridge's step (reset_counter moved: {f.reset}), within 5 deg of it "
         f"{f.took:.2f} s later on PX4's clock, within 1 deg {f1.took:.2f} s, overshoot "
-        f"{f.overshoot:.2f} deg"
+        f"{f.overshoot:.2f} deg, fed - bridge {f.fed_off:+.3f} deg after it"
     )
-    assert f.reset and f.took < 0.5 and f.overshoot < 1.0, f
+    assert f.reset and f.took < 0.5 and f.overshoot < 1.0 and abs(f.fed_off) < 0.2, f
     assert f.delivered < 1.0, f
 
 
