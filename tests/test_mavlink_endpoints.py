@@ -502,3 +502,55 @@ def test_pymavlink_tcp_loses_silently_what_a_slow_peer_cannot_take() -> None:
         peer.close()
         conn.close()
         server.close()
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("kind", ["udpout", "udpin", "tcp", "tcpin"])
+def test_every_network_kind_works_over_ipv6_loopback(
+    endpoints: Callable[..., Endpoint], kind: str
+) -> None:
+    """``[::1]`` as the host: the endpoint sends to, hears and answers a peer on IPv6 alone
+    (a companion computer's ground station link may be IPv6 only)."""
+    inbox = Inbox()
+    dgram = kind.startswith("udp")
+    peer = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM if dgram else socket.SOCK_STREAM)
+    try:
+        if kind == "udpout":
+            peer.bind(("::1", 0))
+            ep = endpoints(f"udpout:[::1]:{peer.getsockname()[1]}", inbox)
+        elif kind == "tcp":
+            peer.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            peer.bind(("::1", 0))
+            peer.listen(1)
+            peer.settimeout(DEADLINE_S)
+            ep = endpoints(f"tcp:[::1]:{peer.getsockname()[1]}", inbox)
+            conn, _ = peer.accept()
+            peer.close()
+            peer = conn
+        else:
+            port = free_port(socket.SOCK_DGRAM if dgram else socket.SOCK_STREAM)
+            ep = endpoints(f"{kind}:[::1]:{port}", inbox)
+            assert wait_until(lambda: local_address(ep) is not None)
+            assert local_address(ep)[0] == "::1"
+            if dgram:
+                peer.sendto(heartbeat_bytes(), ("::1", port))  # udpin learns its peer
+            else:
+                peer.connect(("::1", port))
+        peer.settimeout(DEADLINE_S)
+        assert wait_until(lambda: bool(ep.links))
+        ep.broadcast(ping(5))
+        data = peer.recvfrom(4096)[0] if dgram else peer.recv(4096)
+        assert [m.time_boot_ms for m in parse_all(data)] == [5]
+        if kind != "udpin":  # (udpin heard its peer's HEARTBEAT above)
+            if dgram:
+                peer.sendto(heartbeat_bytes(), ("::1", local_address(ep)[1]))
+            else:
+                peer.sendall(heartbeat_bytes())
+        assert wait_until(lambda: bool(inbox.of("HEARTBEAT")))
+        _, link = inbox.of("HEARTBEAT")[0]
+        link.send(ping(6))  # the answer goes back over IPv6 to that peer
+        data = peer.recvfrom(4096)[0] if dgram else peer.recv(4096)
+        assert [m.time_boot_ms for m in parse_all(data)] == [6]
+        assert ep.counters().errors == 0
+    finally:
+        peer.close()
