@@ -213,11 +213,12 @@ def monitor(*args: str, timeout: float = 20.0) -> subprocess.CompletedProcess[st
 
 
 @pytest.mark.integration
-def test_monitor_once_shows_a_running_bridge(tmp_path: Path) -> None:
+@pytest.mark.parametrize("host", ["127.0.0.1", "[::1]"])  # IPv4, and a link that is IPv6 only
+def test_monitor_once_shows_a_running_bridge(tmp_path: Path, host: str) -> None:
     port = free_port()
-    with Bridge(tmp_path, "m1", listen=[f"tcp/127.0.0.1:{port}"]) as b:
+    with Bridge(tmp_path, "m1", listen=[f"tcp/{host}:{port}"]) as b:
         wait_until(b.output.connected.is_set, what="the bridge's session")
-        proc = monitor("--connect", f"tcp/127.0.0.1:{port}", "--once")
+        proc = monitor("--connect", f"tcp/{host}:{port}", "--once")
     # the bridge runs with no calibration (identity): flagged UNCAL, exit code 3
     assert proc.returncode == 3, proc.stderr
     (row,) = [line for line in proc.stdout.splitlines() if line.startswith(b.prefix)]
