@@ -204,6 +204,16 @@ class PtyFeeder:
                 os.close(fd)
 
 
+def _header_written(path: Path) -> bool:
+    """Whether the recorder has written the recording's header whole (the file exists from
+    its open, a moment before the header is in it)."""
+    try:
+        with RecordingReader(path):
+            return True
+    except (OSError, RecordingFormatError):
+        return False
+
+
 def _recorded(path: Path) -> bytes:
     """The bytes a recording holds so far (a chunk being written is not counted yet)."""
     return b"".join(c.data for c in read(path)[0])
@@ -222,7 +232,7 @@ def test_record_taps_a_pty_through_a_replug(tmp_path: Path) -> None:
     th = threading.Thread(target=run)
     th.start()
     try:
-        assert wait_until(out.exists, 5.0)
+        assert wait_until(lambda: _header_written(out), 5.0)
         # (Bounds for a loaded machine: the recorder flushes as it reads, in well under one.)
         assert feeder.probe_until(lambda: _recorded(out), 15.0)
         feeder.feed(20)
