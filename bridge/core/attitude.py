@@ -157,6 +157,9 @@ class AttitudeSolution:
     accelerating: bool
     tilt_source: TiltSource = "accelerometer"
     heading_sigma_deg: float | None = None
+    #: The engine configuration that solved it (:attr:`AttitudeEngine.generation`): a heading
+    #: step is in the solutions of the generation that made it and later ones only.
+    generation: int = 0
     #: The quaternion once made (see :attr:`quaternion`).
     _quaternion: Quat | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -202,6 +205,7 @@ class _State:
     dip_deg: float | None
     publish_true: bool
     sin_degraded: float  # |sin(pitch)| above which the solution is degraded
+    generation: int  # one more with every configuration built (AttitudeEngine.generation)
 
 
 def _sensor_chain(
@@ -241,6 +245,7 @@ class AttitudeEngine:
         self._limits = limits if limits is not None else QualityLimits()
         self._quality = QualityMonitor(self._limits)
         self._tilt: TiltPolicy | None = None
+        self._generation = 0
         self._state = self._build()
 
     # -- configuration -------------------------------------------------------------
@@ -266,6 +271,7 @@ class AttitudeEngine:
         declination_deg = ref.declination_deg if ref else None
         publish_true = self._heading_reference == "true"
         sin_degraded = math.sin(math.radians(self._limits.degraded_pitch_deg))
+        self._generation += 1
         return _State(
             mo=mo,
             mm=mm,
@@ -276,7 +282,15 @@ class AttitudeEngine:
             dip_deg=ref.dip_deg if ref else None,
             publish_true=publish_true,
             sin_degraded=sin_degraded,
+            generation=self._generation,
         )
+
+    @property
+    def generation(self) -> int:
+        """The configuration in use: one more with every change (calibration, mounting,
+        reference, limits, heading reference). Each solution carries the generation that
+        solved it, so what reads the solutions can tell the first one a change is in."""
+        return self._state.generation
 
     @property
     def calibration(self) -> Calibration:
@@ -511,6 +525,7 @@ class AttitudeEngine:
             accelerating,
             source,
             heading_sigma,
+            s.generation,
         )
 
 
