@@ -150,7 +150,16 @@ def test_attitude_tap_times_each_datagram_by_the_kernel_not_by_its_thread() -> N
     finally:
         tap.stop()
     assert tap.kernel_stamps and len(tap.received) == 20
+    inside = 0
     for (t_rx, yaw), (before, after), i in zip(tap.received, spans, range(20), strict=True):
         assert yaw == pytest.approx(0.01 * i)
-        # 50 us for the realtime -> monotonic conversion; a thread's wake-up is not in it.
-        assert before - 5e-5 <= t_rx <= after + 5e-5
+        # 50 us for the realtime -> monotonic conversion; never before the send
+        assert t_rx >= before - 5e-5
+        inside += t_rx <= after + 5e-5
+    # ... and within the sendto that queued it, a thread's wake-up not in it: a stamp the
+    # tap's thread took waits out the 2 ms this thread holds the GIL, every time. Not
+    # every datagram: on a loaded machine the kernel may defer loopback delivery to
+    # ksoftirqd, and stamp it there, after sendto returned (2.7 ms once, in CI).
+    assert inside >= 15, [
+        round((t - a) * 1e3, 3) for (t, _), (_, a) in zip(tap.received, spans, strict=True)
+    ]
