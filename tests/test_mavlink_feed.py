@@ -98,3 +98,24 @@ def test_a_change_that_is_no_heading_step_leaves_the_counter(tmp_path: Path) -> 
     settings.set_heading_reference("true", "test")  # (no declination known: no step either)
     settings.set_limits(settings.limits, "test")  # unchanged: no change at all
     assert _odometry(feed, _solved(settings, 2.0))[0] == counter0
+
+
+def test_a_sample_solved_after_a_step_carries_it_before_any_listener_hears_of_it(
+    tmp_path: Path,
+) -> None:
+    """The pipeline may solve and send a frame between the engine's swap and the settings'
+    listeners hearing of the change: that sample has the new heading, so the new counter."""
+    cfg, daemon = offline_daemon(tmp_path, "feed", role="companion", heading_feed="px4_odometry")
+    feed = MavlinkOutput(
+        MavlinkSettings.from_config(cfg), daemon.bridge.services, clock=ManualClock(100.0)
+    ).feed
+    settings = daemon.bridge.settings
+    sent: list[tuple[int, float]] = []
+    # subscribed ahead of the feed: what it sends was solved by the new configuration
+    # before the feed heard of the change
+    settings.subscribe(lambda _change: sent.append(_odometry(feed, _solved(settings, 2.0))))
+    settings.subscribe(feed.on_settings)
+    counter0, yaw0 = _odometry(feed, _solved(settings, 1.0))
+    settings.set_mounting(Mounting(trim_yaw_deg=45.0), "test")
+    ((counter, yaw),) = sent
+    assert counter == counter0 + 1 and abs(abs(_turn(yaw, yaw0)) - 45.0) < 0.01

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from bisect import bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -77,6 +78,10 @@ class EngineSettings:
         self._field = field
         self._declination_deg: float | None = None  # a fixed declination (COMPASS_AUTODEC=0)
         self._pending: list[SettingsChange] = []
+        #: The engine generations whose configuration stepped the heading (a calibration, a
+        #: mounting, a declination moved by REFERENCE_STEP_DEG or more), the oldest dropped.
+        self._steps: list[int] = []
+        self._steps_dropped = 0
         self._apply_reference("start")
 
     # -- reading -------------------------------------------------------------------
@@ -116,6 +121,29 @@ class EngineSettings:
         """The model's declination at the known position (None: no position)."""
         f = self._field
         return f.declination_deg if f is not None else None
+
+    def heading_steps(self, generation: int | None = None) -> int:
+        """How many heading steps the engine's configurations up to ``generation`` hold
+        (None: the one in use): a calibration, a mounting, a declination moved by
+        :data:`REFERENCE_STEP_DEG` or more.
+
+        PX4's ``reset_counter`` is this count for the sample's own solution
+        (:attr:`~bridge.core.attitude.AttitudeSolution.generation`). It is recorded under
+        the lock that swaps the engine's configuration and read under it here, so a
+        solution of a configuration that stepped the heading is never counted without
+        its step, nor one of the configuration before with it.
+        """
+        with self._lock:
+            steps = self._steps
+            n = len(steps) if generation is None else bisect_right(steps, generation)
+            return self._steps_dropped + n
+
+    def _stepped(self) -> None:
+        """Record that the configuration just built stepped the heading (under the lock)."""
+        self._steps.append(self.engine.generation)
+        if len(self._steps) > 256:  # a sample is never that many steps behind
+            del self._steps[:128]
+            self._steps_dropped += 128
 
     # -- subscribing -----------------------------------------------------------------
 
@@ -186,6 +214,7 @@ class EngineSettings:
             if calibration != self.engine.calibration:
                 self._guard("calibration", source)
             self.engine.update_calibration(calibration)
+            self._stepped()
             generation = self.engine.generation
         self._changed("calibration", source, generation)
 
@@ -196,6 +225,7 @@ class EngineSettings:
                 return
             self._guard("mounting", source)
             self.engine.update_mounting(mounting)
+            self._stepped()
             generation = self.engine.generation
         self._changed("mounting", source, generation)
 
@@ -270,11 +300,14 @@ class EngineSettings:
         old = self.engine.reference
         old_dec = old.declination_deg if old is not None else None
         new_dec = ref.declination_deg if ref is not None else None
-        if old_dec != new_dec and (
+        step = old_dec != new_dec and (
             old_dec is None
             or new_dec is None
             or abs((new_dec - old_dec + 180.0) % 360.0 - 180.0) >= REFERENCE_STEP_DEG
-        ):
+        )
+        if step:
             self._guard("reference", source)
         self.engine.update_reference(ref)
+        if step:
+            self._stepped()
         return True

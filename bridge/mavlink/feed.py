@@ -17,8 +17,6 @@ feed's clock continues across bridge restarts: ArduPilot's lag correction
 from __future__ import annotations
 
 import logging
-import threading
-from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
@@ -54,10 +52,6 @@ class HeadingFeed:
 
     def __init__(self, owner: FeedOwner) -> None:
         self.owner = owner
-        self.reset_counter = 0  #: ODOMETRY / VISION_POSITION_ESTIMATE ``reset_counter``
-        #: The engine generations of the steps the counter has yet to count (see _counter).
-        self._steps: deque[int] = deque()
-        self._lock = threading.Lock()  # the feed is encoded by more than one thread
         ref = owner.services.settings.reference
         self._declination = ref.declination_deg if ref is not None else None
         self._warned_magnetic = False
@@ -93,30 +87,27 @@ class HeadingFeed:
         return T.vision_position_estimate(s, self.owner.epoch_us(s.t), sigma, self._counter(s))
 
     def _counter(self, s: CompassSample) -> int:
-        """``reset_counter`` for ``s``: moved by the steps whose configuration solved it.
+        """``reset_counter`` for ``s``: the heading steps its own solution's configuration
+        holds (:meth:`~bridge.app.settings.EngineSettings.heading_steps`).
 
         The counter must move on the very sample that carries the step. PX4's EKF2 resets
-        its yaw to the sample whose counter moved; a sample the old configuration solved,
+        its yaw to the sample whose counter moved. A sample the old configuration solved,
         sent with the new counter, resets it to the *old* heading, and the new one then
         comes as an ordinary measurement through the innovation gate (0.64 s to follow a
-        5 deg step, seen in PX4 SITL, against 0.14 s). A change applied while the latest
-        sample was solved, or while the pipeline solved its frame, made exactly that. So
-        the counter follows the sample's generation, not the change's moment; a sample
-        without a solution (a heading-only compass's) takes every step at once.
+        5 deg step in PX4 SITL, against 0.14 s). A sample the new configuration solved,
+        sent with the old counter, is a step EKF2 is not told of. Counted when the
+        settings changed, each happened; counted from the sample's own generation,
+        neither can. A sample without a solution (a heading-only compass's) takes the
+        configuration in use.
         """
         a = s.attitude
-        with self._lock:
-            steps = self._steps
-            while steps and (a is None or steps[0] <= a.generation):
-                steps.popleft()
-                self.reset_counter += 1
-            return self.reset_counter
+        return self.owner.services.settings.heading_steps(a.generation if a is not None else None)
 
     def on_settings(self, change: SettingsChange) -> None:
-        """The engine's calibration, mounting or reference changed: the estimator must take
-        the next sample as a reset -- PX4 through ``reset_counter``, ArduPilot through a yaw
-        source switch. A declination that moved less than REFERENCE_STEP_DEG (a moving
-        vehicle's position updates) is no step."""
+        """The engine's calibration, mounting or reference changed: a disarmed ArduPilot
+        beside us resets its yaw through a source switch (PX4's ``reset_counter`` follows
+        the samples themselves: :meth:`_counter`). A declination that moved less than
+        REFERENCE_STEP_DEG (a moving vehicle's position updates) is no step."""
         if change.aspect not in ("calibration", "mounting", "reference"):
             return
         if change.aspect == "reference":
@@ -129,7 +120,5 @@ class HeadingFeed:
                 and abs((dec - before + 180.0) % 360.0 - 180.0) < REFERENCE_STEP_DEG
             ):
                 return
-        with self._lock:
-            self._steps.append(change.generation)  # counted with the first sample it solved
         if self.owner.companion:
             self.owner.autopilot.heading_stepped(change.aspect)
