@@ -350,13 +350,15 @@ def check_a_restarted_bridge_is_no_time_jump_for_px4(run: Timeline) -> None:
     assert "time jump" not in run.console, run.console[-3000:]
     vo = run.log["vehicle_visual_odometry"]
     ev = run.log["estimator_aid_src_ev_yaw"]
-    # On PX4's clock: the restarted bridge's first sample is where reset_counter starts
-    # again from 0 (mapping the restart onto the wall clock would mix the two bridges'
-    # samples by the map's tens of milliseconds).
+    # On PX4's clock: the restarted bridge's first sample is where reset_counter changes
+    # nearest the restart (it starts again from the steps of its own start-up; the other
+    # changes are the learned step and the mounting, seconds before). Mapping the restart
+    # onto the wall clock would mix the two bridges' samples by the map's tens of ms.
     vo_us = np.asarray(vo["timestamp"], dtype=np.int64)
-    restarts = np.flatnonzero(np.diff(vo["reset_counter"].astype(int)) < 0)
-    assert len(restarts) == 1, restarts  # the one restart; the first bridge's counter only rose
-    first = int(restarts[0]) + 1
+    changes = np.flatnonzero(np.diff(vo["reset_counter"].astype(int)) != 0) + 1
+    assert len(changes), "reset_counter never changed"
+    first = int(changes[np.argmin(np.abs(_t(run, vo_us[changes]) - run.restart_at))])
+    assert abs(float(_t(run, vo_us[first])) - run.restart_at) < 2.0, first
     age_ms = (vo_us - vo["timestamp_sample"])[first:] / 1000.0
     ev_us = np.asarray(ev["timestamp"], dtype=np.int64)
     fused_after = ev_us[(ev_us >= vo_us[first]) & ev["fused"].astype(bool)]
