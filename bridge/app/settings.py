@@ -47,13 +47,10 @@ REFERENCE_STEP_DEG = 0.5
 
 @dataclass(frozen=True, slots=True)
 class SettingsChange:
-    """One applied change: which ``aspect``, who made it (``source``), and the engine's
-    ``generation`` that carries it: the solutions of that generation and later ones are
-    the first with the change (:attr:`~bridge.core.attitude.AttitudeSolution.generation`)."""
+    """One applied change: which ``aspect`` and who made it (``source``)."""
 
     aspect: Aspect
     source: str
-    generation: int = 0
 
 
 Listener = Callable[[SettingsChange], None]
@@ -177,16 +174,14 @@ class EngineSettings:
             if reason:
                 raise ChangeRefusedError(reason)
 
-    def _changed(self, aspect: Aspect, source: str, generation: int) -> None:
+    def _changed(self, aspect: Aspect, source: str) -> None:
         """Deliver a change to every listener, one change at a time and in order.
 
-        ``generation`` is the engine's right after this change, read under the lock that
-        made it (another writer may have made the next one since). A change made while
-        another is being delivered (by a listener, or by another thread) is queued and
-        delivered by the thread already delivering.
+        A change made while another is being delivered (by a listener, or by another
+        thread) is queued and delivered by the thread already delivering.
         """
         with self._lock:
-            self._pending.append(SettingsChange(aspect, source, generation))
+            self._pending.append(SettingsChange(aspect, source))
         while self._emit_lock.acquire(blocking=False):
             try:
                 while True:
@@ -215,8 +210,7 @@ class EngineSettings:
                 self._guard("calibration", source)
             self.engine.update_calibration(calibration)
             self._stepped()
-            generation = self.engine.generation
-        self._changed("calibration", source, generation)
+        self._changed("calibration", source)
 
     def set_mounting(self, mounting: Mounting, source: str) -> None:
         """Use ``mounting`` (AHRS_ORIENTATION) from now on (guarded)."""
@@ -226,8 +220,7 @@ class EngineSettings:
             self._guard("mounting", source)
             self.engine.update_mounting(mounting)
             self._stepped()
-            generation = self.engine.generation
-        self._changed("mounting", source, generation)
+        self._changed("mounting", source)
 
     def set_limits(self, limits: QualityLimits, source: str) -> None:
         """Use ``limits`` for the disturbance / acceleration flags from now on."""
@@ -235,8 +228,7 @@ class EngineSettings:
             if limits == self.engine.limits:
                 return
             self.engine.update_limits(limits)
-            generation = self.engine.generation
-        self._changed("limits", source, generation)
+        self._changed("limits", source)
 
     def set_heading_reference(self, reference: HeadingReference, source: str) -> None:
         """Publish the magnetic or the true heading from now on."""
@@ -244,8 +236,7 @@ class EngineSettings:
             if reference == self.engine.heading_reference:
                 return
             self.engine.set_heading_reference(reference)
-            generation = self.engine.generation
-        self._changed("heading_reference", source, generation)
+        self._changed("heading_reference", source)
 
     def set_declination(self, declination_deg: float | None, source: str) -> None:
         """A fixed declination (COMPASS_AUTODEC = 0), or None for the model's (guarded)."""
@@ -257,9 +248,8 @@ class EngineSettings:
             except ChangeRefusedError:
                 self._declination_deg = before
                 raise
-            generation = self.engine.generation
         if changed:
-            self._changed("reference", source, generation)
+            self._changed("reference", source)
 
     def set_field(self, field: EarthField | None, source: str) -> None:
         """A new position's Earth field (a reload's ``[location]``), None when unknown
@@ -272,9 +262,8 @@ class EngineSettings:
             except ChangeRefusedError:
                 self._field = before
                 raise
-            generation = self.engine.generation
         if changed:
-            self._changed("reference", source, generation)
+            self._changed("reference", source)
 
     def set_position(
         self, latitude_deg: float, longitude_deg: float, altitude_m: float, source: str
